@@ -1,0 +1,87 @@
+"""The discrete grasp and action spaces.
+
+A grasp gives every contact link one of its options (0 = "not in contact"); with the paper's counts
+(3, 3, 2, 4, 2, 2) there are 288 grasps. An action sets one link to one of its options, so there are 16 actions
+(the sum); an action that sets a link to the option it already has leaves the grasp unchanged ("redundant").
+Grasps are numbered in mixed radix, the first link varying slowest; actions link by link, option by option.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gsp_jax import hand as hand_lib
+
+LINK_ABBREV = {"thumb": "T", "index": "I", "middle": "M", "ring": "R"}
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class GraspSpace:
+    n_options: tuple[int, ...]  # (L,) options per link, "not in contact" included
+    link_names: tuple[str, ...]
+
+    @functools.cached_property
+    def radix(self) -> np.ndarray:  # (L,) place value of each link's option in the grasp index
+        return np.cumprod((self.n_options[1:] + (1,))[::-1])[::-1].astype(np.int32)
+
+    @property
+    def n_links(self) -> int:
+        return len(self.n_options)
+
+    @property
+    def n_grasps(self) -> int:
+        return int(np.prod(self.n_options))
+
+    @property
+    def n_actions(self) -> int:
+        return int(sum(self.n_options))
+
+    @functools.cached_property
+    def action_link(self) -> np.ndarray:  # (A,) link set by each action
+        return np.repeat(np.arange(self.n_links), self.n_options).astype(np.int32)
+
+    @functools.cached_property
+    def action_option(self) -> np.ndarray:  # (A,) option the action sets
+        return np.concatenate([np.arange(n) for n in self.n_options]).astype(np.int32)
+
+    def decode(self, grasp: jax.Array) -> jax.Array:
+        """Grasp index (...) -> per-link options (..., L)."""
+        grasp = jnp.asarray(grasp, jnp.int32)
+        return (grasp[..., None] // self.radix) % np.asarray(self.n_options, np.int32)
+
+    def encode(self, options) -> jax.Array:
+        """Per-link options (..., L) -> grasp index (...)."""
+        return jnp.sum(jnp.asarray(options, jnp.int32) * self.radix, axis=-1)
+
+    def apply(self, grasp: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """(next grasp, redundant?) after `action` from `grasp`; both broadcast."""
+        grasp, action = jnp.asarray(grasp, jnp.int32), jnp.asarray(action, jnp.int32)
+        link, opt = self.action_link[action], self.action_option[action]
+        current = (grasp // self.radix[link]) % np.asarray(self.n_options, np.int32)[link]
+        return grasp + (opt - current) * self.radix[link], opt == current
+
+    def label(self, grasp: int) -> str:
+        """Readable grasp, one token per link: e.g. 'T1 I1 . M2 . .' (letter = finger, digit = option)."""
+        opts = np.asarray(self.decode(grasp))
+        return " ".join(
+            f"{LINK_ABBREV.get(n.split('_')[0], n[0].upper())}{'m' if n.endswith('medial') else ''}{o}" if o else "."
+            for n, o in zip(self.link_names, opts)
+        )
+
+    def action_label(self, action: int) -> str:
+        link, opt = self.link_names[self.action_link[action]], self.action_option[action]
+        return f"{link}->{'off' if opt == 0 else opt}"
+
+
+def space_of(hand: hand_lib.HandModel) -> GraspSpace:
+    return GraspSpace(n_options=tuple(hand.n_options), link_names=hand.link_names)
+
+
+@functools.lru_cache(maxsize=1)
+def default_space() -> GraspSpace:
+    """The grasp space of `models/scene.xml`."""
+    return space_of(hand_lib.load())

@@ -1,0 +1,193 @@
+"""Collision-avoiding inverse kinematics of a grasp, in pure JAX.
+
+Given the contact links that should touch the tool and where (`targets`), find joint angles by damped
+Gauss-Newton (Levenberg-Marquardt) descent on a sum of squared residuals, from the model's fixed start
+configuration, for a fixed number of iterations (static shapes; `vmap` runs every problem in lock step):
+
+* active links: distance from the tool's contact point to the link's contact segment, minus the link radius
+  (the link's surface passes through the contact point; with the collision terms below this puts a fingertip
+  on a face along its normal, and lets a phalanx touch a face anywhere along its length),
+* every hand sphere against the tool: penetration, and for spheres of inactive links a clearance margin
+  (inactive links stay clear of the tool),
+* every hand sphere against the table (z = 0), and sphere pairs of different fingers (self-collision),
+* a small pull towards the start configuration (keeps the solution unique).
+
+Joint limits are enforced by projection after every step. Why Gauss-Newton rather than plain gradient descent:
+the residuals mix millimetre-scale targets with joint angles of very different lever arms; a 16x16 normal-
+equation solve per iteration makes the step scale-free, reaching sub-millimetre error in a few tens of
+iterations where plain gradient descent needs hundreds. The adaptive damping accepts only steps that lower the
+cost, so the iteration is monotone.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from gsp_jax import kinematics
+from gsp_jax.hand import HandModel
+
+
+@dataclasses.dataclass(frozen=True)
+class IKConfig:
+    iterations: int = 40  # fixed Gauss-Newton iterations
+    clearance: float = 0.004  # inactive links keep this far from the tool [m]
+    table_margin: float = 0.001  # every sphere keeps this far above the table [m]
+    self_margin: float = 0.001  # extra gap between spheres of different fingers [m]
+    w_collision: float = 3.0  # weight of the collision residuals relative to the target residuals
+    w_regular: float = 3e-3  # weight [m/rad] of the pull towards the start configuration
+    damping0: float = 1e-4  # initial Levenberg-Marquardt damping [m^2]
+    collision_tol: float = 0.002  # penetration [m] beyond which the result counts as a collision
+
+
+@struct.dataclass
+class IKResult:
+    """A solved grasp. Shapes for one problem (vmap adds leading axes)."""
+
+    q: jax.Array  # (J,) joint angles [rad]
+    points: jax.Array  # (L, 3) achieved contact point on each link's surface, nearest the target [m]
+    link_error: jax.Array  # (L,) |link point - tool point| per link; 0 for inactive links [m]
+    error: jax.Array  # () max link_error over active links (0 if none) [m]
+    penetration: jax.Array  # () worst penetration: tool, table or self [m]
+    collision: jax.Array  # () bool, penetration > collision_tol
+
+
+def box_sdf(points: jax.Array, tool_pos: jax.Array, tool_mat: jax.Array, hand: HandModel) -> jax.Array:
+    """Signed distance (N,) from world points (N, 3) to the tool's union of boxes (negative inside)."""
+    local = (points - tool_pos) @ tool_mat  # (N, 3) in the tool frame
+    rel = jnp.einsum("nbj,bji->nbi", local[:, None, :] - hand.tool_box_pos[None], hand.tool_box_mat)
+    d = jnp.abs(rel) - hand.tool_box_half  # (N, NB, 3)
+    outside = jnp.sqrt(jnp.sum(jnp.maximum(d, 0.0) ** 2, -1) + 1e-12)
+    inside = jnp.minimum(jnp.max(d, -1), 0.0)
+    return jnp.min(outside + inside, axis=-1)
+
+
+def _sphere_sdf(hand: HandModel, c: jax.Array, tool_pos, tool_mat) -> jax.Array:
+    return box_sdf(c[None], tool_pos, tool_mat, hand)[0]
+
+
+def _distances(hand: HandModel, q, tool_pos, tool_mat):
+    """Surface gaps of every sphere to tool (S,), to table (S,), and of self pairs (P,) [m]."""
+    c = kinematics.sphere_centers(hand, q)
+    r = hand.sphere_radius
+    tool = box_sdf(c, tool_pos, tool_mat, hand) - r
+    table = c[:, 2] - r
+    i, j = hand.self_pairs[:, 0], hand.self_pairs[:, 1]
+    self_gap = jnp.sqrt(jnp.sum((c[i] - c[j]) ** 2, -1) + 1e-12) - r[i] - r[j]
+    return tool, table, self_gap
+
+
+def _link_gaps(hand: HandModel, q, targets):
+    """Signed gap (L,) between each link's surface and its tool contact point, and the link's nearest point."""
+    axis_pt = kinematics.closest_on_links(hand, q, targets)
+    d = targets - axis_pt
+    dist = jnp.sqrt(jnp.sum(d**2, -1) + 1e-12)
+    surface = axis_pt + d * (hand.link_radius / dist)[:, None]
+    return dist - hand.link_radius, surface
+
+
+def _hinge(weight, margin, gap, grad):
+    """Residual weight * max(margin - gap, 0) (N,) and its Jacobian (N, J) from d(gap)/dq (N, J)."""
+    on = margin - gap > 0
+    return weight * jnp.where(on, margin - gap, 0.0), -weight * jnp.where(on[:, None], grad, 0.0)
+
+
+def residuals_and_jacobian(hand: HandModel, cfg: IKConfig, q, active, targets, tool_pos, tool_mat):
+    """The IK residual vector (R,) and its Jacobian (R, J), the latter in closed form from the chain's joint
+    axes (each row is a contact normal or surface gradient times a point Jacobian). Rows: link gaps (L),
+    sphere-tool (S), sphere-table (S), self pairs (P), regularisation (J)."""
+    pos, mat, axes, anchors = kinematics.chain(hand, q)
+    # contact links: distance of the tool point to the link's segment, minus the radius
+    centre = pos[hand.link_body] + jnp.einsum("lij,lj->li", mat[hand.link_body], hand.link_site.astype(q.dtype))
+    axis = jnp.einsum("lij,lj->li", mat[hand.link_body], hand.link_axis.astype(q.dtype))
+    sc = jnp.clip(jnp.sum((targets - centre) * axis, -1), -hand.link_half, hand.link_half)
+    axis_pt = centre + sc[:, None] * axis
+    d = targets - axis_pt
+    dist = jnp.sqrt(jnp.sum(d**2, -1) + 1e-12)
+    j_axis_pt = kinematics.point_jacobian(hand, axes, anchors, hand.link_body, axis_pt)  # (L, 3, J)
+    r_link = (dist - hand.link_radius) * active
+    j_link = -jnp.einsum("li,lij->lj", d / dist[:, None], j_axis_pt) * active[:, None]
+    # spheres against tool, table and each other
+    c = pos[hand.sphere_body] + jnp.einsum("nij,nj->ni", mat[hand.sphere_body], hand.sphere_pos.astype(q.dtype))
+    jc = kinematics.point_jacobian(hand, axes, anchors, hand.sphere_body, c)  # (S, 3, J)
+    sdf, sdf_grad = jax.vmap(jax.value_and_grad(lambda p: _sphere_sdf(hand, p, tool_pos, tool_mat)))(c)
+    sphere_active = jnp.where(hand.sphere_link >= 0, active[jnp.maximum(hand.sphere_link, 0)], False)
+    margin = jnp.where(sphere_active, 0.0, cfg.clearance)
+    r_tool, j_tool = _hinge(
+        cfg.w_collision, margin, sdf - hand.sphere_radius, jnp.einsum("ni,nij->nj", sdf_grad, jc)
+    )
+    r_table, j_table = _hinge(cfg.w_collision, cfg.table_margin, c[:, 2] - hand.sphere_radius, jc[:, 2, :])
+    i, k = hand.self_pairs[:, 0], hand.self_pairs[:, 1]
+    diff = c[i] - c[k]
+    pd = jnp.sqrt(jnp.sum(diff**2, -1) + 1e-12)
+    r_self, j_self = _hinge(
+        cfg.w_collision,
+        cfg.self_margin,
+        pd - hand.sphere_radius[i] - hand.sphere_radius[k],
+        jnp.einsum("pi,pij->pj", diff / pd[:, None], jc[i] - jc[k]),
+    )
+    n = hand.n_joints
+    r_reg = cfg.w_regular * (q - hand.q_start)
+    j_reg = cfg.w_regular * jnp.eye(n, dtype=q.dtype)
+    return (
+        jnp.concatenate([r_link, r_tool, r_table, r_self, r_reg]),
+        jnp.concatenate([j_link, j_tool, j_table, j_self, j_reg]),
+    )
+
+
+def solve(
+    hand: HandModel,
+    active: jax.Array,
+    targets: jax.Array,
+    tool_pos: jax.Array,
+    tool_mat: jax.Array,
+    cfg: IKConfig = IKConfig(),
+) -> IKResult:
+    """IK for one grasp: active (L,) bool, targets (L, 3) contact points on the tool [m], tool pose (3,), (3, 3).
+
+    Differentiable (the iterations are a `lax.scan`); `vmap` it over grasps, poses and episodes.
+    """
+    dtype = targets.dtype
+    active = active.astype(bool)
+    lo, hi = jnp.asarray(hand.joint_range[:, 0], dtype), jnp.asarray(hand.joint_range[:, 1], dtype)
+    res_jac = lambda q: residuals_and_jacobian(hand, cfg, q, active, targets, tool_pos, tool_mat)  # noqa: E731
+    eye = jnp.eye(hand.n_joints, dtype=dtype)
+
+    def iteration(carry, _):
+        q, r, jac, lam = carry
+        step = jnp.linalg.solve(jac.T @ jac + lam * eye, -jac.T @ r)
+        q_new = jnp.clip(q + step, lo, hi)
+        r_new, jac_new = res_jac(q_new)
+        better = jnp.sum(r_new**2) < jnp.sum(r**2)
+        keep = lambda new, old: jnp.where(better, new, old)  # noqa: E731
+        lam = jnp.clip(jnp.where(better, lam * 0.3, lam * 4.0), 1e-9, 1e2)
+        return (keep(q_new, q), keep(r_new, r), keep(jac_new, jac), lam), None
+
+    q0 = jnp.asarray(hand.q_start, dtype)
+    init = (q0, *res_jac(q0), jnp.asarray(cfg.damping0, dtype))
+    (q, _, _, _), _ = jax.lax.scan(iteration, init, None, length=cfg.iterations)
+
+    gap, pts = _link_gaps(hand, q, targets)
+    link_error = jnp.where(active, jnp.abs(gap), 0.0)
+    tool, table, self_gap = _distances(hand, q, tool_pos, tool_mat)
+    penetration = -jnp.min(jnp.concatenate([tool, table, self_gap]))
+    return IKResult(
+        q=q,
+        points=pts,
+        link_error=link_error,
+        error=jnp.max(link_error),
+        penetration=penetration,
+        collision=penetration > cfg.collision_tol,
+    )
+
+
+def grasp_targets(hand: HandModel, options: jax.Array, tool_pos: jax.Array, tool_mat: jax.Array):
+    """A grasp's contacts in the world frame: options (L,) int -> active (L,) bool, contact points on the tool
+    (L, 3) and inward contact normals (L, 3)."""
+    li = np.arange(hand.n_links)
+    p_local = jnp.asarray(hand.option_pos, tool_pos.dtype)[li, options]
+    n_local = jnp.asarray(hand.option_normal, tool_pos.dtype)[li, options]
+    return options > 0, tool_pos + p_local @ tool_mat.T, n_local @ tool_mat.T

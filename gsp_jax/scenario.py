@@ -1,0 +1,257 @@
+"""Episodes: the planner's input, the paper's episode sets, and their JSON files.
+
+An `Episode` is a pytree of arrays, so a batch of episodes is one `Episode` whose leaves carry a leading axis
+(`stack`), and every kernel can `vmap` over it. Units: metres, seconds, kilograms, newtons.
+"""
+from __future__ import annotations
+
+import json
+import pathlib
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+N_WAYPOINTS = 16  # T: waypoints = decision steps of an episode
+DT = 0.25  # nominal time between waypoints [s]
+M0 = 0.35  # nominal tool mass [kg]
+INERTIA0 = (2.5e-5, 1.1e-3, 1.12e-3)  # nominal principal inertia about the centre of mass [kg m^2]
+FRICTION0 = 0.8  # nominal finger-tool Coulomb friction coefficient
+Z_START, Z_END = 0.014, 0.06  # nominal start and end heights of the tool frame [m]
+TORQUE0 = 1.0  # magnitude of the final external torque about +z through the centre of mass [N m]
+HEIGHT_SHIFTS_MM = (-6, -4, -2, 2, 4, 6, 8)
+MASS_FACTORS = (0.5, 1.0, 1.5, 2.0)
+COM_Y_OFFSETS_CM = (-2, -1, 0, 1, 2)
+# Reach of the hand in the table frame: every waypoint must lie in this box [m].
+WORKSPACE_LO = (-0.05, -0.05, 0.005)
+WORKSPACE_HI = (0.05, 0.05, 0.10)
+# Default start grasp (options per contact link, model order): thumb, index and middle distal on their first
+# candidate contacts -- a three-fingertip grasp realised at waypoint 0.
+START_OPTIONS = (1, 1, 0, 1, 0, 0)
+
+
+@struct.dataclass
+class Episode:
+    """One episode's input. Shapes for a single episode; a batch adds a leading axis to every leaf."""
+
+    waypoints: jax.Array  # (T, 3) desired tool position per waypoint, table frame [m]
+    quats: jax.Array  # (T, 4) desired tool orientation per waypoint (w, x, y, z)
+    dt: jax.Array  # () time between waypoints [s]
+    w_ext: jax.Array  # (6,) external wrench held at the final pose: force [N], torque about the CoM [N m]
+    mass: jax.Array  # () tool mass [kg]
+    inertia: jax.Array  # (3,) principal moments of inertia about the CoM [kg m^2]
+    com: jax.Array  # (3,) centre-of-mass offset in the tool frame [m]
+    friction: jax.Array  # () finger-tool Coulomb friction coefficient
+    start_grasp: jax.Array  # () int32, grasp index realised at waypoint 0
+
+    @property
+    def n_steps(self) -> int:
+        return self.waypoints.shape[-2]
+
+
+def min_jerk(z0: float, z1: float, n: int = N_WAYPOINTS) -> np.ndarray:
+    """Heights (n,) on a minimum-jerk profile from z0 to z1 (zero velocity and acceleration at both ends)."""
+    s = np.linspace(0.0, 1.0, n)
+    return z0 + (z1 - z0) * (10 * s**3 - 15 * s**4 + 6 * s**5)
+
+
+def make_episode(
+    shift_mm: float = 0.0,
+    torque: float = TORQUE0,
+    mass_factor: float = 1.0,
+    com_y_cm: float = 0.0,
+    friction: float = FRICTION0,
+    start_grasp: int | None = None,
+) -> Episode:
+    """The nominal lift with the paper's variations: start and end heights shifted, torque, mass, CoM y-offset."""
+    from gsp_jax import grasps  # local: grasps reads the model file
+
+    dz = shift_mm * 1e-3
+    z = min_jerk(Z_START + dz, Z_END + dz)
+    waypoints = np.stack([np.zeros_like(z), np.zeros_like(z), z], -1)
+    g0 = grasps.default_space().encode(START_OPTIONS) if start_grasp is None else start_grasp
+    return Episode(
+        waypoints=jnp.asarray(waypoints, jnp.float32),
+        quats=jnp.tile(jnp.asarray([1.0, 0.0, 0.0, 0.0], jnp.float32), (N_WAYPOINTS, 1)),
+        dt=jnp.asarray(DT, jnp.float32),
+        w_ext=jnp.asarray([0.0, 0.0, 0.0, 0.0, 0.0, torque], jnp.float32),
+        mass=jnp.asarray(M0 * mass_factor, jnp.float32),
+        inertia=jnp.asarray(np.asarray(INERTIA0) * mass_factor, jnp.float32),
+        com=jnp.asarray([0.0, com_y_cm * 1e-2, 0.0], jnp.float32),
+        friction=jnp.asarray(friction, jnp.float32),
+        start_grasp=jnp.asarray(g0, jnp.int32),
+    )
+
+
+def _fmt_mm(mm: float) -> str:
+    return f"{mm:+d}mm" if float(mm).is_integer() else f"{mm:+g}mm"
+
+
+def nominal() -> dict[str, Episode]:
+    return {"nominal": make_episode()}
+
+
+def training_set() -> dict[str, Episode]:
+    """The paper's 9 training episodes: nominal (+1 N m), nominal with -1 N m, and the seven height shifts with
+    -1 N m for negative shifts and +1 N m for positive ones."""
+    eps = {"nominal": make_episode(), "nominal_-1Nm": make_episode(torque=-TORQUE0)}
+    for s in HEIGHT_SHIFTS_MM:
+        tau = -TORQUE0 if s < 0 else TORQUE0
+        eps[f"shift{_fmt_mm(s)}_{tau:+g}Nm"] = make_episode(shift_mm=s, torque=tau)
+    return eps
+
+
+def eval_set_a() -> dict[str, Episode]:
+    """Evaluation set A, path deviation (7): the height shifts with the torque sign flipped."""
+    eps = {}
+    for s in HEIGHT_SHIFTS_MM:
+        tau = TORQUE0 if s < 0 else -TORQUE0
+        eps[f"shift{_fmt_mm(s)}_{tau:+g}Nm"] = make_episode(shift_mm=s, torque=tau)
+    return eps
+
+
+def eval_set_b() -> dict[str, Episode]:
+    """Evaluation set B, mass and centre of mass (20): mass x {0.5..2} m0 crossed with CoM y-offset -2..+2 cm."""
+    return {
+        f"mass{f:g}m0_comy{c:+d}cm": make_episode(mass_factor=f, com_y_cm=c)
+        for f in MASS_FACTORS
+        for c in COM_Y_OFFSETS_CM
+    }
+
+
+SETS = {"nominal": nominal, "train": training_set, "evalA": eval_set_a, "evalB": eval_set_b}
+
+
+def episode_set(name: str) -> dict[str, Episode]:
+    """A named set: nominal, train, evalA, evalB, eval (A then B) or all (train then eval)."""
+    if name == "eval":
+        return {**eval_set_a(), **eval_set_b()}
+    if name == "all":
+        return {**training_set(), **eval_set_a(), **eval_set_b()}
+    if name not in SETS:
+        raise ValueError(f"episode set: unknown name {name!r}; choose from {sorted([*SETS, 'eval', 'all'])}")
+    return SETS[name]()
+
+
+def stack(episodes: Sequence[Episode]) -> Episode:
+    """A batch (leading axis) from a list of single episodes."""
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *episodes)
+
+
+def unstack(batch: Episode) -> list[Episode]:
+    n = batch.mass.shape[0]
+    return [jax.tree.map(lambda x: x[i], batch) for i in range(n)]
+
+
+# ----------------------------------------------------------------------------------------------- files + checks
+
+_FIELDS = {  # name -> (shape, per-waypoint?)
+    "waypoints": ((None, 3), True),
+    "quats": ((None, 4), True),
+    "dt": ((), False),
+    "w_ext": ((6,), False),
+    "mass": ((), False),
+    "inertia": ((3,), False),
+    "com": ((3,), False),
+    "friction": ((), False),
+    "start_grasp": ((), False),
+}
+
+
+class EpisodeError(ValueError):
+    """An episode's input is invalid; the message names the field and the value."""
+
+
+def validate(ep: Episode, name: str = "episode", n_grasps: int | None = None) -> Episode:
+    """Check one episode; raise `EpisodeError` naming the field and value on the first problem found."""
+    t = None
+    for field, (shape, per_wp) in _FIELDS.items():
+        x = np.asarray(getattr(ep, field))
+        want = tuple(t if d is None else d for d in shape) if per_wp and t is not None else shape
+        if per_wp and t is None:
+            if x.ndim != 2 or x.shape[1] != shape[1] or x.shape[0] < 2:
+                raise EpisodeError(f"{name}.{field}: shape {x.shape}, expected (T >= 2, {shape[1]})")
+            t = x.shape[0]
+        elif x.shape != want:
+            raise EpisodeError(f"{name}.{field}: shape {x.shape}, expected {want}")
+        if not np.all(np.isfinite(x)):
+            bad = x[~np.isfinite(x)].flat[0]
+            raise EpisodeError(f"{name}.{field}: contains {bad} (values must be finite)")
+    if float(ep.dt) <= 0:
+        raise EpisodeError(f"{name}.dt: {float(ep.dt)} (must be > 0)")
+    if float(ep.mass) <= 0:
+        raise EpisodeError(f"{name}.mass: {float(ep.mass)} (must be > 0)")
+    if np.any(np.asarray(ep.inertia) <= 0):
+        raise EpisodeError(f"{name}.inertia: {np.asarray(ep.inertia).tolist()} (must be > 0)")
+    if float(ep.friction) <= 0:
+        raise EpisodeError(f"{name}.friction: {float(ep.friction)} (must be > 0)")
+    norms = np.linalg.norm(np.asarray(ep.quats), axis=-1)
+    if np.any(np.abs(norms - 1) > 1e-3):
+        i = int(np.argmax(np.abs(norms - 1)))
+        raise EpisodeError(f"{name}.quats[{i}]: norm {norms[i]:.4f} (must be a unit quaternion)")
+    wp = np.asarray(ep.waypoints)
+    lo, hi = np.asarray(WORKSPACE_LO), np.asarray(WORKSPACE_HI)
+    out = np.any((wp < lo) | (wp > hi), axis=-1)
+    if np.any(out):
+        i = int(np.argmax(out))
+        raise EpisodeError(
+            f"{name}.waypoints[{i}]: {wp[i].tolist()} is out of the hand's reach (table frame box {lo.tolist()} .. {hi.tolist()} m)"
+        )
+    g = int(ep.start_grasp)
+    if g < 0 or (n_grasps is not None and g >= n_grasps):
+        raise EpisodeError(f"{name}.start_grasp: {g} (must be in 0..{(n_grasps or 1) - 1})")
+    return ep
+
+
+def to_dict(ep: Episode) -> dict:
+    return {f: np.asarray(getattr(ep, f)).tolist() for f in _FIELDS}
+
+
+def from_dict(d: dict, name: str = "episode") -> Episode:
+    missing = [f for f in _FIELDS if f not in d]
+    if missing:
+        raise EpisodeError(f"{name}.{missing[0]}: missing")
+    unknown = sorted(set(d) - set(_FIELDS))
+    if unknown:
+        raise EpisodeError(f"{name}.{unknown[0]}: unknown field")
+    try:
+        arrays = {
+            f: jnp.asarray(d[f], jnp.int32 if f == "start_grasp" else jnp.float32) for f in _FIELDS
+        }
+    except (TypeError, ValueError) as e:
+        bad = next(f for f in _FIELDS if not _is_numeric(d[f]))
+        raise EpisodeError(f"{name}.{bad}: {d[bad]!r} is not numeric") from e
+    if float(np.asarray(d["start_grasp"])) != int(np.asarray(d["start_grasp"])):
+        raise EpisodeError(f"{name}.start_grasp: {d['start_grasp']!r} (must be an integer)")
+    return Episode(**arrays)
+
+
+def _is_numeric(x) -> bool:
+    try:
+        np.asarray(x, dtype=np.float64)
+        return True
+    except (TypeError, ValueError):
+        return False
+
+
+def save(path: str | pathlib.Path, episodes: dict[str, Episode]) -> None:
+    """Write named episodes to a human-readable JSON file."""
+    doc = {"format": "gsp_jax.episodes/1", "episodes": {k: to_dict(v) for k, v in episodes.items()}}
+    pathlib.Path(path).write_text(json.dumps(doc, indent=1))
+
+
+def load(path: str | pathlib.Path) -> dict[str, Episode]:
+    """Read and validate named episodes from a JSON file written by `save` (or by hand)."""
+    from gsp_jax import grasps
+
+    try:
+        doc = json.loads(pathlib.Path(path).read_text())
+    except json.JSONDecodeError as e:
+        raise EpisodeError(f"{path}: not valid JSON ({e})") from e
+    if not isinstance(doc, dict) or not isinstance(doc.get("episodes"), dict):
+        raise EpisodeError(f"{path}: expected an object with an 'episodes' object")
+    n = grasps.default_space().n_grasps
+    return {k: validate(from_dict(v, k), k, n_grasps=n) for k, v in doc["episodes"].items()}
+

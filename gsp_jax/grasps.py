@@ -60,9 +60,10 @@ class GraspSpace:
     def apply(self, grasp: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array]:
         """(next grasp, redundant?) after `action` from `grasp`; both broadcast."""
         grasp, action = jnp.asarray(grasp, jnp.int32), jnp.asarray(action, jnp.int32)
-        link, opt = self.action_link[action], self.action_option[action]
-        current = (grasp // self.radix[link]) % np.asarray(self.n_options, np.int32)[link]
-        return grasp + (opt - current) * self.radix[link], opt == current
+        link, opt = jnp.asarray(self.action_link)[action], jnp.asarray(self.action_option)[action]
+        place = jnp.asarray(self.radix)[link]
+        current = (grasp // place) % jnp.asarray(self.n_options, jnp.int32)[link]
+        return grasp + (opt - current) * place, opt == current
 
     def label(self, grasp: int) -> str:
         """Readable grasp, one token per link: e.g. 'T1 I1 . M2 . .' (letter = finger, digit = option)."""

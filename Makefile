@@ -1,0 +1,36 @@
+# Two commands set everything up on a fresh machine:
+#   make demo   creates .venv, installs the pinned set, runs a small real end-to-end job on CPU
+#   make test   creates .venv if needed, runs the tests on CPU
+# Needs CPython >= 3.12 (jax 0.11.2); set PYTHON=/path/to/python3.12 to choose one.
+
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+# First Python >= 3.12 found: $(PYTHON), python3.12, python3.13, pyenv's 3.12.x/3.13.x, python3.
+PYTHON ?= $(shell for p in python3.12 python3.13 $$HOME/.pyenv/versions/3.12*/bin/python $$HOME/.pyenv/versions/3.13*/bin/python python3; do \
+	  if command -v $$p >/dev/null 2>&1 && $$p -c 'import sys; sys.exit(sys.version_info < (3, 12))' >/dev/null 2>&1; then command -v $$p; break; fi; done)
+
+.PHONY: demo test bench venv clean
+
+venv: $(STAMP)
+
+$(STAMP): pyproject.toml requirements.lock
+	@if [ -z "$(PYTHON)" ]; then echo "error: no Python >= 3.12 found (jax 0.11.2 needs it). Install CPython 3.12 or set PYTHON=/path/to/python3.12" >&2; exit 1; fi
+	@echo "using $(PYTHON) ($$($(PYTHON) --version))"
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -c requirements.lock -e ".[test]"
+	@touch $(STAMP)
+
+demo: $(STAMP)
+	JAX_PLATFORMS=cpu $(PY) -m experiments surrogate --episode nominal
+
+test: $(STAMP)
+	JAX_PLATFORMS=cpu $(PY) -m pytest -q tests
+
+bench: $(STAMP)
+	$(PY) -m experiments bench-surrogate
+
+clean:
+	rm -rf $(VENV) results .pytest_cache .hypothesis

@@ -1,0 +1,26 @@
+"""Entry points: `python -m experiments <command> [options]`; `python -m experiments --help` lists them."""
+from __future__ import annotations
+
+import argparse
+import importlib
+
+COMMANDS = {  # command -> (module, one-line help)
+    "surrogate": ("experiments.surrogate_demo", "reward terms of a few meaningful grasps on one episode"),
+    "bench-surrogate": ("experiments.bench_surrogate", "surrogate steps/s: vmapped vs one step at a time"),
+}
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(prog="python -m experiments", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+    modules = {}
+    for name, (module, help_) in COMMANDS.items():
+        mod = importlib.import_module(module)
+        modules[name] = mod
+        mod.add_arguments(sub.add_parser(name, help=help_, description=mod.__doc__))
+    args = parser.parse_args(argv)
+    modules[args.command].main(args)
+
+
+if __name__ == "__main__":
+    main()

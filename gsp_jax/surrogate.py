@@ -1,0 +1,231 @@
+"""The surrogate environment: a pure-JAX model of one grasp-sequence decision step.
+
+    state = env.reset(episode)                      # grasp realised at waypoint 0
+    state, reward, done = env.step(state, action)   # jit- and vmap-able over states, actions, episodes
+
+A step at waypoint t applies the action (set one contact link to one option) to the grasp, then scores the new
+grasp g' with the paper's shaped reward (Sec. IV-B):
+
+  (a) wrench_move  wrench error against gravity and the desired tool acceleration, g' realised by IK at the
+                   *current* (observed) tool pose,
+  (b) ik_next      IK error of g' realised at the *next* desired pose (waypoint t+1),
+  (c) wrench_hold  wrench error against gravity with the contacts of that second IK,
+  (d) wrench_ext   at the last step only: wrench error against gravity plus the external wrench w_ext,
+  (e) redundant    1 if the action left the grasp unchanged.
+
+reward = -(weighted sum), or R_MIN when either IK collides (tool, table, self) or any wrench term leaves more
+than `fall_unmet` of its wrench unmet (the tool would fall); R_MIN ends the episode. Every IK starts from the
+model's fixed start configuration, so the next joint state is the IK result at the next desired pose (the
+paper's transition). Rotational inertia is not modelled here (the paper's trajectories are pure
+translations): the contacts must supply m (a - g) and zero torque about the CoM while moving; the MJX physics
+check carries the full rigid-body dynamics.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from gsp_jax import grasps, ik, kinematics, wrench
+from gsp_jax import hand as hand_lib
+from gsp_jax.scenario import M0, Episode
+
+
+@dataclasses.dataclass(frozen=True)
+class RewardConfig:
+    """Weights and thresholds of the shaped reward (one place for each)."""
+
+    w_wrench_move: float = 1.0  # (a)
+    w_ik: float = 1.0  # (b), per `ik_scale` of IK error
+    w_wrench_hold: float = 1.0  # (c)
+    w_wrench_ext: float = 1.0  # (d)
+    w_redundant: float = 0.05  # (e)
+    ik_scale: float = 0.01  # [m]: an IK error of 1 cm costs w_ik
+    wrench_scale: float = (M0 * 9.81) ** 2  # [N^2]: wrench errors are divided by (m0 g)^2
+    contact_tol: float = 0.005  # [m]: a link within this of its contact point carries force
+    fall_unmet: float = 0.3  # unmet fraction of a required wrench above which the tool falls
+    max_step_cost: float = 10.0  # cap on a non-failing step's cost ...
+    r_min: float = -200.0  # ... so that R_MIN is worse than any continuation: r_min < -max_step_cost * T
+
+
+@struct.dataclass
+class RewardTerms:
+    """The reward of one step, term by term (unweighted, normalised as in `RewardConfig`)."""
+
+    wrench_move: jax.Array  # () (a) / wrench_scale
+    ik_next: jax.Array  # () (b) / ik_scale
+    wrench_hold: jax.Array  # () (c) / wrench_scale
+    wrench_ext: jax.Array  # () (d) / wrench_scale; 0 before the last step
+    redundant: jax.Array  # () (e) 0 or 1
+    unmet: jax.Array  # (3,) unmet wrench fractions of (a), (c), (d)
+    collision: jax.Array  # () bool
+    fall: jax.Array  # () bool
+    reward: jax.Array  # () the step's reward
+
+    @classmethod
+    def zeros(cls) -> "RewardTerms":
+        z = jnp.zeros((), jnp.float32)
+        return cls(z, z, z, z, z, jnp.zeros(3, jnp.float32), jnp.array(False), jnp.array(False), z)
+
+
+@struct.dataclass
+class State:
+    """Continuous surrogate state plus the episode input. Shapes for one state (vmap adds axes)."""
+
+    grasp: jax.Array  # () int32, the reference grasp in force
+    t: jax.Array  # () int32, index of the current waypoint (T when the episode is over)
+    q: jax.Array  # (J,) hand joint angles [rad]
+    tool_pos: jax.Array  # (3,) observed tool position [m]
+    tool_quat: jax.Array  # (4,) observed tool orientation (w, x, y, z)
+    tool_vel: jax.Array  # (6,) observed tool linear [m/s] and angular [rad/s] velocity
+    episode: Episode
+    done: jax.Array  # () bool
+    terms: RewardTerms  # terms of the step that led here (zeros after reset)
+
+
+@struct.dataclass
+class Contacts:
+    """A grasp realised by IK at a tool pose."""
+
+    ik: ik.IKResult
+    points: jax.Array  # (L, 3) contact points on the tool, world [m]
+    normals: jax.Array  # (L, 3) inward normals, world
+    realised: jax.Array  # (L,) bool, active and within contact_tol: these links carry force
+
+
+class Surrogate:
+    """The surrogate model of a hand + tool scene. Stateless: all methods are pure functions of their inputs."""
+
+    def __init__(
+        self,
+        hand: hand_lib.HandModel | None = None,
+        reward: RewardConfig = RewardConfig(),
+        ik_config: ik.IKConfig = ik.IKConfig(),
+        wrench_config: wrench.WrenchConfig = wrench.WrenchConfig(),
+    ):
+        self.hand = hand or hand_lib.load()
+        self.space = grasps.space_of(self.hand)
+        self.reward_config, self.ik_config, self.wrench_config = reward, ik_config, wrench_config
+        self.gravity = jnp.asarray(self.hand.gravity, jnp.float32)
+
+    @property
+    def n_actions(self) -> int:
+        return self.space.n_actions
+
+    # ------------------------------------------------------------------------------------------- kernels
+    def realise(self, grasp: jax.Array, tool_pos: jax.Array, tool_quat: jax.Array) -> Contacts:
+        """IK of `grasp` (int) at a tool pose (3,), (4,)."""
+        mat = kinematics.quat_to_mat(tool_quat)
+        active, points, normals = ik.grasp_targets(self.hand, self.space.decode(grasp), tool_pos, mat)
+        res = ik.solve(self.hand, active, points, tool_pos, mat, self.ik_config)
+        realised = active & (res.link_error < self.reward_config.contact_tol)
+        return Contacts(ik=res, points=points, normals=normals, realised=realised)
+
+    def wrench_error(
+        self, contacts: Contacts, episode: Episode, tool_pos, tool_quat, required: jax.Array
+    ) -> wrench.WrenchResult:
+        """Wrench solve for `required` (6,) = (force, torque about the CoM) that the contacts must supply."""
+        com = tool_pos + kinematics.quat_to_mat(tool_quat) @ episode.com
+        return wrench.solve(
+            contacts.points, contacts.normals, contacts.realised, episode.friction, required, com, self.wrench_config
+        )
+
+    def score(
+        self, episode: Episode, t: jax.Array, tool_pos, tool_quat, now: Contacts, nxt: Contacts, redundant
+    ) -> RewardTerms:
+        """Reward terms of moving, with new grasp contacts `now` (at the current pose) and `nxt` (at waypoint
+        t+1), from waypoint t. Depends on the previous grasp only through `redundant`."""
+        cfg = self.reward_config
+        wp, dt, m = episode.waypoints, episode.dt, episode.mass
+        last = episode.n_steps - 1
+        t_next = jnp.minimum(t + 1, last)
+        acc = (wp[t_next] - 2 * wp[jnp.minimum(t, last)] + wp[jnp.maximum(t - 1, 0)]) / dt**2
+        zero3 = jnp.zeros(3, jnp.float32)
+        move = self.wrench_error(now, episode, tool_pos, tool_quat, jnp.concatenate([m * (acc - self.gravity), zero3]))
+        pos_n, quat_n = wp[t_next], episode.quats[t_next]
+        hold = self.wrench_error(nxt, episode, pos_n, quat_n, jnp.concatenate([-m * self.gravity, zero3]))
+        ext = self.wrench_error(
+            nxt, episode, pos_n, quat_n, jnp.concatenate([-m * self.gravity, zero3]) - episode.w_ext
+        )
+        is_last = t >= last
+        unmet = jnp.stack([move.unmet, hold.unmet, jnp.where(is_last, ext.unmet, 0.0)])
+        terms = dict(
+            wrench_move=move.error / cfg.wrench_scale,
+            ik_next=nxt.ik.error / cfg.ik_scale,
+            wrench_hold=hold.error / cfg.wrench_scale,
+            wrench_ext=jnp.where(is_last, ext.error / cfg.wrench_scale, 0.0),
+            redundant=redundant.astype(jnp.float32),
+        )
+        cost = (
+            cfg.w_wrench_move * terms["wrench_move"]
+            + cfg.w_ik * terms["ik_next"]
+            + cfg.w_wrench_hold * terms["wrench_hold"]
+            + cfg.w_wrench_ext * terms["wrench_ext"]
+            + cfg.w_redundant * terms["redundant"]
+        )
+        collision = now.ik.collision | nxt.ik.collision
+        fall = jnp.any(unmet > cfg.fall_unmet)
+        reward = jnp.where(collision | fall, cfg.r_min, -jnp.minimum(cost, cfg.max_step_cost))
+        return RewardTerms(**terms, unmet=unmet, collision=collision, fall=fall, reward=reward)
+
+    # ----------------------------------------------------------------------------------------- env API
+    def reset(self, episode: Episode) -> State:
+        """The episode's start: its start grasp realised at waypoint 0, at rest."""
+        pos, quat = episode.waypoints[0], episode.quats[0]
+        c = self.realise(episode.start_grasp, pos, quat)
+        return State(
+            grasp=jnp.asarray(episode.start_grasp, jnp.int32),
+            t=jnp.zeros((), jnp.int32),
+            q=c.ik.q,
+            tool_pos=pos,
+            tool_quat=quat,
+            tool_vel=jnp.zeros(6, jnp.float32),
+            episode=episode,
+            done=jnp.array(False),
+            terms=RewardTerms.zeros(),
+        )
+
+    def discrete_state(self, episode: Episode, grasp: jax.Array, t: jax.Array) -> State:
+        """The DP state (grasp, t): the tool exactly on waypoint t, the grasp realised there by IK."""
+        t = jnp.asarray(t, jnp.int32)
+        pos, quat = episode.waypoints[t], episode.quats[t]
+        prev = episode.waypoints[jnp.maximum(t - 1, 0)]
+        return State(
+            grasp=jnp.asarray(grasp, jnp.int32),
+            t=t,
+            q=self.realise(grasp, pos, quat).ik.q,
+            tool_pos=pos,
+            tool_quat=quat,
+            tool_vel=jnp.concatenate([(pos - prev) / episode.dt, jnp.zeros(3, jnp.float32)]),
+            episode=episode,
+            done=jnp.array(False),
+            terms=RewardTerms.zeros(),
+        )
+
+    def step(self, state: State, action: jax.Array) -> tuple[State, jax.Array, jax.Array]:
+        """One decision. A finished state is absorbing (reward 0, done)."""
+        ep = state.episode
+        new_grasp, redundant = self.space.apply(state.grasp, action)
+        t_next = jnp.minimum(state.t + 1, ep.n_steps - 1)
+        pos_n, quat_n = ep.waypoints[t_next], ep.quats[t_next]
+        now = self.realise(new_grasp, state.tool_pos, state.tool_quat)
+        nxt = self.realise(new_grasp, pos_n, quat_n)
+        terms = self.score(ep, state.t, state.tool_pos, state.tool_quat, now, nxt, redundant)
+        done = terms.collision | terms.fall | (state.t + 1 >= ep.n_steps)
+        vel = jnp.concatenate([(pos_n - state.tool_pos) / ep.dt, jnp.zeros(3, jnp.float32)])
+        moved = State(
+            grasp=new_grasp,
+            t=state.t + 1,
+            q=nxt.ik.q,
+            tool_pos=pos_n,
+            tool_quat=quat_n,
+            tool_vel=vel,
+            episode=ep,
+            done=done,
+            terms=terms,
+        )
+        out = jax.tree.map(lambda old, new: jnp.where(state.done, old, new), state, moved)
+        reward = jnp.where(state.done, 0.0, terms.reward)
+        return out, reward, out.done

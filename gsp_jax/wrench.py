@@ -1,0 +1,118 @@
+"""Wrench solve: contact forces in Coulomb friction cones that best realise a required wrench on the tool.
+
+For K contacts at points p_k with inward unit normals n_k and friction coefficient mu, find forces f (K, 3)
+
+    minimise   |S (G f - w)|^2 + rho * sum_k |f_k|^2     subject to   |f_k - (f_k . n_k) n_k| <= mu (f_k . n_k)
+
+where G (6, 3K) maps contact forces to the net force and torque about `center`, w is the wrench the contacts
+must supply, S = diag(1, 1, 1, 1/L, 1/L, 1/L) puts torques on the scale of forces (L = `torque_length`), and
+rho penalises large forces (so a grasp of few, hard-pressed contacts scores worse than a spread one).
+The objective value is the *wrench error*; `unmet` is the fraction |S(Gf - w)| / |S w| of the wrench that
+the contacts cannot supply (the surrogate's falling test).
+
+Solver: accelerated projected gradient with a fixed iteration count. The problem is strongly convex (rho > 0),
+so the step 1/L_c (L_c = lambda_max(S G G^T S) + rho, from a 6x6 eigenvalue problem) and the constant momentum
+(sqrt(k) - 1) / (sqrt(k) + 1), k = L_c / rho, converge linearly without restarts or a stopping test. We
+chose this over `jaxopt.ProjectedGradient`: under `vmap` its data-dependent stopping runs every problem to the
+slowest one's count and it was ~7x slower per batch here (`../shared/ENVIRONMENT.md`), while a fixed count
+keeps shapes static and the whole DP table one kernel; tests check the optimum against scipy.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+
+@dataclasses.dataclass(frozen=True)
+class WrenchConfig:
+    iterations: int = 150  # fixed accelerated projected-gradient iterations
+    force_penalty: float = 0.01  # rho, weight of sum |f_k|^2 against the squared wrench residual
+    torque_length: float = 0.05  # L [m]: a torque of 1 N m weighs like a force of 1/L N
+
+
+@struct.dataclass
+class WrenchResult:
+    """Shapes for one problem (vmap adds leading axes)."""
+
+    forces: jax.Array  # (K, 3) contact forces on the tool, world frame [N]
+    residual: jax.Array  # (6,) G f - w: force [N] and torque [N m] the contacts leave unmet
+    error: jax.Array  # () wrench error |S(G f - w)|^2 + rho |f|^2 [N^2]
+    unmet: jax.Array  # () |S(G f - w)| / |S w|, fraction of the required wrench not realised
+
+
+def project_cone(f: jax.Array, normal: jax.Array, mu: jax.Array) -> jax.Array:
+    """Euclidean projection of forces (..., 3) onto the friction cones {|f_t| <= mu f_n} around unit normals
+    (..., 3); mu is a scalar or broadcasts against (..., 1)."""
+    fn = jnp.sum(f * normal, -1, keepdims=True)
+    ft = f - fn * normal
+    ft_norm = jnp.sqrt(jnp.sum(ft**2, -1, keepdims=True) + 1e-30)
+    inside = ft_norm <= mu * fn
+    polar = mu * ft_norm <= -fn
+    fn_b = (fn + mu * ft_norm) / (1.0 + mu**2)  # projection onto the boundary ray
+    boundary = fn_b * normal + (mu * fn_b / ft_norm) * ft
+    return jnp.where(inside, f, jnp.where(polar, 0.0, boundary))
+
+
+def grasp_matrix(points: jax.Array, center: jax.Array) -> jax.Array:
+    """G (6, 3K): stacked [I; [p_k - c]x] so that G @ f.ravel() is the net (force, torque about `center`)."""
+    r = points - center  # (K, 3)
+    zero = jnp.zeros_like(r[:, 0])
+    cross = jnp.stack(
+        [
+            jnp.stack([zero, -r[:, 2], r[:, 1]], -1),
+            jnp.stack([r[:, 2], zero, -r[:, 0]], -1),
+            jnp.stack([-r[:, 1], r[:, 0], zero], -1),
+        ],
+        -2,
+    )  # (K, 3, 3), cross[k] @ f = r_k x f
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=points.dtype), cross.shape)
+    return jnp.concatenate([eye, cross], axis=1).transpose(1, 0, 2).reshape(6, -1)
+
+
+def solve(
+    points: jax.Array,
+    normals: jax.Array,
+    active: jax.Array,
+    mu: jax.Array,
+    wrench: jax.Array,
+    center: jax.Array,
+    cfg: WrenchConfig = WrenchConfig(),
+) -> WrenchResult:
+    """Best contact forces for one problem.
+
+    points (K, 3), normals (K, 3) inward unit normals, active (K,) bool (inactive contacts carry no force),
+    mu () friction coefficient, wrench (6,) required net (force [N], torque [N m] about `center` (3,)).
+    Differentiable (fixed iterations in a `lax.scan`); `vmap` it over problems.
+    """
+    dtype = points.dtype
+    k = points.shape[0]
+    scale = jnp.asarray([1.0, 1.0, 1.0] + [1.0 / cfg.torque_length] * 3, dtype)
+    a = scale[:, None] * grasp_matrix(points, center) * jnp.repeat(active.astype(dtype), 3)[None]  # (6, 3K)
+    b = scale * wrench
+    rho = cfg.force_penalty
+    lip = jnp.linalg.eigvalsh(a @ a.T)[-1] + rho
+    kappa_sqrt = jnp.sqrt(lip / rho)
+    beta = (kappa_sqrt - 1.0) / (kappa_sqrt + 1.0)
+    mask = active.astype(dtype)[:, None]
+
+    def project(x):
+        return project_cone(x.reshape(k, 3), normals, mu).reshape(-1) * jnp.repeat(mask[:, 0], 3)
+
+    def iteration(carry, _):
+        x, x_prev = carry
+        y = x + beta * (x - x_prev)
+        grad = a.T @ (a @ y - b) + rho * y
+        return (project(y - grad / lip), x), None
+
+    x0 = jnp.zeros(3 * k, dtype)
+    (x, _), _ = jax.lax.scan(iteration, (x0, x0), None, length=cfg.iterations)
+    res_scaled = a @ x - b
+    return WrenchResult(
+        forces=x.reshape(k, 3),
+        residual=res_scaled / scale,
+        error=jnp.sum(res_scaled**2) + rho * jnp.sum(x**2),
+        unmet=jnp.sqrt(jnp.sum(res_scaled**2)) / jnp.sqrt(jnp.sum(b**2) + 1e-12),
+    )

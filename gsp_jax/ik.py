@@ -148,8 +148,14 @@ def solve(
 ) -> IKResult:
     """IK for one grasp: active (L,) bool, targets (L, 3) contact points on the tool [m], tool pose (3,), (3, 3).
 
-    Differentiable (the iterations are a `lax.scan`); `vmap` it over grasps, poses and episodes.
+    Differentiable (the iterations are a `lax.scan`); `vmap` it over grasps, poses and episodes. Matmuls run
+    in full float32 (no TF32 on GPUs: sub-millimetre targets need it).
     """
+    with jax.default_matmul_precision("highest"):
+        return _solve(hand, active, targets, tool_pos, tool_mat, cfg)
+
+
+def _solve(hand, active, targets, tool_pos, tool_mat, cfg) -> IKResult:
     dtype = targets.dtype
     active = active.astype(bool)
     lo, hi = jnp.asarray(hand.joint_range[:, 0], dtype), jnp.asarray(hand.joint_range[:, 1], dtype)

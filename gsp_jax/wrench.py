@@ -85,8 +85,13 @@ def solve(
 
     points (K, 3), normals (K, 3) inward unit normals, active (K,) bool (inactive contacts carry no force),
     mu () friction coefficient, wrench (6,) required net (force [N], torque [N m] about `center` (3,)).
-    Differentiable (fixed iterations in a `lax.scan`); `vmap` it over problems.
+    Differentiable (fixed iterations in a `lax.scan`); `vmap` it over problems. Matmuls run in full float32.
     """
+    with jax.default_matmul_precision("highest"):
+        return _solve(points, normals, active, mu, wrench, center, cfg)
+
+
+def _solve(points, normals, active, mu, wrench, center, cfg) -> WrenchResult:
     dtype = points.dtype
     k = points.shape[0]
     scale = jnp.asarray([1.0, 1.0, 1.0] + [1.0 / cfg.torque_length] * 3, dtype)

@@ -1,0 +1,109 @@
+"""The discrete grasp/action spaces (gsp_jax.grasps) against brute-force enumeration with itertools."""
+import itertools
+
+import numpy as np
+import pytest
+
+from gsp_jax import grasps, scenario
+
+COUNTS = (3, 3, 2, 4, 2, 2)  # the paper's option counts (option 0 = not in contact)
+
+
+@pytest.fixture(scope="module")
+def space():
+    return grasps.default_space()
+
+
+@pytest.fixture(scope="module")
+def all_options(space):
+    return np.asarray(space.decode(np.arange(space.n_grasps)))
+
+
+def test_counts_match_the_model(space, hand):
+    assert space.n_options == COUNTS == tuple(hand.n_options)
+    assert space.link_names == hand.link_names
+    assert space.n_links == 6
+    assert space.n_grasps == 288 == int(np.prod(COUNTS))
+
+
+def test_decode_is_a_bijection_onto_all_option_tuples(space, all_options):
+    assert all_options.shape == (288, 6)
+    tuples = {tuple(int(x) for x in row) for row in all_options}
+    assert len(tuples) == 288
+    assert tuples == set(itertools.product(*(range(n) for n in COUNTS)))
+    assert np.all(all_options >= 0) and np.all(all_options < np.asarray(COUNTS))
+
+
+def test_encode_inverts_decode(space, all_options):
+    np.testing.assert_array_equal(np.asarray(space.encode(all_options)), np.arange(288))
+    for g in (0, 1, 95, 96, 287):  # scalar path too
+        assert int(space.encode(space.decode(g))) == g
+
+
+def test_mixed_radix_first_link_slowest(space):
+    # itertools.product varies the last element fastest: its enumeration order is the grasp numbering
+    for g, opts in enumerate(itertools.product(*(range(n) for n in COUNTS))):
+        if g % 37 == 0 or g == 287:
+            assert int(space.encode(np.array(opts))) == g
+            assert tuple(np.asarray(space.decode(g)).tolist()) == opts
+
+
+def test_sixteen_actions_cover_every_link_option_pair(space):
+    assert space.n_actions == 16
+    assert len(space.action_link) == len(space.action_option) == 16
+    pairs = list(zip(space.action_link.tolist(), space.action_option.tolist()))
+    assert len(set(pairs)) == 16
+    assert set(pairs) == {(li, o) for li, n in enumerate(COUNTS) for o in range(n)}
+
+
+def test_apply_changes_at_most_one_link(space, all_options):
+    g = np.repeat(np.arange(288), 16)
+    a = np.tile(np.arange(16), 288)
+    nxt, redundant = space.apply(g, a)
+    nxt, redundant = np.asarray(nxt), np.asarray(redundant)
+    assert nxt.shape == redundant.shape == (288 * 16,)
+    assert np.all((nxt >= 0) & (nxt < 288))
+    before, after = all_options[g], all_options[nxt]
+    link, opt = space.action_link[a], space.action_option[a]
+    rows = np.arange(len(g))
+    # the action's link is set to the action's option ...
+    np.testing.assert_array_equal(after[rows, link], opt)
+    # ... and every other link is untouched
+    mask = np.ones_like(before, dtype=bool)
+    mask[rows, link] = False
+    np.testing.assert_array_equal(after[mask], before[mask])
+    # redundant exactly when nothing changed
+    np.testing.assert_array_equal(redundant, nxt == g)
+    np.testing.assert_array_equal(redundant, before[rows, link] == opt)
+    # every grasp has exactly one redundant action per link
+    assert np.all(redundant.reshape(288, 16).sum(1) == 6)
+
+
+def test_apply_scalar(space):
+    g = int(space.encode(np.array([1, 1, 0, 1, 0, 0])))
+    a = int(np.flatnonzero((space.action_link == 3) & (space.action_option == 3))[0])  # middle_distal -> 3
+    nxt, red = space.apply(g, a)
+    assert tuple(np.asarray(space.decode(nxt)).tolist()) == (1, 1, 0, 3, 0, 0)
+    assert not bool(red)
+    nxt2, red2 = space.apply(nxt, a)
+    assert int(nxt2) == int(nxt) and bool(red2)
+
+
+def test_label_of_default_start_grasp(space):
+    g = int(scenario.make_episode().start_grasp)
+    assert tuple(np.asarray(space.decode(g)).tolist()) == scenario.START_OPTIONS
+    assert space.label(g) == "T1 I1 . M1 . ."
+
+
+def test_labels_are_distinct_and_readable(space):
+    labels = [space.label(g) for g in range(288)]
+    assert len(set(labels)) == 288
+    assert space.label(0) == ". . . . . ."
+    assert space.label(287) == "T2 I2 Im1 M3 Mm1 R1"
+
+
+def test_action_labels(space):
+    labels = [space.action_label(a) for a in range(16)]
+    assert len(set(labels)) == 16
+    assert labels[0] == "thumb_distal->off"
+    assert labels[-1] == "ring_distal->1"

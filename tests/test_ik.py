@@ -1,0 +1,420 @@
+"""Collision-avoiding IK (gsp_jax.ik): closed-form Jacobian vs autodiff, reaching targets that are reachable by
+construction, flagging unreachable targets and collisions, gradients vs finite differences, joint limits, vmap.
+
+Every jitted function is built once per module (module-scoped fixtures) and called with fixed shapes.
+"""
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+from gsp_jax import grasps, ik, kinematics, scenario
+
+CFG = ik.IKConfig()
+I3 = jnp.eye(3, dtype=jnp.float32)
+FAR = jnp.asarray([0.0, 0.0, -1.0], jnp.float32)  # a tool placement no finger can touch
+
+
+def _rows(hand):
+    """Row blocks of residuals_and_jacobian: link (L), sphere-tool (S), sphere-table (S), self (P), reg (J)."""
+    L, S, P, J = hand.n_links, len(hand.sphere_body), len(hand.self_pairs), hand.n_joints
+    edges = np.cumsum([0, L, S, S, P, J])
+    return {k: slice(edges[i], edges[i + 1]) for i, k in enumerate(["link", "tool", "table", "self", "reg"])}
+
+
+@pytest.fixture(scope="module")
+def space():
+    return grasps.default_space()
+
+
+@pytest.fixture(scope="module")
+def nominal_waypoints():
+    return np.asarray(scenario.make_episode().waypoints)
+
+
+@pytest.fixture(scope="module")
+def solve_grasp(hand):
+    """jit: (options (L,), tool_pos (3,)) -> IKResult, identity tool orientation, default config."""
+
+    def f(options, tool_pos):
+        active, targets, _ = ik.grasp_targets(hand, options, tool_pos, I3)
+        return ik.solve(hand, active, targets, tool_pos, I3)
+
+    return jax.jit(f)
+
+
+BATCH = 16  # every batched solve runs in chunks of this size: one compilation for the module
+
+
+@pytest.fixture(scope="module")
+def solve_batch(hand):
+    """(active (N, L), targets (N, L, 3), tool_pos (N, 3)) -> IKResult as numpy, identity tool orientation,
+    default config; vmapped and jitted once for batches of BATCH (the input is padded)."""
+    f = jax.jit(jax.vmap(lambda a, t, p: ik.solve(hand, a, t, p, I3)))
+
+    def run(active, targets, tool_pos):
+        n = len(active)
+        pad = -n % BATCH
+        args = [np.concatenate([x, np.repeat(x[-1:], pad, 0)]) for x in (active, targets, tool_pos)]
+        outs = [
+            jax.tree.map(np.asarray, f(*(jnp.asarray(x[i : i + BATCH]) for x in args)))
+            for i in range(0, n + pad, BATCH)
+        ]
+        return jax.tree.map(lambda *xs: np.concatenate(xs)[:n], *outs)
+
+    return run
+
+
+# ------------------------------------------------------------------------------------ (a) Jacobian vs jacfwd
+
+
+def test_residual_jacobian_matches_jacfwd(hand, space, nominal_waypoints, random_q):
+    rng = np.random.default_rng(11)
+    n = 12
+    qs = random_q(hand, rng, n)
+    qs[: n // 2] = (hand.q_start + rng.uniform(-0.3, 0.3, size=(n // 2, hand.n_joints))).clip(
+        hand.joint_range[:, 0], hand.joint_range[:, 1]
+    )  # half near the start: fingers near the tool, so tool-collision rows are exercised
+    gs = rng.integers(0, space.n_grasps, size=n)
+    opts = np.asarray(space.decode(gs))
+    tool_pos = nominal_waypoints[rng.integers(0, 16, size=n)]
+    tool_pos[n // 2 :, :2] += rng.uniform(-0.03, 0.03, size=(n - n // 2, 2))
+
+    def both(q, options, tp):
+        active, targets, _ = ik.grasp_targets(hand, options, tp, I3)
+        f = lambda q: ik.residuals_and_jacobian(hand, CFG, q, active, targets, tp, I3)  # noqa: E731
+        r, jac = f(q)
+        return r, jac, jax.jacfwd(lambda q: f(q)[0])(q)
+
+    r, jac, auto = jax.jit(jax.vmap(both))(jnp.asarray(qs), jnp.asarray(opts), jnp.asarray(tool_pos, jnp.float32))
+    r, jac, auto = np.asarray(r), np.asarray(jac), np.asarray(auto)
+    rows = _rows(hand)
+    assert jac.shape == auto.shape == (n, rows["reg"].stop, hand.n_joints)
+    np.testing.assert_allclose(jac, auto, atol=1e-5, rtol=0)
+    # the comparison is not vacuous: every block has active (non-zero) rows somewhere in the sample
+    for name, sl in rows.items():
+        assert np.any(r[:, sl] != 0), name
+        assert np.max(np.abs(auto[:, sl])) > 1e-3, name
+
+
+# ---------------------------------------------------------------------------------------- box_sdf reference
+
+
+def _box_surface_samples(hand, spacing=4e-4):
+    """Points on the union's boundary (tool frame): box faces sampled on a grid, minus covered/internal parts."""
+    pts = []
+    for c, m, half in zip(hand.tool_box_pos, hand.tool_box_mat, hand.tool_box_half):
+        for ax in range(3):
+            u, v = [a for a in range(3) if a != ax]
+            nu, nv = int(np.ceil(2 * half[u] / spacing)) + 1, int(np.ceil(2 * half[v] / spacing)) + 1
+            gu, gv = np.meshgrid(np.linspace(-half[u], half[u], nu), np.linspace(-half[v], half[v], nv))
+            for sign in (-1.0, 1.0):
+                local = np.zeros((gu.size, 3))
+                local[:, u], local[:, v], local[:, ax] = gu.ravel(), gv.ravel(), sign * half[ax]
+                normal = np.zeros(3)
+                normal[ax] = sign
+                p = c + local @ m.T
+                n_out = m @ normal
+                # a face point is on the union's boundary iff just outside it (along its normal) is outside all boxes
+                probe = p + 1e-7 * n_out
+                keep = ~_inside_any(hand, probe)
+                pts.append(p[keep])
+    return np.concatenate(pts)
+
+
+def _inside_any(hand, p):
+    inside = np.zeros(len(p), bool)
+    for c, m, half in zip(hand.tool_box_pos, hand.tool_box_mat, hand.tool_box_half):
+        local = (p - c) @ m
+        inside |= np.all(np.abs(local) <= half, axis=-1)
+    return inside
+
+
+def _union_sdf_reference(hand, p_tool, surface):
+    """Brute force: distance to the nearest boundary sample, negative inside any box."""
+    d = np.empty(len(p_tool))
+    for i in range(0, len(p_tool), 64):
+        chunk = p_tool[i : i + 64]
+        d[i : i + 64] = np.sqrt(np.min(np.sum((chunk[:, None, :] - surface[None]) ** 2, -1), axis=1))
+    return np.where(_inside_any(hand, p_tool), -d, d)
+
+
+def _exterior_distance(hand, p_tool):
+    """Exact distance to the union for outside points: nearest point of each box by clamping."""
+    best = np.full(len(p_tool), np.inf)
+    for c, m, half in zip(hand.tool_box_pos, hand.tool_box_mat, hand.tool_box_half):
+        local = (p_tool - c) @ m
+        best = np.minimum(best, np.linalg.norm(local - np.clip(local, -half, half), axis=-1))
+    return best
+
+
+@pytest.fixture(scope="module")
+def sdf_case(hand):
+    rng = np.random.default_rng(5)
+    # a random tool pose
+    quat = rng.normal(size=4)
+    quat /= np.linalg.norm(quat)
+    mat = np.zeros(9)
+    mujoco.mju_quat2Mat(mat, quat)
+    mat = mat.reshape(3, 3)
+    tool_pos = np.array([0.01, -0.02, 0.05])
+    # points in the tool frame: around the boxes, a third of them inside
+    lo = np.min(hand.tool_box_pos - hand.tool_box_half, 0) - 0.01
+    hi = np.max(hand.tool_box_pos + hand.tool_box_half, 0) + 0.01
+    p_out = rng.uniform(lo, hi, size=(300, 3))
+    b = rng.integers(0, len(hand.tool_box_pos), size=150)
+    p_in = hand.tool_box_pos[b] + np.einsum(
+        "nij,nj->ni", hand.tool_box_mat[b], rng.uniform(-1, 1, size=(150, 3)) * hand.tool_box_half[b]
+    )
+    p_tool = np.concatenate([p_out, p_in])
+    world = tool_pos + p_tool @ mat.T
+    got = np.asarray(
+        ik.box_sdf(jnp.asarray(world, jnp.float32), jnp.asarray(tool_pos, jnp.float32), jnp.asarray(mat, jnp.float32), hand)
+    )
+    return p_tool, got
+
+
+def test_box_sdf_outside_points_match_exact_distance(hand, sdf_case):
+    p_tool, got = sdf_case
+    outside = ~_inside_any(hand, p_tool)
+    assert outside.sum() > 200
+    np.testing.assert_allclose(got[outside], _exterior_distance(hand, p_tool[outside]), atol=2e-6)
+
+
+def test_box_sdf_matches_brute_force_union_sdf(hand, sdf_case):
+    p_tool, got = sdf_case
+    ref = _union_sdf_reference(hand, p_tool, _box_surface_samples(hand))
+    inside = _inside_any(hand, p_tool)
+    assert inside.sum() > 100
+    np.testing.assert_array_equal(got < 0, ref < 0)
+    # grid spacing 0.4 mm -> every boundary point is within 0.29 mm of a sample
+    np.testing.assert_allclose(got, ref, atol=3e-4)
+
+
+def test_box_sdf_inside_the_seam_between_handle_and_head(hand):
+    """Minimal case: a point 5 mm deep inside the tool, on the face where the handle meets the head."""
+    handle_end = hand.tool_box_pos[0, 0] + hand.tool_box_half[0, 0]
+    head_start = hand.tool_box_pos[1, 0] - hand.tool_box_half[1, 0]
+    assert handle_end == pytest.approx(head_start)  # the two boxes share the face x = 0.05
+    p = jnp.asarray([[handle_end, 0.0, 0.0]], jnp.float32)
+    d = float(ik.box_sdf(p, jnp.zeros(3, jnp.float32), I3, hand)[0])
+    # the nearest point of the tool's surface is on the handle's top/bottom face, 5 mm away
+    assert d == pytest.approx(-hand.tool_box_half[0, 2], abs=1e-4)
+
+
+# ---------------------------------------------------------------------------- (b) reachable targets are reached
+
+
+def _reachable_single_link_problems(hand, n, seed):
+    """Targets reachable by construction: a random configuration of one finger (the others at the start
+    configuration), and a point on the surface of one of that finger's contact links.
+
+    Filter (feasibility only): the configuration itself must be free of table and self collisions (every
+    collision residual zero with the tool far away, i.e. the configuration is a zero-cost solution for the link
+    term), and the target must be at least 2 cm above the table."""
+    rng = np.random.default_rng(seed)
+    lo, hi = hand.joint_range[:, 0], hand.joint_range[:, 1]
+    finger_of_joint = np.array([hand.finger_names.index(n.split("_")[0]) for n in hand.joint_names])
+    link_finger = np.array([hand.finger_names.index(n.split("_")[0]) for n in hand.link_names])
+    rows = _rows(hand)
+    res = jax.jit(lambda q, a, t: ik.residuals_and_jacobian(hand, CFG, q, a, t, FAR, I3)[0])
+    actives, targets, qrefs = [], [], []
+    while len(actives) < n:
+        li = len(actives) % hand.n_links  # every link in turn
+        sel = finger_of_joint == link_finger[li]
+        q = hand.q_start.copy()
+        q[sel] = rng.uniform(lo[sel], hi[sel])
+        q = q.astype(np.float32)
+        centre, axis = (np.asarray(x[li], np.float64) for x in kinematics.contact_segments(hand, jnp.asarray(q)))
+        u = rng.normal(size=3)
+        if hand.link_half[li] > 0:
+            u -= (u @ axis) * axis  # a phalanx: a point on the cylinder's side
+        u /= np.linalg.norm(u)
+        s = rng.uniform(-hand.link_half[li], hand.link_half[li])
+        target = centre + s * axis + hand.link_radius[li] * u
+        t = np.zeros((hand.n_links, 3), np.float32)
+        t[li] = target
+        a = np.zeros(hand.n_links, bool)
+        a[li] = True
+        r = np.asarray(res(jnp.asarray(q), jnp.asarray(a), jnp.asarray(t)))
+        assert abs(r[li]) < 1e-6  # the reference configuration realises the target exactly
+        collision_free = np.all(r[rows["tool"].start : rows["self"].stop] == 0)
+        if collision_free and target[2] > 0.02:
+            actives.append(a)
+            targets.append(t)
+            qrefs.append(q)
+    return np.array(actives), np.array(targets), np.array(qrefs)
+
+
+@pytest.fixture(scope="module")
+def reachable(hand, solve_batch):
+    active, targets, qref = _reachable_single_link_problems(hand, 48, seed=2024)
+    out = solve_batch(active, targets, np.tile(np.asarray(FAR), (len(active), 1)))
+    return active, targets, qref, out
+
+
+def test_reachable_problems_cover_every_link(hand, reachable):
+    active, _, _, _ = reachable
+    assert np.all(active.sum(-1) == 1)
+    assert np.all(active.sum(0) >= 2)  # every contact link, distal and medial, at least twice
+
+
+def test_ik_reaches_reachable_single_link_targets(hand, reachable):
+    active, targets, qref, out = reachable
+    bad = [
+        (hand.link_names[int(np.flatnonzero(a)[0])], float(e), q.round(3).tolist())
+        for a, e, q in zip(active, out.error, qref)
+        if not e < 2e-3
+    ]
+    assert not bad, f"{len(bad)}/{len(active)} reachable targets missed by > 2 mm: {bad}"
+    assert not np.any(out.collision)
+
+
+def test_ik_result_is_consistent_with_kinematics(hand, reachable):
+    """points lie on the link surfaces nearest the targets, link_error/error agree with them."""
+    active, targets, _, out = reachable
+    for a, t, q, pts, le, e in zip(active, targets, out.q, out.points, out.link_error, out.error):
+        axis_pt = np.asarray(kinematics.closest_on_links(hand, jnp.asarray(q), jnp.asarray(t)))
+        np.testing.assert_allclose(np.linalg.norm(pts - axis_pt, axis=-1), hand.link_radius, atol=1e-6)
+        li = int(np.flatnonzero(a)[0])
+        assert le[li] == pytest.approx(abs(np.linalg.norm(t[li] - axis_pt[li]) - hand.link_radius[li]), abs=1e-6)
+        assert le[li] == pytest.approx(np.linalg.norm(t[li] - pts[li]), abs=1e-6)
+        assert np.all(le[~a] == 0) and e == pytest.approx(le.max())
+
+
+# ---------------------------------------------------------------------------- (c) unreachable targets flagged
+
+
+def test_unreachable_target_is_flagged(hand, mjmodel, solve_grasp):
+    tool_pos = jnp.asarray([0.5, 0.0, 0.05], jnp.float32)
+    options = jnp.asarray([1, 0, 0, 0, 0, 0])  # thumb distal on its first option
+    out = solve_grasp(options, tool_pos)
+    assert float(out.error) > 0.1
+    # independent lower bound: the target is farther from the thumb's base than the thumb is long
+    active, targets, _ = ik.grasp_targets(hand, options, tool_pos, I3)
+    d = mujoco.MjData(mjmodel)
+    mujoco.mj_kinematics(mjmodel, d)
+    base = d.xpos[mujoco.mj_name2id(mjmodel, mujoco.mjtObj.mjOBJ_BODY, "thumb_knuckle")]
+    length = 0.015 + 0.06 + 0.045 + 0.03  # knuckle + proximal + medial + distal (models/hand.xml)
+    bound = np.linalg.norm(np.asarray(targets[0]) - base) - length - hand.link_radius[0]
+    assert bound > 0.1
+    assert float(out.error) >= bound - 1e-4
+    lo, hi = hand.joint_range[:, 0], hand.joint_range[:, 1]
+    assert np.all((np.asarray(out.q) >= lo) & (np.asarray(out.q) <= hi))
+
+
+# ------------------------------------------------------------------------ (d) gradient of the error vs FD
+
+
+@pytest.fixture(scope="module")
+def error_and_grad(hand, solve_grasp):
+    def err(tool_pos, options):
+        active, targets, _ = ik.grasp_targets(hand, options, tool_pos, I3)
+        return ik.solve(hand, active, targets, tool_pos, I3).error
+
+    return (lambda p, o: solve_grasp(o, p).error), jax.jit(jax.grad(err))
+
+
+@pytest.mark.parametrize(
+    "tool_pos, options",
+    [
+        ([0.0, 0.0, -0.03], [0, 1, 0, 0, 0, 0]),  # index tip towards a tool under the table: unreachable by 2.6 cm
+        ([0.0, 0.0, 0.03], [0, 0, 0, 3, 0, 0]),  # middle tip under the handle: partly reachable (5 mm short)
+    ],
+    ids=["unreachable", "partly_reachable"],
+)
+def test_error_gradient_matches_central_differences(error_and_grad, tool_pos, options):
+    err, grad = error_and_grad
+    tp, o = jnp.asarray(tool_pos, jnp.float32), jnp.asarray(options)
+    assert float(err(tp, o)) > 3e-3  # away from the kink of |gap| at zero
+    g = np.asarray(grad(tp, o))
+    fd = {}
+    for eps in (1e-3, 5e-4):
+        fd[eps] = np.array(
+            [(float(err(tp.at[k].add(eps), o)) - float(err(tp.at[k].add(-eps), o))) / (2 * eps) for k in range(3)]
+        )
+    assert np.linalg.norm(g) > 0.1
+    for eps, f in fd.items():
+        assert np.linalg.norm(g - f) <= 2e-2 * np.linalg.norm(f), (eps, g, f)
+
+
+# ---------------------------------------------------------------------------------------- (e) collision flag
+
+
+def test_tool_inside_the_fingers_is_a_collision(hand, mjmodel, solve_grasp):
+    d = mujoco.MjData(mjmodel)
+    d.qpos[hand.qpos_adr] = hand.q_start
+    mujoco.mj_kinematics(mjmodel, d)
+    inside = d.xpos[mujoco.mj_name2id(mjmodel, mujoco.mjtObj.mjOBJ_BODY, "index_proximal")]
+    out = solve_grasp(jnp.asarray(scenario.START_OPTIONS), jnp.asarray(inside, jnp.float32))
+    assert bool(out.collision)
+    assert float(out.penetration) > CFG.collision_tol
+
+
+def test_nominal_thumb_index_grasp_is_clean(hand, nominal_waypoints, solve_grasp):
+    """Nominal episode, waypoint 8 (mid-lift), thumb + index fingertips on their first options."""
+    out = solve_grasp(jnp.asarray([1, 1, 0, 0, 0, 0]), jnp.asarray(nominal_waypoints[8]))
+    assert not bool(out.collision)
+    assert float(out.penetration) < CFG.collision_tol
+    assert float(out.error) < 2e-3, f"error {float(out.error) * 1e3:.2f} mm, link errors {np.asarray(out.link_error)}"
+
+
+# ------------------------------------------------------------------- (f) all 288 grasps, (g) vmap vs loop
+
+
+@pytest.fixture(scope="module")
+def all_grasps(hand, space, nominal_waypoints, solve_batch):
+    tool_pos = jnp.asarray(nominal_waypoints[8])
+    opts = space.decode(jnp.arange(space.n_grasps))
+    active, targets, _ = jax.vmap(lambda o: ik.grasp_targets(hand, o, tool_pos, I3))(opts)
+    out = solve_batch(np.asarray(active), np.asarray(targets), np.tile(np.asarray(tool_pos), (len(opts), 1)))
+    return np.asarray(opts), out
+
+
+def test_joint_limits_hold_for_all_grasps(hand, all_grasps):
+    opts, out = all_grasps
+    assert out.q.shape == (288, hand.n_joints)
+    assert np.all(np.isfinite(out.q))
+    lo, hi = hand.joint_range[:, 0].astype(np.float32), hand.joint_range[:, 1].astype(np.float32)
+    assert np.all(out.q >= lo) and np.all(out.q <= hi)
+    # the limits are binding somewhere (the check is not vacuous) ...
+    assert np.any(np.isclose(out.q, lo, atol=1e-6) | np.isclose(out.q, hi, atol=1e-6))
+    # ... and the empty grasp stays at the start configuration (nothing pulls it away)
+    np.testing.assert_allclose(out.q[0], hand.q_start, atol=1e-6)
+    assert out.error[0] == 0
+
+
+def test_all_grasps_errors_are_per_active_link(all_grasps):
+    opts, out = all_grasps
+    active = opts > 0
+    assert np.all(out.link_error[~active] == 0)
+    np.testing.assert_allclose(out.error, out.link_error.max(-1), atol=0)
+    np.testing.assert_array_equal(out.collision, out.penetration > CFG.collision_tol)
+
+
+def test_vmapped_solve_equals_looped_solve(hand, space, all_grasps, solve_grasp, nominal_waypoints):
+    opts, out = all_grasps
+    tool_pos = jnp.asarray(nominal_waypoints[8])
+    for g in (0, 5, 100, 200, 287):
+        one = solve_grasp(jnp.asarray(opts[g]), tool_pos)
+        np.testing.assert_allclose(np.asarray(one.q), out.q[g], atol=2e-5, err_msg=f"grasp {g}")
+        assert float(one.error) == pytest.approx(float(out.error[g]), abs=1e-5)
+        assert bool(one.collision) == bool(out.collision[g])
+
+
+# ------------------------------------------------------------------------------------------------ dtypes
+
+
+def test_float32_problem_stays_float32_with_x64_enabled(hand):
+    """kinematics keeps the dtype of q (it casts the model's float64 constants); the IK must do the same, or its
+    lax.scan carry changes dtype and float32 problems fail whenever jax_enable_x64 is on. Traced only."""
+    p, m = jnp.zeros(3, jnp.float32), jnp.eye(3, dtype=jnp.float32)
+    with jax.enable_x64(True):
+        q = jnp.asarray(hand.q_start, jnp.float32)
+        assert jax.eval_shape(lambda q: kinematics.body_poses(hand, q), q)[0].dtype == jnp.float32
+        active, targets, _ = ik.grasp_targets(hand, jnp.asarray(scenario.START_OPTIONS), p, m)
+        r, jac = jax.eval_shape(lambda q: ik.residuals_and_jacobian(hand, CFG, q, active, targets, p, m), q)
+        assert r.dtype == jnp.float32 and jac.dtype == jnp.float32
+        out = jax.eval_shape(lambda t: ik.solve(hand, active, t, p, m), targets)
+        assert out.q.dtype == jnp.float32 and out.error.dtype == jnp.float32

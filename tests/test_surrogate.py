@@ -1,0 +1,438 @@
+"""Tests of gsp_jax.surrogate: the environment's reset/step semantics, the reward's composition, and physical
+sanity on the nominal episode.
+
+Compiling the surrogate on CPU takes seconds per function, so every jitted function is built once per module
+(fixtures below) and reused with fixed shapes: single step, one vmapped step over a batch of 16, reset, the
+realisation of a grasp at a waypoint and its next waypoint, score, and the wrench solve.
+"""
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from gsp_jax import scenario, surrogate, wrench  # noqa: E402
+
+T = scenario.N_WAYPOINTS
+BATCH = 16  # = the number of actions, so one vmapped compile serves every batched test
+
+# per-link options in model order: thumb_d, index_d, index_m, middle_d, middle_m, ring_d
+THREE_TIPS = (1, 1, 0, 1, 0, 0)
+FOUR_TIPS = (1, 1, 0, 1, 0, 1)
+INDEX_ALONE = (0, 1, 0, 0, 0, 0)
+HEAD_PINCH = (2, 2, 0, 3, 0, 1)
+POWER_WRAP = (1, 0, 1, 3, 1, 1)
+TIPS_UNDER = (1, 1, 0, 3, 0, 0)  # thumb and index tips, middle tip under the tool
+
+
+# ------------------------------------------------------------------------------------------ fixtures
+@pytest.fixture(scope="module")
+def env():
+    return surrogate.Surrogate()
+
+
+@pytest.fixture(scope="module")
+def episodes():
+    return {
+        "nominal": scenario.make_episode(),
+        "evalB": scenario.eval_set_b()["mass1.5m0_comy+2cm"],
+    }
+
+
+@pytest.fixture(scope="module")
+def fns(env):
+    """Every compiled function of this module, compiled lazily on first use and then reused."""
+
+    def contacts(ep, g, t):
+        t = jnp.asarray(t, jnp.int32)
+        tn = jnp.minimum(t + 1, ep.n_steps - 1)
+        return (
+            env.realise(g, ep.waypoints[t], ep.quats[t]),
+            env.realise(g, ep.waypoints[tn], ep.quats[tn]),
+        )
+
+    return dict(
+        reset=jax.jit(env.reset),
+        step=jax.jit(env.step),
+        vstep=jax.jit(jax.vmap(env.step)),
+        contacts=jax.jit(contacts),
+        score=jax.jit(env.score),
+        wrench_error=jax.jit(env.wrench_error),
+        solve=jax.jit(wrench.solve),
+    )
+
+
+def _encode(env, options):
+    return int(env.space.encode(options))
+
+
+def _state_at(env, fns, ep, grasp, t):
+    """The surrogate state with the tool on waypoint t and `grasp` realised there (built field by field, so it
+    needs no extra compile)."""
+    now, _ = fns["contacts"](ep, jnp.int32(grasp), jnp.int32(t))
+    prev = ep.waypoints[max(t - 1, 0)]
+    return surrogate.State(
+        grasp=jnp.asarray(grasp, jnp.int32),
+        t=jnp.asarray(t, jnp.int32),
+        q=now.ik.q,
+        tool_pos=ep.waypoints[t],
+        tool_quat=ep.quats[t],
+        tool_vel=jnp.concatenate([(ep.waypoints[t] - prev) / ep.dt, jnp.zeros(3, jnp.float32)]),
+        episode=ep,
+        done=jnp.array(False),
+        terms=surrogate.RewardTerms.zeros(),
+    )
+
+
+def _stack_states(states):
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *states)
+
+
+def _index(tree, i):
+    return jax.tree.map(lambda x: x[i], tree)
+
+
+# (episode, grasp, waypoint t, action): different grasps, waypoints, both episodes, and every action once
+CASES = [
+    ("nominal", THREE_TIPS, 0, 1),
+    ("evalB", THREE_TIPS, 0, 15),
+    ("nominal", INDEX_ALONE, 0, 4),
+    ("evalB", HEAD_PINCH, 10, 0),
+    ("nominal", TIPS_UNDER, 15, 13),
+    ("evalB", TIPS_UNDER, 15, 2),
+    ("nominal", FOUR_TIPS, 3, 14),
+    ("evalB", POWER_WRAP, 12, 6),
+    ("nominal", HEAD_PINCH, 7, 3),
+    ("evalB", THREE_TIPS, 5, 5),
+    ("nominal", POWER_WRAP, 15, 7),
+    ("evalB", FOUR_TIPS, 15, 8),
+    ("nominal", THREE_TIPS, 12, 9),
+    ("evalB", INDEX_ALONE, 3, 10),
+    ("nominal", TIPS_UNDER, 9, 11),
+    ("evalB", HEAD_PINCH, 14, 12),
+]
+
+
+@pytest.fixture(scope="module")
+def batch(env, fns, episodes):
+    """BATCH (state, action) pairs; the states' episodes are batched with scenario.stack."""
+    assert len(CASES) == BATCH and sorted(a for *_, a in CASES) == list(range(env.n_actions))
+    singles = [_state_at(env, fns, episodes[e], _encode(env, o), t) for e, o, t, _ in CASES]
+    states = _stack_states(singles)
+    states = states.replace(episode=scenario.stack([episodes[e] for e, *_ in CASES]))
+    actions = jnp.asarray([a for *_, a in CASES], jnp.int32)
+    out_state, reward, done = fns["vstep"](states, actions)
+    return dict(singles=singles, states=states, actions=actions, out=out_state, reward=reward, done=done)
+
+
+# ------------------------------------------------------------------------------------------ independent grasp algebra
+def _np_action_table(n_options):
+    """(link, option) of each action: link by link, option by option."""
+    return [(link, opt) for link, n in enumerate(n_options) for opt in range(n)]
+
+
+def _np_decode(g, n_options):
+    opts = []
+    for n in reversed(n_options):  # mixed radix, first link slowest
+        opts.append(g % n)
+        g //= n
+    return opts[::-1]
+
+
+def _np_encode(opts, n_options):
+    g = 0
+    for o, n in zip(opts, n_options):
+        g = g * n + o
+    return g
+
+
+# ------------------------------------------------------------------------------------------ tests
+def test_r_min_is_worse_than_any_continuation():
+    cfg = surrogate.RewardConfig()
+    assert cfg.r_min < -cfg.max_step_cost * T
+    assert T == 16
+
+
+def test_reset(env, fns, episodes):
+    for ep in (episodes["nominal"], scenario.make_episode(shift_mm=4, start_grasp=_encode(env, HEAD_PINCH))):
+        s = fns["reset"](ep)
+        assert int(s.t) == 0
+        assert int(s.grasp) == int(ep.start_grasp)
+        np.testing.assert_array_equal(np.asarray(s.tool_pos), np.asarray(ep.waypoints[0]))
+        np.testing.assert_array_equal(np.asarray(s.tool_quat), np.asarray(ep.quats[0]))
+        np.testing.assert_array_equal(np.asarray(s.tool_vel), np.zeros(6))
+        assert not bool(s.done)
+        assert float(s.terms.reward) == 0.0
+        now, _ = fns["contacts"](ep, ep.start_grasp, jnp.int32(0))
+        np.testing.assert_allclose(np.asarray(s.q), np.asarray(now.ik.q), atol=1e-5)
+    assert int(s.grasp) == _encode(env, HEAD_PINCH)
+    np.testing.assert_allclose(float(s.tool_pos[2]), scenario.Z_START + 0.004, atol=1e-7)
+    assert int(fns["reset"](episodes["nominal"]).grasp) == _encode(env, scenario.START_OPTIONS)
+
+
+def test_vmapped_step_equals_looped_step(env, fns, batch):
+    for i, (single, action) in enumerate(zip(batch["singles"], batch["actions"])):
+        s1, r1, d1 = fns["step"](single, action)
+        outb = _index(batch["out"], i)
+        np.testing.assert_allclose(float(batch["reward"][i]), float(r1), rtol=1e-5, atol=1e-5)
+        assert bool(batch["done"][i]) == bool(d1)
+        assert int(outb.grasp) == int(s1.grasp)
+        assert int(outb.t) == int(s1.t)
+        np.testing.assert_allclose(np.asarray(outb.q), np.asarray(s1.q), atol=1e-5)
+        np.testing.assert_allclose(np.asarray(outb.tool_pos), np.asarray(s1.tool_pos), atol=1e-7)
+        np.testing.assert_allclose(np.asarray(outb.tool_vel), np.asarray(s1.tool_vel), atol=1e-6)
+        for name in ("wrench_move", "ik_next", "wrench_hold", "wrench_ext", "redundant", "reward"):
+            np.testing.assert_allclose(
+                float(getattr(outb.terms, name)), float(getattr(s1.terms, name)), rtol=1e-5, atol=1e-5, err_msg=name
+            )
+        np.testing.assert_allclose(np.asarray(outb.terms.unmet), np.asarray(s1.terms.unmet), atol=1e-5)
+        assert bool(outb.terms.fall) == bool(s1.terms.fall)
+        assert bool(outb.terms.collision) == bool(s1.terms.collision)
+
+
+def test_step_transition_grasp_time_pose(env, batch):
+    n_opts = env.space.n_options
+    table = _np_action_table(n_opts)
+    states, out = batch["states"], batch["out"]
+    g_apply, red_apply = env.space.apply(states.grasp, batch["actions"])
+    np.testing.assert_array_equal(np.asarray(out.grasp), np.asarray(g_apply))
+    for i, (ename, opts, t, a) in enumerate(CASES):
+        g = _encode(env, opts)
+        assert _np_decode(g, n_opts) == list(opts)
+        link, opt = table[a]
+        new = list(opts)
+        new[link] = opt
+        assert int(out.grasp[i]) == _np_encode(new, n_opts), (i, env.space.action_label(a))
+        assert float(out.terms.redundant[i]) == float(opts[link] == opt)
+        assert bool(red_apply[i]) == (opts[link] == opt)
+        assert int(out.t[i]) == t + 1
+        tn = min(t + 1, T - 1)
+        wp = np.asarray(states.episode.waypoints[i])
+        np.testing.assert_array_equal(np.asarray(out.tool_pos[i]), wp[tn])
+        np.testing.assert_allclose(np.asarray(out.tool_vel[i, :3]), (wp[tn] - wp[t]) / scenario.DT, atol=1e-5)
+    # the batch exercises both kinds of action
+    red = np.asarray(out.terms.redundant)
+    assert 0 < red.sum() < BATCH
+
+
+def test_redundant_flag_for_every_action_from_one_grasp(env, fns, episodes):
+    """All 16 actions from one grasp: the redundant term is 1 exactly for the actions that re-set the current
+    option of their link (one per link), and only those leave the grasp unchanged."""
+    ep = episodes["nominal"]
+    g = _encode(env, HEAD_PINCH)
+    s = _state_at(env, fns, ep, g, 2)
+    states = _stack_states([s] * BATCH)
+    out, reward, _ = fns["vstep"](states, jnp.arange(BATCH, dtype=jnp.int32))
+    table = _np_action_table(env.space.n_options)
+    expected = np.array([HEAD_PINCH[link] == opt for link, opt in table], np.float32)
+    np.testing.assert_array_equal(np.asarray(out.terms.redundant), expected)
+    np.testing.assert_array_equal(np.asarray(out.grasp) == g, expected.astype(bool))
+    assert expected.sum() == env.space.n_links
+    # the redundant actions all keep the same grasp, so their other terms coincide
+    red_idx = np.flatnonzero(expected)
+    terms = out.terms
+    for name in ("wrench_move", "ik_next", "wrench_hold"):
+        vals = np.asarray(getattr(terms, name))[red_idx]
+        np.testing.assert_allclose(vals, vals[0], rtol=1e-5, atol=1e-6, err_msg=name)
+
+
+def test_reward_is_weighted_sum_capped_or_r_min(batch):
+    cfg = surrogate.RewardConfig()
+    terms = jax.tree.map(np.asarray, batch["out"].terms)
+    cost = (
+        cfg.w_wrench_move * terms.wrench_move
+        + cfg.w_ik * terms.ik_next
+        + cfg.w_wrench_hold * terms.wrench_hold
+        + cfg.w_wrench_ext * terms.wrench_ext
+        + cfg.w_redundant * terms.redundant
+    )
+    fall = np.any(terms.unmet > cfg.fall_unmet, axis=-1)
+    np.testing.assert_array_equal(terms.fall, fall)
+    failed = terms.collision | terms.fall
+    expected = np.where(failed, cfg.r_min, -np.minimum(cost, cfg.max_step_cost))
+    np.testing.assert_allclose(terms.reward, expected, rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(np.asarray(batch["reward"]), expected, rtol=1e-6, atol=1e-7)
+    # a failure ends the episode; so does the last waypoint
+    t_in = np.asarray(batch["states"].t)
+    np.testing.assert_array_equal(np.asarray(batch["done"]), failed | (t_in + 1 >= T))
+    # both branches are exercised, and the cap is not what makes the non-failing rewards small
+    assert failed.any() and (~failed).any()
+    assert np.all(cost[~failed] < cfg.max_step_cost) and np.all(cost[~failed] > 0)
+
+
+def test_reward_cap_applies(env, fns, episodes):
+    """With a tiny cap, a non-failing step's reward is -max_step_cost (score only depends on its config)."""
+    cfg = surrogate.RewardConfig(max_step_cost=0.01)
+    capped = surrogate.Surrogate(hand=env.hand, reward=cfg)
+    ep = episodes["nominal"]
+    now, nxt = fns["contacts"](ep, jnp.int32(_encode(env, THREE_TIPS)), jnp.int32(0))
+    args = (ep, jnp.int32(0), ep.waypoints[0], ep.quats[0], now, nxt, jnp.array(False))
+    base = fns["score"](*args)
+    assert not bool(base.fall) and not bool(base.collision) and -float(base.reward) > 0.01
+    np.testing.assert_allclose(float(capped.score(*args).reward), -0.01, rtol=1e-6)
+
+
+def test_wrench_ext_only_at_last_step(batch):
+    t_in = np.asarray(batch["states"].t)
+    ext = np.asarray(batch["out"].terms.wrench_ext)
+    unmet = np.asarray(batch["out"].terms.unmet)
+    last = t_in == T - 1
+    assert last.any() and (~last).any()
+    np.testing.assert_array_equal(ext[~last], 0.0)
+    np.testing.assert_array_equal(unmet[~last, 2], 0.0)
+    assert np.all(ext[last] > 0.0)
+    # the final torque (1 N m) weighs more than gravity alone: (d) exceeds (c) at the last step
+    hold = np.asarray(batch["out"].terms.wrench_hold)
+    assert np.all(ext[last] > hold[last])
+
+
+def test_score_terms_against_direct_wrench_solves(env, fns, episodes):
+    """The score's wrench terms recomputed from the contacts with an independent required wrench: m (a - g) from
+    numpy finite differences of the waypoints, gravity (0, 0, -9.81), the CoM offset, and -w_ext at the end."""
+    cfg = env.reward_config
+    grav = np.array([0.0, 0.0, -9.81])
+    np.testing.assert_allclose(np.asarray(env.gravity), grav, rtol=1e-6)
+    for ename, opts, t in (("evalB", THREE_TIPS, 3), ("nominal", FOUR_TIPS, 8), ("evalB", TIPS_UNDER, 15)):
+        ep = episodes[ename]
+        g = _encode(env, opts)
+        now, nxt = fns["contacts"](ep, jnp.int32(g), jnp.int32(t))
+        terms = fns["score"](ep, jnp.int32(t), ep.waypoints[t], ep.quats[t], now, nxt, jnp.array(False))
+        wp = np.asarray(ep.waypoints, np.float64)
+        m, dt = float(ep.mass), float(ep.dt)
+        tn = min(t + 1, T - 1)
+        acc = (wp[tn] - 2 * wp[t] + wp[max(t - 1, 0)]) / dt**2
+        com_local = np.asarray(ep.com, np.float64)  # identity orientation in these episodes
+        assert np.allclose(np.asarray(ep.quats), [1, 0, 0, 0])
+
+        def err(c, required, pos):
+            res = fns["solve"](
+                c.points, c.normals, c.realised, ep.friction, jnp.asarray(required, jnp.float32),
+                jnp.asarray(pos + com_local, jnp.float32),
+            )
+            return float(res.error) / cfg.wrench_scale, float(res.unmet)
+
+        move, move_unmet = err(now, np.concatenate([m * (acc - grav), np.zeros(3)]), wp[t])
+        hold, hold_unmet = err(nxt, np.concatenate([-m * grav, np.zeros(3)]), wp[tn])
+        ext, ext_unmet = err(nxt, np.concatenate([-m * grav, np.zeros(3)]) - np.asarray(ep.w_ext), wp[tn])
+        np.testing.assert_allclose(float(terms.wrench_move), move, rtol=1e-4)
+        np.testing.assert_allclose(float(terms.wrench_hold), hold, rtol=1e-4)
+        np.testing.assert_allclose(float(terms.ik_next), float(nxt.ik.error) / cfg.ik_scale, rtol=1e-6)
+        np.testing.assert_allclose(float(terms.unmet[0]), move_unmet, rtol=1e-4, atol=1e-6)
+        np.testing.assert_allclose(float(terms.unmet[1]), hold_unmet, rtol=1e-4, atol=1e-6)
+        if t == T - 1:
+            np.testing.assert_allclose(float(terms.wrench_ext), ext, rtol=1e-4)
+            np.testing.assert_allclose(float(terms.unmet[2]), ext_unmet, rtol=1e-4, atol=1e-6)
+        else:
+            assert float(terms.wrench_ext) == 0.0
+        # realised contacts are the active links within contact_tol of their target
+        active = np.asarray(env.space.decode(g)) > 0
+        np.testing.assert_array_equal(
+            np.asarray(now.realised), active & (np.asarray(now.ik.link_error) < cfg.contact_tol)
+        )
+
+
+def test_full_episode_without_failure_is_done_after_exactly_16_steps(env, fns, episodes):
+    """Keep the start grasp (redundant thumb->1) through waypoint 8, move the middle tip under the tool
+    (middle->3) at waypoint 9 -- the three tips alone fall from waypoint 12 on -- and keep that grasp to the end.
+    No step fails, done is False for 15 steps and True on the 16th; the finished state is absorbing."""
+    ep = episodes["nominal"]
+    cfg = env.reward_config
+    actions = [1] * 9 + [11] + [1] * 6
+    s = fns["reset"](ep)
+    for k, a in enumerate(actions):
+        s, r, d = fns["step"](s, jnp.int32(a))
+        assert not bool(s.terms.fall) and not bool(s.terms.collision), (k, np.asarray(s.terms.unmet))
+        assert -cfg.max_step_cost <= float(r) < 0.0
+        assert int(s.t) == k + 1
+        assert bool(d) == (k == T - 1) == bool(s.done), k
+        if k < T - 1:
+            assert float(s.terms.wrench_ext) == 0.0
+        else:
+            assert float(s.terms.wrench_ext) > 0.0
+    assert int(s.grasp) == _encode(env, TIPS_UNDER)
+    assert int(s.t) == T
+    # absorbing: every action returns reward 0, done, and the state unchanged (leaf by leaf, exactly)
+    for a in (0, 1, 11, 15):
+        s2, r2, d2 = fns["step"](s, jnp.int32(a))
+        assert float(r2) == 0.0 and bool(d2)
+        jax.tree.map(lambda x, y: np.testing.assert_array_equal(np.asarray(x), np.asarray(y)), s2, s)
+
+
+def test_failure_ends_episode_and_is_absorbing(env, fns, episodes):
+    ep = episodes["nominal"]
+    cfg = env.reward_config
+    s0 = fns["reset"](ep)
+    # middle->off from the three tips leaves thumb + index tips: the tool falls at once
+    s1, r1, d1 = fns["step"](s0, jnp.int32(8))
+    assert int(s1.grasp) == _encode(env, (1, 1, 0, 0, 0, 0))
+    assert bool(s1.terms.fall) and bool(d1) and bool(s1.done)
+    assert float(r1) == cfg.r_min
+    assert int(s1.t) == 1
+    for a in (1, 8, 9):
+        s2, r2, d2 = fns["step"](s1, jnp.int32(a))
+        assert float(r2) == 0.0 and bool(d2)
+        jax.tree.map(lambda x, y: np.testing.assert_array_equal(np.asarray(x), np.asarray(y)), s2, s1)
+
+
+# ------------------------------------------------------------------------------------------ physical sanity
+def _terms_at(env, fns, ep, opts, t=0):
+    g = jnp.int32(_encode(env, opts))
+    now, nxt = fns["contacts"](ep, g, jnp.int32(t))
+    terms = fns["score"](ep, jnp.int32(t), ep.waypoints[t], ep.quats[t], now, nxt, jnp.array(False))
+    return now, nxt, terms
+
+
+def _gravity_error(env, fns, ep, contacts, t=0):
+    required = jnp.concatenate([-ep.mass * env.gravity, jnp.zeros(3, jnp.float32)])
+    return fns["wrench_error"](contacts, ep, ep.waypoints[t], ep.quats[t], required)
+
+
+def test_lone_index_tip_falls(env, fns, episodes):
+    now, _, terms = _terms_at(env, fns, episodes["nominal"], INDEX_ALONE)
+    assert bool(now.realised[1])  # the tip does reach its contact: it falls for lack of support, not of reach
+    assert bool(terms.fall)
+    assert float(terms.reward) == env.reward_config.r_min
+    assert float(jnp.max(terms.unmet)) > env.reward_config.fall_unmet
+
+
+def test_three_tips_hold_at_waypoint_0(env, fns, episodes):
+    now, nxt, terms = _terms_at(env, fns, episodes["nominal"], THREE_TIPS)
+    assert not bool(terms.fall) and not bool(terms.collision)
+    assert float(now.ik.error) < 2e-3 and float(nxt.ik.error) < 2e-3
+    np.testing.assert_array_equal(np.asarray(now.realised), np.asarray(THREE_TIPS) > 0)
+    assert float(terms.reward) > -1.0
+
+
+def test_ring_finger_reduces_gravity_wrench_error(env, fns, episodes):
+    ep = episodes["nominal"]
+    now3, _, _ = _terms_at(env, fns, ep, THREE_TIPS)
+    now4, _, _ = _terms_at(env, fns, ep, FOUR_TIPS)
+    assert bool(now4.realised[5])
+    e3 = _gravity_error(env, fns, ep, now3)
+    e4 = _gravity_error(env, fns, ep, now4)
+    assert float(e4.error) < 0.8 * float(e3.error)
+    assert float(e4.unmet) < float(e3.unmet)
+    # the wrapper solves the problem it is given (cross-check with wrench.solve directly)
+    direct = fns["solve"](now4.points, now4.normals, now4.realised, ep.friction,
+                          jnp.concatenate([-ep.mass * env.gravity, jnp.zeros(3, jnp.float32)]),
+                          ep.waypoints[0] + ep.com)
+    np.testing.assert_allclose(float(e4.error), float(direct.error), rtol=1e-5)
+
+
+def test_doubling_mass_increases_wrench_hold(env, fns, episodes):
+    """The contacts do not depend on the mass, and the cone problem is positively homogeneous in the required
+    wrench, so doubling the mass multiplies the wrench errors by 4 and leaves the unmet fractions unchanged."""
+    ep1 = episodes["nominal"]
+    ep2 = scenario.make_episode(mass_factor=2.0)
+    _, nxt1, t1 = _terms_at(env, fns, ep1, THREE_TIPS)
+    _, nxt2, t2 = _terms_at(env, fns, ep2, THREE_TIPS)
+    np.testing.assert_array_equal(np.asarray(nxt1.ik.q), np.asarray(nxt2.ik.q))
+    assert float(t2.wrench_hold) > float(t1.wrench_hold) > 0.0
+    np.testing.assert_allclose(float(t2.wrench_hold), 4.0 * float(t1.wrench_hold), rtol=1e-4)
+    np.testing.assert_allclose(float(t2.wrench_move), 4.0 * float(t1.wrench_move), rtol=1e-4)
+    np.testing.assert_allclose(np.asarray(t2.unmet), np.asarray(t1.unmet), atol=1e-5)

@@ -1,0 +1,385 @@
+"""Tests of gsp_jax.wrench: the friction-cone projection, the grasp matrix and the contact-force solve.
+
+References are independent of the code under test: geometric characterisations of the Euclidean projection
+(hypothesis), a direct numpy sum of forces and moments, and a conic reference for the solve built from
+scipy's non-negative least squares over inscribed and circumscribed polyhedral cones (which sandwich the
+exact second-order-cone optimum; SLSQP was tried first and stalled above the true optimum on some
+problems, so it is not trustworthy as a reference at 1e-3).
+"""
+from __future__ import annotations
+
+import functools
+import os
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+from hypothesis import assume, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+from scipy.optimize import nnls  # noqa: E402
+
+from gsp_jax import wrench  # noqa: E402
+
+CFG = wrench.WrenchConfig()
+L, RHO = CFG.torque_length, CFG.force_penalty
+S = np.diag([1.0, 1.0, 1.0, 1.0 / L, 1.0 / L, 1.0 / L])
+S2 = np.diag(S) ** 2
+
+# ------------------------------------------------------------------------------------------ compiled once
+_project = jax.jit(wrench.project_cone)
+_solve = jax.jit(wrench.solve, static_argnames=("cfg",))
+
+
+@functools.lru_cache(maxsize=None)
+def _vsolver(cfg: wrench.WrenchConfig):
+    """jit(vmap(solve)) for one config, compiled once per batch shape."""
+    return jax.jit(jax.vmap(functools.partial(wrench.solve, cfg=cfg)))
+
+
+def _error(p, n, a, mu, w, c):
+    return wrench.solve(p, n, a, mu, w, c).error
+
+
+_grad_w = jax.jit(jax.grad(_error, argnums=4))
+_grad_p = jax.jit(jax.grad(_error, argnums=0))
+_error_jit = jax.jit(_error)
+
+
+# ------------------------------------------------------------------------------------------ helpers
+def _skew(r):
+    return np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
+
+
+def _grasp_matrix_np(points, center):
+    """G (6, 3K) built column block by column block: [I; [p_k - c]x]."""
+    k = len(points)
+    g = np.zeros((6, 3 * k))
+    for i in range(k):
+        g[:3, 3 * i : 3 * i + 3] = np.eye(3)
+        g[3:, 3 * i : 3 * i + 3] = _skew(points[i] - center)
+    return g
+
+
+def _cone_generators(normal, mu, m, outer):
+    """m generators (3, m) of a polyhedral cone inscribed in (outer=False) or circumscribing (outer=True) the
+    circular cone {|f_t| <= mu f_n} around `normal`."""
+    a = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(normal, a)
+    th = 2 * np.pi * np.arange(m) / m
+    s = mu / np.cos(np.pi / m) if outer else mu
+    return (normal[None] + s * (np.cos(th)[:, None] * a + np.sin(th)[:, None] * b)).T
+
+
+def _polyhedral_optimum(points, normals, active, mu, w, center, outer, m=512):
+    """min |S(G f - w)|^2 + rho |f|^2 with each active f_k in the polyhedral cone (f = E lam, lam >= 0), inactive
+    f_k = 0: a non-negative least-squares problem, solved exactly by scipy's active-set NNLS. Returns (value,
+    forces (K, 3))."""
+    k = len(points)
+    e = np.zeros((3 * k, k * m))
+    for i in range(k):
+        if active[i]:
+            e[3 * i : 3 * i + 3, i * m : (i + 1) * m] = _cone_generators(normals[i], mu, m, outer)
+    a = S @ _grasp_matrix_np(points, center)
+    mat = np.vstack([a @ e, np.sqrt(RHO) * e])
+    rhs = np.concatenate([S @ w, np.zeros(3 * k)])
+    lam, rnorm = nnls(mat, rhs, maxiter=50 * k * m)
+    return rnorm**2, (e @ lam).reshape(k, 3)
+
+
+def _random_problem(rng, k, p_inactive=0.3, mu_range=(0.3, 1.2)):
+    """Contacts scattered ~3 cm around a centre, inward normals (towards the centre, tilted), a required wrench
+    of a few N and ~0.1 N m; at least one contact active."""
+    center = rng.normal(size=3) * 0.01
+    points = center + rng.normal(size=(k, 3)) * 0.03
+    normals = (center - points) + rng.normal(size=(k, 3)) * 0.01
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    active = rng.random(k) >= p_inactive
+    active[rng.integers(k)] = True
+    mu = rng.uniform(*mu_range)
+    w = np.concatenate([rng.normal(size=3) * 3.0, rng.normal(size=3) * 0.1])
+    # float32 inputs for gsp_jax; the references use exactly these (rounded) values in float64
+    f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
+    return f32(points), f32(normals), active, f32(mu), f32(w), f32(center)
+
+
+def _as_jax(problem):
+    p, n, a, mu, w, c = problem
+    return jnp.asarray(p), jnp.asarray(n), jnp.asarray(a), jnp.asarray(mu), jnp.asarray(w), jnp.asarray(c)
+
+
+def _as_f64(problem):
+    p, n, a, mu, w, c = problem
+    return p.astype(np.float64), n.astype(np.float64), a, float(mu), w.astype(np.float64), c.astype(np.float64)
+
+
+def _cone_violation(f, n, mu):
+    """max over contacts of |f_t| - mu f_n (<= 0 inside)."""
+    fn = np.sum(f * n, -1)
+    ft = np.linalg.norm(f - fn[..., None] * n, axis=-1)
+    return ft - mu * fn
+
+
+# ------------------------------------------------------------------------------------------ project_cone
+_unit = st.tuples(*[st.floats(-1.0, 1.0, allow_nan=False, allow_subnormal=False)] * 3).map(np.asarray)
+
+
+@st.composite
+def cone_case(draw):
+    """A force (magnitudes 1e-3 .. 1e3 N), a unit normal, mu in [0.1, 2], and a seed for extra samples."""
+    d, nv = draw(_unit), draw(_unit)
+    assume(np.linalg.norm(d) > 0.05 and np.linalg.norm(nv) > 0.05)
+    mag = 10.0 ** draw(st.floats(-3.0, 3.0))
+    f = (d / np.linalg.norm(d) * mag).astype(np.float32)
+    n = (nv / np.linalg.norm(nv)).astype(np.float32)
+    mu = np.float32(draw(st.floats(0.1, 2.0)))
+    seed = draw(st.integers(0, 2**31 - 1))
+    return f, n, mu, seed
+
+
+def _proj(f, n, mu):
+    return np.asarray(_project(jnp.asarray(f, jnp.float32), jnp.asarray(n, jnp.float32), jnp.float32(mu)))
+
+
+def _tangent_dirs(n, rng, m):
+    """m random unit vectors orthogonal to n (float64)."""
+    v = rng.normal(size=(m, 3))
+    v -= (v @ n)[:, None] * n
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+@settings(max_examples=200, deadline=None)
+@given(cone_case())
+def test_project_cone_lands_in_cone_and_is_idempotent(case):
+    f, n, mu, _ = case
+    scale = float(np.linalg.norm(f))
+    p = _proj(f, n, mu)
+    n64 = n.astype(np.float64)
+    assert _cone_violation(p.astype(np.float64), n64, float(mu)) <= 1e-5 * scale
+    assert np.linalg.norm(p) <= scale * (1 + 1e-5)  # projection onto a cone containing 0 never grows the vector
+    pp = _proj(p, n, mu)
+    np.testing.assert_allclose(pp, p, rtol=0, atol=1e-5 * scale)
+
+
+@settings(max_examples=200, deadline=None)
+@given(cone_case())
+def test_project_cone_is_nearest_point(case):
+    """P(p) is the nearest cone point: for points c of the cone, |p - P| <= |p - c| and the variational
+    inequality (p - P).(c - P) <= 0; for a cone also (p - P).P = 0."""
+    f, n, mu, seed = case
+    rng = np.random.default_rng(seed)
+    p64, n64, mu64 = f.astype(np.float64), n.astype(np.float64), float(mu)
+    proj = _proj(f, n, mu).astype(np.float64)
+    scale = np.linalg.norm(p64)
+    m = 64
+    t = _tangent_dirs(n64, rng, m)
+    s = rng.uniform(0.0, 1.0, size=(m, 1))
+    s[:8] = 1.0  # boundary rays too
+    a = scale * 10.0 ** rng.uniform(-2, 0.5, size=(m, 1))
+    c = a * (n64 + mu64 * s * t)  # (m, 3) points of the cone
+    # the point in the cone nearest to p along each sampled ray, to make the distance test sharp
+    c_ray = np.maximum(np.sum(c * p64, 1, keepdims=True), 0) / np.sum(c * c, 1, keepdims=True) * c
+    cands = np.concatenate([c, c_ray, np.zeros((1, 3))])
+    tol = 1e-5 * scale
+    d_proj = np.linalg.norm(p64 - proj)
+    assert np.all(d_proj <= np.linalg.norm(p64 - cands, axis=1) + tol)
+    vi = (cands - proj) @ (p64 - proj)
+    assert np.all(vi <= 1e-5 * scale * (scale + np.linalg.norm(cands, axis=1)))
+    assert abs(np.dot(p64 - proj, proj)) <= 1e-5 * scale**2
+
+
+@settings(max_examples=200, deadline=None)
+@given(cone_case(), st.floats(0.0, 0.98))
+def test_project_cone_leaves_interior_points_and_zeroes_polar_points(case, s):
+    f, n, mu, seed = case
+    rng = np.random.default_rng(seed)
+    n64, mu64 = n.astype(np.float64), float(mu)
+    mag = float(np.linalg.norm(f))
+    t = _tangent_dirs(n64, rng, 1)[0]
+    inside = (mag * (n64 + mu64 * s * t)).astype(np.float32)  # |f_t| = s mu f_n, strictly inside
+    np.testing.assert_array_equal(_proj(inside, n, mu), inside)
+    polar = (mag * (-n64 + s / mu64 * t)).astype(np.float32)  # mu |f_t| = s |f_n|, f_n < 0: the polar cone
+    np.testing.assert_array_equal(_proj(polar, n, mu), np.zeros(3, np.float32))
+
+
+def test_project_cone_batched_with_broadcast_mu_matches_single():
+    rng = np.random.default_rng(3)
+    f = rng.normal(size=(7, 5, 3)).astype(np.float32) * 4
+    n = rng.normal(size=(7, 5, 3))
+    n = (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32)
+    mu = rng.uniform(0.1, 2.0, size=(7, 1, 1)).astype(np.float32)
+    out = np.asarray(wrench.project_cone(jnp.asarray(f), jnp.asarray(n), jnp.asarray(mu)))
+    ref = np.stack([[_proj(f[i, j], n[i, j], mu[i, 0, 0]) for j in range(5)] for i in range(7)])
+    np.testing.assert_allclose(out, ref, rtol=1e-6, atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------------ grasp_matrix
+@pytest.mark.parametrize("k", [1, 2, 5])
+def test_grasp_matrix_gives_net_force_and_torque(k):
+    rng = np.random.default_rng(k)
+    points = rng.normal(size=(k, 3)) * 0.05
+    center = rng.normal(size=3) * 0.02
+    g = np.asarray(wrench.grasp_matrix(jnp.asarray(points, jnp.float32), jnp.asarray(center, jnp.float32)))
+    assert g.shape == (6, 3 * k)
+    pts, cen = points.astype(np.float32).astype(np.float64), center.astype(np.float32).astype(np.float64)
+    for _ in range(5):
+        f = rng.normal(size=(k, 3)) * 3.0
+        net_force = f.sum(0)
+        net_torque = np.cross(pts - cen, f).sum(0)
+        np.testing.assert_allclose(g @ f.ravel(), np.concatenate([net_force, net_torque]), rtol=1e-5, atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------------ solve
+N_SCIPY = 10
+
+
+@pytest.fixture(scope="module")
+def scipy_problems():
+    rng = np.random.default_rng(20240611)
+    return [_random_problem(rng, int(rng.integers(2, 6))) for _ in range(N_SCIPY)]
+
+
+@pytest.mark.parametrize("i", range(N_SCIPY))
+def test_solve_matches_conic_reference(scipy_problems, i):
+    """The wrench error equals the exact optimum to 1e-3 relative. The optimum is bracketed by NNLS over a
+    circumscribed (lower bound) and an inscribed (upper bound) 512-sided polyhedral cone."""
+    prob = scipy_problems[i]
+    p, n, a, mu, w, c = _as_f64(prob)
+    lo, _ = _polyhedral_optimum(p, n, a, mu, w, c, outer=True)
+    hi, f_ref = _polyhedral_optimum(p, n, a, mu, w, c, outer=False)
+    assert lo <= hi * (1 + 1e-9) and hi - lo <= 2e-4 * hi  # the bracket is tight
+    res = _solve(*_as_jax(prob))
+    err = float(res.error)
+    assert lo * (1 - 1e-3) <= err <= hi * (1 + 1e-3), (err, lo, hi)
+    forces = np.asarray(res.forces, np.float64)
+    fscale = max(np.abs(forces).max(), 1e-3)
+    assert np.all(_cone_violation(forces[a], n[a], mu) <= 1e-5 * fscale)
+    assert np.all(np.asarray(res.forces)[~a] == 0.0)
+    # the reported error is the objective of the reported forces
+    r = _grasp_matrix_np(p, c) @ forces.ravel() - w
+    np.testing.assert_allclose(err, np.sum((S @ r) ** 2) + RHO * np.sum(forces**2), rtol=1e-4)
+    # and those forces are the optimum's (strong convexity: close values => close minimisers)
+    np.testing.assert_allclose(forces, f_ref, atol=0.05 * max(np.abs(f_ref).max(), 0.1))
+
+
+def test_solve_batch_accuracy_against_conic_reference():
+    """A wider sweep, vmapped: 48 random 5-contact problems (some contacts inactive, mu 0.3 .. 1.2).
+
+    With the default 150 iterations the objective gap stays below 1e-4 of the problem's own scale |S w|^2 (it
+    can exceed 1e-3 *relative* on problems whose optimum is tiny, see the report); with more iterations the
+    solve converges to the exact optimum at 1e-3 relative."""
+    rng = np.random.default_rng(99)
+    probs = [_random_problem(rng, 5) for _ in range(48)]
+    batch = [jnp.asarray(np.stack(x)) for x in zip(*probs)]
+    e150 = np.asarray(_vsolver(CFG)(*batch).error, np.float64)
+    e600 = np.asarray(_vsolver(wrench.WrenchConfig(iterations=600))(*batch).error, np.float64)
+    for j, prob in enumerate(probs):
+        p, n, a, mu, w, c = _as_f64(prob)
+        lo, _ = _polyhedral_optimum(p, n, a, mu, w, c, outer=True, m=256)
+        hi, _ = _polyhedral_optimum(p, n, a, mu, w, c, outer=False, m=256)
+        sw2 = np.sum((S @ w) ** 2)
+        assert lo - 1e-4 * sw2 <= e150[j] <= hi + 1e-4 * sw2, (j, e150[j], lo, hi, sw2)
+        assert lo * (1 - 1e-3) <= e600[j] <= hi * (1 + 1e-3), (j, e600[j], lo, hi)
+
+
+def test_solve_unmet_residual_and_inactive_contacts():
+    rng = np.random.default_rng(5)
+    for _ in range(6):
+        prob = _random_problem(rng, 5, p_inactive=0.5)
+        p, n, a, mu, w, c = _as_f64(prob)
+        res = _solve(*_as_jax(prob))
+        forces = np.asarray(res.forces, np.float64)
+        assert np.all(np.asarray(res.forces)[~a] == 0.0)  # exactly zero, not just small
+        r = _grasp_matrix_np(p, c) @ forces.ravel() - w
+        np.testing.assert_allclose(np.asarray(res.residual), r, rtol=1e-4, atol=1e-5 * np.abs(w).max())
+        unmet = np.linalg.norm(S @ r) / np.linalg.norm(S @ w)
+        np.testing.assert_allclose(float(res.unmet), unmet, rtol=1e-4, atol=1e-6)
+        assert 0.0 <= float(res.unmet) <= 1.0 + 1e-5  # f = 0 is feasible, so never worse than no contact
+
+
+def test_solve_no_active_contact_leaves_everything_unmet():
+    rng = np.random.default_rng(6)
+    p, n, a, mu, w, c = _random_problem(rng, 3)
+    a = np.zeros(3, bool)
+    res = _solve(*_as_jax((p, n, a, mu, w, c)))
+    np.testing.assert_array_equal(np.asarray(res.forces), 0.0)
+    np.testing.assert_allclose(float(res.unmet), 1.0, rtol=1e-6)
+    np.testing.assert_allclose(float(res.error), np.sum((S @ w.astype(np.float64)) ** 2), rtol=1e-5)
+
+
+@pytest.fixture(scope="module")
+def grad_problems():
+    """Smooth optima: every active contact carries a clearly non-zero force, or the residual is clearly
+    non-zero, so the error is differentiable (checked by the finite differences themselves)."""
+    rng = np.random.default_rng(0)
+    out = []
+    while len(out) < 4:
+        prob = _random_problem(rng, 4, p_inactive=0.0)  # one shape: one compile of each gradient
+        res = _solve(*_as_jax(prob))
+        fn = np.sum(np.asarray(res.forces) * prob[1], -1)
+        if float(res.unmet) > 0.05 and (np.all(fn > 0.05) or float(res.unmet) > 0.3):
+            out.append(prob)
+    return out
+
+
+@pytest.mark.parametrize("i", range(4))
+def test_grad_of_wrench_error_matches_finite_differences(grad_problems, i):
+    prob = _as_jax(grad_problems[i])
+    p, n, a, mu, w, c = prob
+    k = p.shape[0]
+    gw = np.asarray(_grad_w(*prob), np.float64)
+    gp = np.asarray(_grad_p(*prob), np.float64)
+    eps_w, eps_p = 1e-3, 1e-4
+    fd_w = np.zeros(6)
+    for j in range(6):
+        e = jnp.zeros(6, jnp.float32).at[j].set(eps_w)
+        fd_w[j] = (float(_error_jit(p, n, a, mu, w + e, c)) - float(_error_jit(p, n, a, mu, w - e, c))) / (2 * eps_w)
+    fd_p = np.zeros((k, 3))
+    for kk in range(k):
+        for j in range(3):
+            e = jnp.zeros((k, 3), jnp.float32).at[kk, j].set(eps_p)
+            fd_p[kk, j] = (
+                float(_error_jit(p + e, n, a, mu, w, c)) - float(_error_jit(p - e, n, a, mu, w, c))
+            ) / (2 * eps_p)
+    np.testing.assert_allclose(gw, fd_w, rtol=2e-2, atol=2e-2 * np.abs(fd_w).max())
+    np.testing.assert_allclose(gp, fd_p, rtol=2e-2, atol=2e-2 * np.abs(fd_p).max())
+    assert np.abs(fd_w).max() > 1e-2 and np.abs(fd_p).max() > 1e-2  # not a vacuous comparison
+
+
+def test_grad_of_converged_error_matches_envelope_theorem(grad_problems):
+    """At the optimum the constraints do not depend on w or on the points, so dE*/dw = -2 S^2 r and
+    dE*/dp_k = f_k x (2 r_tau / L^2) (r = G f - w): an analytic reference for the unrolled gradient (with
+    iterations enough to converge the derivative of the unrolled map too)."""
+    cfg = wrench.WrenchConfig(iterations=600)
+
+    def err(p, n, a, mu, w, c):
+        return wrench.solve(p, n, a, mu, w, c, cfg).error
+
+    g = jax.jit(jax.grad(err, argnums=(0, 4)))
+    for prob in grad_problems:
+        prob = _as_jax(prob)
+        gp, gw = (np.asarray(x, np.float64) for x in g(*prob))
+        res = _solve(*prob, cfg=cfg)
+        r = np.asarray(res.residual, np.float64)
+        f = np.asarray(res.forces, np.float64)
+        env_w = -2 * S2 * r
+        env_p = np.cross(f, 2 * r[3:] / L**2)
+        np.testing.assert_allclose(gw, env_w, rtol=2e-2, atol=2e-2 * np.abs(env_w).max())
+        np.testing.assert_allclose(gp, env_p, rtol=2e-2, atol=2e-2 * np.abs(env_p).max())
+
+
+def test_vmapped_solve_equals_looped_solve():
+    rng = np.random.default_rng(11)
+    probs = [_random_problem(rng, 4) for _ in range(8)]
+    batch = [jnp.asarray(np.stack(x)) for x in zip(*probs)]
+    out = _vsolver(CFG)(*batch)
+    for j, prob in enumerate(probs):
+        one = _solve(*_as_jax(prob))
+        scale = max(float(np.abs(np.asarray(one.forces)).max()), 1e-3)
+        np.testing.assert_allclose(np.asarray(out.forces[j]), np.asarray(one.forces), rtol=0, atol=1e-5 * scale)
+        np.testing.assert_allclose(float(out.error[j]), float(one.error), rtol=1e-5, atol=1e-7)
+        np.testing.assert_allclose(float(out.unmet[j]), float(one.unmet), rtol=1e-5, atol=1e-7)
+        np.testing.assert_allclose(np.asarray(out.residual[j]), np.asarray(one.residual), rtol=1e-5, atol=1e-5)

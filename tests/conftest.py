@@ -1,14 +1,7 @@
-"""Shared fixtures. JAX is forced onto the CPU before anything imports it (tests are small and deterministic).
-
-XLA's backend optimisation level is lowered for the tests: the IK's scans take several seconds each to compile on
-a small CPU, and at level 0 they compile about twice as fast, with the same results to float32 rounding. The
-tests check semantics, not the speed of the generated code. Set GSP_TEST_XLA_OPT=1 to keep XLA's default.
-"""
+"""Shared fixtures. JAX is forced onto the CPU before anything imports it (tests are small and deterministic)."""
 import os
 
 os.environ["JAX_PLATFORMS"] = "cpu"
-if os.environ.get("GSP_TEST_XLA_OPT") != "1" and "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402

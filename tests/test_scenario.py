@@ -1,7 +1,6 @@
 """Episodes and episode sets (gsp_jax.scenario): members and values of the paper's sets, JSON round trip, and
 rejection of bad files with a message naming the field and the value."""
 import collections
-import copy
 import json
 import math
 import re
@@ -74,7 +73,8 @@ def test_nominal_episode():
     assert _params(ep) == (0.0, 1.0, 1.0, 0.0)
     # the waypoints are the minimum-jerk heights
     s = np.linspace(0, 1, 16)
-    np.testing.assert_allclose(np.asarray(ep.waypoints)[:, 2], Z0 + (Z1 - Z0) * (10 * s**3 - 15 * s**4 + 6 * s**5), atol=1e-7)
+    min_jerk = Z0 + (Z1 - Z0) * (10 * s**3 - 15 * s**4 + 6 * s**5)
+    np.testing.assert_allclose(np.asarray(ep.waypoints)[:, 2], min_jerk, atol=1e-7)
 
 
 def test_training_set():

@@ -183,7 +183,10 @@ def test_vmapped_step_equals_looped_step(env, fns, batch):
         assert bool(batch["done"][i]) == bool(d1)
         assert int(outb.grasp) == int(s1.grasp)
         assert int(outb.t) == int(s1.t)
-        np.testing.assert_allclose(np.asarray(outb.q), np.asarray(s1.q), atol=1e-5)
+        # q: 1e-4 rad. The IK is only weakly regularised (w_regular 3e-3 m/rad), so along nearly flat directions
+        # float32 rounding differences between the batched and the single program move a joint by ~3e-5 rad
+        # (seen on one spread joint) without changing the contact errors, which are compared at 1e-5 below.
+        np.testing.assert_allclose(np.asarray(outb.q), np.asarray(s1.q), atol=1e-4)
         np.testing.assert_allclose(np.asarray(outb.tool_pos), np.asarray(s1.tool_pos), atol=1e-7)
         np.testing.assert_allclose(np.asarray(outb.tool_vel), np.asarray(s1.tool_vel), atol=1e-6)
         for name in ("wrench_move", "ik_next", "wrench_hold", "wrench_ext", "redundant", "reward"):

@@ -376,10 +376,12 @@ def test_vmapped_solve_equals_looped_solve():
     probs = [_random_problem(rng, 4) for _ in range(8)]
     batch = [jnp.asarray(np.stack(x)) for x in zip(*probs)]
     out = _vsolver(CFG)(*batch)
+    # float32: the batched and the single program round differently (seen: 1.5e-5 relative on an error of 0.03 N^2
+    # under XLA's optimisation level 0); a wrong batching rule would differ at O(1)
     for j, prob in enumerate(probs):
         one = _solve(*_as_jax(prob))
         scale = max(float(np.abs(np.asarray(one.forces)).max()), 1e-3)
-        np.testing.assert_allclose(np.asarray(out.forces[j]), np.asarray(one.forces), rtol=0, atol=1e-5 * scale)
-        np.testing.assert_allclose(float(out.error[j]), float(one.error), rtol=1e-5, atol=1e-7)
-        np.testing.assert_allclose(float(out.unmet[j]), float(one.unmet), rtol=1e-5, atol=1e-7)
-        np.testing.assert_allclose(np.asarray(out.residual[j]), np.asarray(one.residual), rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(np.asarray(out.forces[j]), np.asarray(one.forces), rtol=0, atol=1e-4 * scale)
+        np.testing.assert_allclose(float(out.error[j]), float(one.error), rtol=1e-4, atol=1e-7)
+        np.testing.assert_allclose(float(out.unmet[j]), float(one.unmet), rtol=1e-4, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(out.residual[j]), np.asarray(one.residual), rtol=1e-4, atol=1e-4)

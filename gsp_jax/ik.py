@@ -33,13 +33,16 @@ from gsp_jax.hand import HandModel
 
 @dataclasses.dataclass(frozen=True)
 class IKConfig:
-    iterations: int = 40  # fixed Gauss-Newton iterations
+    iterations: int = 60  # fixed Gauss-Newton iterations
     clearance: float = 0.004  # inactive links keep this far from the tool [m]
+    contact_slack: float = 0.001  # active links may sink this far into the tool before the collision term acts [m]
     table_margin: float = 0.001  # every sphere keeps this far above the table [m]
     self_margin: float = 0.001  # extra gap between spheres of different fingers [m]
     w_collision: float = 3.0  # weight of the collision residuals relative to the target residuals
     w_regular: float = 3e-3  # weight [m/rad] of the pull towards the start configuration
     damping0: float = 1e-4  # initial Levenberg-Marquardt damping [m^2]
+    damping_down: float = 0.3  # damping factor after an accepted step
+    damping_up: float = 4.0  # damping factor after a rejected step
     collision_tol: float = 0.002  # penetration [m] beyond which the result counts as a collision
 
 
@@ -56,10 +59,15 @@ class IKResult:
 
 
 def box_sdf(points: jax.Array, tool_pos: jax.Array, tool_mat: jax.Array, hand: HandModel) -> jax.Array:
-    """Signed distance (N,) from world points (N, 3) to the tool's union of boxes (negative inside)."""
+    """Signed distance (N,) from world points (N, 3) to the tool's union of boxes (negative inside).
+
+    Exact outside the tool. Inside, it is minus the deepest penetration into any single box: exact wherever
+    that box's nearest face is on the tool's surface, and otherwise (near where boxes meet) a shallower bound.
+    The wrench model overlaps its boxes so that no point of the tool is shallow in every box."""
     local = (points - tool_pos) @ tool_mat  # (N, 3) in the tool frame
-    rel = jnp.einsum("nbj,bji->nbi", local[:, None, :] - hand.tool_box_pos[None], hand.tool_box_mat)
-    d = jnp.abs(rel) - hand.tool_box_half  # (N, NB, 3)
+    dt = points.dtype
+    rel = jnp.einsum("nbj,bji->nbi", local[:, None, :] - hand.tool_box_pos[None].astype(dt), hand.tool_box_mat.astype(dt))
+    d = jnp.abs(rel) - hand.tool_box_half.astype(dt)  # (N, NB, 3)
     outside = jnp.sqrt(jnp.sum(jnp.maximum(d, 0.0) ** 2, -1) + 1e-12)
     inside = jnp.minimum(jnp.max(d, -1), 0.0)
     return jnp.min(outside + inside, axis=-1)
@@ -72,7 +80,7 @@ def _sphere_sdf(hand: HandModel, c: jax.Array, tool_pos, tool_mat) -> jax.Array:
 def _distances(hand: HandModel, q, tool_pos, tool_mat):
     """Surface gaps of every sphere to tool (S,), to table (S,), and of self pairs (P,) [m]."""
     c = kinematics.sphere_centers(hand, q)
-    r = hand.sphere_radius
+    r = hand.sphere_radius.astype(q.dtype)
     tool = box_sdf(c, tool_pos, tool_mat, hand) - r
     table = c[:, 2] - r
     i, j = hand.self_pairs[:, 0], hand.self_pairs[:, 1]
@@ -85,8 +93,9 @@ def _link_gaps(hand: HandModel, q, targets):
     axis_pt = kinematics.closest_on_links(hand, q, targets)
     d = targets - axis_pt
     dist = jnp.sqrt(jnp.sum(d**2, -1) + 1e-12)
-    surface = axis_pt + d * (hand.link_radius / dist)[:, None]
-    return dist - hand.link_radius, surface
+    radius = hand.link_radius.astype(q.dtype)
+    surface = axis_pt + d * (radius / dist)[:, None]
+    return dist - radius, surface
 
 
 def _hinge(weight, margin, gap, grad):
@@ -103,34 +112,35 @@ def residuals_and_jacobian(hand: HandModel, cfg: IKConfig, q, active, targets, t
     # contact links: distance of the tool point to the link's segment, minus the radius
     centre = pos[hand.link_body] + jnp.einsum("lij,lj->li", mat[hand.link_body], hand.link_site.astype(q.dtype))
     axis = jnp.einsum("lij,lj->li", mat[hand.link_body], hand.link_axis.astype(q.dtype))
-    sc = jnp.clip(jnp.sum((targets - centre) * axis, -1), -hand.link_half, hand.link_half)
+    dt = q.dtype
+    half, radius = hand.link_half.astype(dt), hand.link_radius.astype(dt)
+    sc = jnp.clip(jnp.sum((targets - centre) * axis, -1), -half, half)
     axis_pt = centre + sc[:, None] * axis
     d = targets - axis_pt
     dist = jnp.sqrt(jnp.sum(d**2, -1) + 1e-12)
     j_axis_pt = kinematics.point_jacobian(hand, axes, anchors, hand.link_body, axis_pt)  # (L, 3, J)
-    r_link = (dist - hand.link_radius) * active
+    r_link = (dist - radius) * active
     j_link = -jnp.einsum("li,lij->lj", d / dist[:, None], j_axis_pt) * active[:, None]
     # spheres against tool, table and each other
-    c = pos[hand.sphere_body] + jnp.einsum("nij,nj->ni", mat[hand.sphere_body], hand.sphere_pos.astype(q.dtype))
+    c = pos[hand.sphere_body] + jnp.einsum("nij,nj->ni", mat[hand.sphere_body], hand.sphere_pos.astype(dt))
+    sr = hand.sphere_radius.astype(dt)
     jc = kinematics.point_jacobian(hand, axes, anchors, hand.sphere_body, c)  # (S, 3, J)
     sdf, sdf_grad = jax.vmap(jax.value_and_grad(lambda p: _sphere_sdf(hand, p, tool_pos, tool_mat)))(c)
     sphere_active = jnp.where(hand.sphere_link >= 0, active[jnp.maximum(hand.sphere_link, 0)], False)
-    margin = jnp.where(sphere_active, 0.0, cfg.clearance)
-    r_tool, j_tool = _hinge(
-        cfg.w_collision, margin, sdf - hand.sphere_radius, jnp.einsum("ni,nij->nj", sdf_grad, jc)
-    )
-    r_table, j_table = _hinge(cfg.w_collision, cfg.table_margin, c[:, 2] - hand.sphere_radius, jc[:, 2, :])
+    margin = jnp.where(sphere_active, -cfg.contact_slack, cfg.clearance)
+    r_tool, j_tool = _hinge(cfg.w_collision, margin, sdf - sr, jnp.einsum("ni,nij->nj", sdf_grad, jc))
+    r_table, j_table = _hinge(cfg.w_collision, cfg.table_margin, c[:, 2] - sr, jc[:, 2, :])
     i, k = hand.self_pairs[:, 0], hand.self_pairs[:, 1]
     diff = c[i] - c[k]
     pd = jnp.sqrt(jnp.sum(diff**2, -1) + 1e-12)
     r_self, j_self = _hinge(
         cfg.w_collision,
         cfg.self_margin,
-        pd - hand.sphere_radius[i] - hand.sphere_radius[k],
+        pd - sr[i] - sr[k],
         jnp.einsum("pi,pij->pj", diff / pd[:, None], jc[i] - jc[k]),
     )
     n = hand.n_joints
-    r_reg = cfg.w_regular * (q - hand.q_start)
+    r_reg = cfg.w_regular * (q - hand.q_start.astype(dt))
     j_reg = cfg.w_regular * jnp.eye(n, dtype=q.dtype)
     return (
         jnp.concatenate([r_link, r_tool, r_table, r_self, r_reg]),
@@ -169,7 +179,7 @@ def _solve(hand, active, targets, tool_pos, tool_mat, cfg) -> IKResult:
         r_new, jac_new = res_jac(q_new)
         better = jnp.sum(r_new**2) < jnp.sum(r**2)
         keep = lambda new, old: jnp.where(better, new, old)  # noqa: E731
-        lam = jnp.clip(jnp.where(better, lam * 0.3, lam * 4.0), 1e-9, 1e2)
+        lam = jnp.clip(jnp.where(better, lam * cfg.damping_down, lam * cfg.damping_up), 1e-9, 1e2)
         return (keep(q_new, q), keep(r_new, r), keep(jac_new, jac), lam), None
 
     q0 = jnp.asarray(hand.q_start, dtype)

@@ -63,7 +63,7 @@ def chain(hand: HandModel, q: jax.Array):
 
 def point_jacobian(hand: HandModel, axes: jax.Array, anchors: jax.Array, body: np.ndarray, points: jax.Array):
     """d(points)/dq (N, 3, J) of world points (N, 3) fixed to bodies (N,), from `chain`'s axes and anchors."""
-    moves = hand.joint_moves_body[body]  # (N, J) joint j moves body b
+    moves = hand.joint_moves_body[body].astype(points.dtype)  # (N, J) joint j moves body b
     jac = jnp.cross(axes[None], points[:, None, :] - anchors[None])  # (N, J, 3)
     return jnp.swapaxes(jac * moves[..., None], 1, 2)
 
@@ -85,7 +85,8 @@ def contact_segments(hand: HandModel, q: jax.Array) -> tuple[jax.Array, jax.Arra
 def closest_on_links(hand: HandModel, q: jax.Array, points: jax.Array) -> jax.Array:
     """For each contact link, the point (L, 3) of its contact segment closest to `points` (L, 3)."""
     centre, axis = contact_segments(hand, q)
-    s = jnp.clip(jnp.sum((points - centre) * axis, -1), -hand.link_half, hand.link_half)
+    half = hand.link_half.astype(q.dtype)
+    s = jnp.clip(jnp.sum((points - centre) * axis, -1), -half, half)
     return centre + s[:, None] * axis
 
 

@@ -216,24 +216,24 @@ def from_dict(d: dict, name: str = "episode") -> Episode:
     unknown = sorted(set(d) - set(_FIELDS))
     if unknown:
         raise EpisodeError(f"{name}.{unknown[0]}: unknown field")
-    try:
-        arrays = {
-            f: jnp.asarray(d[f], jnp.int32 if f == "start_grasp" else jnp.float32) for f in _FIELDS
-        }
-    except (TypeError, ValueError) as e:
-        bad = next(f for f in _FIELDS if not _is_numeric(d[f]))
-        raise EpisodeError(f"{name}.{bad}: {d[bad]!r} is not numeric") from e
+    arrays = {}
+    for f in _FIELDS:
+        if not _is_numeric(d[f]):
+            raise EpisodeError(f"{name}.{f}: {d[f]!r} is not numeric")
+        try:
+            arrays[f] = jnp.asarray(d[f], jnp.int32 if f == "start_grasp" else jnp.float32)
+        except (TypeError, ValueError) as e:  # ragged nesting
+            raise EpisodeError(f"{name}.{f}: {d[f]!r} is not a rectangular array") from e
     if float(np.asarray(d["start_grasp"])) != int(np.asarray(d["start_grasp"])):
         raise EpisodeError(f"{name}.start_grasp: {d['start_grasp']!r} (must be an integer)")
     return Episode(**arrays)
 
 
 def _is_numeric(x) -> bool:
-    try:
-        np.asarray(x, dtype=np.float64)
-        return True
-    except (TypeError, ValueError):
-        return False
+    """A number or a (nested) list of numbers; None (JSON null), strings and ragged lists are not."""
+    if isinstance(x, (list, tuple)):
+        return all(_is_numeric(v) for v in x)
+    return isinstance(x, (int, float, np.number)) and not isinstance(x, bool)
 
 
 def save(path: str | pathlib.Path, episodes: dict[str, Episode]) -> None:

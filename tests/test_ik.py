@@ -5,6 +5,11 @@ Every jitted function is built once per module (module-scoped fixtures) and call
 compiled at XLA backend optimisation level 0 (per function, `jit(..., compiler_options=FAST)`; nothing global):
 the IK's scans compile about twice as fast on a small CPU, with the same results to float32 rounding.
 """
+import os
+import subprocess
+import sys
+import textwrap
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -135,6 +140,13 @@ def _inside_any(hand, p):
     return inside
 
 
+def _count_inside(hand, p):
+    count = np.zeros(len(p), int)
+    for c, m, half in zip(hand.tool_box_pos, hand.tool_box_mat, hand.tool_box_half):
+        count += np.all(np.abs((p - c) @ m) <= half, axis=-1)
+    return count
+
+
 def _union_sdf_reference(hand, p_tool, surface):
     """Brute force: distance to the nearest boundary sample, negative inside any box."""
     d = np.empty(len(p_tool))
@@ -189,21 +201,28 @@ def test_box_sdf_outside_points_match_exact_distance(hand, sdf_case):
 
 
 def test_box_sdf_matches_brute_force_union_sdf(hand, sdf_case):
+    """Inside/outside always right; the value exact (to the reference's sampling) everywhere except where boxes
+    overlap, where box_sdf documents a shallower bound: never deeper than the true depth."""
     p_tool, got = sdf_case
     ref = _union_sdf_reference(hand, p_tool, _box_surface_samples(hand))
     inside = _inside_any(hand, p_tool)
     assert inside.sum() > 100
     np.testing.assert_array_equal(got < 0, ref < 0)
     # grid spacing 0.4 mm -> every boundary point is within 0.29 mm of a sample
-    np.testing.assert_allclose(got, ref, atol=3e-4)
+    assert np.all(got >= ref - 3e-4)  # never reports more penetration than there is
+    n_boxes_containing = _count_inside(hand, p_tool)
+    single = n_boxes_containing <= 1
+    assert single.sum() > 0.9 * len(p_tool)
+    np.testing.assert_allclose(got[single], ref[single], atol=3e-4)
 
 
 def test_box_sdf_inside_the_seam_between_handle_and_head(hand):
-    """Minimal case: a point 5 mm deep inside the tool, on the face where the handle meets the head."""
+    """Minimal case: a point 5 mm deep inside the tool, where the handle meets the head (the model overlaps the
+    boxes so that no point there is shallow in both)."""
     handle_end = hand.tool_box_pos[0, 0] + hand.tool_box_half[0, 0]
     head_start = hand.tool_box_pos[1, 0] - hand.tool_box_half[1, 0]
-    assert handle_end == pytest.approx(head_start)  # the two boxes share the face x = 0.05
-    p = jnp.asarray([[handle_end, 0.0, 0.0]], jnp.float32)
+    assert handle_end > head_start + 5e-3  # the boxes overlap by more than the handle's half thickness
+    p = jnp.asarray([[head_start, 0.0, 0.0]], jnp.float32)
     d = float(ik.box_sdf(p, jnp.zeros(3, jnp.float32), I3, hand)[0])
     # the nearest point of the tool's surface is on the handle's top/bottom face, 5 mm away
     assert d == pytest.approx(-hand.tool_box_half[0, 2], abs=1e-4)
@@ -419,15 +438,28 @@ def test_vmapped_solve_equals_looped_solve(hand, space, all_grasps, solve_grasp,
 # ------------------------------------------------------------------------------------------------ dtypes
 
 
-def test_float32_problem_stays_float32_with_x64_enabled(hand):
+def test_float32_problem_stays_float32_with_x64_enabled():
     """kinematics keeps the dtype of q (it casts the model's float64 constants); the IK must do the same, or its
-    lax.scan carry changes dtype and float32 problems fail whenever jax_enable_x64 is on. Traced only."""
-    p, m = jnp.zeros(3, jnp.float32), jnp.eye(3, dtype=jnp.float32)
-    with jax.enable_x64(True):
+    lax.scan carry changes dtype and float32 problems fail whenever jax_enable_x64 is on. Run in a fresh
+    process with x64 on from the start (toggling x64 inside a process that already traced under x32 trips over
+    JAX's own caches, which is not what a user does). Traced only."""
+    code = textwrap.dedent(
+        """
+        import jax, jax.numpy as jnp
+        from gsp_jax import hand as H, ik, kinematics, scenario
+        hand = H.load()
+        p, m = jnp.zeros(3, jnp.float32), jnp.eye(3, dtype=jnp.float32)
         q = jnp.asarray(hand.q_start, jnp.float32)
         assert jax.eval_shape(lambda q: kinematics.body_poses(hand, q), q)[0].dtype == jnp.float32
         active, targets, _ = ik.grasp_targets(hand, jnp.asarray(scenario.START_OPTIONS), p, m)
-        r, jac = jax.eval_shape(lambda q: ik.residuals_and_jacobian(hand, CFG, q, active, targets, p, m), q)
-        assert r.dtype == jnp.float32 and jac.dtype == jnp.float32
+        r, jac = jax.eval_shape(lambda q: ik.residuals_and_jacobian(hand, ik.IKConfig(), q, active, targets, p, m), q)
+        assert r.dtype == jnp.float32 and jac.dtype == jnp.float32, (r.dtype, jac.dtype)
         out = jax.eval_shape(lambda t: ik.solve(hand, active, t, p, m), targets)
-        assert out.q.dtype == jnp.float32 and out.error.dtype == jnp.float32
+        assert out.q.dtype == jnp.float32 and out.error.dtype == jnp.float32, (out.q.dtype, out.error.dtype)
+        print("ok")
+        """
+    )
+    env = {**os.environ, "JAX_ENABLE_X64": "1", "JAX_PLATFORMS": "cpu"}
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0 and proc.stdout.strip().endswith("ok"), proc.stderr[-3000:]
+

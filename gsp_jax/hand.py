@@ -27,7 +27,7 @@ SCENE_XML = MODELS_DIR / "scene.xml"
 TOOL_BODY = "wrench"
 PALM_BODY = "palm"
 SPHERE_SPACING = 1.5  # centre spacing of a capsule's spheres, in radii (gaps stay well under the collision margin)
-SELF_COLLISION_MIN_DEPTH = 3  # self-collision is checked between bodies this deep below the palm (medial, distal)
+SELF_COLLISION_MIN_DEPTH = 3  # self-collision: capsules of bodies this deep below the palm (medial, distal)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -66,7 +66,10 @@ class HandModel:
     sphere_radius: np.ndarray  # (S,) [m]
     sphere_finger: np.ndarray  # (S,) int, finger index (first body below the palm)
     sphere_link: np.ndarray  # (S,) int, contact link owning the sphere's body; -1: none
-    self_pairs: np.ndarray  # (P, 2) int, sphere pairs on different fingers checked for self-collision
+    capsule_body: np.ndarray  # (C,) int, body of each self-collision capsule (medial and distal links)
+    capsule_ends: np.ndarray  # (C, 2, 3) the capsule's segment end points in the body frame [m]
+    capsule_radius: np.ndarray  # (C,) [m]
+    self_pairs: np.ndarray  # (P, 2) int, capsule pairs on different fingers checked for self-collision
     finger_names: tuple[str, ...]
     # tool collision boxes, in the tool frame
     tool_box_pos: np.ndarray  # (NB, 3) [m]
@@ -173,6 +176,7 @@ def from_mjmodel(model: mujoco.MjModel) -> HandModel:
 
     body_link = {b: li for li, b in enumerate(link_body)}
     sph_body, sph_pos, sph_rad, sph_finger, sph_link = [], [], [], [], []
+    cap_body, cap_ends, cap_rad, cap_finger = [], [], [], []
     for g in range(model.ngeom):
         b = model.geom_bodyid[g]
         if b not in index or b == palm:
@@ -182,6 +186,11 @@ def from_mjmodel(model: mujoco.MjModel) -> HandModel:
         if gtype == mujoco.mjtGeom.mjGEOM_CAPSULE:
             r, h = model.geom_size[g][:2]
             offsets = _capsule_spheres(h, r)
+            if depth(b) >= SELF_COLLISION_MIN_DEPTH:
+                cap_body.append(index[b])
+                cap_ends.append([model.geom_pos[g] - mat[:, 2] * h, model.geom_pos[g] + mat[:, 2] * h])
+                cap_rad.append(r)
+                cap_finger.append(fingers.index(finger_of(b)))
         elif gtype == mujoco.mjtGeom.mjGEOM_SPHERE:
             r, offsets = model.geom_size[g][0], np.zeros(1)
         else:
@@ -192,14 +201,8 @@ def from_mjmodel(model: mujoco.MjModel) -> HandModel:
             sph_rad.append(r)
             sph_finger.append(fingers.index(finger_of(b)))
             sph_link.append(body_link.get(index[b], -1))
-    deep = [depth(hand_bodies[b]) >= SELF_COLLISION_MIN_DEPTH for b in sph_body]
     pairs = np.array(
-        [
-            (i, j)
-            for i in range(len(sph_body))
-            for j in range(i + 1, len(sph_body))
-            if sph_finger[i] != sph_finger[j] and deep[i] and deep[j]
-        ]
+        [(i, j) for i in range(len(cap_body)) for j in range(i + 1, len(cap_body)) if cap_finger[i] != cap_finger[j]]
     )
 
     boxes = [g for g in range(model.ngeom) if model.geom_bodyid[g] == tool]
@@ -242,6 +245,9 @@ def from_mjmodel(model: mujoco.MjModel) -> HandModel:
         sphere_radius=np.array(sph_rad),
         sphere_finger=np.array(sph_finger),
         sphere_link=np.array(sph_link),
+        capsule_body=np.array(cap_body),
+        capsule_ends=np.array(cap_ends),
+        capsule_radius=np.array(cap_rad),
         self_pairs=pairs,
         finger_names=finger_names,
         tool_box_pos=np.array([model.geom_pos[g] for g in boxes]),

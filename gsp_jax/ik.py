@@ -9,7 +9,8 @@ configuration, for a fixed number of iterations (static shapes; `vmap` runs ever
   on a face along its normal, and lets a phalanx touch a face anywhere along its length),
 * every hand sphere against the tool: penetration, and for spheres of inactive links a clearance margin
   (inactive links stay clear of the tool),
-* every hand sphere against the table (z = 0), and sphere pairs of different fingers (self-collision),
+* every hand sphere against the table (z = 0), and the medial and distal capsules of different fingers against
+  each other (self-collision, exact capsule-capsule distance),
 * a small pull towards the start configuration (keeps the solution unique).
 
 Joint limits are enforced by projection after every step. Why Gauss-Newton rather than plain gradient descent:
@@ -77,14 +78,43 @@ def _sphere_sdf(hand: HandModel, c: jax.Array, tool_pos, tool_mat) -> jax.Array:
     return box_sdf(c[None], tool_pos, tool_mat, hand)[0]
 
 
+def segment_closest(p0, p1, q0, q1):
+    """Parameters s, t in [0, 1] (N,) of the closest points of segments p0-p1 and q0-q1 (N, 3) (Ericson,
+    Real-Time Collision Detection, 5.1.9); segments must have nonzero length."""
+    d1, d2, r = p1 - p0, q1 - q0, p0 - q0
+    a, e = jnp.sum(d1 * d1, -1), jnp.sum(d2 * d2, -1)
+    b, c, f = jnp.sum(d1 * d2, -1), jnp.sum(d1 * r, -1), jnp.sum(d2 * r, -1)
+    denom = a * e - b * b
+    general = denom > 1e-6 * a * e  # else (nearly) parallel: start from s = 0
+    s = jnp.where(general, jnp.clip((b * f - c * e) / jnp.where(general, denom, 1.0), 0.0, 1.0), 0.0)
+    t = (b * s + f) / e
+    s = jnp.where(t < 0, jnp.clip(-c / a, 0.0, 1.0), jnp.where(t > 1, jnp.clip((b - c) / a, 0.0, 1.0), s))
+    return s, jnp.clip(t, 0.0, 1.0)
+
+
+def _self_closest(hand: HandModel, pos, mat, dtype):
+    """Closest points (P, 3), (P, 3) of the self-collision capsule pairs' axes, in the world frame."""
+    ends = pos[hand.capsule_body][:, None] + jnp.einsum(
+        "cij,cej->cei", mat[hand.capsule_body], hand.capsule_ends.astype(dtype)
+    )  # (C, 2, 3)
+    i, k = hand.self_pairs[:, 0], hand.self_pairs[:, 1]
+    s, t = segment_closest(ends[i, 0], ends[i, 1], ends[k, 0], ends[k, 1])
+    pi = ends[i, 0] + s[:, None] * (ends[i, 1] - ends[i, 0])
+    pk = ends[k, 0] + t[:, None] * (ends[k, 1] - ends[k, 0])
+    return pi, pk
+
+
 def _distances(hand: HandModel, q, tool_pos, tool_mat):
-    """Surface gaps of every sphere to tool (S,), to table (S,), and of self pairs (P,) [m]."""
-    c = kinematics.sphere_centers(hand, q)
+    """Surface gaps of every sphere to tool (S,), to table (S,), and of self-collision capsule pairs (P,) [m]."""
+    pos, mat = kinematics.body_poses(hand, q)
+    c = pos[hand.sphere_body] + jnp.einsum("nij,nj->ni", mat[hand.sphere_body], hand.sphere_pos.astype(q.dtype))
     r = hand.sphere_radius.astype(q.dtype)
     tool = box_sdf(c, tool_pos, tool_mat, hand) - r
     table = c[:, 2] - r
-    i, j = hand.self_pairs[:, 0], hand.self_pairs[:, 1]
-    self_gap = jnp.sqrt(jnp.sum((c[i] - c[j]) ** 2, -1) + 1e-12) - r[i] - r[j]
+    pi, pk = _self_closest(hand, pos, mat, q.dtype)
+    cr = hand.capsule_radius.astype(q.dtype)
+    i, k = hand.self_pairs[:, 0], hand.self_pairs[:, 1]
+    self_gap = jnp.sqrt(jnp.sum((pi - pk) ** 2, -1) + 1e-12) - cr[i] - cr[k]
     return tool, table, self_gap
 
 
@@ -107,7 +137,7 @@ def _hinge(weight, margin, gap, grad):
 def residuals_and_jacobian(hand: HandModel, cfg: IKConfig, q, active, targets, tool_pos, tool_mat):
     """The IK residual vector (R,) and its Jacobian (R, J), the latter in closed form from the chain's joint
     axes (each row is a contact normal or surface gradient times a point Jacobian). Rows: link gaps (L),
-    sphere-tool (S), sphere-table (S), self pairs (P), regularisation (J)."""
+    sphere-tool (S), sphere-table (S), self capsule pairs (P), regularisation (J)."""
     pos, mat, axes, anchors = kinematics.chain(hand, q)
     # contact links: distance of the tool point to the link's segment, minus the radius
     centre = pos[hand.link_body] + jnp.einsum("lij,lj->li", mat[hand.link_body], hand.link_site.astype(q.dtype))
@@ -130,14 +160,19 @@ def residuals_and_jacobian(hand: HandModel, cfg: IKConfig, q, active, targets, t
     margin = jnp.where(sphere_active, -cfg.contact_slack, cfg.clearance)
     r_tool, j_tool = _hinge(cfg.w_collision, margin, sdf - sr, jnp.einsum("ni,nij->nj", sdf_grad, jc))
     r_table, j_table = _hinge(cfg.w_collision, cfg.table_margin, c[:, 2] - sr, jc[:, 2, :])
+    # capsule pairs: the distance's gradient moves the two closest points with their bodies (envelope theorem)
     i, k = hand.self_pairs[:, 0], hand.self_pairs[:, 1]
-    diff = c[i] - c[k]
+    pi, pk = _self_closest(hand, pos, mat, dt)
+    diff = pi - pk
     pd = jnp.sqrt(jnp.sum(diff**2, -1) + 1e-12)
+    j_pi = kinematics.point_jacobian(hand, axes, anchors, hand.capsule_body[i], pi)
+    j_pk = kinematics.point_jacobian(hand, axes, anchors, hand.capsule_body[k], pk)
+    cr = hand.capsule_radius.astype(dt)
     r_self, j_self = _hinge(
         cfg.w_collision,
         cfg.self_margin,
-        pd - sr[i] - sr[k],
-        jnp.einsum("pi,pij->pj", diff / pd[:, None], jc[i] - jc[k]),
+        pd - cr[i] - cr[k],
+        jnp.einsum("pi,pij->pj", diff / pd[:, None], j_pi - j_pk),
     )
     n = hand.n_joints
     r_reg = cfg.w_regular * (q - hand.q_start.astype(dt))

@@ -463,3 +463,18 @@ def test_float32_problem_stays_float32_with_x64_enabled():
     proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0 and proc.stdout.strip().endswith("ok"), proc.stderr[-3000:]
 
+
+
+def test_segment_closest_matches_dense_sampling():
+    """Closest points of random segment pairs (parallel ones included) against a dense grid over (s, t)."""
+    rng = np.random.default_rng(7)
+    p0, p1, q0, q1 = (rng.normal(size=(40, 3)).astype(np.float32) for _ in range(4))
+    q1[:5] = q0[:5] + (p1[:5] - p0[:5]) * 0.7  # parallel pairs
+    s, t = ik.segment_closest(*(jnp.asarray(x) for x in (p0, p1, q0, q1)))
+    got = np.linalg.norm(p0 + np.asarray(s)[:, None] * (p1 - p0) - q0 - np.asarray(t)[:, None] * (q1 - q0), axis=-1)
+    grid = np.linspace(0, 1, 401)
+    ps = p0[:, None] + grid[None, :, None] * (p1 - p0)[:, None]  # (N, G, 3)
+    qs = q0[:, None] + grid[None, :, None] * (q1 - q0)[:, None]
+    ref = np.min(np.linalg.norm(ps[:, :, None] - qs[:, None, :], axis=-1), axis=(1, 2))
+    assert np.all(got <= ref + 1e-5)  # never worse than the best sampled pair
+    np.testing.assert_allclose(got, ref, atol=2e-2 * np.linalg.norm(p1 - p0, axis=-1).max() / 400 * 4 + 1e-4)

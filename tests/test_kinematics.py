@@ -5,6 +5,7 @@ import mujoco
 import numpy as np
 import pytest
 
+from gsp_jax import hand as hand_lib
 from gsp_jax import kinematics
 
 N_CONFIGS = 20
@@ -246,3 +247,17 @@ def test_quat_to_mat_matches_mujoco(rng):
         want = np.zeros(9)
         mujoco.mju_quat2Mat(want, qq)
         np.testing.assert_allclose(m, want.reshape(3, 3), atol=1e-6)
+
+
+def test_scene_loads_in_mjx_and_agrees_with_mujoco(hand):
+    """The same model files load in MJX; MJX's own kinematics agree with ours on the hand."""
+    from mujoco import mjx
+
+    model = hand_lib.load_mjmodel()
+    mx = mjx.put_model(model)
+    q = np.asarray(hand.q_start, np.float32) + 0.1
+    dx = mjx.make_data(mx).replace(qpos=jnp.asarray(model.qpos0, jnp.float32).at[hand.qpos_adr].set(q))
+    dx = jax.jit(mjx.kinematics)(mx, dx)
+    body_ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, n) for n in hand.body_names]
+    pos, _ = kinematics.body_poses(hand, jnp.asarray(q))
+    np.testing.assert_allclose(np.asarray(dx.xpos)[body_ids], np.asarray(pos), atol=1e-5)

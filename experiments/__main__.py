@@ -7,6 +7,8 @@ import importlib
 COMMANDS = {  # command -> (module, one-line help)
     "surrogate": ("experiments.surrogate_demo", "reward terms of a few meaningful grasps on one episode"),
     "bench-surrogate": ("experiments.bench_surrogate", "surrogate steps/s: vmapped vs one step at a time"),
+    "bench-dp": ("experiments.bench_dp", "DP solve time: one episode, 27 batched, vs the step-at-a-time table"),
+    "dp": ("experiments.dp", "exact DP (Bellman backups) over an episode set; grasp sequences and timeline"),
 }
 
 

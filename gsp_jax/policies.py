@@ -1,0 +1,46 @@
+"""One policy interface for every planner: a policy is a pytree with `act(state) -> action`.
+
+`act` takes one surrogate `State` (continuous state plus episode input) and returns an int32 action; it is
+pure, so `jax.jit` and `jax.vmap` apply, and the surrogate evaluation, lookahead and the physics check call every
+policy the same way. Here: the two DP policies of the paper.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from gsp_jax.surrogate import State
+
+
+@struct.dataclass
+class TablePolicy:
+    """Closed loop over the discrete state: action = table[grasp, t]. DP optimal is this with the DP policy
+    solved on the evaluation episode itself."""
+
+    table: jax.Array  # (G, T) int32
+
+    def act(self, state: State) -> jax.Array:
+        return self.table[state.grasp, jnp.minimum(state.t, self.table.shape[1] - 1)]
+
+
+@struct.dataclass
+class SequencePolicy:
+    """Open loop: action = actions[t]. DP baseline is this with the optimal sequence of the nominal training
+    episode, replayed on an unseen one."""
+
+    actions: jax.Array  # (T,) int32
+
+    def act(self, state: State) -> jax.Array:
+        return self.actions[jnp.minimum(state.t, self.actions.shape[0] - 1)]
+
+
+def rollout(env, policy, episode) -> tuple[jax.Array, State]:
+    """Return of `policy` on `episode` in the surrogate (a `lax.scan` of T steps), and the final state."""
+
+    def step(state, _):
+        state, reward, _ = env.step(state, policy.act(state))
+        return state, reward
+
+    final, rewards = jax.lax.scan(step, env.reset(episode), None, length=episode.n_steps)
+    return jnp.sum(rewards), final

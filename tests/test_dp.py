@@ -1,0 +1,327 @@
+"""Tests of gsp_jax.dp: the table against the surrogate it discretises, the Bellman backup against brute-force
+enumeration of every action sequence, the optimal sequence against a rollout of the surrogate, batching, the
+IK count, and the open-loop replay (`sequence_return`).
+
+Everything runs on a reduced episode of T = 5 waypoints (the nominal lift's first five, and an evaluation-set-B
+episode's first five), so the brute force enumerates 16^5 = 1,048,576 sequences per start grasp in numpy. Every
+compiled function is built once per module (fixtures below) and reused with fixed shapes: the single-episode
+solve (both episodes), the batched solve, one vmapped surrogate step over a batch of N_BATCH, the vmapped
+discrete state and the vmapped reset at that batch size.
+"""
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from gsp_jax import dp, ik, scenario, surrogate  # noqa: E402
+
+T = 5  # waypoints of the reduced episodes
+N_BATCH = 20  # batch of every vmapped surrogate call (one compile each)
+EVALB = "mass1.5m0_comy+2cm"
+TOL = dict(rtol=1e-5, atol=1e-5)  # float32 sums of a few rewards of magnitude <= 200
+TOL_SURROGATE = dict(rtol=1e-4, atol=1e-4)  # batched vs unbatched IK / wrench solves (same maths, other layout)
+
+
+def _reduce(ep: scenario.Episode, n: int = T) -> scenario.Episode:
+    return ep.replace(waypoints=ep.waypoints[:n], quats=ep.quats[:n])
+
+
+def _np(tree):
+    return jax.tree.map(np.asarray, tree)
+
+
+# ------------------------------------------------------------------------------------------ fixtures
+@pytest.fixture(scope="module")
+def env(hand):
+    return surrogate.Surrogate(hand)
+
+
+@pytest.fixture(scope="module")
+def episodes():
+    return {
+        "nominal": _reduce(scenario.make_episode()),
+        "evalB": _reduce(scenario.eval_set_b()[EVALB]),
+    }
+
+
+@pytest.fixture(scope="module")
+def fns(env):
+    """Every compiled function of this module, compiled lazily on first use and then reused."""
+    return dict(
+        solve=jax.jit(lambda e: dp.solve(env, e)),
+        vsolve=jax.jit(jax.vmap(lambda e: dp.solve(env, e))),
+        backup=jax.jit(dp.backup),
+        sequence_return=jax.jit(dp.sequence_return),
+        vdiscrete=jax.jit(jax.vmap(env.discrete_state, (None, 0, 0))),
+        vreset=jax.jit(jax.vmap(env.reset)),
+        vstep=jax.jit(jax.vmap(env.step)),
+    )
+
+
+@pytest.fixture(scope="module")
+def solved(fns, episodes):
+    """name -> (Table, Solution) as numpy arrays; each table is built exactly once per module."""
+    return {name: _np(fns["solve"](ep)) for name, ep in episodes.items()}
+
+
+# ------------------------------------------------------------------------------------------ references
+def _replay(table, start: int, actions) -> tuple[float, np.ndarray, np.ndarray]:
+    """Independent numpy replay of one open-loop sequence: (return, rewards (T,), alive (T,)); rewards after a
+    terminal transition count 0. float64 accumulation."""
+    g, alive, rewards, alive_t = int(start), True, [], []
+    for t, a in enumerate(np.asarray(actions)):
+        alive_t.append(alive)
+        rewards.append(float(table.reward[g, a, t]) if alive else 0.0)
+        alive = alive and not bool(table.terminal[g, a, t])
+        g = int(table.next_grasp[g, a])
+    return float(np.sum(rewards)), np.asarray(rewards), np.asarray(alive_t)
+
+
+def _brute_force(table, start: int) -> tuple[float, np.ndarray]:
+    """The best return over every one of the A^T action sequences from `start` (float64), and its sequence.
+    Sequence n takes action (n // A^(T-1-t)) % A at step t."""
+    n_g, n_a, n_t = table.reward.shape
+    n = np.arange(n_a**n_t, dtype=np.int64)
+    g = np.full(n.shape, start, np.int64)
+    alive = np.ones(n.shape, bool)
+    total = np.zeros(n.shape, np.float64)
+    reward = table.reward.astype(np.float64)
+    for t in range(n_t):
+        a = (n // n_a ** (n_t - 1 - t)) % n_a
+        total += np.where(alive, reward[g, a, t], 0.0)
+        alive &= ~table.terminal[g, a, t]
+        g = table.next_grasp[g, a].astype(np.int64)
+    best = int(np.argmax(total))
+    seq = np.asarray([(best // n_a ** (n_t - 1 - t)) % n_a for t in range(n_t)])
+    return float(total[best]), seq
+
+
+def _starts(table, value, episode_start: int, n_alive: int = 2) -> list[int]:
+    """The episode's start grasp, grasp 0 (no contacts at all), and a few grasps that survive the first step."""
+    rng = np.random.default_rng(7)
+    alive = np.flatnonzero(value[:, 0] > table.reward.min())
+    others = rng.choice(alive[alive != episode_start], n_alive, replace=False).tolist()
+    return [episode_start, 0, *others]
+
+
+# ------------------------------------------------------------------------------------------ 1. brute force
+@pytest.mark.parametrize("name", ["nominal", "evalB"])
+def test_backup_equals_brute_force_over_every_sequence(name, solved, episodes, fns):
+    """The DP's value from a start grasp equals the best return over all 16^T open-loop sequences (for a
+    deterministic problem the best open-loop sequence is optimal), and the DP's own sequence attains it."""
+    table, sol = solved[name]
+    g0 = int(episodes[name].start_grasp)
+    assert sol.grasps[0] == g0
+    np.testing.assert_allclose(sol.ret, sol.value[g0, 0], rtol=0, atol=0)
+    for start in _starts(table, sol.value, g0):
+        best, best_seq = _brute_force(table, start)
+        s = sol if start == g0 else _np(fns["backup"](jax.tree.map(jnp.asarray, table), jnp.int32(start)))
+        np.testing.assert_allclose(s.ret, best, **TOL, err_msg=f"start {start}: DP {s.ret}, brute force {best}")
+        np.testing.assert_allclose(sol.value[start, 0], best, **TOL, err_msg=f"value[{start}, 0]")
+        ret, rewards, alive = _replay(table, start, s.actions)
+        np.testing.assert_allclose(ret, best, **TOL, err_msg=f"start {start}: DP sequence {s.actions} scores {ret}")
+        np.testing.assert_allclose(s.rewards, rewards, **TOL)
+        np.testing.assert_array_equal(s.alive, alive)
+        # the reported grasp path is the table's transitions from the start (frozen after the episode ends)
+        g = start
+        for t in range(T):
+            if alive[t]:
+                g = int(table.next_grasp[g, s.actions[t]])
+            assert s.grasps[t + 1] == g, f"start {start}: grasps {s.grasps}"
+    # the test is not vacuous: the nominal start survives, grasp 0 (no contact) cannot hold the tool
+    if name == "nominal":
+        assert sol.ret > table.reward.min()
+
+
+# ------------------------------------------------------------------------------------------ 2. table vs surrogate
+def _triples(table, rng):
+    """N_BATCH (g, a, t): random ones plus a redundant action, a failing (R_MIN) transition before the last
+    step, and last-step transitions, so every branch of the table is compared."""
+    n_g, n_a, n_t = table.reward.shape
+    r_min = table.reward.min()
+    g = rng.integers(0, n_g, N_BATCH)
+    a = rng.integers(0, n_a, N_BATCH)
+    t = rng.integers(0, n_t, N_BATCH)
+    # a surviving, non-redundant transition in the middle of the episode
+    gs, as_, ts = np.nonzero((table.reward > r_min) & (table.next_grasp != np.arange(n_g)[:, None])[..., None])
+    mid = np.flatnonzero(ts < n_t - 1)[0]
+    g[0], a[0], t[0] = gs[mid], as_[mid], ts[mid]
+    # a redundant action (leaves the grasp unchanged) from a grasp that survives it
+    gr, ar, tr = np.nonzero((table.reward > r_min) & (table.next_grasp == np.arange(n_g)[:, None])[..., None])
+    g[1], a[1], t[1] = gr[0], ar[0], tr[0]
+    # a failing transition before the last step
+    gf, af, tf = np.nonzero((table.reward == r_min) & (np.arange(n_t) < n_t - 1))
+    g[2], a[2], t[2] = gf[0], af[0], tf[0]
+    # the last step (always terminal), from the DP's own surviving path
+    t[3] = n_t - 1
+    return g, a, t
+
+
+def test_table_matches_surrogate_step(solved, episodes, env, fns):
+    """reward / next grasp / done of `env.step` from the DP state (g, t) equal the table's entries."""
+    table, _ = solved["nominal"]
+    ep = episodes["nominal"]
+    g, a, t = _triples(table, np.random.default_rng(0))
+    states = fns["vdiscrete"](ep, jnp.asarray(g, jnp.int32), jnp.asarray(t, jnp.int32))
+    out, reward, done = _np(fns["vstep"](states, jnp.asarray(a, jnp.int32)))
+    np.testing.assert_allclose(reward, table.reward[g, a, t], **TOL_SURROGATE)
+    np.testing.assert_array_equal(out.grasp, table.next_grasp[g, a])
+    np.testing.assert_array_equal(done, table.terminal[g, a, t])
+    np.testing.assert_array_equal(out.t, t + 1)
+    # the sample covers a failing step, a surviving one, a redundant one and the last step
+    assert np.any(reward == env.reward_config.r_min) and np.any(reward > env.reward_config.r_min)
+    assert np.any(out.terms.redundant == 1) and np.any(t == T - 1)
+    # the redundancy flag enters the table's reward exactly as in the step
+    np.testing.assert_array_equal(out.terms.redundant == 1, table.next_grasp[g, a] == g)
+
+
+# ------------------------------------------------------------------------------------------ 3. rollout
+def test_optimal_sequence_value_equals_surrogate_rollout(solved, episodes, env, fns):
+    """Replaying the DP's optimal actions in the surrogate, from `env.reset` of the episode (with its start grasp
+    set to each of N_BATCH grasps), sums to the DP's value, with the same per-step rewards, grasps and end."""
+    table, sol = solved["nominal"]
+    ep = episodes["nominal"]
+    g0 = int(ep.start_grasp)
+    rng = np.random.default_rng(3)
+    surviving = np.flatnonzero(sol.value[:, 0] > env.reward_config.r_min)
+    starts = np.concatenate([[g0], rng.choice(surviving[surviving != g0], 14, replace=False),
+                             rng.choice(np.setdiff1d(np.arange(table.reward.shape[0]), surviving), 5, replace=False)])
+    tab = jax.tree.map(jnp.asarray, table)
+    sols = [sol if s == g0 else _np(fns["backup"](tab, jnp.int32(s))) for s in starts]
+    batch = scenario.stack([ep.replace(start_grasp=jnp.asarray(s, jnp.int32)) for s in starts])
+    state = fns["vreset"](batch)
+    np.testing.assert_array_equal(np.asarray(state.grasp), starts)
+    total = np.zeros(N_BATCH)
+    ended = np.zeros(N_BATCH, bool)
+    for t in range(T):
+        actions = np.asarray([s.actions[t] for s in sols], np.int32)
+        np.testing.assert_array_equal(~ended, [s.alive[t] for s in sols], err_msg=f"step {t}: episode end")
+        state, reward, done = fns["vstep"](state, jnp.asarray(actions))
+        reward = np.where(ended, 0.0, np.asarray(reward))  # stop when done
+        np.testing.assert_allclose(reward, [s.rewards[t] for s in sols], **TOL_SURROGATE, err_msg=f"step {t}")
+        np.testing.assert_array_equal(np.where(ended, -1, np.asarray(state.grasp)),
+                                      [-1 if e else s.grasps[t + 1] for e, s in zip(ended, sols)])
+        total += reward
+        ended |= np.asarray(done)
+    assert ended.all()  # the last step ends every episode
+    np.testing.assert_allclose(total, [s.ret for s in sols], **TOL_SURROGATE)
+    np.testing.assert_allclose(total, sol.value[starts, 0], **TOL_SURROGATE)
+
+
+# ------------------------------------------------------------------------------------------ 4. Bellman
+@pytest.mark.parametrize("name", ["nominal", "evalB"])
+def test_bellman_equation_holds_everywhere(name, solved, env):
+    """value[g, t] = max_a reward + (0 if terminal else value[next, t + 1]) for every (g, t), value[:, T] = 0,
+    and the policy attains the max. In particular a failing (R_MIN) action is chosen only when no surviving
+    action from that (g, t) has a better total."""
+    table, sol = solved[name]
+    n_g, n_a, n_t = table.reward.shape
+    assert sol.value.shape == (n_g, n_t + 1) and sol.policy.shape == (n_g, n_t)
+    np.testing.assert_array_equal(sol.value[:, n_t], 0.0)
+    reward = table.reward.astype(np.float64)
+    v = sol.value.astype(np.float64)
+    q = reward + np.where(table.terminal, 0.0, v[table.next_grasp][:, :, 1:])  # (G, A, T): v[next, t + 1]
+    np.testing.assert_allclose(v[:, :n_t], q.max(axis=1), **TOL)
+    chosen = np.take_along_axis(q, sol.policy[:, None, :], axis=1)[:, 0]
+    np.testing.assert_allclose(chosen, v[:, :n_t], **TOL)
+    r_min = env.reward_config.r_min
+    fails = np.take_along_axis(reward, sol.policy[:, None, :], axis=1)[:, 0] == r_min  # (G, T)
+    surviving_q = np.where(reward > r_min, q, -np.inf).max(axis=1)  # best surviving action per (g, t)
+    assert np.all(surviving_q[fails] <= r_min + 1e-4)
+    # non-vacuous: both choices occur, and from some (g, t) the DP avoids an immediate failure
+    assert fails.any() and (~fails).any()
+
+
+# ------------------------------------------------------------------------------------------ 5. batching
+def test_batched_solve_equals_separate_solves(solved, episodes, fns):
+    """`vmap(solve)` over a stacked batch gives each episode's own table and solution."""
+    batch = scenario.stack([episodes["nominal"], episodes["evalB"]])
+    tables, sols = _np(fns["vsolve"](batch))
+    for i, name in enumerate(["nominal", "evalB"]):
+        table, sol = solved[name]
+        np.testing.assert_array_equal(tables.next_grasp[i], table.next_grasp)
+        np.testing.assert_array_equal(tables.terminal[i], table.terminal)
+        np.testing.assert_allclose(tables.reward[i], table.reward, **TOL)
+        np.testing.assert_allclose(tables.ik_error[i], table.ik_error, **TOL)
+        np.testing.assert_allclose(sols.value[i], sol.value, **TOL)
+        np.testing.assert_allclose(sols.ret[i], sol.ret, **TOL)
+        np.testing.assert_array_equal(sols.actions[i], sol.actions)
+        np.testing.assert_array_equal(sols.grasps[i], sol.grasps)
+        np.testing.assert_array_equal(sols.alive[i], sol.alive)
+    # the two episodes differ (mass and CoM), so a batch that mixed them up would fail above
+    assert not np.allclose(solved["nominal"][0].reward, solved["evalB"][0].reward)
+
+
+# ------------------------------------------------------------------------------------------ 6. IK count
+def _ik_problems(jaxpr, iterations: int, n_joints: int) -> int:
+    """Number of IK problems in a jaxpr: every `scan` of `iterations` steps is an IK solve (the iteration count is
+    set to a value nothing else uses); its first carry is q with shape (*batch, J), so it solves prod(batch)
+    problems. Recurses into sub-jaxprs (jit, cond, custom derivatives)."""
+    count = 0
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name == "scan" and eqn.params["length"] == iterations:
+            q = eqn.outvars[0].aval
+            assert q.shape[-1] == n_joints, f"IK scan carry {q.shape}"
+            count += int(np.prod(q.shape[:-1]))
+        for p in eqn.params.values():
+            for sub in p if isinstance(p, (list, tuple)) else [p]:
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns"):
+                    count += _ik_problems(inner, iterations, n_joints)
+    return count
+
+
+def test_table_costs_g_times_t_ik_solves(env, episodes, solved):
+    """The table needs G x T IK solves (each grasp at each waypoint), not 2 x G x A x T as stepping would.
+
+    Why the jaxpr: a Python counter around `ik.solve` only counts traces (a vmapped call traces once and sees
+    unbatched shapes), so instead the traced program is inspected. The IK is a `lax.scan` of a fixed iteration
+    count; with the count set to 37 (the wrench solver uses 150) every 37-step scan is an IK call, and its carry
+    q has shape (*batch, J): the number of problems is the product of the batch dims. The counter is checked on
+    `env.reset` (1 solve) and `env.step` (2 solves) first, so a broken counter cannot pass."""
+    iters = 37
+    assert iters not in (env.ik_config.iterations, env.wrench_config.iterations)
+    env37 = surrogate.Surrogate(env.hand, ik_config=ik.IKConfig(iterations=iters))
+    ep = episodes["nominal"]
+    n_g, n_j = env.space.n_grasps, env.hand.n_joints
+    count = lambda f, *args: _ik_problems(jax.make_jaxpr(f)(*args).jaxpr, iters, n_j)  # noqa: E731
+    assert count(env37.reset, ep) == 1
+    assert count(env37.step, env37.reset(ep), jnp.int32(3)) == 2
+    assert count(lambda e: dp.build_table(env37, e), ep) == n_g * T
+    full = scenario.make_episode()
+    assert count(lambda e: dp.build_table(env37, e), full) == n_g * scenario.N_WAYPOINTS == 288 * 16
+    # and one IK error per (grasp, waypoint) comes out
+    table, _ = solved["nominal"]
+    assert table.ik_error.shape == (n_g, T)
+    assert table.reward.shape == (n_g, env.n_actions, T) and table.next_grasp.shape == (n_g, env.n_actions)
+
+
+# ------------------------------------------------------------------------------------------ 7. sequence_return
+def test_sequence_return(solved, episodes, fns):
+    """`sequence_return` of the optimal actions in their own table is the optimum; in general it equals the
+    independent numpy replay; and the nominal optimum replayed in another episode's table (the DP baseline)
+    never beats that episode's own DP optimum."""
+    for name, (table, sol) in solved.items():
+        tab = jax.tree.map(jnp.asarray, table)
+        start = episodes[name].start_grasp
+        np.testing.assert_allclose(fns["sequence_return"](tab, start, jnp.asarray(sol.actions)), sol.ret, **TOL)
+        # random sequences from random starts, against the numpy replay (covers ended episodes: R_MIN is common)
+        rng = np.random.default_rng(11)
+        for _ in range(10):
+            g, acts = int(rng.integers(0, table.reward.shape[0])), rng.integers(0, table.reward.shape[1], T)
+            got = fns["sequence_return"](tab, jnp.int32(g), jnp.asarray(acts, jnp.int32))
+            np.testing.assert_allclose(got, _replay(table, g, acts)[0], **TOL)
+            assert got <= sol.value[g, 0] + 1e-5  # no sequence beats the optimum
+    nominal_actions = jnp.asarray(solved["nominal"][1].actions)
+    table_b, sol_b = solved["evalB"]
+    baseline = fns["sequence_return"](jax.tree.map(jnp.asarray, table_b), episodes["evalB"].start_grasp,
+                                      nominal_actions)
+    np.testing.assert_allclose(baseline, _replay(table_b, int(episodes["evalB"].start_grasp), nominal_actions)[0],
+                               **TOL)
+    assert baseline <= sol_b.ret + 1e-5

@@ -40,7 +40,7 @@ class Solution:
 
     value: jax.Array  # (G, T + 1) optimal reward-to-go of (grasp, waypoint); value[:, T] = 0
     policy: jax.Array  # (G, T) int32 optimal action
-    actions: jax.Array  # (T,) int32 optimal actions from the start grasp (after the end: repeated, ignored)
+    actions: jax.Array  # (T,) int32 optimal actions from the start grasp (after the episode ended: ignored)
     grasps: jax.Array  # (T + 1,) int32 grasps along the optimal sequence (grasps[0] = start grasp)
     rewards: jax.Array  # (T,) rewards along it (0 after the episode ended)
     alive: jax.Array  # (T,) bool, step t is part of the episode (the sequence has not ended before it)
@@ -62,11 +62,11 @@ def build_table(env: Surrogate, episode: Episode) -> Table:
 
     per_time = jax.vmap(score, (0, 0, 0, None))
     plain = jax.vmap(per_time, (0, 0, None, None))(contacts, nxt, ts, jnp.array(False))  # (G', T)
-    redundant = jax.vmap(per_time, (0, 0, None, None))(contacts, nxt, ts, jnp.array(True))
+    redundant_reward = env.reward(plain, jnp.array(True))  # same terms, plus the redundant penalty
 
     actions = jnp.arange(env.space.n_actions, dtype=jnp.int32)
     next_grasp, is_redundant = env.space.apply(grasps[:, None], actions[None, :])  # (G, A)
-    reward = jnp.where(is_redundant[..., None], redundant.reward[next_grasp], plain.reward[next_grasp])
+    reward = jnp.where(is_redundant[..., None], redundant_reward[next_grasp], plain.reward[next_grasp])
     failed = plain.collision | plain.fall  # (G', T), independent of redundancy
     terminal = failed[next_grasp] | (ts == n_t - 1)[None, None, :]
     return Table(reward=reward, next_grasp=next_grasp, terminal=terminal, ik_error=contacts.ik.error)

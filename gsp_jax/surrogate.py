@@ -47,7 +47,7 @@ class RewardConfig:
     contact_tol: float = 0.005  # [m]: a link within this of its contact point carries force
     fall_unmet: float = 0.3  # unmet fraction of a required wrench above which the tool falls
     max_step_cost: float = 10.0  # cap on a non-failing step's cost ...
-    r_min: float = -200.0  # ... so that R_MIN is worse than any continuation: r_min < -max_step_cost * T
+    r_min: float = -200.0  # ... so that failing costs more than any T non-failing steps: r_min < -max_step_cost * T
 
 
 @struct.dataclass
@@ -158,17 +158,23 @@ class Surrogate:
             wrench_ext=jnp.where(is_last, ext.error / cfg.wrench_scale, 0.0),
             redundant=redundant.astype(jnp.float32),
         )
-        cost = (
-            cfg.w_wrench_move * terms["wrench_move"]
-            + cfg.w_ik * terms["ik_next"]
-            + cfg.w_wrench_hold * terms["wrench_hold"]
-            + cfg.w_wrench_ext * terms["wrench_ext"]
-            + cfg.w_redundant * terms["redundant"]
-        )
         collision = now.ik.collision | nxt.ik.collision
         fall = jnp.any(unmet > cfg.fall_unmet)
-        reward = jnp.where(collision | fall, cfg.r_min, -jnp.minimum(cost, cfg.max_step_cost))
-        return RewardTerms(**terms, unmet=unmet, collision=collision, fall=fall, reward=reward)
+        terms = RewardTerms(**terms, unmet=unmet, collision=collision, fall=fall, reward=jnp.zeros(()))
+        return terms.replace(reward=self.reward(terms, redundant))
+
+    def reward(self, terms: RewardTerms, redundant: jax.Array) -> jax.Array:
+        """The shaped reward from a step's terms, with the redundant flag given (the terms' own is ignored)."""
+        cfg = self.reward_config
+        cost = (
+            cfg.w_wrench_move * terms.wrench_move
+            + cfg.w_ik * terms.ik_next
+            + cfg.w_wrench_hold * terms.wrench_hold
+            + cfg.w_wrench_ext * terms.wrench_ext
+            + cfg.w_redundant * jnp.asarray(redundant, jnp.float32)
+        )
+        return jnp.where(terms.collision | terms.fall, cfg.r_min, -jnp.minimum(cost, cfg.max_step_cost))
+
 
     # ----------------------------------------------------------------------------------------- env API
     def reset(self, episode: Episode) -> State:

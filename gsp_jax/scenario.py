@@ -50,6 +50,10 @@ class Episode:
     def n_steps(self) -> int:
         return self.waypoints.shape[-2]
 
+    def head(self, n: int) -> "Episode":
+        """The same episode cut to its first n waypoints (reduced problems for tests and quick runs)."""
+        return self.replace(waypoints=self.waypoints[..., :n, :], quats=self.quats[..., :n, :])
+
 
 def min_jerk(z0: float, z1: float, n: int = N_WAYPOINTS) -> np.ndarray:
     """Heights (n,) on a minimum-jerk profile from z0 to z1 (zero velocity and acceleration at both ends)."""

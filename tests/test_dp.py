@@ -29,7 +29,7 @@ TOL_SURROGATE = dict(rtol=1e-4, atol=1e-4)  # batched vs unbatched IK / wrench s
 
 
 def _reduce(ep: scenario.Episode, n: int = T) -> scenario.Episode:
-    return ep.replace(waypoints=ep.waypoints[:n], quats=ep.quats[:n])
+    return ep.head(n)
 
 
 def _np(tree):

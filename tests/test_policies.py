@@ -7,10 +7,6 @@ import pytest
 from gsp_jax import dp, policies, scenario, surrogate
 
 
-def _short(ep, n=4):
-    return ep.replace(waypoints=ep.waypoints[:n], quats=ep.quats[:n])
-
-
 @pytest.fixture(scope="module")
 def env():
     return surrogate.Surrogate()
@@ -18,7 +14,7 @@ def env():
 
 @pytest.fixture(scope="module")
 def solved(env):
-    eps = scenario.stack([_short(scenario.make_episode()), _short(scenario.make_episode(shift_mm=6, torque=-1.0))])
+    eps = scenario.stack([scenario.make_episode().head(4), scenario.make_episode(shift_mm=6, torque=-1.0).head(4)])
     tables, sols = jax.jit(jax.vmap(lambda e: dp.solve(env, e)))(eps)
     return eps, tables, sols
 

@@ -8,10 +8,9 @@ import json
 import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from experiments.common import results_dir, table
+from experiments.common import best_time, results_dir, table, timed
 from gsp_jax import dp, scenario, surrogate
 
 PAPER_DP_SECONDS = 151.79  # DP optimal per unseen episode, 32-core Xeon (paper Table 1)
@@ -24,16 +23,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=None)
 
 
-def _best(fn, arg, repeats):
-    jax.block_until_ready(fn(arg))
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(arg))
-        times.append(time.perf_counter() - t0)
-    return min(times)
-
-
 def main(args: argparse.Namespace) -> None:
     env = surrogate.Surrogate()
     evals = list(scenario.episode_set("eval").values())[: args.episodes]
@@ -41,18 +30,14 @@ def main(args: argparse.Namespace) -> None:
     print(f"device: {device.platform} ({device.device_kind}); jax {jax.__version__}", flush=True)
 
     one = jax.jit(lambda e: dp.solve(env, e))
-    t0 = time.perf_counter()
-    jax.block_until_ready(one(evals[0]))
-    compile_one = time.perf_counter() - t0
-    t_one = _best(one, evals[0], args.repeats)
+    _, compile_one = timed(one, evals[0])
+    t_one = best_time(one, evals[0], repeats=args.repeats)
     print(f"one episode: compile+first {compile_one:.1f} s, warm {t_one:.3f} s", flush=True)
 
     batch = scenario.stack(evals)
     many = jax.jit(jax.vmap(lambda e: dp.solve(env, e)))
-    t0 = time.perf_counter()
-    jax.block_until_ready(many(batch))
-    compile_many = time.perf_counter() - t0
-    t_many = _best(many, batch, max(1, args.repeats - 1))
+    _, compile_many = timed(many, batch)
+    t_many = best_time(many, batch, repeats=args.repeats - 1)
     print(f"{len(evals)} episodes batched: compile+first {compile_many:.1f} s, warm {t_many:.3f} s", flush=True)
 
     # the paper's way: one env.step() per (grasp, action, t), called from Python

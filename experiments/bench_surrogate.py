@@ -12,7 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.common import results_dir, table
+from experiments.common import best_time, results_dir, table, timed
 from gsp_jax import scenario, surrogate
 
 
@@ -21,12 +21,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--loop-steps", type=int, default=64, help="pairs stepped one at a time (a sample; rate extrapolated)")
     p.add_argument("--repeats", type=int, default=3, help="timed repeats of the batched call (best is reported)")
     p.add_argument("--out", default=None, help="JSON file for the results (default results/bench_surrogate.json)")
-
-
-def _timed(fn, *args):
-    t0 = time.perf_counter()
-    out = jax.block_until_ready(fn(*args))
-    return out, time.perf_counter() - t0
 
 
 def main(args: argparse.Namespace) -> None:
@@ -44,14 +38,13 @@ def main(args: argparse.Namespace) -> None:
     n_pairs = n_g * n_a
 
     batched = jax.jit(jax.vmap(env.step))
-    (_, rew_b, _), compile_b = _timed(batched, pairs_s, pairs_a)
-    times = [_timed(batched, pairs_s, pairs_a)[1] for _ in range(args.repeats)]
-    t_b = min(times)
+    (_, rew_b, _), compile_b = timed(batched, pairs_s, pairs_a)
+    t_b = best_time(batched, pairs_s, pairs_a, repeats=args.repeats)
     print(f"batched: compile+first {compile_b:.2f} s, warm {t_b:.4f} s for {n_pairs} steps", flush=True)
 
     single = jax.jit(env.step)
     pick = lambda i: jax.tree.map(lambda x: x[i], pairs_s)  # noqa: E731
-    (_, r0, _), compile_s = _timed(single, pick(0), pairs_a[0])
+    _, compile_s = timed(single, pick(0), pairs_a[0])
     rng = np.random.default_rng(0)
     idx = rng.choice(n_pairs, size=min(args.loop_steps, n_pairs), replace=False)
     inputs = [(pick(int(i)), pairs_a[int(i)]) for i in idx]  # slicing done before timing

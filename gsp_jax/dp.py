@@ -74,7 +74,7 @@ def build_table(env: Surrogate, episode: Episode) -> Table:
 
 def backup(table: Table, start_grasp: jax.Array) -> Solution:
     """Bellman backups backwards in time (`lax.scan`), vectorised over grasps; then the optimal sequence."""
-    n_g, n_a, n_t = table.reward.shape
+    n_g, _, n_t = table.reward.shape
 
     def back(v_next, t):
         q = table.reward[:, :, t] + jnp.where(table.terminal[:, :, t], 0.0, v_next[table.next_grasp])
@@ -84,15 +84,8 @@ def backup(table: Table, start_grasp: jax.Array) -> Solution:
     value = jnp.concatenate([values.T, jnp.zeros((n_g, 1), values.dtype)], axis=1)  # (G, T + 1)
     policy = policy.T  # (G, T)
 
-    def forward(carry, t):
-        g, alive = carry
-        a = policy[g, t]
-        r = jnp.where(alive, table.reward[g, a, t], 0.0)
-        g_next = jnp.where(alive, table.next_grasp[g, a], g)
-        return (g_next, alive & ~table.terminal[g, a, t]), (a, g_next, r, alive)
-
     start = jnp.asarray(start_grasp, jnp.int32)
-    _, (actions, grasps, rewards, alive) = jax.lax.scan(forward, (start, jnp.array(True)), jnp.arange(n_t))
+    actions, grasps, rewards, alive = _replay(table, start, lambda g, t: policy[g, t])
     return Solution(
         value=value,
         policy=policy,
@@ -110,18 +103,23 @@ def solve(env: Surrogate, episode: Episode) -> tuple[Table, Solution]:
     return table, backup(table, episode.start_grasp)
 
 
+def _replay(table: Table, start: jax.Array, choose):
+    """Walk the table from grasp `start` with action = choose(grasp, t): actions (T,), grasps after each step
+    (T,), rewards (T,; 0 once ended) and alive (T,). The grasp stays put after the episode ended."""
+
+    def step(carry, t):
+        g, alive = carry
+        a = choose(g, t)
+        r = jnp.where(alive, table.reward[g, a, t], 0.0)
+        g_next = jnp.where(alive, table.next_grasp[g, a], g)
+        return (g_next, alive & ~table.terminal[g, a, t]), (a, g_next, r, alive)
+
+    _, out = jax.lax.scan(step, (start, jnp.array(True)), jnp.arange(table.reward.shape[2]))
+    return out
+
+
 def sequence_return(table: Table, start_grasp: jax.Array, actions: jax.Array) -> jax.Array:
     """Return of an open-loop action sequence (T,) replayed in a table from `start_grasp` (the DP baseline:
     a sequence solved on one episode, scored on another)."""
-
-    def step(carry, inputs):
-        g, alive = carry
-        a, t = inputs
-        r = jnp.where(alive, table.reward[g, a, t], 0.0)
-        return (table.next_grasp[g, a], alive & ~table.terminal[g, a, t]), r
-
-    n_t = table.reward.shape[2]
-    _, rewards = jax.lax.scan(
-        step, (jnp.asarray(start_grasp, jnp.int32), jnp.array(True)), (actions, jnp.arange(n_t))
-    )
+    _, _, rewards, _ = _replay(table, jnp.asarray(start_grasp, jnp.int32), lambda g, t: actions[t])
     return jnp.sum(rewards)

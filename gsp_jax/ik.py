@@ -104,28 +104,49 @@ def _self_closest(hand: HandModel, pos, mat, dtype):
     return pi, pk
 
 
-def _distances(hand: HandModel, q, tool_pos, tool_mat):
-    """Surface gaps of every sphere to tool (S,), to table (S,), and of self-collision capsule pairs (P,) [m]."""
-    pos, mat = kinematics.body_poses(hand, q)
-    c = pos[hand.sphere_body] + jnp.einsum("nij,nj->ni", mat[hand.sphere_body], hand.sphere_pos.astype(q.dtype))
-    r = hand.sphere_radius.astype(q.dtype)
-    tool = box_sdf(c, tool_pos, tool_mat, hand) - r
-    table = c[:, 2] - r
-    pi, pk = _self_closest(hand, pos, mat, q.dtype)
-    cr = hand.capsule_radius.astype(q.dtype)
-    i, k = hand.self_pairs[:, 0], hand.self_pairs[:, 1]
-    self_gap = jnp.sqrt(jnp.sum((pi - pk) ** 2, -1) + 1e-12) - cr[i] - cr[k]
-    return tool, table, self_gap
+@struct.dataclass
+class _Geometry:
+    """Everything the IK measures at one configuration, from the body poses."""
+
+    link_axis_pt: jax.Array  # (L, 3) point of each contact segment nearest its tool contact point
+    link_offset: jax.Array  # (L, 3) tool contact point - link_axis_pt
+    link_dist: jax.Array  # (L,) |link_offset|
+    link_gap: jax.Array  # (L,) link surface to tool contact point, signed [m]
+    spheres: jax.Array  # (S, 3) sphere centres
+    tool_gap: jax.Array  # (S,) sphere surface to tool [m]
+    tool_grad: jax.Array  # (S, 3) d(tool_gap)/d(centre)
+    table_gap: jax.Array  # (S,) sphere surface to the table [m]
+    self_pi: jax.Array  # (P, 3) closest points of the self-collision capsule pairs
+    self_pk: jax.Array  # (P, 3)
+    self_dist: jax.Array  # (P,) |self_pi - self_pk|
+    self_gap: jax.Array  # (P,) capsule surfaces apart [m]
 
 
-def _link_gaps(hand: HandModel, q, targets):
-    """Signed gap (L,) between each link's surface and its tool contact point, and the link's nearest point."""
-    axis_pt = kinematics.closest_on_links(hand, q, targets)
+def _geometry(hand: HandModel, pos, mat, targets, tool_pos, tool_mat) -> _Geometry:
+    dt = pos.dtype
+    axis_pt = kinematics.closest_on_segments(hand, *kinematics.segments_on_links(hand, pos, mat), targets)
     d = targets - axis_pt
     dist = jnp.sqrt(jnp.sum(d**2, -1) + 1e-12)
-    radius = hand.link_radius.astype(q.dtype)
-    surface = axis_pt + d * (radius / dist)[:, None]
-    return dist - radius, surface
+    c = kinematics.points_on_bodies(pos, mat, hand.sphere_body, hand.sphere_pos)
+    sr = hand.sphere_radius.astype(dt)
+    sdf, sdf_grad = jax.vmap(jax.value_and_grad(lambda p: _sphere_sdf(hand, p, tool_pos, tool_mat)))(c)
+    pi, pk = _self_closest(hand, pos, mat, dt)
+    pd = jnp.sqrt(jnp.sum((pi - pk) ** 2, -1) + 1e-12)
+    cr = hand.capsule_radius.astype(dt)
+    return _Geometry(
+        link_axis_pt=axis_pt,
+        link_offset=d,
+        link_dist=dist,
+        link_gap=dist - hand.link_radius.astype(dt),
+        spheres=c,
+        tool_gap=sdf - sr,
+        tool_grad=sdf_grad,
+        table_gap=c[:, 2] - sr,
+        self_pi=pi,
+        self_pk=pk,
+        self_dist=pd,
+        self_gap=pd - cr[hand.self_pairs[:, 0]] - cr[hand.self_pairs[:, 1]],
+    )
 
 
 def _hinge(weight, margin, gap, grad):
@@ -139,43 +160,27 @@ def residuals_and_jacobian(hand: HandModel, cfg: IKConfig, q, active, targets, t
     axes (each row is a contact normal or surface gradient times a point Jacobian). Rows: link gaps (L),
     sphere-tool (S), sphere-table (S), self capsule pairs (P), regularisation (J)."""
     pos, mat, axes, anchors = kinematics.chain(hand, q)
+    geo = _geometry(hand, pos, mat, targets, tool_pos, tool_mat)
     # contact links: distance of the tool point to the link's segment, minus the radius
-    centre = pos[hand.link_body] + jnp.einsum("lij,lj->li", mat[hand.link_body], hand.link_site.astype(q.dtype))
-    axis = jnp.einsum("lij,lj->li", mat[hand.link_body], hand.link_axis.astype(q.dtype))
-    dt = q.dtype
-    half, radius = hand.link_half.astype(dt), hand.link_radius.astype(dt)
-    sc = jnp.clip(jnp.sum((targets - centre) * axis, -1), -half, half)
-    axis_pt = centre + sc[:, None] * axis
-    d = targets - axis_pt
-    dist = jnp.sqrt(jnp.sum(d**2, -1) + 1e-12)
-    j_axis_pt = kinematics.point_jacobian(hand, axes, anchors, hand.link_body, axis_pt)  # (L, 3, J)
-    r_link = (dist - radius) * active
-    j_link = -jnp.einsum("li,lij->lj", d / dist[:, None], j_axis_pt) * active[:, None]
-    # spheres against tool, table and each other
-    c = pos[hand.sphere_body] + jnp.einsum("nij,nj->ni", mat[hand.sphere_body], hand.sphere_pos.astype(dt))
-    sr = hand.sphere_radius.astype(dt)
-    jc = kinematics.point_jacobian(hand, axes, anchors, hand.sphere_body, c)  # (S, 3, J)
-    sdf, sdf_grad = jax.vmap(jax.value_and_grad(lambda p: _sphere_sdf(hand, p, tool_pos, tool_mat)))(c)
+    j_axis_pt = kinematics.point_jacobian(hand, axes, anchors, hand.link_body, geo.link_axis_pt)  # (L, 3, J)
+    r_link = geo.link_gap * active
+    j_link = -jnp.einsum("li,lij->lj", geo.link_offset / geo.link_dist[:, None], j_axis_pt) * active[:, None]
+    # spheres against tool and table
+    jc = kinematics.point_jacobian(hand, axes, anchors, hand.sphere_body, geo.spheres)  # (S, 3, J)
     sphere_active = jnp.where(hand.sphere_link >= 0, active[jnp.maximum(hand.sphere_link, 0)], False)
     margin = jnp.where(sphere_active, -cfg.contact_slack, cfg.clearance)
-    r_tool, j_tool = _hinge(cfg.w_collision, margin, sdf - sr, jnp.einsum("ni,nij->nj", sdf_grad, jc))
-    r_table, j_table = _hinge(cfg.w_collision, cfg.table_margin, c[:, 2] - sr, jc[:, 2, :])
+    r_tool, j_tool = _hinge(cfg.w_collision, margin, geo.tool_gap, jnp.einsum("ni,nij->nj", geo.tool_grad, jc))
+    r_table, j_table = _hinge(cfg.w_collision, cfg.table_margin, geo.table_gap, jc[:, 2, :])
     # capsule pairs: the distance's gradient moves the two closest points with their bodies (envelope theorem)
     i, k = hand.self_pairs[:, 0], hand.self_pairs[:, 1]
-    pi, pk = _self_closest(hand, pos, mat, dt)
-    diff = pi - pk
-    pd = jnp.sqrt(jnp.sum(diff**2, -1) + 1e-12)
-    j_pi = kinematics.point_jacobian(hand, axes, anchors, hand.capsule_body[i], pi)
-    j_pk = kinematics.point_jacobian(hand, axes, anchors, hand.capsule_body[k], pk)
-    cr = hand.capsule_radius.astype(dt)
+    j_pi = kinematics.point_jacobian(hand, axes, anchors, hand.capsule_body[i], geo.self_pi)
+    j_pk = kinematics.point_jacobian(hand, axes, anchors, hand.capsule_body[k], geo.self_pk)
+    unit = (geo.self_pi - geo.self_pk) / geo.self_dist[:, None]
     r_self, j_self = _hinge(
-        cfg.w_collision,
-        cfg.self_margin,
-        pd - cr[i] - cr[k],
-        jnp.einsum("pi,pij->pj", diff / pd[:, None], j_pi - j_pk),
+        cfg.w_collision, cfg.self_margin, geo.self_gap, jnp.einsum("pi,pij->pj", unit, j_pi - j_pk)
     )
     n = hand.n_joints
-    r_reg = cfg.w_regular * (q - hand.q_start.astype(dt))
+    r_reg = cfg.w_regular * (q - hand.q_start.astype(q.dtype))
     j_reg = cfg.w_regular * jnp.eye(n, dtype=q.dtype)
     return (
         jnp.concatenate([r_link, r_tool, r_table, r_self, r_reg]),
@@ -221,13 +226,14 @@ def _solve(hand, active, targets, tool_pos, tool_mat, cfg) -> IKResult:
     init = (q0, *res_jac(q0), jnp.asarray(cfg.damping0, dtype))
     (q, _, _, _), _ = jax.lax.scan(iteration, init, None, length=cfg.iterations)
 
-    gap, pts = _link_gaps(hand, q, targets)
-    link_error = jnp.where(active, jnp.abs(gap), 0.0)
-    tool, table, self_gap = _distances(hand, q, tool_pos, tool_mat)
-    penetration = -jnp.min(jnp.concatenate([tool, table, self_gap]))
+    geo = _geometry(hand, *kinematics.body_poses(hand, q), targets, tool_pos, tool_mat)
+    link_error = jnp.where(active, jnp.abs(geo.link_gap), 0.0)
+    radius = hand.link_radius.astype(dtype)
+    surface = geo.link_axis_pt + geo.link_offset * (radius / geo.link_dist)[:, None]  # link point nearest target
+    penetration = -jnp.min(jnp.concatenate([geo.tool_gap, geo.table_gap, geo.self_gap]))
     return IKResult(
         q=q,
-        points=pts,
+        points=surface,
         link_error=link_error,
         error=jnp.max(link_error),
         penetration=penetration,

@@ -68,26 +68,38 @@ def point_jacobian(hand: HandModel, axes: jax.Array, anchors: jax.Array, body: n
     return jnp.swapaxes(jac * moves[..., None], 1, 2)
 
 
+def points_on_bodies(pos: jax.Array, mat: jax.Array, body: np.ndarray, local: np.ndarray) -> jax.Array:
+    """World positions (N, 3) of points given in their bodies' frames, from body poses (B, 3), (B, 3, 3)."""
+    return pos[body] + jnp.einsum("nij,nj->ni", mat[body], local.astype(pos.dtype))
+
+
 def local_points(hand: HandModel, q: jax.Array, body: np.ndarray, local: np.ndarray) -> jax.Array:
     """World positions (N, 3) of points given in their bodies' frames: body (N,) indices, local (N, 3)."""
     pos, mat = body_poses(hand, q)
-    return pos[body] + jnp.einsum("nij,nj->ni", mat[body], local.astype(q.dtype))
+    return points_on_bodies(pos, mat, body, local)
+
+
+def segments_on_links(hand: HandModel, pos: jax.Array, mat: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """World centres (L, 3) and unit directions (L, 3) of the contact links' segments, from body poses."""
+    centre = points_on_bodies(pos, mat, hand.link_body, hand.link_site)
+    return centre, jnp.einsum("lij,lj->li", mat[hand.link_body], hand.link_axis.astype(pos.dtype))
+
+
+def closest_on_segments(hand: HandModel, centre: jax.Array, axis: jax.Array, points: jax.Array) -> jax.Array:
+    """For each contact link's segment (centre, axis: (L, 3)), its point (L, 3) closest to `points` (L, 3)."""
+    half = hand.link_half.astype(centre.dtype)
+    s = jnp.clip(jnp.sum((points - centre) * axis, -1), -half, half)
+    return centre + s[:, None] * axis
 
 
 def contact_segments(hand: HandModel, q: jax.Array) -> tuple[jax.Array, jax.Array]:
     """World centres (L, 3) and unit directions (L, 3) of the contact links' segments."""
-    pos, mat = body_poses(hand, q)
-    rot = mat[hand.link_body]
-    centre = pos[hand.link_body] + jnp.einsum("lij,lj->li", rot, hand.link_site.astype(q.dtype))
-    return centre, jnp.einsum("lij,lj->li", rot, hand.link_axis.astype(q.dtype))
+    return segments_on_links(hand, *body_poses(hand, q))
 
 
 def closest_on_links(hand: HandModel, q: jax.Array, points: jax.Array) -> jax.Array:
     """For each contact link, the point (L, 3) of its contact segment closest to `points` (L, 3)."""
-    centre, axis = contact_segments(hand, q)
-    half = hand.link_half.astype(q.dtype)
-    s = jnp.clip(jnp.sum((points - centre) * axis, -1), -half, half)
-    return centre + s[:, None] * axis
+    return closest_on_segments(hand, *contact_segments(hand, q), points)
 
 
 def sphere_centers(hand: HandModel, q: jax.Array) -> jax.Array:

@@ -175,23 +175,10 @@ class Surrogate:
         )
         return jnp.where(terms.collision | terms.fall, cfg.r_min, -jnp.minimum(cost, cfg.max_step_cost))
 
-
     # ----------------------------------------------------------------------------------------- env API
     def reset(self, episode: Episode) -> State:
         """The episode's start: its start grasp realised at waypoint 0, at rest."""
-        pos, quat = episode.waypoints[0], episode.quats[0]
-        c = self.realise(episode.start_grasp, pos, quat)
-        return State(
-            grasp=jnp.asarray(episode.start_grasp, jnp.int32),
-            t=jnp.zeros((), jnp.int32),
-            q=c.ik.q,
-            tool_pos=pos,
-            tool_quat=quat,
-            tool_vel=jnp.zeros(6, jnp.float32),
-            episode=episode,
-            done=jnp.array(False),
-            terms=RewardTerms.zeros(),
-        )
+        return self.discrete_state(episode, episode.start_grasp, 0)
 
     def discrete_state(self, episode: Episode, grasp: jax.Array, t: jax.Array) -> State:
         """The DP state (grasp, t): the tool exactly on waypoint t, the grasp realised there by IK."""

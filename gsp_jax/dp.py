@@ -32,6 +32,7 @@ class Table:
     next_grasp: jax.Array  # (G, A) int32 grasp after action a (independent of t)
     terminal: jax.Array  # (G, A, T) bool, the transition ends the episode (collision, fall, or last step)
     ik_error: jax.Array  # (G, T) IK error of each grasp realised at each waypoint [m] (for inspection)
+    q: jax.Array  # (G, T, J) joint angles of each grasp realised at each waypoint (the discrete states' q)
 
 
 @struct.dataclass
@@ -69,7 +70,13 @@ def build_table(env: Surrogate, episode: Episode) -> Table:
     reward = jnp.where(is_redundant[..., None], redundant_reward[next_grasp], plain.reward[next_grasp])
     failed = plain.collision | plain.fall  # (G', T), independent of redundancy
     terminal = failed[next_grasp] | (ts == n_t - 1)[None, None, :]
-    return Table(reward=reward, next_grasp=next_grasp, terminal=terminal, ik_error=contacts.ik.error)
+    return Table(reward=reward, next_grasp=next_grasp, terminal=terminal, ik_error=contacts.ik.error, q=contacts.ik.q)
+
+
+def build_tables(env: Surrogate, episodes: Episode, batch_size: int | None = None) -> Table:
+    """Tables of a stacked episode set (leaves (N, ...)), `batch_size` episodes at a time (`lax.map`: one
+    compilation, bounded memory; None = all at once)."""
+    return jax.lax.map(lambda ep: build_table(env, ep), episodes, batch_size=batch_size)
 
 
 def backup(table: Table, start_grasp: jax.Array) -> Solution:

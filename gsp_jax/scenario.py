@@ -24,6 +24,9 @@ TORQUE0 = 1.0  # magnitude of the final external torque about +z through the cen
 HEIGHT_SHIFTS_MM = (-6, -4, -2, 2, 4, 6, 8)
 MASS_FACTORS = (0.5, 1.0, 1.5, 2.0)
 COM_Y_OFFSETS_CM = (-2, -1, 0, 1, 2)
+VALIDATION_SHIFTS_MM = (-5, -3, -1, 1, 3, 5, 7)
+VALIDATION_MASS_FACTORS = (0.75, 1.75)
+VALIDATION_COM_Y_CM = (-1.5, 1.5)
 # Reach of the hand in the table frame: every waypoint must lie in this box [m].
 WORKSPACE_LO = (-0.05, -0.05, 0.005)
 WORKSPACE_HI = (0.05, 0.05, 0.10)
@@ -125,11 +128,25 @@ def eval_set_b() -> dict[str, Episode]:
     }
 
 
-SETS = {"nominal": nominal, "train": training_set, "evalA": eval_set_a, "evalB": eval_set_b}
+def validation_set() -> dict[str, Episode]:
+    """Validation set (ours; the paper does not list one) for PPO's early stop, disjoint from training and
+    evaluation: the odd height shifts with set A's torque convention (positive shifts -1 N m), and mass
+    0.75 / 1.75 m0 crossed with CoM y-offset -1.5 / +1.5 cm -- unseen variations of both evaluation kinds."""
+    eps = {}
+    for s in VALIDATION_SHIFTS_MM:
+        tau = TORQUE0 if s < 0 else -TORQUE0
+        eps[f"shift{_fmt_mm(s)}_{tau:+g}Nm"] = make_episode(shift_mm=s, torque=tau)
+    for f in VALIDATION_MASS_FACTORS:
+        for c in VALIDATION_COM_Y_CM:
+            eps[f"mass{f:g}m0_comy{c:+g}cm"] = make_episode(mass_factor=f, com_y_cm=c)
+    return eps
+
+
+SETS = {"nominal": nominal, "train": training_set, "val": validation_set, "evalA": eval_set_a, "evalB": eval_set_b}
 
 
 def episode_set(name: str) -> dict[str, Episode]:
-    """A named set: nominal, train, evalA, evalB, eval (A then B) or all (train then eval)."""
+    """A named set: nominal, train, val, evalA, evalB, eval (A then B) or all (train then eval)."""
     if name == "eval":
         return {**eval_set_a(), **eval_set_b()}
     if name == "all":

@@ -1,0 +1,206 @@
+"""The surrogate as a brax environment for RL: `reset(rng)`, `step(state, action)`, auto-reset, episode cycling.
+
+    env = GraspEnv(surrogate, episodes)                      # episodes: a stacked batch (scenario.stack)
+    env = GraspEnv(surrogate, episodes, tables=tables)        # the same MDP, stepped by table lookup
+    state = env.reset(rng); state = env.step(state, action)   # brax.envs.base.State; vmap for many envs
+
+`state.pipeline_state` is the surrogate `State` (continuous joint angles, tool pose and velocity, the episode),
+`state.obs` its `observation`. When an episode ends the env moves on to the next episode of its set (cycling:
+index + 1 mod N) and starts it afresh, so a batch of envs started on random episodes cycles the whole set.
+
+Two backends, one MDP. From `reset` the surrogate only visits the DP's discrete states (the tool on a waypoint,
+the grasp realised by IK from the fixed start configuration), so an episode set's DP tables (`dp.build_tables`:
+reward, next grasp, terminal and joint angles per (grasp, waypoint)) step it exactly, with lookups instead of
+two IK and three wrench solves per step; a test checks the two backends agree step for step. Use the table
+backend for training on a fixed set, the surrogate backend (no tables) for continuous states and new episodes.
+With tables, `pipeline_state.terms` carries the reward only (the other terms are not tabulated).
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from brax.envs import base as brax_base
+
+from gsp_jax import dp
+from gsp_jax.grasps import GraspSpace
+from gsp_jax.scenario import Episode
+from gsp_jax.surrogate import RewardTerms, State, Surrogate
+
+
+def observation_size(space: GraspSpace, n_steps: int, n_joints: int) -> int:
+    return space.n_actions + n_steps + 1 + n_joints + 3 + 4 + 6 + 3 + 3 + 6 + 1 + 3 + 1
+
+
+def observation(space: GraspSpace, state: State) -> jax.Array:
+    """The policy's view of a surrogate state, (observation_size,) float32 -- only what a robot observes or is
+    told: the reference grasp (one-hot per link), time (one-hot and t/T), joint angles, tool pose and velocity,
+    the next waypoint relative to the tool, the final waypoint, and the episode's external wrench, mass, CoM
+    offset and friction. Continuous throughout, so the same policy acts in the physics check."""
+    ep = state.episode
+    n_t = ep.n_steps
+    options = space.decode(state.grasp)
+    grasp = jnp.concatenate([jax.nn.one_hot(options[i], n) for i, n in enumerate(space.n_options)])
+    t = jnp.minimum(state.t, n_t - 1)
+    nxt = ep.waypoints[jnp.minimum(state.t + 1, n_t - 1)]
+    scalars = lambda *xs: jnp.stack([jnp.asarray(x, jnp.float32) for x in xs])  # noqa: E731
+    return jnp.concatenate(
+        [
+            grasp,
+            jax.nn.one_hot(t, n_t),
+            scalars(state.t / n_t),
+            state.q,
+            state.tool_pos,
+            state.tool_quat,
+            state.tool_vel,
+            nxt - state.tool_pos,
+            ep.waypoints[-1],
+            ep.w_ext,
+            scalars(ep.mass),
+            ep.com,
+            scalars(ep.friction),
+        ]
+    ).astype(jnp.float32)
+
+
+def table_state(episode: Episode, table: dp.Table, grasp: jax.Array, t: jax.Array) -> State:
+    """`Surrogate.discrete_state(episode, grasp, t)` read from the episode's table (no IK). t may be T (over)."""
+    n_t = episode.n_steps
+    t = jnp.asarray(t, jnp.int32)
+    tc = jnp.minimum(t, n_t - 1)
+    pos = episode.waypoints[tc]
+    prev = episode.waypoints[jnp.clip(t - 1, 0, n_t - 1)]
+    return State(
+        grasp=jnp.asarray(grasp, jnp.int32),
+        t=t,
+        q=table.q[grasp, tc],
+        tool_pos=pos,
+        tool_quat=episode.quats[tc],
+        tool_vel=jnp.concatenate([(pos - prev) / episode.dt, jnp.zeros(3, jnp.float32)]),
+        episode=episode,
+        done=jnp.array(False),
+        terms=RewardTerms.zeros(),
+    )
+
+
+def table_step(table: dp.Table, state: State, action: jax.Array) -> tuple[State, jax.Array, jax.Array]:
+    """`Surrogate.step` for a discrete state, read from the episode's table. Absorbing once done."""
+    n_t = state.episode.n_steps
+    tc = jnp.minimum(state.t, n_t - 1)
+    g_next = table.next_grasp[state.grasp, action]
+    reward = table.reward[state.grasp, action, tc]
+    moved = table_state(state.episode, table, g_next, state.t + 1)
+    moved = moved.replace(done=table.terminal[state.grasp, action, tc], terms=RewardTerms.zeros().replace(reward=reward))
+    out = jax.tree.map(lambda old, new: jnp.where(state.done, old, new), state, moved)
+    return out, jnp.where(state.done, 0.0, reward), out.done
+
+
+class GraspEnv(brax_base.Env):
+    """The grasp-sequence MDP over a set of episodes, as a brax `Env` (one environment; `jax.vmap` for many).
+
+    Args:
+      surrogate: the surrogate model (hand, rewards).
+      episodes: the set, stacked: every leaf has a leading axis N (`scenario.stack`).
+      tables: optional `dp.Table` per episode, stacked (N, ...) (`dp.build_tables`): the table backend.
+      auto_reset: move on to the next episode when one ends (training); off, a finished state is absorbing.
+
+    `state.info`: `episode` (index into the set), `return` (running return of the current episode).
+    `state.metrics`: `episode_return` (the return of the episode that ended at this step; read it where `done`).
+    """
+
+    def __init__(self, surrogate: Surrogate, episodes: Episode, tables: dp.Table | None = None, auto_reset: bool = True):
+        if episodes.waypoints.ndim != 3:
+            raise ValueError(
+                f"episodes.waypoints: expected a stacked set (N, T, 3), got shape {tuple(episodes.waypoints.shape)}; "
+                "use scenario.stack([...])"
+            )
+        n = episodes.waypoints.shape[0]
+        if tables is not None and tables.reward.shape[0] != n:
+            raise ValueError(f"tables.reward: leading axis {tables.reward.shape[0]} != number of episodes {n}")
+        self.surrogate, self.episodes, self.tables, self.auto_reset = surrogate, episodes, tables, auto_reset
+        self.space = surrogate.space
+        self.n_episodes, self.n_steps = n, episodes.waypoints.shape[1]
+
+    # ---------------------------------------------------------------------------------------- brax API
+    @property
+    def observation_size(self) -> int:
+        return observation_size(self.space, self.n_steps, self.surrogate.hand.n_joints)
+
+    @property
+    def action_size(self) -> int:
+        return self.space.n_actions
+
+    @property
+    def backend(self) -> str:
+        return "table" if self.tables is not None else "surrogate"
+
+    def reset(self, rng: jax.Array) -> brax_base.State:
+        """A random episode of the set, at its start."""
+        idx = jax.random.randint(rng, (), 0, self.n_episodes)
+        return self.reset_to(idx)
+
+    def reset_to(self, index: jax.Array) -> brax_base.State:
+        """Episode `index` of the set, at its start."""
+        idx = jnp.asarray(index, jnp.int32)
+        sim = self._start(idx)
+        zero = jnp.zeros((), jnp.float32)
+        return brax_base.State(
+            pipeline_state=sim,
+            obs=observation(self.space, sim),
+            reward=zero,
+            done=jnp.array(False),
+            metrics={"episode_return": zero},
+            info={"episode": idx, "return": zero},
+        )
+
+    def step(self, state: brax_base.State, action: jax.Array) -> brax_base.State:
+        idx = state.info["episode"]
+        action = jnp.asarray(action, jnp.int32)
+        if self.tables is not None:
+            sim, reward, done = table_step(_TableView(self.tables, idx), state.pipeline_state, action)
+        else:
+            sim, reward, done = self.surrogate.step(state.pipeline_state, action)
+        ret = state.info["return"] + reward
+        if self.auto_reset:
+            idx_next = jnp.where(done, (idx + 1) % self.n_episodes, idx)
+            fresh = self._start(idx_next)
+            sim = jax.tree.map(lambda a, b: jnp.where(done, a, b), fresh, sim)
+        else:
+            idx_next = idx
+        return state.replace(
+            pipeline_state=sim,
+            obs=observation(self.space, sim),
+            reward=reward,
+            done=done,
+            metrics={"episode_return": ret},
+            info={"episode": idx_next, "return": jnp.where(done & self.auto_reset, 0.0, ret)},
+        )
+
+    # -------------------------------------------------------------------------------------------- helpers
+    def episode(self, index: jax.Array) -> Episode:
+        return jax.tree.map(lambda x: x[index], self.episodes)
+
+    def _start(self, idx: jax.Array) -> State:
+        ep = self.episode(idx)
+        if self.tables is not None:
+            return table_state(ep, _TableView(self.tables, idx), ep.start_grasp, 0)
+        return self.surrogate.reset(ep)
+
+
+class _TableView:
+    """Episode `idx` of stacked tables, indexed lazily: `view.reward[g, a, t]` gathers one element instead of
+    copying the episode's whole (G, A, T) table per environment and step."""
+
+    def __init__(self, tables: dp.Table, idx: jax.Array):
+        self._tables, self._idx = tables, idx
+
+    def __getattr__(self, name):
+        return _Indexed(getattr(self._tables, name), self._idx)
+
+
+class _Indexed:
+    def __init__(self, array: jax.Array, idx: jax.Array):
+        self._array, self._idx = array, idx
+
+    def __getitem__(self, key):
+        key = key if isinstance(key, tuple) else (key,)
+        return self._array[(self._idx, *key)]

@@ -1,0 +1,333 @@
+"""The PPO training loop: every iteration one jitted function (a `lax.scan` rollout of `unroll` steps in
+`n_envs` vmapped environments, GAE, `epochs` x `minibatches` Adam steps), validation of the deterministic
+policy, early stop on the validation return, and orbax checkpoints from which a killed run resumes to the same
+result, bit for bit, as an uninterrupted one.
+
+    trainer = Trainer(env, networks, PPOConfig(), eval_envs={"val": val_env, "train": train_eval_env})
+    result = train(trainer, seed=0, params=pretrained, checkpoint_dir="runs/ppo_seed0")
+    result.policy                                   # the best validation Params; result.history: per iteration
+
+Rewards enter the update multiplied by `reward_scale`, so the critic predicts returns in those units; returns
+reported in `history` are in reward units. Starting from pretrained `params` keeps the weights and the
+normaliser but starts a fresh Adam state (the pretraining optimiser's moments belong to another objective).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import pathlib
+import time
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import optax
+import orbax.checkpoint as ocp
+from flax import struct
+from tqdm.auto import tqdm
+
+from gsp_jax.ppo import losses
+from gsp_jax.ppo import networks as nets
+
+
+@dataclasses.dataclass(frozen=True)
+class PPOConfig:
+    n_envs: int = 2048  # parallel environments
+    unroll: int = 16  # environment steps per environment and iteration (one episode's length)
+    epochs: int = 4  # passes over an iteration's data
+    minibatches: int = 8  # Adam steps per epoch
+    learning_rate: float = 3e-4
+    # piecewise-linear learning-rate factor over training: (fraction of max_iterations, factor) knots
+    lr_knots: tuple[tuple[float, float], ...] = ((0.0, 1.0), (0.5, 1.0), (1.0, 0.1))
+    max_iterations: int = 300
+    gamma: float = 1.0  # finite horizon, undiscounted: the DP's return
+    gae_lambda: float = 0.95
+    clip: float = 0.2
+    vf_coef: float = 0.5
+    ent_coef: float = 0.01
+    max_grad_norm: float = 0.5
+    reward_scale: float = 0.1  # rewards (and so critic targets) are multiplied by this in the update
+    eval_every: int = 5  # iterations between validations of the deterministic policy
+    patience: int = 20  # validations without improvement before an early stop (0: never stop early)
+    checkpoint_every: int = 10  # iterations between checkpoints (and at the end)
+
+    def __post_init__(self):
+        for name in ("n_envs", "unroll", "epochs", "minibatches", "max_iterations", "eval_every", "checkpoint_every"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"PPOConfig.{name}: must be >= 1, got {getattr(self, name)}")
+        if (self.n_envs * self.unroll) % self.minibatches:
+            raise ValueError(
+                f"PPOConfig.minibatches: {self.minibatches} does not divide n_envs * unroll = {self.n_envs * self.unroll}"
+            )
+        if not 0 < self.learning_rate < 1:
+            raise ValueError(f"PPOConfig.learning_rate: expected in (0, 1), got {self.learning_rate}")
+
+    def learning_rate_at(self, step):
+        """The schedule over Adam steps (piecewise linear in the fraction of training done)."""
+        total = self.max_iterations * self.epochs * self.minibatches
+        xs, ys = zip(*self.lr_knots)
+        return self.learning_rate * jnp.interp(step / total, jnp.asarray(xs), jnp.asarray(ys))
+
+
+@struct.dataclass
+class TrainState:
+    """Everything a run needs to continue: checkpointed whole."""
+
+    params: nets.Params
+    opt_state: Any
+    env_state: Any  # brax State of the n_envs environments
+    key: jax.Array
+    iteration: jax.Array  # () int32, iterations done
+    best_params: nets.Params  # the best validated policy so far
+    best_return: jax.Array  # () its validation return
+    evals_since_best: jax.Array  # () int32
+
+
+@dataclasses.dataclass
+class TrainResult:
+    state: TrainState
+    history: list[dict]  # one record per iteration (and iteration 0): returns, losses, env steps, wall time
+
+    @property
+    def policy(self) -> nets.Params:
+        return self.state.best_params
+
+    @property
+    def stopped_early(self) -> bool:
+        return bool(self.history) and self.history[-1]["iteration"] < self.history[-1]["max_iterations"]
+
+
+class Trainer:
+    """PPO on a brax-style env (one env; vmapped here). `eval_envs` (name -> env without auto-reset) are rolled out
+    deterministically from every episode's start; the first is the validation set used for early stopping."""
+
+    def __init__(self, env, networks: nets.Networks, config: PPOConfig, eval_envs: dict[str, Any]):
+        if not eval_envs:
+            raise ValueError("eval_envs: need at least one (the validation set)")
+        self.env, self.networks, self.config, self.eval_envs = env, networks, config, dict(eval_envs)
+        self.optimizer = optax.chain(
+            optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.learning_rate_at)
+        )
+        self.iteration = jax.jit(self._iteration)
+        self.evaluate = jax.jit(self._evaluate)
+        self._record = jax.jit(self._record_eval)
+
+    # ------------------------------------------------------------------------------------------ state
+    def init(self, key: jax.Array, params: nets.Params | None = None) -> TrainState:
+        k_params, k_env, key = jax.random.split(key, 3)
+        params = self.networks.init(k_params) if params is None else params
+        env_state = jax.vmap(self.env.reset)(jax.random.split(k_env, self.config.n_envs))
+        return TrainState(
+            params=params,
+            opt_state=self.optimizer.init(_trainable(params)),
+            env_state=env_state,
+            key=key,
+            iteration=jnp.zeros((), jnp.int32),
+            best_params=params,
+            best_return=jnp.array(-jnp.inf, jnp.float32),
+            evals_since_best=jnp.zeros((), jnp.int32),
+        )
+
+    # -------------------------------------------------------------------------------------- iteration
+    def _iteration(self, ts: TrainState) -> tuple[TrainState, dict]:
+        cfg, networks = self.config, self.networks
+        key, k_roll, k_sgd = jax.random.split(ts.key, 3)
+        params = ts.params
+
+        def env_step(env_state, k):
+            logits = networks.logits(params, env_state.obs)
+            action = nets.sample(k, logits)
+            nxt = jax.vmap(self.env.step)(env_state, action)
+            out = (
+                env_state.obs,
+                action,
+                nets.log_prob(logits, action),
+                networks.value(params, env_state.obs),
+                nxt.reward * cfg.reward_scale,
+                nxt.done,
+                nxt.metrics["episode_return"],
+            )
+            return nxt, out
+
+        env_state, (obs, action, logp, value, reward, done, ep_return) = jax.lax.scan(
+            env_step, ts.env_state, jax.random.split(k_roll, cfg.unroll)
+        )
+        bootstrap = networks.value(params, env_state.obs)
+        advantage, target = losses.gae(reward, value, done, bootstrap, cfg.gamma, cfg.gae_lambda)
+        batch = losses.Batch(obs, action, logp, value, advantage, target)
+        batch = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), batch)  # (U * B, ...)
+        n = batch.action.shape[0]
+
+        def loss_fn(trainable, mb):
+            return losses.ppo_loss(
+                params.replace(**trainable), networks, mb, cfg.clip, cfg.vf_coef, cfg.ent_coef
+            )
+
+        def sgd_step(carry, mb):
+            trainable, opt_state = carry
+            (_, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(trainable, mb)
+            updates, opt_state = self.optimizer.update(grads, opt_state, trainable)
+            return (optax.apply_updates(trainable, updates), opt_state), metrics
+
+        def epoch(carry, k):
+            perm = jax.random.permutation(k, n)
+            mbs = jax.tree.map(lambda x: x[perm].reshape(cfg.minibatches, -1, *x.shape[1:]), batch)
+            return jax.lax.scan(sgd_step, carry, mbs)
+
+        (trainable, opt_state), metrics = jax.lax.scan(
+            epoch, (_trainable(params), ts.opt_state), jax.random.split(k_sgd, cfg.epochs)
+        )
+        params = networks.update_normalizer(params.replace(**trainable), obs)
+        finished = jnp.sum(done)
+        metrics = jax.tree.map(jnp.mean, metrics)
+        metrics.update(
+            train_return=jnp.sum(jnp.where(done, ep_return, 0.0)) / jnp.maximum(finished, 1),
+            episodes=finished,
+            learning_rate=cfg.learning_rate_at((ts.iteration + 1) * cfg.epochs * cfg.minibatches),
+        )
+        ts = ts.replace(params=params, opt_state=opt_state, env_state=env_state, key=key, iteration=ts.iteration + 1)
+        return ts, metrics
+
+    # ------------------------------------------------------------------------------------- validation
+    def _evaluate(self, params: nets.Params) -> dict[str, jax.Array]:
+        """Deterministic returns (N,) of the policy on every episode of each evaluation env."""
+        return {name: greedy_returns(env, self.networks, params) for name, env in self.eval_envs.items()}
+
+    def _record_eval(self, ts: TrainState, val_return: jax.Array) -> TrainState:
+        better = val_return > ts.best_return
+        return ts.replace(
+            best_params=jax.tree.map(lambda new, old: jnp.where(better, new, old), ts.params, ts.best_params),
+            best_return=jnp.where(better, val_return, ts.best_return),
+            evals_since_best=jnp.where(better, 0, ts.evals_since_best + 1),
+        )
+
+
+def greedy_returns(env, networks: nets.Networks, params: nets.Params) -> jax.Array:
+    """Return (N,) of the deterministic policy on each of env's N episodes, from its start (env.auto_reset off)."""
+
+    def one(index):
+        def step(state, _):
+            action = nets.mode(networks.logits(params, state.obs))
+            state = env.step(state, action)
+            return state, state.reward
+
+        _, rewards = jax.lax.scan(step, env.reset_to(index), None, length=env.n_steps)
+        return jnp.sum(rewards)
+
+    return jax.vmap(one)(jnp.arange(env.n_episodes))
+
+
+def _trainable(params: nets.Params) -> dict:
+    return {"actor": params.actor, "critic": params.critic}
+
+
+# ------------------------------------------------------------------------------------------------ the loop
+def train(
+    trainer: Trainer,
+    seed: int,
+    params: nets.Params | None = None,
+    checkpoint_dir: str | pathlib.Path | None = None,
+    progress: bool = True,
+    stop_after: int | None = None,
+) -> TrainResult:
+    """Run PPO to `max_iterations` or an early stop. With `checkpoint_dir`, a run saves there every
+    `checkpoint_every` iterations and, started again, resumes from its latest checkpoint. `stop_after` ends this
+    call after that many iterations in total (as if killed there; for tests and time-sliced jobs)."""
+    cfg = trainer.config
+    ts = trainer.init(jax.random.PRNGKey(seed), params)
+    history: list[dict] = []
+    manager = _manager(checkpoint_dir, trainer, seed) if checkpoint_dir is not None else None
+    if manager is not None and manager.latest_step() is not None:
+        restored = manager.restore(
+            manager.latest_step(),
+            args=ocp.args.Composite(state=ocp.args.StandardRestore(ts), history=ocp.args.JsonRestore()),
+        )
+        ts, history = restored.state, list(restored.history)
+    wall0 = history[-1]["wall_s"] if history else 0.0
+    t0 = time.perf_counter()
+    env_steps_per_iter = cfg.n_envs * cfg.unroll
+    if not history:  # iteration 0: the starting policy
+        ts, record = _validate(trainer, ts, {"iteration": 0})
+        history.append({**record, "env_steps": 0, "wall_s": 0.0, "max_iterations": cfg.max_iterations})
+
+    start = int(ts.iteration)
+    last = cfg.max_iterations if stop_after is None else min(cfg.max_iterations, stop_after)
+    bar = tqdm(total=cfg.max_iterations, initial=start, disable=not progress, desc=f"PPO seed {seed}", unit="it")
+    for it in range(start + 1, last + 1):
+        if cfg.patience and int(ts.evals_since_best) >= cfg.patience:
+            break
+        ts, metrics = trainer.iteration(ts)
+        record = {"iteration": it, **{k: float(v) for k, v in metrics.items()}}
+        if it % cfg.eval_every == 0 or it == cfg.max_iterations:
+            ts, record = _validate(trainer, ts, record)
+        record.update(
+            env_steps=it * env_steps_per_iter, wall_s=wall0 + time.perf_counter() - t0, max_iterations=cfg.max_iterations
+        )
+        history.append(record)
+        bar.update(1)
+        bar.set_postfix(
+            train=f"{record['train_return']:.2f}", val=f"{float(ts.best_return):.2f}", refresh=False
+        )
+        if manager is not None and (it % cfg.checkpoint_every == 0 or it == last):
+            _save(manager, it, ts, history)
+    bar.close()
+    if manager is not None:
+        if manager.latest_step() != int(ts.iteration):
+            _save(manager, int(ts.iteration), ts, history)
+        manager.wait_until_finished()
+        manager.close()
+    return TrainResult(state=ts, history=history)
+
+
+def _validate(trainer: Trainer, ts: TrainState, record: dict) -> tuple[TrainState, dict]:
+    returns = trainer.evaluate(ts.params)
+    names = list(returns)
+    for name in names:
+        record[f"{name}_return"] = float(jnp.mean(returns[name]))
+    ts = trainer._record(ts, jnp.mean(returns[names[0]]))
+    return ts, record
+
+
+def _manager(directory, trainer: Trainer, seed: int) -> ocp.CheckpointManager:
+    directory = pathlib.Path(directory).absolute()
+    directory.mkdir(parents=True, exist_ok=True)
+    meta = {"seed": seed, "config": _jsonable(dataclasses.asdict(trainer.config)), "networks": _jsonable(dataclasses.asdict(trainer.networks.config))}
+    meta_file = directory / "run.json"
+    if meta_file.exists():
+        old = json.loads(meta_file.read_text())
+        for field in meta:
+            if old.get(field) != meta[field]:
+                raise ValueError(
+                    f"checkpoint_dir {directory}: holds a run with a different {field} ({old.get(field)!r}, now "
+                    f"{meta[field]!r}); use another directory to start a new run"
+                )
+    else:
+        meta_file.write_text(json.dumps(meta, indent=1))
+    options = ocp.CheckpointManagerOptions(max_to_keep=2, create=True, enable_async_checkpointing=False)
+    return ocp.CheckpointManager(directory / "checkpoints", options=options)
+
+
+def _save(manager: ocp.CheckpointManager, step: int, ts: TrainState, history: list[dict]) -> None:
+    manager.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(ts), history=ocp.args.JsonSave(history)))
+
+
+def _jsonable(x):
+    return json.loads(json.dumps(x, default=lambda o: list(o) if isinstance(o, tuple) else str(o)))
+
+
+def save_policy(path: str | pathlib.Path, params: nets.Params) -> None:
+    """Write a policy (Params) to an orbax checkpoint directory."""
+    with ocp.StandardCheckpointer() as ckpt:
+        ckpt.save(pathlib.Path(path).absolute(), params, force=True)
+
+
+def load_policy(path: str | pathlib.Path, networks: nets.Networks) -> nets.Params:
+    """Read a policy written by `save_policy`, for networks of the same shape."""
+    path = pathlib.Path(path).absolute()
+    if not path.exists():
+        raise FileNotFoundError(f"policy: no checkpoint at {path}")
+    target = networks.init(jax.random.PRNGKey(0))
+    with ocp.StandardCheckpointer() as ckpt:
+        return ckpt.restore(path, target)
+
+

@@ -9,6 +9,9 @@ COMMANDS = {  # command -> (module, one-line help)
     "bench-surrogate": ("experiments.bench_surrogate", "surrogate steps/s: vmapped vs one step at a time"),
     "bench-dp": ("experiments.bench_dp", "DP solve time: one episode, 27 batched, vs the step-at-a-time table"),
     "dp": ("experiments.dp", "exact DP (Bellman backups) over an episode set; grasp sequences and timeline"),
+    "train": ("experiments.train", "PPO on the training episodes, with or without DP pretraining, over seeds"),
+    "train-curves": ("experiments.train_curves", "Fig. 3: PPO training curves with and without DP pretraining"),
+    "bench-ppo": ("experiments.bench_ppo", "PPO env steps/s and wall time to the DP-baseline return"),
 }
 
 

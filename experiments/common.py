@@ -33,3 +33,35 @@ def timed(fn, *args):
 def best_time(fn, *args, repeats: int = 3) -> float:
     """Fastest of `repeats` warm calls (call once before to compile)."""
     return min(timed(fn, *args)[1] for _ in range(max(1, repeats)))
+
+
+def dp_tables(env, set_name: str, episodes: dict, batch_size: int = 4):
+    """The stacked `dp.Table`s of named episodes, cached under results/tables/ (keyed by the episodes, the model
+    and the surrogate's configuration, so a change to any of them rebuilds). Builds `batch_size` at a time."""
+    import dataclasses
+    import hashlib
+
+    import numpy as np
+
+    from gsp_jax import dp, hand, scenario
+
+    batch = scenario.stack(list(episodes.values()))
+    h = hashlib.sha256()
+    for leaf in jax.tree.leaves(batch):
+        h.update(np.asarray(leaf).tobytes())
+    for path in sorted(pathlib.Path(hand.SCENE_XML).parent.glob("*.xml")):
+        h.update(path.read_bytes())
+    for cfg in (env.reward_config, env.ik_config, env.wrench_config):
+        h.update(repr(dataclasses.asdict(cfg)).encode())
+    path = results_dir("tables") / f"{set_name}_{h.hexdigest()[:12]}.npz"
+    if path.exists():
+        with np.load(path) as d:
+            return dp.Table(**{k: jax.numpy.asarray(d[k]) for k in d.files})
+    print(f"building DP tables for {len(episodes)} episodes of '{set_name}' (cached in {path}) ...", flush=True)
+    t0 = time.perf_counter()
+    tables = jax.block_until_ready(jax.jit(lambda b: dp.build_tables(env, b, batch_size))(batch))
+    print(f"  {time.perf_counter() - t0:.1f} s", flush=True)
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez(tmp, **{k: np.asarray(v) for k, v in vars(tables).items()})
+    tmp.replace(path)
+    return tables

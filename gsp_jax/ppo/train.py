@@ -104,7 +104,10 @@ class Trainer:
     def __init__(self, env, networks: nets.Networks, config: PPOConfig, eval_envs: dict[str, Any]):
         if not eval_envs:
             raise ValueError("eval_envs: need at least one (the validation set)")
+        if "train" in eval_envs:
+            raise ValueError("eval_envs: the name 'train' is taken (history's train_return is the stochastic return)")
         self.env, self.networks, self.config, self.eval_envs = env, networks, config, dict(eval_envs)
+        self.val_name = next(iter(self.eval_envs))  # the early-stop set (jit returns dicts in sorted key order)
         self.optimizer = optax.chain(
             optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.learning_rate_at)
         )
@@ -229,10 +232,12 @@ def train(
     checkpoint_dir: str | pathlib.Path | None = None,
     progress: bool = True,
     stop_after: int | None = None,
+    stop_when=None,
 ) -> TrainResult:
     """Run PPO to `max_iterations` or an early stop. With `checkpoint_dir`, a run saves there every
     `checkpoint_every` iterations and, started again, resumes from its latest checkpoint. `stop_after` ends this
-    call after that many iterations in total (as if killed there; for tests and time-sliced jobs)."""
+    call after that many iterations in total (as if killed there; for tests and time-sliced jobs); `stop_when(record)`
+ends it after the first iteration whose history record satisfies it (e.g. a target return)."""
     cfg = trainer.config
     ts = trainer.init(jax.random.PRNGKey(seed), params)
     history: list[dict] = []
@@ -270,6 +275,8 @@ def train(
         )
         if manager is not None and (it % cfg.checkpoint_every == 0 or it == last):
             _save(manager, it, ts, history)
+        if stop_when is not None and stop_when(record):
+            break
     bar.close()
     if manager is not None:
         if manager.latest_step() != int(ts.iteration):
@@ -281,10 +288,9 @@ def train(
 
 def _validate(trainer: Trainer, ts: TrainState, record: dict) -> tuple[TrainState, dict]:
     returns = trainer.evaluate(ts.params)
-    names = list(returns)
-    for name in names:
+    for name in trainer.eval_envs:
         record[f"{name}_return"] = float(jnp.mean(returns[name]))
-    ts = trainer._record(ts, jnp.mean(returns[names[0]]))
+    ts = trainer._record(ts, jnp.mean(returns[trainer.val_name]))
     return ts, record
 
 

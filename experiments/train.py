@@ -1,0 +1,141 @@
+"""`python -m experiments train --pretrain dp|none --seeds N`: PPO on the 9 training episodes (the environment
+cycles them), validated on the validation set with the deterministic policy, early-stopped there; with
+`--pretrain dp` the networks start from behaviour cloning of the training episodes' DP solutions.
+
+Writes, per run, results/train/<pretrain>/seed<k>/: history.json (per iteration: stochastic training return,
+deterministic validation and training-set returns, losses, env steps, wall time), policy/ (the best validated
+policy, orbax), checkpoints/ (the run resumes from there when started again); and results/train/reference.json
+(the DP returns to compare with). Steps are exact table lookups of the surrogate (see gsp_jax/env.py).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from experiments.common import dp_tables, results_dir, table
+from gsp_jax import dp, pretrain, scenario
+from gsp_jax.env import GraspEnv
+from gsp_jax.ppo import networks as nets
+from gsp_jax.ppo import train as ppo
+from gsp_jax.surrogate import Surrogate
+
+PRESETS = {  # quick: a few minutes on a 2-core CPU; full: the GPU run behind the README's numbers
+    "quick": dict(n_envs=256, hidden=(128, 128, 128), iterations=100, bc_epochs=150, minibatches=4),
+    "full": dict(n_envs=2048, hidden=(256, 256, 256), iterations=300, bc_epochs=300, minibatches=8),
+}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--pretrain", default="dp", choices=["dp", "none"])
+    p.add_argument("--seeds", type=int, default=3, help="number of seeds (first-seed, first-seed + 1, ...)")
+    p.add_argument("--first-seed", type=int, default=0)
+    p.add_argument("--preset", choices=sorted(PRESETS), default=None, help="default: full on a GPU, else quick")
+    p.add_argument("--iterations", type=int, default=None, help="PPO iterations (overrides the preset)")
+    p.add_argument("--envs", type=int, default=None, help="parallel environments (overrides the preset)")
+    p.add_argument("--patience", type=int, default=None, help="validations without improvement before stopping")
+    p.add_argument("--out", default="train", help="folder under results/")
+
+
+@dataclasses.dataclass
+class Setup:
+    """Everything a training run needs, built once: environments over tables, networks, configs, DP references."""
+
+    surrogate: Surrogate
+    env: GraspEnv  # training: the 9 episodes, auto-reset
+    eval_envs: dict  # "val" (early stop) and "train_greedy" (the training set), no auto-reset
+    networks: nets.Networks
+    ppo_config: ppo.PPOConfig
+    bc_config: pretrain.BCConfig
+    train_tables: dp.Table
+    reference: dict
+
+
+def setup(preset: str, iterations=None, envs=None, patience=None) -> Setup:
+    p = PRESETS[preset]
+    sur = Surrogate()
+    train_eps, val_eps = scenario.training_set(), scenario.validation_set()
+    train_tables = dp_tables(sur, "train", train_eps)
+    val_tables = dp_tables(sur, "val", val_eps)
+    train_batch, val_batch = scenario.stack(list(train_eps.values())), scenario.stack(list(val_eps.values()))
+    env = GraspEnv(sur, train_batch, train_tables)
+    eval_envs = {
+        "val": GraspEnv(sur, val_batch, val_tables, auto_reset=False),
+        "train_greedy": GraspEnv(sur, train_batch, train_tables, auto_reset=False),
+    }
+    cfg = ppo.PPOConfig(
+        n_envs=envs or p["n_envs"],
+        minibatches=p["minibatches"],
+        max_iterations=iterations or p["iterations"],
+        **({} if patience is None else {"patience": patience}),
+    )
+    networks = nets.make_networks(env.observation_size, env.action_size, nets.NetworkConfig(hidden=p["hidden"]))
+    return Setup(
+        surrogate=sur,
+        env=env,
+        eval_envs=eval_envs,
+        networks=networks,
+        ppo_config=cfg,
+        bc_config=pretrain.BCConfig(epochs=p["bc_epochs"], reward_scale=cfg.reward_scale),
+        train_tables=train_tables,
+        reference=references(train_batch, train_tables, val_batch, val_tables),
+    )
+
+
+def references(train_batch, train_tables, val_batch, val_tables) -> dict:
+    """Mean DP returns: optimal per episode, and the DP baseline (the nominal episode's optimal sequence,
+    replayed open loop), on the training and validation sets."""
+    sols = jax.vmap(dp.backup)(train_tables, train_batch.start_grasp)
+    nominal_actions = sols.actions[0]  # the training set's first episode is the nominal one
+    out = {}
+    for name, batch, tables in (("train", train_batch, train_tables), ("val", val_batch, val_tables)):
+        opt = jax.vmap(dp.backup)(tables, batch.start_grasp).ret
+        base = jax.vmap(dp.sequence_return, (0, 0, None))(tables, batch.start_grasp, nominal_actions)
+        out[name] = {"dp_optimal": float(jnp.mean(opt)), "dp_baseline": float(jnp.mean(base))}
+    return out
+
+
+def run_seed(s: Setup, seed: int, mode: str, out_dir, progress: bool = True) -> ppo.TrainResult:
+    """One seed: optional DP pretraining, then PPO (resuming from out_dir/checkpoints if present)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    params, bc_history = None, []
+    if mode == "dp":
+        data = pretrain.dp_dataset(s.surrogate, s.env.episodes, s.train_tables)
+        params, bc_history = pretrain.pretrain(s.networks, data, s.bc_config, jax.random.PRNGKey(1000 + seed), progress)
+        (out_dir / "bc_history.json").write_text(json.dumps({"dataset_size": data.size, "history": bc_history}))
+    trainer = ppo.Trainer(s.env, s.networks, s.ppo_config, s.eval_envs)
+    result = ppo.train(trainer, seed, params=params, checkpoint_dir=out_dir, progress=progress)
+    (out_dir / "history.json").write_text(json.dumps(result.history))
+    ppo.save_policy(out_dir / "policy", result.policy)
+    return result
+
+
+def main(args: argparse.Namespace) -> None:
+    preset = args.preset or ("full" if jax.default_backend() == "gpu" else "quick")
+    s = setup(preset, args.iterations, args.envs, args.patience)
+    root = results_dir(args.out)
+    (root / "reference.json").write_text(json.dumps({**s.reference, "preset": preset}, indent=1))
+    print(
+        f"preset {preset}: {s.ppo_config.n_envs} envs x {s.ppo_config.unroll} steps per iteration, "
+        f"networks {tuple(s.networks.config.hidden)}, up to {s.ppo_config.max_iterations} iterations"
+    )
+    rows = []
+    for seed in range(args.first_seed, args.first_seed + args.seeds):
+        result = run_seed(s, seed, args.pretrain, root / args.pretrain / f"seed{seed}")
+        h = result.history
+        vals = [r["val_return"] for r in h if "val_return" in r]
+        rows.append(
+            [seed, h[-1]["iteration"], vals[0], float(result.state.best_return), h[-1].get("train_return", np.nan), h[-1]["wall_s"]]
+        )
+    ref = s.reference
+    print(
+        f"\nDP references (mean return): validation set optimal {ref['val']['dp_optimal']:.3f}, baseline "
+        f"{ref['val']['dp_baseline']:.3f}; training set optimal {ref['train']['dp_optimal']:.3f}, baseline "
+        f"{ref['train']['dp_baseline']:.3f}"
+    )
+    print(f"\nPPO, pretrain={args.pretrain} (policies in {root / args.pretrain}/seed*/policy)")
+    print(table(["seed", "iterations", "val return at 0", "best val return", "last train return (stoch.)", "wall s"], rows))

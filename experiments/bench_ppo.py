@@ -58,7 +58,7 @@ def gym_rate(s, n_steps: int) -> float:
 
 def time_to_baseline(s, mode: str, seed: int, max_iterations: int | None) -> dict:
     target = s.reference["train"]["dp_baseline"]
-    cfg = dataclasses.replace(s.ppo_config, eval_every=1, patience=0, max_iterations=max_iterations or s.ppo_config.max_iterations)
+    cfg = dataclasses.replace(train_exp.ppo_config(s, mode), eval_every=1, patience=0, max_iterations=max_iterations or s.ppo_config.max_iterations)
     t0 = time.perf_counter()
     params = None
     bc_s = 0.0

@@ -99,6 +99,11 @@ def references(train_batch, train_tables, val_batch, val_tables) -> dict:
     return out
 
 
+def ppo_config(s: Setup, mode: str) -> ppo.PPOConfig:
+    """From pretrained weights the observation normaliser stays as pretraining set it (see gsp_jax/ppo/train.py)."""
+    return dataclasses.replace(s.ppo_config, update_normalizer=mode != "dp")
+
+
 def run_seed(s: Setup, seed: int, mode: str, out_dir, progress: bool = True) -> ppo.TrainResult:
     """One seed: optional DP pretraining, then PPO (resuming from out_dir/checkpoints if present)."""
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -107,7 +112,7 @@ def run_seed(s: Setup, seed: int, mode: str, out_dir, progress: bool = True) -> 
         data = pretrain.dp_dataset(s.surrogate, s.env.episodes, s.train_tables)
         params, bc_history = pretrain.pretrain(s.networks, data, s.bc_config, jax.random.PRNGKey(1000 + seed), progress)
         (out_dir / "bc_history.json").write_text(json.dumps({"dataset_size": data.size, "history": bc_history}))
-    trainer = ppo.Trainer(s.env, s.networks, s.ppo_config, s.eval_envs)
+    trainer = ppo.Trainer(s.env, s.networks, ppo_config(s, mode), s.eval_envs)
     result = ppo.train(trainer, seed, params=params, checkpoint_dir=out_dir, progress=progress)
     (out_dir / "history.json").write_text(json.dumps(result.history))
     ppo.save_policy(out_dir / "policy", result.policy)

@@ -9,7 +9,9 @@ result, bit for bit, as an uninterrupted one.
 
 Rewards enter the update multiplied by `reward_scale`, so the critic predicts returns in those units; returns
 reported in `history` are in reward units. Starting from pretrained `params` keeps the weights and the
-normaliser but starts a fresh Adam state (the pretraining optimiser's moments belong to another objective).
+normaliser but starts a fresh Adam state (the pretraining optimiser's moments belong to another objective); run
+it with `update_normalizer=False`, since folding PPO's rollouts into the statistics moves the pretrained
+network's inputs under it (measured: it undid the pretraining within 10 iterations).
 """
 from __future__ import annotations
 
@@ -47,6 +49,7 @@ class PPOConfig:
     ent_coef: float = 0.01
     max_grad_norm: float = 0.5
     reward_scale: float = 0.1  # rewards (and so critic targets) are multiplied by this in the update
+    update_normalizer: bool = True  # fold every rollout into the observation statistics (off: keep them fixed)
     eval_every: int = 5  # iterations between validations of the deterministic policy
     patience: int = 20  # validations without improvement before an early stop (0: never stop early)
     checkpoint_every: int = 10  # iterations between checkpoints (and at the end)
@@ -180,7 +183,9 @@ class Trainer:
         (trainable, opt_state), metrics = jax.lax.scan(
             epoch, (_trainable(params), ts.opt_state), jax.random.split(k_sgd, cfg.epochs)
         )
-        params = networks.update_normalizer(params.replace(**trainable), obs)
+        params = params.replace(**trainable)
+        if cfg.update_normalizer:
+            params = networks.update_normalizer(params, obs)
         finished = jnp.sum(done)
         metrics = jax.tree.map(jnp.mean, metrics)
         metrics.update(

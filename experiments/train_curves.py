@@ -48,24 +48,30 @@ def iterations_to(its: np.ndarray, mean: np.ndarray, target: float) -> int | Non
     return int(its[hit[0]]) if hit.size else None
 
 
-def summarise(runs: dict) -> dict:
-    """The common target (the best mean validation return that every mode reaches) and the iterations each mode
-    needs to reach it, from the seed-mean curves and per seed."""
-    val = {m: curves(h, "val_return") for m, h in runs.items()}
+def summarise(runs: dict, best_so_far: bool = False) -> dict:
+    """The common target (the best seed-mean validation return that every mode reaches) and the iterations each
+    mode needs to reach it, from the seed-mean curves and per seed. With `best_so_far`, each seed's curve is the
+    validation return of its best policy so far -- the policy early stopping deploys -- so a transient peak
+    counts only if it is kept."""
+    val = {}
+    for m, h in runs.items():
+        its, v = curves(h, "val_return")
+        val[m] = (its, np.maximum.accumulate(v, axis=1) if best_so_far else v)
     target = min(np.max(np.nanmean(v, 0)) for _, v in val.values())
     out = {"target_val_return": float(target), "modes": {}}
     for m, (its, v) in val.items():
-        seed_its = []
-        for s in range(v.shape[0]):
-            seed_its.append(iterations_to(its, v[s], target))
         out["modes"][m] = {
             "seeds": int(v.shape[0]),
             "iterations_to_target": iterations_to(its, np.nanmean(v, 0), target),
-            "iterations_to_target_per_seed": seed_its,
+            "iterations_to_target_per_seed": [iterations_to(its, v[s], target) for s in range(v.shape[0])],
             "val_return_at_0": float(np.nanmean(v[:, 0])),
             "best_val_return": float(np.max(np.nanmean(v, 0))),
+            "final_val_return": float(np.nanmean(v[:, -1])),
             "iterations_run": [int(h[-1]["iteration"]) for h in runs[m]],
         }
+    dp_it, none_it = (out["modes"].get(m, {}).get("iterations_to_target") for m in ("dp", "none"))
+    if dp_it is not None and none_it is not None:
+        out["pretraining_speedup"] = float("inf") if dp_it == 0 else none_it / dp_it
     return out
 
 
@@ -84,10 +90,14 @@ def plot(runs: dict, reference: dict, path) -> None:
             label = f"{MODES[m]}: {'validation (deterministic)' if key == 'val_return' else 'training (stochastic)'}"
             ax.plot(its, mean, style, color=colors[m], alpha=alpha, lw=2 if key == "val_return" else 1, label=label)
             ax.fill_between(its, np.nanmin(v, 0), np.nanmax(v, 0), color=colors[m], alpha=0.12 * alpha, lw=0)
+        its, v = curves(hist, "val_return")
+        best = np.nanmean(np.maximum.accumulate(v, axis=1), 0)
+        ax.plot(its, best, "--", color=colors[m], lw=1, label=f"{MODES[m]}: best validated policy so far")
     if reference:
         ax.axhline(reference["val"]["dp_optimal"], color="k", ls=":", lw=1, label="DP optimal (validation)")
         ax.axhline(reference["val"]["dp_baseline"], color="0.4", ls="--", lw=1, label="DP baseline (validation)")
     ax.set_yscale("symlog", linthresh=1.0)
+    ax.set_ylim(top=-0.5)
     ax.set_xlabel("PPO iteration")
     ax.set_ylabel("mean return (symlog)")
     n_seeds = max(len(h) for h in runs.values())
@@ -105,22 +115,20 @@ def main(args: argparse.Namespace) -> None:
         raise SystemExit(f"train-curves: no runs under {root}/{{dp,none}}/seed*/history.json; run `python -m experiments train` first")
     ref_file = root / "reference.json"
     reference = json.loads(ref_file.read_text()) if ref_file.exists() else {}
-    summary = summarise(runs)
-    summary["reference"] = reference
-    dp_it = summary["modes"].get("dp", {}).get("iterations_to_target")
-    none_it = summary["modes"].get("none", {}).get("iterations_to_target")
-    if dp_it is not None and none_it is not None:
-        summary["pretraining_speedup"] = float("inf") if dp_it == 0 else none_it / dp_it
+    summary = {"raw": summarise(runs), "best_so_far": summarise(runs, best_so_far=True), "reference": reference}
     (root / "curves.json").write_text(json.dumps(summary, indent=1))
     plot(runs, reference, root / "curves.png")
-    rows = [
-        [MODES[m], s["seeds"], s["val_return_at_0"], s["best_val_return"], str(s["iterations_to_target"]), str(s["iterations_to_target_per_seed"])]
-        for m, s in summary["modes"].items()
-    ]
     if reference:
         print(f"validation set: DP optimal {reference['val']['dp_optimal']:.3f}, DP baseline {reference['val']['dp_baseline']:.3f}")
-    print(f"target: validation return {summary['target_val_return']:.3f} (the best seed-mean return every mode reaches)")
-    if "pretraining_speedup" in summary:
-        print(f"iterations to the target: {none_it} without pretraining, {dp_it} with: speed-up {summary['pretraining_speedup']:.1f}x (paper: 4x)")
-    print(f"wrote {root / 'curves.png'} and {root / 'curves.json'}\n")
-    print(table(["", "seeds", "val return at 0", "best mean val return", "iterations to target", "per seed"], rows))
+    print(f"wrote {root / 'curves.png'} and {root / 'curves.json'}")
+    for kind, title in (("raw", "validation return of the current policy"), ("best_so_far", "validation return of the best policy so far (what early stopping deploys)")):
+        s = summary[kind]
+        print(f"\n{title}: target {s['target_val_return']:.3f} (the best seed-mean every mode reaches)")
+        if "pretraining_speedup" in s:
+            print(f"iterations to the target: {s['modes']['none']['iterations_to_target']} without pretraining, "
+                  f"{s['modes']['dp']['iterations_to_target']} with: speed-up {s['pretraining_speedup']:.1f}x (paper: 4x)")
+        rows = [
+            [MODES[m], r["seeds"], r["val_return_at_0"], r["best_val_return"], r["final_val_return"], str(r["iterations_to_target"]), str(r["iterations_to_target_per_seed"])]
+            for m, r in s["modes"].items()
+        ]
+        print(table(["", "seeds", "at 0", "best mean", "final mean", "iterations to target", "per seed"], rows))

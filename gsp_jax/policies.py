@@ -2,7 +2,7 @@
 
 `act` takes one surrogate `State` (continuous state plus episode input) and returns an int32 action; it is
 pure, so `jax.jit` and `jax.vmap` apply, and the surrogate evaluation, lookahead and the physics check call every
-policy the same way. Here: the two DP policies of the paper.
+policy the same way. Here: the two DP policies of the paper and the trained PPO actor.
 """
 from __future__ import annotations
 
@@ -10,6 +10,9 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from gsp_jax.env import observation
+from gsp_jax.grasps import GraspSpace
+from gsp_jax.ppo import networks as nets
 from gsp_jax.surrogate import State
 
 
@@ -33,6 +36,19 @@ class SequencePolicy:
 
     def act(self, state: State) -> jax.Array:
         return self.actions[jnp.minimum(state.t, self.actions.shape[0] - 1)]
+
+
+@struct.dataclass
+class NetworkPolicy:
+    """A trained actor (RL in the paper), deterministic: the most probable action for the observation of the
+    (continuous) state."""
+
+    params: nets.Params
+    networks: nets.Networks = struct.field(pytree_node=False)
+    space: GraspSpace = struct.field(pytree_node=False)
+
+    def act(self, state: State) -> jax.Array:
+        return nets.mode(self.networks.logits(self.params, observation(self.space, state)))
 
 
 def rollout(env, policy, episode) -> tuple[jax.Array, State]:

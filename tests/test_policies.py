@@ -38,3 +38,23 @@ def test_dp_baseline_replays_a_sequence_and_never_beats_dp_optimal(env, solved):
     replay = dp.sequence_return(table, other.start_grasp, sols.actions[0])
     np.testing.assert_allclose(float(ret), float(replay), rtol=1e-5, atol=1e-5)
     assert float(ret) <= float(sols.ret[1]) + 1e-5
+
+
+def test_network_policy_acts_the_same_in_the_surrogate_and_the_table_env(env, solved):
+    """The PPO actor as a policy (NetworkPolicy, after BC on the DP data set): its return stepped through the
+    surrogate itself equals its greedy return in the table-backed GraspEnv, and BC makes it DP-optimal here."""
+    from gsp_jax import pretrain
+    from gsp_jax.env import GraspEnv
+    from gsp_jax.ppo import networks as nets
+    from gsp_jax.ppo import train as ppo
+
+    eps, tables, sols = solved
+    table_env = GraspEnv(env, eps, tables, auto_reset=False)
+    networks = nets.make_networks(table_env.observation_size, table_env.action_size, nets.NetworkConfig(hidden=(64, 64)))
+    data = pretrain.dp_dataset(env, eps, tables)
+    params, _ = pretrain.pretrain(networks, data, pretrain.BCConfig(epochs=150, batch_size=64), jax.random.PRNGKey(0), progress=False)
+    policy = policies.NetworkPolicy(params, networks, env.space)
+    ret, _ = jax.jit(jax.vmap(lambda e: policies.rollout(env, policy, e)))(eps)
+    greedy = jax.jit(lambda p: ppo.greedy_returns(table_env, networks, p))(params)
+    np.testing.assert_allclose(np.asarray(ret), np.asarray(greedy), rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(np.asarray(ret), np.asarray(sols.ret), rtol=1e-4, atol=1e-4)

@@ -4,10 +4,12 @@ bit-exact checkpoint resume, config checks, and the policy save/load round trip.
 
 No IK anywhere: the environments step synthetic `dp.Table`s (the real grasp space's transitions, hand-made
 rewards) over real scenario episodes cut to T = 3 waypoints, with small networks, so every compiled function is
-cheap. Two trainers are compiled once per module: the probe's (learning) and a tiny one for the checkpoint tests.
+cheap. One Trainer is compiled per module; its one uninterrupted run on the probe is both the learning test and
+the reference of the resume tests.
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
@@ -28,12 +30,14 @@ T = 3  # waypoints (decisions) of the probe episodes
 SMALL = nets.NetworkConfig(hidden=(32, 32))
 
 
-def _leaves_equal(a, b) -> list[str]:
+def _differing_leaves(a, b) -> list[str]:
     """Paths of the leaves of two pytrees (same structure) that are not exactly equal."""
     pa, ta = jax.tree_util.tree_flatten_with_path(a)
     pb, tb = jax.tree_util.tree_flatten_with_path(b)
     assert ta == tb, "tree structures differ"
-    return [jax.tree_util.keystr(k) for (k, x), (_, y) in zip(pa, pb) if not np.array_equal(np.asarray(x), np.asarray(y))]
+    return [
+        jax.tree_util.keystr(k) for (k, x), (_, y) in zip(pa, pb) if not np.array_equal(np.asarray(x), np.asarray(y))
+    ]
 
 
 # ------------------------------------------------------------------------------------------ 1. distribution
@@ -203,7 +207,9 @@ def test_ppo_loss_gradient_matches_closed_form_with_clipping():
         target=jnp.asarray(target),
     )
     params = {"logits": jnp.asarray(logits), "value": jnp.asarray(value)}
-    (loss, metrics), grads = jax.value_and_grad(losses.ppo_loss, has_aux=True)(params, _DirectNets(), batch, clip, vf, ent)
+    loss_fn = lambda p, b: losses.ppo_loss(p, _DirectNets(), b, clip, vf, ent)  # noqa: E731
+    loss_and_grad = jax.jit(jax.value_and_grad(loss_fn, has_aux=True))
+    (loss, metrics), grads = loss_and_grad(params, batch)
 
     a_norm = (adv - adv.mean()) / (adv.std() + 1e-8)
     ratio = np.exp(log_ratio)
@@ -227,7 +233,7 @@ def test_ppo_loss_gradient_matches_closed_form_with_clipping():
     np.testing.assert_allclose(float(metrics["entropy"]), np.mean(h), rtol=1e-5)
 
 
-# ------------------------------------------------------------------------------------------ probe problem
+# ------------------------------------------------------------------------------------------ 4. probe problem
 @pytest.fixture(scope="module")
 def sur(hand):
     return surrogate.Surrogate(hand)
@@ -279,145 +285,115 @@ def probe(sur):
     return dict(env=env, eval_env=eval_env, sols=sols, seqs=seqs, episodes=episodes)
 
 
-PROBE_CONFIG = ppo.PPOConfig(
+CONFIG = ppo.PPOConfig(
     n_envs=64, unroll=T, epochs=4, minibatches=4, learning_rate=3e-3, max_iterations=40, eval_every=5,
-    patience=0, checkpoint_every=100, reward_scale=1.0,
+    patience=0, checkpoint_every=10, reward_scale=1.0,
 )
+SEED = 1
 
 
 @pytest.fixture(scope="module")
-def probe_run(probe):
-    """One PPO run on the probe problem (compiled and trained once per module)."""
+def trainer(probe, sur):
+    """The module's one Trainer (compiled once): PPO on the probe, with two evaluation sets, 'val' (the probe, the
+    early-stop set) and 'aux' (the same episodes, every reward -7, no early end; sorted before 'val', so a mix-up
+    of the two would show)."""
     networks = nets.make_networks(probe["env"].observation_size, probe["env"].action_size, SMALL)
-    trainer = ppo.Trainer(probe["env"], networks, PROBE_CONFIG, eval_envs={"val": probe["eval_env"]})
-    return trainer, ppo.train(trainer, seed=1, progress=False)
+    tables = probe["eval_env"].tables
+    constant = tables.replace(
+        reward=jnp.full_like(tables.reward, -7.0), terminal=jnp.zeros_like(tables.terminal).at[..., -1].set(True)
+    )
+    aux = GraspEnv(sur, probe["episodes"], tables=constant, auto_reset=False)
+    return ppo.Trainer(probe["env"], networks, CONFIG, eval_envs={"val": probe["eval_env"], "aux": aux})
 
 
-def test_probe_problem_dp_optimum_is_the_designed_path(probe):
-    """The probe's DP optimum is 0 by construction, reached by each episode's own designed action sequence."""
-    sols = probe["sols"]
-    np.testing.assert_array_equal(np.asarray(sols.ret), [0.0, 0.0])
-    for i, seq in enumerate(probe["seqs"]):
-        np.testing.assert_array_equal(np.asarray(sols.actions[i]), seq)
-    assert not np.array_equal(probe["seqs"][0], probe["seqs"][1])  # the policy must tell the episodes apart
+@pytest.fixture(scope="module")
+def uninterrupted(trainer, tmp_path_factory):
+    """The module's reference PPO run: one call from iteration 0 to max_iterations, in its own checkpoint dir."""
+    return ppo.train(trainer, seed=SEED, checkpoint_dir=tmp_path_factory.mktemp("full"), progress=False)
 
 
-def test_ppo_learns_the_probe_optimum(probe, probe_run):
+def test_ppo_learns_the_probe_optimum(probe, trainer, uninterrupted):
     """PPO's best validated policy, rolled out greedily (ppo.greedy_returns), earns the DP optimum on both
-    episodes (within 0.5: any wrong action costs at least 1), having started well below it."""
-    trainer, result = probe_run
+    episodes (within 0.5: any wrong action costs at least 1, so this is the designed sequence), having started
+    well below it."""
+    result = uninterrupted
     opt = np.asarray(probe["sols"].ret)
-    greedy = np.asarray(ppo.greedy_returns(probe["eval_env"], trainer.networks, result.policy))
-    assert result.history[0]["val_return"] <= opt.mean() - 1.0, "the untrained policy already solves the probe"
+    greedy = np.asarray(jax.jit(lambda p: ppo.greedy_returns(probe["eval_env"], trainer.networks, p))(result.policy))
+    start = result.history[0]["val_return"]
+    assert start <= opt.mean() - 1.0, f"the untrained policy already solves the probe ({start})"
     np.testing.assert_allclose(greedy, opt, atol=0.5, err_msg=f"greedy {greedy}, DP optimum {opt}")
-    # the recorded validation return of the best policy is that greedy return
+    # the recorded best validation return is that greedy return, on 'val' and not on 'aux' (constant -7 T)
     np.testing.assert_allclose(float(result.state.best_return), greedy.mean(), atol=1e-6)
-    # and the greedy actions are the designed sequences
-    for i, seq in enumerate(probe["seqs"]):
-        state, acts = probe["eval_env"].reset_to(i), []
-        for _ in range(T):
-            acts.append(int(nets.mode(trainer.networks.logits(result.policy, state.obs))))
-            state = probe["eval_env"].step(state, jnp.int32(acts[-1]))
-        np.testing.assert_array_equal(acts, seq)
+    assert all(h["aux_return"] == -7.0 * T for h in result.history if "aux_return" in h)
+    # history: one record per iteration, validations where eval_every says, parameters moved from the init
+    iterations = list(range(CONFIG.max_iterations + 1))
+    assert [h["iteration"] for h in result.history] == iterations
+    assert [h["iteration"] for h in result.history if "val_return" in h] == iterations[:: CONFIG.eval_every]
+    assert _differing_leaves(trainer.init(jax.random.PRNGKey(SEED)).params, result.state.params)
 
 
 # ------------------------------------------------------------------------------------------ 5. checkpoints
-CKPT_CONFIG = ppo.PPOConfig(
-    n_envs=16, unroll=T, epochs=2, minibatches=2, learning_rate=1e-3, max_iterations=6, eval_every=2,
-    patience=0, checkpoint_every=2,
-)
-
-
-@pytest.fixture(scope="module")
-def ckpt_trainer(probe, sur):
-    """A tiny trainer for the checkpoint tests, with two evaluation sets: 'val' (the probe, the early-stop set)
-    and 'aux' (the same episodes, every reward -7, no early end; sorted first, so a mix-up would show)."""
-    networks = nets.make_networks(probe["env"].observation_size, probe["env"].action_size, SMALL)
-    tables = probe["eval_env"].tables
-    constant = tables.replace(reward=jnp.full_like(tables.reward, -7.0), terminal=jnp.zeros_like(tables.terminal).at[..., -1].set(True))
-    aux = GraspEnv(sur, probe["episodes"], tables=constant, auto_reset=False)
-    return ppo.Trainer(probe["env"], networks, CKPT_CONFIG, eval_envs={"val": probe["eval_env"], "aux": aux})
-
-
-@pytest.fixture(scope="module")
-def uninterrupted(ckpt_trainer, tmp_path_factory):
-    """The reference: one call from iteration 0 to max_iterations in its own checkpoint directory."""
-    return ppo.train(ckpt_trainer, seed=7, checkpoint_dir=tmp_path_factory.mktemp("full"), progress=False)
-
-
 def _assert_same_run(resumed: ppo.TrainResult, full: ppo.TrainResult):
-    assert int(resumed.state.iteration) == int(full.state.iteration) == CKPT_CONFIG.max_iterations
-    assert not _leaves_equal(resumed.state.params, full.state.params)
-    assert not _leaves_equal(resumed.state.best_params, full.state.best_params)
-    bad = _leaves_equal(resumed.state, full.state)  # and everything else: Adam moments, envs, key, best return
+    assert int(resumed.state.iteration) == int(full.state.iteration) == CONFIG.max_iterations
+    assert not _differing_leaves(resumed.state.params, full.state.params)
+    assert not _differing_leaves(resumed.state.best_params, full.state.best_params)
+    bad = _differing_leaves(resumed.state, full.state)  # and everything else: Adam moments, envs, key, best return
     assert not bad, f"leaves differ after resume: {bad}"
-    assert [h["iteration"] for h in resumed.history] == list(range(CKPT_CONFIG.max_iterations + 1))
+    assert [h["iteration"] for h in resumed.history] == list(range(CONFIG.max_iterations + 1))
     for key in ("train_return", "val_return", "aux_return", "policy_loss", "value_loss", "entropy", "episodes"):
         assert [h.get(key) for h in resumed.history] == [h.get(key) for h in full.history], key
 
 
-def test_uninterrupted_run_trains(ckpt_trainer, uninterrupted):
-    """The reference run is not trivial: its parameters moved away from the initial ones and it has one history
-    record per iteration with the validations where eval_every says."""
-    init = ckpt_trainer.init(jax.random.PRNGKey(7))
-    assert len(_leaves_equal(init.params, uninterrupted.state.params)) > 0
-    assert [h["iteration"] for h in uninterrupted.history] == list(range(7))
-    assert [("val_return" in h) for h in uninterrupted.history] == [True, False, True, False, True, False, True]
-    # the best return is tracked on the first evaluation set ('val'), not on 'aux' (constant -7 * T)
-    vals = [h["val_return"] for h in uninterrupted.history if "val_return" in h]
-    assert all(h["aux_return"] == -7.0 * T for h in uninterrupted.history if "aux_return" in h)
-    assert float(uninterrupted.state.best_return) == np.float32(max(vals))
-
-
-@pytest.mark.parametrize("stop_after", [4, 5])
-def test_resume_after_stop_is_bit_exact(ckpt_trainer, uninterrupted, tmp_path, stop_after):
+@pytest.mark.parametrize("stop_after", [20, 25])
+def test_resume_after_stop_is_bit_exact(trainer, uninterrupted, tmp_path, stop_after):
     """train(stop_after=k) then train again in the same directory reaches max_iterations with every leaf of the
-    final TrainState (params, best_params, ...) and the history's returns and losses exactly equal to an
-    uninterrupted run's; k = 4 is a checkpoint boundary (checkpoint_every = 2), k = 5 is not."""
-    first = ppo.train(ckpt_trainer, seed=7, checkpoint_dir=tmp_path, progress=False, stop_after=stop_after)
+    final TrainState (params, best_params, Adam state, envs, key) and the history's returns and losses exactly
+    equal to an uninterrupted run's; k = 20 is a checkpoint boundary (checkpoint_every = 10), k = 25 is not."""
+    first = ppo.train(trainer, seed=SEED, checkpoint_dir=tmp_path, progress=False, stop_after=stop_after)
     assert int(first.state.iteration) == stop_after and len(first.history) == stop_after + 1
-    resumed = ppo.train(ckpt_trainer, seed=7, checkpoint_dir=tmp_path, progress=False)
+    resumed = ppo.train(trainer, seed=SEED, checkpoint_dir=tmp_path, progress=False)
     _assert_same_run(resumed, uninterrupted)
 
 
-def test_resume_after_kill_between_checkpoints_is_bit_exact(ckpt_trainer, uninterrupted, tmp_path, monkeypatch):
-    """A run killed (an exception) during iteration 5, after the checkpoint at 4, resumes from 4, redoes 5 and
-    ends bit-exactly where the uninterrupted run does."""
-    real = ckpt_trainer.iteration
+def test_resume_after_kill_between_checkpoints_is_bit_exact(trainer, uninterrupted, tmp_path, monkeypatch):
+    """A run killed (an exception) during iteration 25, after the checkpoint at 20, resumes from 20, redoes
+    21..25 and ends bit-exactly where the uninterrupted run does."""
+    real = trainer.iteration
 
-    def killed_at_5(ts):
-        if int(ts.iteration) == 4:
-            raise KeyboardInterrupt("killed")
+    class Killed(Exception):
+        pass
+
+    def killed_at_25(ts):
+        if int(ts.iteration) == 24:
+            raise Killed
         return real(ts)
 
-    monkeypatch.setattr(ckpt_trainer, "iteration", killed_at_5)
-    with pytest.raises(KeyboardInterrupt):
-        ppo.train(ckpt_trainer, seed=7, checkpoint_dir=tmp_path, progress=False)
-    monkeypatch.setattr(ckpt_trainer, "iteration", real)
+    monkeypatch.setattr(trainer, "iteration", killed_at_25)
+    with pytest.raises(Killed):
+        ppo.train(trainer, seed=SEED, checkpoint_dir=tmp_path, progress=False)
+    monkeypatch.setattr(trainer, "iteration", real)
     saved = sorted(int(p.name) for p in (tmp_path / "checkpoints").iterdir() if p.name.isdigit())
-    assert saved and max(saved) == 4, f"checkpoints on disk: {saved}"
-    resumed = ppo.train(ckpt_trainer, seed=7, checkpoint_dir=tmp_path, progress=False)
+    assert saved and max(saved) == 20, f"checkpoints on disk: {saved}"
+    resumed = ppo.train(trainer, seed=SEED, checkpoint_dir=tmp_path, progress=False)
     _assert_same_run(resumed, uninterrupted)
 
 
 # ------------------------------------------------------------------------------------------ 6. config checks
-def test_different_run_in_the_same_checkpoint_dir_is_refused(ckpt_trainer, probe, tmp_path):
+def test_different_run_in_the_same_checkpoint_dir_is_refused(trainer, probe, tmp_path):
     """A checkpoint_dir holding a run refuses a different config, seed or network config (ValueError naming the
     field), and accepts the same run again."""
-    ppo.train(ckpt_trainer, seed=7, checkpoint_dir=tmp_path, progress=False, stop_after=1)
-    import dataclasses
-
-    other_cfg = dataclasses.replace(CKPT_CONFIG, learning_rate=2e-3)
-    other = ppo.Trainer(probe["env"], ckpt_trainer.networks, other_cfg, eval_envs={"val": probe["eval_env"]})
+    ppo.train(trainer, seed=SEED, checkpoint_dir=tmp_path, progress=False, stop_after=1)
+    other_cfg = dataclasses.replace(CONFIG, learning_rate=2e-3)
+    other = ppo.Trainer(probe["env"], trainer.networks, other_cfg, eval_envs={"val": probe["eval_env"]})
     with pytest.raises(ValueError, match="different config"):
-        ppo.train(other, seed=7, checkpoint_dir=tmp_path, progress=False)
+        ppo.train(other, seed=SEED, checkpoint_dir=tmp_path, progress=False)
     with pytest.raises(ValueError, match="different seed"):
-        ppo.train(ckpt_trainer, seed=8, checkpoint_dir=tmp_path, progress=False, stop_after=1)
+        ppo.train(trainer, seed=SEED + 1, checkpoint_dir=tmp_path, progress=False, stop_after=1)
     wider = nets.make_networks(probe["env"].observation_size, 16, nets.NetworkConfig(hidden=(32, 32, 32)))
-    other_nets = ppo.Trainer(probe["env"], wider, CKPT_CONFIG, eval_envs={"val": probe["eval_env"]})
+    other_nets = ppo.Trainer(probe["env"], wider, CONFIG, eval_envs={"val": probe["eval_env"]})
     with pytest.raises(ValueError, match="different networks"):
-        ppo.train(other_nets, seed=7, checkpoint_dir=tmp_path, progress=False)
-    again = ppo.train(ckpt_trainer, seed=7, checkpoint_dir=tmp_path, progress=False, stop_after=1)
+        ppo.train(other_nets, seed=SEED, checkpoint_dir=tmp_path, progress=False)
+    again = ppo.train(trainer, seed=SEED, checkpoint_dir=tmp_path, progress=False, stop_after=1)
     assert int(again.state.iteration) == 1
 
 
@@ -448,10 +424,10 @@ def test_valid_configs_and_trainer_arguments():
 
 
 # ------------------------------------------------------------------------------------------ 7. save / load
-def test_save_and_load_policy_round_trip_is_exact(probe_run, probe, tmp_path):
-    """save_policy then load_policy returns the trained Params leaf for leaf (same structure, dtypes, values), so
-    the loaded policy acts identically; a missing path raises FileNotFoundError."""
-    trainer, result = probe_run
+def test_save_and_load_policy_round_trip_is_exact(trainer, uninterrupted, probe, tmp_path):
+    """save_policy then load_policy returns the trained Params exactly: same tree, array dtypes and shapes, every
+    leaf equal, so the loaded policy's logits are identical; a missing path raises FileNotFoundError."""
+    result = uninterrupted
     path = tmp_path / "policy"
     ppo.save_policy(path, result.policy)
     loaded = ppo.load_policy(path, trainer.networks)
@@ -459,9 +435,9 @@ def test_save_and_load_policy_round_trip_is_exact(probe_run, probe, tmp_path):
     for x, y in zip(jax.tree.leaves(loaded), jax.tree.leaves(result.policy)):
         if np.ndim(y):  # (the normaliser's scalar std_eps comes back as the Python float the template holds)
             assert np.asarray(x).dtype == np.asarray(y).dtype and np.shape(x) == np.shape(y)
-    assert not _leaves_equal(loaded, result.policy)
+    assert not _differing_leaves(loaded, result.policy)
     # the loaded policy is not the fresh init the loader restores into
-    assert _leaves_equal(loaded, trainer.networks.init(jax.random.PRNGKey(0)))
+    assert _differing_leaves(loaded, trainer.networks.init(jax.random.PRNGKey(0)))
     obs = probe["env"].reset_to(0).obs
     np.testing.assert_array_equal(trainer.networks.logits(loaded, obs), trainer.networks.logits(result.policy, obs))
     with pytest.raises(FileNotFoundError):

@@ -65,7 +65,9 @@ class Networks:
         k_actor, k_critic = jax.random.split(key)
         dummy = jnp.zeros((1, self.obs_size), jnp.float32)
         return Params(
-            normalizer=running_statistics.init_state(specs.Array((self.obs_size,), jnp.dtype("float32"))),
+            normalizer=jax.tree.map(  # arrays throughout (init gives a Python float std_eps; update an array)
+                jnp.asarray, running_statistics.init_state(specs.Array((self.obs_size,), jnp.dtype("float32")))
+            ),
             actor=self.actor_net.init(k_actor, dummy),
             critic=self.critic_net.init(k_critic, dummy),
         )

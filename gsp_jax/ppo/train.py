@@ -3,7 +3,7 @@
 policy, early stop on the validation return, and orbax checkpoints from which a killed run resumes to the same
 result, bit for bit, as an uninterrupted one.
 
-    trainer = Trainer(env, networks, PPOConfig(), eval_envs={"val": val_env, "train": train_eval_env})
+    trainer = Trainer(env, networks, PPOConfig(), eval_envs={"val": val_env, "train_greedy": train_env_greedy})
     result = train(trainer, seed=0, params=pretrained, checkpoint_dir="runs/ppo_seed0")
     result.policy                                   # the best validation Params; result.history: per iteration
 
@@ -23,6 +23,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 import orbax.checkpoint as ocp
 from flax import struct
@@ -97,7 +98,8 @@ class TrainResult:
 
     @property
     def stopped_early(self) -> bool:
-        return bool(self.history) and self.history[-1]["iteration"] < self.history[-1]["max_iterations"]
+        """The validation return stopped improving (patience ran out) before max_iterations."""
+        return bool(self.history) and bool(self.history[-1].get("early_stop", False))
 
 
 class Trainer:
@@ -212,6 +214,8 @@ class Trainer:
 
 def greedy_returns(env, networks: nets.Networks, params: nets.Params) -> jax.Array:
     """Return (N,) of the deterministic policy on each of env's N episodes, from its start (env.auto_reset off)."""
+    if env.auto_reset:
+        raise ValueError("env.auto_reset: evaluation needs an env without auto-reset (GraspEnv(..., auto_reset=False))")
 
     def one(index):
         def step(state, _):
@@ -241,7 +245,7 @@ def train(
 ) -> TrainResult:
     """Run PPO to `max_iterations` or an early stop. With `checkpoint_dir`, a run saves there every
     `checkpoint_every` iterations and, started again, resumes from its latest checkpoint. `stop_after` ends this
-    call after that many iterations in total (as if killed there; for tests and time-sliced jobs); `stop_when(record)`
+    call after that many iterations in total (with a checkpoint there; for time-sliced jobs); `stop_when(record)`
 ends it after the first iteration whose history record satisfies it (e.g. a target return)."""
     cfg = trainer.config
     ts = trainer.init(jax.random.PRNGKey(seed), params)
@@ -252,7 +256,7 @@ ends it after the first iteration whose history record satisfies it (e.g. a targ
             manager.latest_step(),
             args=ocp.args.Composite(state=ocp.args.StandardRestore(ts), history=ocp.args.JsonRestore()),
         )
-        ts, history = restored.state, list(restored.history)
+        ts, history = _uncommitted(restored.state), list(restored.history)
     wall0 = history[-1]["wall_s"] if history else 0.0
     t0 = time.perf_counter()
     env_steps_per_iter = cfg.n_envs * cfg.unroll
@@ -265,6 +269,7 @@ ends it after the first iteration whose history record satisfies it (e.g. a targ
     bar = tqdm(total=cfg.max_iterations, initial=start, disable=not progress, desc=f"PPO seed {seed}", unit="it")
     for it in range(start + 1, last + 1):
         if cfg.patience and int(ts.evals_since_best) >= cfg.patience:
+            history[-1]["early_stop"] = True
             break
         ts, metrics = trainer.iteration(ts)
         record = {"iteration": it, **{k: float(v) for k, v in metrics.items()}}
@@ -339,6 +344,12 @@ def load_policy(path: str | pathlib.Path, networks: nets.Networks) -> nets.Param
         raise FileNotFoundError(f"policy: no checkpoint at {path}")
     target = networks.init(jax.random.PRNGKey(0))
     with ocp.StandardCheckpointer() as ckpt:
-        return ckpt.restore(path, target)
+        return _uncommitted(ckpt.restore(path, target))
+
+
+def _uncommitted(tree):
+    """Restored arrays come back committed to a device, which jit treats as a new signature (a recompile):
+    hand them over as plain arrays."""
+    return jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), tree)
 
 

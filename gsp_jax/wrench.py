@@ -93,6 +93,7 @@ def solve(
 
 def _solve(points, normals, active, mu, wrench, center, cfg) -> WrenchResult:
     dtype = points.dtype
+    wrench, center, mu = (jnp.asarray(x, dtype) for x in (wrench, center, mu))  # one dtype (x64 mode mixes them)
     k = points.shape[0]
     scale = jnp.asarray([1.0, 1.0, 1.0] + [1.0 / cfg.torque_length] * 3, dtype)
     a = scale[:, None] * grasp_matrix(points, center) * jnp.repeat(active.astype(dtype), 3)[None]  # (6, 3K)

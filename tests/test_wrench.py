@@ -385,3 +385,17 @@ def test_vmapped_solve_equals_looped_solve():
         np.testing.assert_allclose(float(out.error[j]), float(one.error), rtol=1e-4, atol=1e-7)
         np.testing.assert_allclose(float(out.unmet[j]), float(one.unmet), rtol=1e-4, atol=1e-6)
         np.testing.assert_allclose(np.asarray(out.residual[j]), np.asarray(one.residual), rtol=1e-4, atol=1e-4)
+
+
+def test_float64_wrench_under_x64_gives_the_float32_solution():
+    """With jax x64 on, float32 contacts and a float64 required wrench/centre (as jnp.zeros gives there) solve in
+    float32 to the same forces as all-float32 input (the scan carry once failed on the mixed dtypes)."""
+    pts = jnp.array([[0.0, -0.01, 0.0], [0.0, 0.01, 0.0], [0.02, 0.01, 0.0]], jnp.float32)
+    nrm = jnp.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [0.0, -1.0, 0.0]], jnp.float32)
+    act = jnp.array([True, True, True])
+    w = [0.0, 0.0, 3.4, 0.0, 0.0, 0.05]
+    ref = wrench.solve(pts, nrm, act, 0.8, jnp.asarray(w, jnp.float32), jnp.zeros(3, jnp.float32))
+    with jax.enable_x64(True):
+        out = wrench.solve(pts, nrm, act, 0.8, jnp.asarray(w, jnp.float64), jnp.zeros(3, jnp.float64))
+        assert out.forces.dtype == jnp.float32
+        np.testing.assert_allclose(np.asarray(out.forces), np.asarray(ref.forces), rtol=1e-5, atol=1e-6)

@@ -18,7 +18,6 @@ import numpy as np
 
 from experiments import train as train_exp
 from experiments.common import best_time, table
-from gsp_jax import pretrain
 from gsp_jax.env import GraspEnv
 from gsp_jax.gym_env import GymGraspEnv
 from gsp_jax.ppo import train as ppo
@@ -63,8 +62,7 @@ def time_to_baseline(s, mode: str, seed: int, max_iterations: int | None) -> dic
     params = None
     bc_s = 0.0
     if mode == "dp":
-        data = pretrain.dp_dataset(s.surrogate, s.env.episodes, s.train_tables)
-        params, _ = pretrain.pretrain(s.networks, data, s.bc_config, jax.random.PRNGKey(1000 + seed), progress=False)
+        params, _ = train_exp.pretrained(s, seed, progress=False)
         bc_s = time.perf_counter() - t0
     trainer = ppo.Trainer(s.env, s.networks, cfg, s.eval_envs)
     result = ppo.train(trainer, seed, params=params, progress=False, stop_when=lambda r: r.get("train_greedy_return", -np.inf) >= target)

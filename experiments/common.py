@@ -1,10 +1,15 @@
-"""Small helpers shared by the experiments: the results folder and plain-text tables."""
+"""Small helpers shared by the experiments: the results folder, plain-text tables, timing, and cached DP tables."""
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import pathlib
 import time
 
 import jax
+import numpy as np
+
+from gsp_jax import dp, hand, scenario
 
 RESULTS = pathlib.Path("results")
 
@@ -38,13 +43,6 @@ def best_time(fn, *args, repeats: int = 3) -> float:
 def dp_tables(env, set_name: str, episodes: dict, batch_size: int = 4):
     """The stacked `dp.Table`s of named episodes, cached under results/tables/ (keyed by the episodes, the model
     and the surrogate's configuration, so a change to any of them rebuilds). Builds `batch_size` at a time."""
-    import dataclasses
-    import hashlib
-
-    import numpy as np
-
-    from gsp_jax import dp, hand, scenario
-
     batch = scenario.stack(list(episodes.values()))
     h = hashlib.sha256()
     for leaf in jax.tree.leaves(batch):

@@ -104,14 +104,20 @@ def ppo_config(s: Setup, mode: str) -> ppo.PPOConfig:
     return dataclasses.replace(s.ppo_config, update_normalizer=mode != "dp")
 
 
+def pretrained(s: Setup, seed: int, progress: bool = True) -> tuple[nets.Params, dict]:
+    """Behaviour cloning of the training episodes' DP solutions (seeded apart from PPO): params and a log."""
+    data = pretrain.dp_dataset(s.surrogate, s.env.episodes, s.train_tables)
+    params, history = pretrain.pretrain(s.networks, data, s.bc_config, jax.random.PRNGKey(1000 + seed), progress)
+    return params, {"dataset_size": data.size, "history": history}
+
+
 def run_seed(s: Setup, seed: int, mode: str, out_dir, progress: bool = True) -> ppo.TrainResult:
     """One seed: optional DP pretraining, then PPO (resuming from out_dir/checkpoints if present)."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    params, bc_history = None, []
+    params = None
     if mode == "dp":
-        data = pretrain.dp_dataset(s.surrogate, s.env.episodes, s.train_tables)
-        params, bc_history = pretrain.pretrain(s.networks, data, s.bc_config, jax.random.PRNGKey(1000 + seed), progress)
-        (out_dir / "bc_history.json").write_text(json.dumps({"dataset_size": data.size, "history": bc_history}))
+        params, bc_log = pretrained(s, seed, progress)
+        (out_dir / "bc_history.json").write_text(json.dumps(bc_log))
     trainer = ppo.Trainer(s.env, s.networks, ppo_config(s, mode), s.eval_envs)
     result = ppo.train(trainer, seed, params=params, checkpoint_dir=out_dir, progress=progress)
     (out_dir / "history.json").write_text(json.dumps(result.history))

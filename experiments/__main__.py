@@ -12,6 +12,9 @@ COMMANDS = {  # command -> (module, one-line help)
     "train": ("experiments.train", "PPO on the training episodes, with or without DP pretraining, over seeds"),
     "train-curves": ("experiments.train_curves", "Fig. 3: PPO training curves with and without DP pretraining"),
     "bench-ppo": ("experiments.bench_ppo", "PPO env steps/s and wall time to the DP-baseline return"),
+    "physics": ("experiments.physics", "MJX physics check: a policy's grasp sequences, angle error under the torque"),
+    "physics-corr": ("experiments.physics_correlation", "rank correlation of surrogate return and simulated error"),
+    "bench-physics": ("experiments.bench_physics", "simulated episodes/s: one MJX batch vs one at a time"),
 }
 
 

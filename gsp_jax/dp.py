@@ -130,3 +130,18 @@ def sequence_return(table: Table, start_grasp: jax.Array, actions: jax.Array) ->
     a sequence solved on one episode, scored on another)."""
     _, _, rewards, _ = _replay(table, jnp.asarray(start_grasp, jnp.int32), lambda g, t: actions[t])
     return jnp.sum(rewards)
+
+
+def random_sequence(table: Table, start_grasp: jax.Array, key: jax.Array, r_min: float) -> jax.Array:
+    """A random feasible action sequence (T,) int32: at every step an action drawn uniformly from those that do
+    not fail (reward > r_min) from the current grasp, or from all actions when every one fails. Sequences for
+    probing the surrogate against the physics beyond the DP policies."""
+    keys = jax.random.split(key, table.reward.shape[2])
+
+    def choose(g, t):
+        ok = table.reward[g, :, t] > r_min
+        logits = jnp.where(ok | ~jnp.any(ok), 0.0, -jnp.inf)
+        return jax.random.categorical(keys[t], logits).astype(jnp.int32)
+
+    actions, _, _, _ = _replay(table, jnp.asarray(start_grasp, jnp.int32), choose)
+    return actions

@@ -1,0 +1,159 @@
+"""`python -m experiments physics --set evalA|evalB|eval|all --policy dp-opt|dp-base|rl|random`: grasp sequences
+executed by the contact controller in MuJoCo MJX, closed loop (the policy observes the simulated state at every
+waypoint), all episodes in one batch. Prints each episode's tool angle error under the final torque (180 when the
+tool fell or touched the table), position error and fall time, and the mean with a 95% interval; writes
+results/physics/<set>_<policy>.json, an angle-trace PNG and (with --render) a key frame PNG and a GIF."""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import jax
+import numpy as np
+
+from experiments.common import dp_tables, results_dir, table
+from gsp_jax import dp, physics, policies, scenario, surrogate
+
+POLICIES = ("dp-opt", "dp-base", "rl", "random")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--set", default="evalA", choices=["nominal", "train", "val", "evalA", "evalB", "eval", "all"])
+    p.add_argument("--policy", default="dp-opt", choices=POLICIES)
+    p.add_argument("--policy-dir", default="results/train/dp/seed0/policy", help="saved PPO policy for --policy rl")
+    p.add_argument("--episodes", type=int, default=None, help="only the first N episodes of the set")
+    p.add_argument("--seed", type=int, default=0, help="for --policy random")
+    p.add_argument("--render", action="store_true", help="key frame PNG + GIF of the first episode (needs GL)")
+
+
+def nominal_actions(env: surrogate.Surrogate) -> jax.Array:
+    """The DP baseline's open-loop sequence: the nominal episode's optimal actions (T,)."""
+    tables = dp_tables(env, "nominal", scenario.nominal())
+    first = jax.tree.map(lambda x: x[0], tables)
+    return dp.backup(first, scenario.make_episode().start_grasp).actions
+
+
+def make_policy(env: surrogate.Surrogate, kind: str, set_name: str, episodes: dict, args=None):
+    """(policy, policy_axis) for a batch of `episodes`: per-episode DP tables for dp-opt and random (axis 0), one
+    shared policy for dp-base and rl (axis None)."""
+    batch = scenario.stack(list(episodes.values()))
+    if kind == "dp-opt":
+        tables = dp_tables(env, set_name, episodes)
+        sols = jax.jit(jax.vmap(dp.backup))(tables, batch.start_grasp)
+        return policies.TablePolicy(sols.policy), 0
+    if kind == "dp-base":
+        return policies.SequencePolicy(nominal_actions(env)), None
+    if kind == "random":
+        tables = dp_tables(env, set_name, episodes)
+        keys = jax.random.split(jax.random.PRNGKey(getattr(args, "seed", 0)), len(episodes))
+        actions = jax.vmap(dp.random_sequence, (0, 0, 0, None))(tables, batch.start_grasp, keys, env.reward_config.r_min)
+        return policies.SequencePolicy(actions), 0
+    if kind == "rl":
+        from gsp_jax import env as env_lib
+        from gsp_jax.ppo import networks as nets
+        from gsp_jax.ppo import train as ppo
+
+        obs = env_lib.observation_size(env.space, scenario.N_WAYPOINTS, env.hand.n_joints)
+        networks = nets.make_networks(obs, env.n_actions, nets.NetworkConfig())
+        params = ppo.load_policy(args.policy_dir, networks)
+        return policies.NetworkPolicy(params, networks, env.space), None
+    raise ValueError(f"--policy must be one of {POLICIES}, got {kind!r}")
+
+
+def mean_ci(x: np.ndarray) -> tuple[float, float]:
+    """Mean and the half-width of its 95% t-interval."""
+    from scipy import stats
+
+    x = np.asarray(x, np.float64)
+    if len(x) < 2:
+        return float(x.mean()), float("nan")
+    return float(x.mean()), float(stats.t.ppf(0.975, len(x) - 1) * x.std(ddof=1) / np.sqrt(len(x)))
+
+
+def result_rows(names, res: physics.Result) -> list[dict]:
+    return [
+        dict(episode=n, angle_error_deg=float(res.angle_error[i]), position_error_mm=1e3 * float(res.position_error[i]),
+             max_lift_angle_deg=float(res.max_angle[i]), fell=bool(res.fell[i]), fall_time_s=float(res.fall_time[i]),
+             grasps=[int(g) for g in res.grasps[i]])
+        for i, n in enumerate(names)
+    ]
+
+
+def trace_png(phys: physics.Physics, names, res: physics.Result, path, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    angle = np.asarray(res.angle)
+    t = (np.arange(angle.shape[1]) + 1) * phys.config.tick
+    fig, ax = plt.subplots(figsize=(8, 4))
+    for i, n in enumerate(names):
+        a = angle[i].copy()
+        if res.fell[i]:
+            a[int(round(float(res.fall_time[i]) / phys.config.tick)) :] = np.nan
+        ax.plot(t, a, lw=1, label=n if len(names) <= 10 else None)
+    ax.axvline(phys.hold_time(scenario.N_WAYPOINTS), color="k", ls="--", lw=0.8)
+    ax.text(phys.hold_time(scenario.N_WAYPOINTS), ax.get_ylim()[1] * 0.95, " torque on", fontsize=8, va="top")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("tool angle error [deg]")
+    ax.set_title(title + " (lines end where the tool fell)")
+    if len(names) <= 10:
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def render_episode(phys: physics.Physics, qpos: np.ndarray, stem) -> list:
+    """Key frame (end of the hold) PNG and a GIF at 25 frames per simulated second; [] if no GL backend."""
+    try:
+        from gsp_jax import render
+    except Exception as e:  # noqa: BLE001 - rendering is optional
+        print(f"rendering skipped: {e}")
+        return []
+    try:
+        every = max(1, int(round(0.04 / phys.config.tick)))
+        images = render.frames(phys.model, qpos, every=every)
+        png = render.save_png(f"{stem}_keyframe.png", images[-1])
+        gif = render.save_gif(f"{stem}.gif", images, fps=25)
+        return [png, gif]
+    except Exception as e:  # noqa: BLE001
+        print(f"rendering skipped ({type(e).__name__}: {e}); set MUJOCO_GL=egl or osmesa")
+        return []
+
+
+def main(args: argparse.Namespace) -> None:
+    env = surrogate.Surrogate()
+    episodes = scenario.episode_set(args.set)
+    if args.episodes:
+        episodes = dict(list(episodes.items())[: args.episodes])
+    names = list(episodes)
+    phys = physics.Physics(env)
+    policy, axis = make_policy(env, args.policy, args.set, episodes, args)
+    batch = scenario.stack(list(episodes.values()))
+    print(f"physics check: {len(names)} episodes of '{args.set}', policy {args.policy}, "
+          f"{phys.n_ticks(scenario.N_WAYPOINTS) * phys.config.control_every} MJX steps each, one batch on "
+          f"{jax.devices()[0].platform} (compiling first) ...", flush=True)
+    t0 = time.perf_counter()
+    res = jax.block_until_ready(phys.simulate_batch(policy, batch, axis))
+    wall = time.perf_counter() - t0
+    rows = result_rows(names, res)
+    out = results_dir("physics")
+    stem = out / f"{args.set}_{args.policy}"
+    mean, ci = mean_ci(res.angle_error)
+    summary = dict(set=args.set, policy=args.policy, episodes=len(names), mean_angle_error_deg=mean, ci95_deg=ci,
+                   falls=int(np.sum(res.fell)), wall_s_incl_compile=wall, config=vars(phys.config) | {})
+    stem.with_suffix(".json").write_text(json.dumps(dict(summary=summary, episodes=rows), indent=1))
+    np.savez_compressed(f"{stem}_trace.npz", angle=np.asarray(res.angle), qpos=np.asarray(res.qpos), names=names)
+    trace_png(phys, names, res, f"{stem}_angle.png", f"{args.policy} on {args.set}")
+    files = [stem.with_suffix(".json"), f"{stem}_trace.npz", f"{stem}_angle.png"]
+    if args.render:
+        files += render_episode(phys, np.asarray(res.qpos[0]), stem)
+    print(table(["episode", "angle err [deg]", "pos err [mm]", "max lift angle", "fell at [s]"],
+                [[r["episode"], r["angle_error_deg"], r["position_error_mm"], r["max_lift_angle_deg"],
+                  f"{r['fall_time_s']:.2f}" if r["fell"] else "-"] for r in rows], ".1f"))
+    print(f"\n{args.policy} on {args.set}: mean angle error {mean:.1f} deg (95% CI +-{ci:.1f}), "
+          f"{summary['falls']}/{len(names)} fell; {wall:.1f} s including compile")
+    print("wrote " + ", ".join(map(str, files)))

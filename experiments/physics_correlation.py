@@ -1,5 +1,5 @@
 """`python -m experiments physics-corr --set eval --random 8`: is the surrogate correlated with the physics? Runs
-DP optimal, DP baseline and `--random` random feasible grasp sequences of every episode of a set through the MJX
+DP optimal, DP baseline and `--random` random feasible grasp sequences (half of them holding each grasp with probability 0.8) of every episode of a set through the MJX
 physics check (open loop) and reports the Spearman rank correlation between each sequence's surrogate return and
 its simulated angle error (180 when the tool fell): pooled over all sequences, and within each episode. Writes
 results/physics/corr_<set>.json and a scatter PNG."""
@@ -46,8 +46,9 @@ def main(args: argparse.Namespace) -> None:
     sols = jax.jit(jax.vmap(dp.backup))(tables, batch.start_grasp)
     base = jnp.broadcast_to(nominal_actions(env), sols.actions.shape)
     keys = jax.random.split(jax.random.PRNGKey(args.seed), n_e * args.random).reshape(n_e, args.random, 2)
-    rand = jax.vmap(jax.vmap(dp.random_sequence, (None, None, 0, None)), (0, 0, 0, None))(
-        tables, batch.start_grasp, keys, env.reward_config.r_min)  # (E, R, T)
+    holds = jnp.where(jnp.arange(args.random) % 2 == 0, 0.0, 0.8)  # half of them change the grasp less often
+    rand = jax.vmap(jax.vmap(dp.random_sequence, (None, None, 0, None, 0)), (0, 0, 0, None, None))(
+        tables, batch.start_grasp, keys, env.reward_config.r_min, holds)  # (E, R, T)
     actions = jnp.concatenate([sols.actions[:, None], base[:, None], rand], axis=1)  # (E, K, T)
     kinds = ["dp-opt", "dp-base"] + [f"random{i}" for i in range(args.random)]
     returns = jax.vmap(jax.vmap(dp.sequence_return, (None, None, 0)), (0, 0, 0))(tables, batch.start_grasp, actions)

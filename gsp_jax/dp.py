@@ -132,16 +132,20 @@ def sequence_return(table: Table, start_grasp: jax.Array, actions: jax.Array) ->
     return jnp.sum(rewards)
 
 
-def random_sequence(table: Table, start_grasp: jax.Array, key: jax.Array, r_min: float) -> jax.Array:
-    """A random feasible action sequence (T,) int32: at every step an action drawn uniformly from those that do
-    not fail (reward > r_min) from the current grasp, or from all actions when every one fails. Sequences for
-    probing the surrogate against the physics beyond the DP policies."""
-    keys = jax.random.split(key, table.reward.shape[2])
+def random_sequence(table: Table, start_grasp: jax.Array, key: jax.Array, r_min: float, hold: float = 0.0) -> jax.Array:
+    """A random feasible action sequence (T,) int32: at every step, with probability `hold` an action that keeps
+    the grasp, otherwise one drawn uniformly from those that do not fail (reward > r_min) from the current grasp
+    (from all actions when every one fails). Sequences for probing the surrogate against the physics beyond the
+    DP policies; `hold` > 0 gives fewer grasp changes."""
+    keys = jax.random.split(key, 2 * table.reward.shape[2]).reshape(-1, 2, 2)
 
     def choose(g, t):
         ok = table.reward[g, :, t] > r_min
-        logits = jnp.where(ok | ~jnp.any(ok), 0.0, -jnp.inf)
-        return jax.random.categorical(keys[t], logits).astype(jnp.int32)
+        ok = ok | ~jnp.any(ok)
+        keep = ok & (table.next_grasp[g] == g)
+        stay = jax.random.bernoulli(keys[t, 0], hold) & jnp.any(keep)
+        logits = jnp.where(jnp.where(stay, keep, ok), 0.0, -jnp.inf)
+        return jax.random.categorical(keys[t, 1], logits).astype(jnp.int32)
 
     actions, _, _, _ = _replay(table, jnp.asarray(start_grasp, jnp.int32), choose)
     return actions

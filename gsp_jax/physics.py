@@ -30,15 +30,23 @@ The contact controller (per control tick, joint torques clipped to the motors' r
 
   tau = kp (q_ref - q) - kd dq + sum_l J_l(q)^T f_l
 
-  * q_ref: IK joint targets of the reference grasp, from the observed tool pose at the decision to the next
-    waypoint, linear over the segment (the IK puts each active link's surface on its contact point);
+  * q_ref: IK joint targets of the reference grasp, from waypoint t to waypoint t+1, linear over the segment (the
+    IK puts each active link's surface on its contact point). `targets_at="observed"` starts them from the
+    observed tool pose instead, as a tracking controller would; measured on the nominal episode (C MuJoCo, same
+    controller), that made even a held four-fingertip grasp drop the tool mid-lift: the IK from the fixed start
+    configuration jumps with small pose errors, and the finger targets with it. The policy still acts on the
+    observed state, so the loop is closed at the level of grasps;
   * f_l: inverse dynamics of the tool: the wrench solve's contact forces (inside the friction cones) for
-    m (a_ref - g) while moving, and for -m g - w_ext during the hold, plus `squeeze` newtons along each contact
+    m (a_ref - g) while moving, and for -m g - w_ext during the hold (the task's wrench is known, as when
+    tightening a bolt; `feedforward_external=False` leaves it to the grasp's passive stiffness), plus `squeeze` newtons along each contact
     normal projected onto the grasp matrix's null space (internal force: grips without changing the net wrench);
   * J_l: the Jacobian of the link point closest to its contact point;
-  * a grasp change blends the previous references into the new ones over `transition` seconds: an added link
-    moves in and loads up, a removed one unloads and lifts away, a slid one does both. One link changes per
-    decision, as the action space allows.
+  * a grasp change (one link per decision, as the action space allows: add, remove or slide) is a transition
+    of `transition` seconds in three equal phases: *unload* -- the forces go over to the links the old and new
+    grasps share (their own wrench solve), while the other joint targets blend to the new IK; *move* -- the
+    changing link's finger travels from its old to its new joint targets, unloaded and lifted `lift` metres off
+    the tool along the contact normal at mid-move (a bump in joint space); *load* -- the forces blend
+    to the new grasp's. A slide that dragged a loaded fingertip across the tool would push the tool with friction.
 
 Why these gains: kp = 10 N m/rad gives ~1 N per mm of fingertip error at a 10 cm lever, enough to reach a contact
 within a segment without the PD term swamping the feed-forward grip forces (a few N); kd = 0.05 N m s/rad damps
@@ -64,7 +72,7 @@ from flax import struct
 from mujoco import mjx
 
 from gsp_jax import hand as hand_lib
-from gsp_jax import kinematics, scenario, wrench
+from gsp_jax import ik, kinematics, scenario, wrench
 from gsp_jax.scenario import Episode
 from gsp_jax.surrogate import RewardTerms, State, Surrogate
 
@@ -90,13 +98,16 @@ class PhysicsConfig:
     table_friction: float = 0.6
     # timeline
     segment: float = scenario.DT  # [s] between waypoints (episodes must have this dt)
-    transition: float = 0.1  # [s] blend from the previous grasp's references to the new one
+    transition: float = 0.15  # [s] grasp change: unload, move, load (a third each)
+    lift: float = 0.004  # [m] how far a moving link lifts off the tool mid-move
     hold: float = 1.0  # [s] under the external wrench at the final pose, rounded to whole segments
     ramp: float = 0.1  # [s] for the external wrench to reach its full value
     # controller
+    targets_at: str = "reference"  # IK of each decision's start: "reference" (waypoint t) or "observed" tool pose
     kp: float = 10.0  # [N m/rad]
     kd: float = 0.05  # [N m s/rad]
     squeeze: float = 10.0  # [N] internal grip force per contact
+    feedforward_external: bool = True  # the hold's forces also resist the known w_ext (False: gravity only)
     # outcome
     fall_angle: float = 90.0  # [deg] tool rotation from its reference beyond which it counts as fallen
     fall_distance: float = 0.03  # [m] tool position error beyond which it counts as fallen
@@ -119,6 +130,8 @@ class PhysicsConfig:
             value = getattr(self, name)
             if not (isinstance(value, int) and value >= 1):
                 raise ValueError(f"PhysicsConfig.{name} must be an int >= 1, got {value!r}")
+        if self.targets_at not in ("reference", "observed"):
+            raise ValueError(f"PhysicsConfig.targets_at must be 'reference' or 'observed', got {self.targets_at!r}")
         if self.kd < 0 or self.squeeze < 0:
             raise ValueError(f"PhysicsConfig kd and squeeze must be >= 0, got {self.kd}, {self.squeeze}")
 
@@ -186,7 +199,11 @@ class Reference:
     f0: jax.Array  # (L, 3) feed-forward forces on the tool, world [N]
     f1: jax.Array  # (L, 3)
     f_hold: jax.Array  # (L, 3) forces for -m g - w_ext at the end pose (used by the hold after the last decision)
+    f_mid: jax.Array  # (L, 3) forces with only the links the previous and this grasp share (during a change)
     active: jax.Array  # (L,) bool, links the reference grasp puts in contact
+    changed: jax.Array  # (L,) bool, the link whose option this decision changed
+    moving: jax.Array  # (J,) bool, the joints that move the changed link
+    q_lift: jax.Array  # (J,) joint offset that lifts the changed link `lift` off the tool (added mid-move)
 
     def at(self, phase: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
         """(q, p, f) at phase in [0, 1] of the segment."""
@@ -320,9 +337,13 @@ class Physics:
         internal = (n - jnp.linalg.pinv(G) @ (G @ n)) * jnp.repeat(mask, 3)
         return sol.forces + self.config.squeeze * internal.reshape(-1, 3)
 
-    def reference(self, episode: Episode, grasp: jax.Array, t: jax.Array, pos, quat) -> Reference:
+    def reference(self, episode: Episode, grasp: jax.Array, t: jax.Array, pos, quat, previous=None) -> Reference:
         """References of decision t: `grasp` realised at the observed pose (pos, quat) and at waypoint t+1; forces
-        for the reference acceleration at t (as the surrogate's term (a)) and for gravity at t+1."""
+        for the reference acceleration at t (as the surrogate's term (a)) and for gravity at t+1; the change from
+        grasp `previous` (default: none)."""
+        previous = grasp if previous is None else previous
+        changed = self.space.decode(previous) != self.space.decode(grasp)  # (L,)
+        moving = jnp.any(changed[:, None] & jnp.asarray(self.hand.joint_moves_body[self.hand.link_body] > 0), axis=0)
         sur, last = self.surrogate, episode.n_steps - 1
         wp = episode.waypoints
         t_next = jnp.minimum(t + 1, last)
@@ -333,9 +354,21 @@ class Physics:
         f0 = self.grip_forces(now, episode, pos, quat, jnp.concatenate([episode.mass * (acc - sur.gravity), zero3]))
         weight = jnp.concatenate([-episode.mass * sur.gravity, zero3])
         f1 = self.grip_forces(nxt, episode, wp[t_next], episode.quats[t_next], weight)
-        f_hold = self.grip_forces(nxt, episode, wp[t_next], episode.quats[t_next], weight - episode.w_ext)
+        expected = episode.w_ext if self.config.feedforward_external else jnp.zeros_like(episode.w_ext)
+        f_hold = self.grip_forces(nxt, episode, wp[t_next], episode.quats[t_next], weight - expected)
+        shared = now.replace(realised=now.realised & ~changed)
+        # lift direction: the changed link's contact normal (the new option's, or the old one's when it lets go)
+        mat = kinematics.quat_to_mat(quat)
+        _, _, n_old = ik.grasp_targets(self.hand, self.space.decode(previous), pos, mat)
+        normal = jnp.sum(jnp.where((self.space.decode(grasp) > 0)[:, None], now.normals, n_old) * changed[:, None], 0)
+        _, _, axes, anchors = kinematics.chain(self.hand, now.ik.q)
+        link = jnp.argmax(changed)
+        points = kinematics.closest_on_links(self.hand, now.ik.q, now.points)
+        jac = kinematics.point_jacobian(self.hand, axes, anchors, self.hand.link_body, points)[link]  # (3, J)
+        q_lift = jac.T @ jnp.linalg.solve(jac @ jac.T + 1e-6 * jnp.eye(3), -self.config.lift * normal)
+        f_mid = self.grip_forces(shared, episode, pos, quat, jnp.concatenate([episode.mass * (acc - sur.gravity), zero3]))
         return Reference(q0=now.ik.q, q1=nxt.ik.q, p0=now.points, p1=nxt.points, f0=f0, f1=f1, f_hold=f_hold,
-                         active=nxt.realised)
+                         f_mid=f_mid, active=nxt.realised, changed=changed, moving=moving, q_lift=q_lift * jnp.any(changed))
 
     def control(self, data: mjx.Data, q_ref: jax.Array, points: jax.Array, forces: jax.Array) -> jax.Array:
         """Motor commands (nu,): PD to q_ref (J,) plus J^T f for forces (L, 3) at the links nearest `points`."""
@@ -347,6 +380,27 @@ class Physics:
         tau = c.kp * (q_ref - q) - c.kd * dq + jnp.einsum("lij,li->j", jac, forces)
         lo, hi = self.ctrl_range
         return jnp.zeros(self.model.nu, jnp.float32).at[self.hand_act].set(jnp.clip(tau, lo, hi))
+
+    def targets(self, prev: Reference, ref: Reference, i: jax.Array, k: jax.Array, episode: Episode):
+        """Controller targets at tick i (of `n_segment`) of segment k, going from `prev` to `ref`: joint targets
+        (J,), contact points (L, 3), feed-forward forces (L, 3), the external wrench's weight in [0, 1], and the
+        reference tool position (3,) for the fall check."""
+        c, n, T = self.config, self.n_segment, episode.n_steps
+        decision, t = k < T, jnp.minimum(k, T - 1)
+        s = (i + 1).astype(jnp.float32)
+        phase, third = s / n, c.transition / 3
+        u, mv, ld = (jnp.clip((s * c.tick - j * third) / third, 0.0, 1.0) for j in range(3))  # unload, move, load
+        q_new, p_new, f_new = ref.at(phase)
+        q_move = (1 - mv) * prev.q1 + mv * q_new + jnp.sin(jnp.pi * mv) * ref.q_lift
+        q = jnp.where(ref.moving, q_move, (1 - u) * prev.q1 + u * q_new)
+        p = jnp.where((ref.changed & (mv < 1))[:, None] | ~ref.active[:, None], prev.p1, p_new)
+        f = jnp.where(ld > 0, (1 - ld) * ref.f_mid + ld * f_new, (1 - u) * prev.f1 + u * ref.f_mid)
+        held = jnp.maximum(0.0, ((k - T) * n + s) * c.tick)  # time under the external wrench
+        w = jnp.where(decision, 0.0, jnp.minimum(1.0, held / c.ramp))
+        f = (1 - w) * f + w * ref.f_hold
+        wp = episode.waypoints
+        ref_pos = jnp.where(decision, (1 - phase) * wp[t] + phase * wp[jnp.minimum(t + 1, T - 1)], wp[-1])
+        return q, p, f, w, ref_pos
 
     # ------------------------------------------------------------------------------------------ the runner
     def _status(self, data: mjx.Data, ref_pos, ref_quat, lifted=True) -> tuple[jax.Array, jax.Array, jax.Array]:
@@ -386,8 +440,9 @@ class Physics:
         now = self.surrogate.realise(episode.start_grasp, pos0, quats[0])
         weight = jnp.concatenate([-episode.mass * self.surrogate.gravity, jnp.zeros(3, jnp.float32)])
         f = self.grip_forces(now, episode, pos0, quats[0], weight)
-        start = Reference(q0=now.ik.q, q1=now.ik.q, p0=now.points, p1=now.points, f0=f, f1=f, f_hold=f,
-                          active=now.realised)
+        start = Reference(q0=now.ik.q, q1=now.ik.q, p0=now.points, p1=now.points, f0=f, f1=f, f_hold=f, f_mid=f,
+                          active=now.realised, changed=jnp.zeros(self.hand.n_links, bool),
+                          moving=jnp.zeros(self.hand.n_joints, bool), q_lift=jnp.zeros(self.hand.n_joints))
         data = self.initial_data(mx, episode, start.q1, pos0)
         carry = _Carry(data=data, ref=start, grasp=jnp.asarray(episode.start_grasp, jnp.int32), fell=jnp.array(False),
                        fall_tick=jnp.asarray(-1, jnp.int32), tick=jnp.asarray(0, jnp.int32))
@@ -396,23 +451,18 @@ class Physics:
             decision, t = k < T, jnp.minimum(k, T - 1)
             t1 = jnp.minimum(t + 1, T - 1)
             pos, quat, _ = self.tool_pose(carry.data)
+            if c.targets_at == "reference":
+                pos, quat = wp[t], quats[t]
             action = jnp.asarray(policy.act(self.observe(carry.data, carry.grasp, t, episode)), jnp.int32)
             grasp = jnp.where(decision, self.space.apply(carry.grasp, action)[0], carry.grasp)
             prev = carry.ref
-            still = prev.replace(q0=prev.q1, p0=prev.p1, f0=prev.f1)  # hold segments: stay at the last reference
-            ref = jax.tree.map(lambda a, b: jnp.where(decision, a, b), self.reference(episode, grasp, t, pos, quat), still)
+            still = prev.replace(q0=prev.q1, p0=prev.p1, f0=prev.f1, f_mid=prev.f1, changed=prev.changed & False,
+                                 moving=prev.moving & False, q_lift=prev.q_lift * 0)  # hold segments: stay at the last reference
+            ref = jax.tree.map(lambda a, b: jnp.where(decision, a, b),
+                               self.reference(episode, grasp, t, pos, quat, carry.grasp), still)
 
             def tick(carry, i):
-                s = (i + 1).astype(jnp.float32)
-                phase, beta = s / n, jnp.minimum(1.0, s * c.tick / c.transition)
-                q_new, p_new, f_new = ref.at(phase)
-                q = (1 - beta) * prev.q1 + beta * q_new
-                p = jnp.where(ref.active[:, None], p_new, prev.p1)
-                f = (1 - beta) * prev.f1 + beta * f_new
-                held = jnp.maximum(0.0, ((k - T) * n + s) * c.tick)  # time under the external wrench
-                w = jnp.where(decision, 0.0, jnp.minimum(1.0, held / c.ramp))
-                f = (1 - w) * f + w * ref.f_hold
-                ref_pos = jnp.where(decision, (1 - phase) * wp[t] + phase * wp[t1], wp[-1])
+                q, p, f, w, ref_pos = self.targets(prev, ref, i, k, episode)
                 return self._advance(mxk, carry, q, p, f, w * episode.w_ext, ref_pos, quats[t1], k > 0)
 
             mxk = self.supported(mx, k == 0)

@@ -1,4 +1,4 @@
-"""`python -m experiments physics --set evalA|evalB|eval|all --policy dp-opt|dp-base|rl|random`: grasp sequences
+"""`python -m experiments physics --set evalA|evalB|eval|all --policy dp-opt|dp-base|rl|random|four-tips`: grasp sequences
 executed by the contact controller in MuJoCo MJX, closed loop (the policy observes the simulated state at every
 waypoint), all episodes in one batch. Prints each episode's tool angle error under the final torque (180 when the
 tool fell or touched the table), position error and fall time, and the mean with a 95% interval; writes
@@ -10,12 +10,13 @@ import json
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from experiments.common import dp_tables, results_dir, table
 from gsp_jax import dp, physics, policies, scenario, surrogate
 
-POLICIES = ("dp-opt", "dp-base", "rl", "random")
+POLICIES = ("dp-opt", "dp-base", "rl", "random", "four-tips")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -49,6 +50,10 @@ def make_policy(env: surrogate.Surrogate, kind: str, set_name: str, episodes: di
         keys = jax.random.split(jax.random.PRNGKey(getattr(args, "seed", 0)), len(episodes))
         actions = jax.vmap(dp.random_sequence, (0, 0, 0, None))(tables, batch.start_grasp, keys, env.reward_config.r_min)
         return policies.SequencePolicy(actions), 0
+    if kind == "four-tips":  # a reference without grasp changes: add the ring tip at t = 0, then keep the grasp
+        space = env.space
+        ring = int(np.flatnonzero((space.action_link == space.link_names.index("ring_distal")) & (space.action_option == 1))[0])
+        return policies.SequencePolicy(jnp.full(scenario.N_WAYPOINTS, ring, jnp.int32)), None
     if kind == "rl":
         from gsp_jax import env as env_lib
         from gsp_jax.ppo import networks as nets

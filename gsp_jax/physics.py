@@ -12,9 +12,9 @@ Timeline of an episode (times in `PhysicsConfig`):
           start grasp realised there by IK; the pedestals drop away after the first decision's segment, and from
           then on the fingers alone hold the tool (touching the table counts as a fall from then on);
   t = 0 .. T-1   at waypoint t the policy observes the *simulated* state (joint angles, tool pose and velocity:
-          the surrogate's `State`) and picks an action; the new reference grasp is realised by IK at the
-          observed tool pose and at waypoint t+1, and the controller blends to it while tracking the tool's
-          reference motion to waypoint t+1 (the last decision re-grasps at the final pose);
+          the surrogate's `State`) and picks an action; the new reference grasp is realised by IK at waypoint t
+          (or the observed pose, `targets_at`) and at waypoint t+1, and the controller blends to it while
+          tracking the tool's reference motion to waypoint t+1 (the last decision re-grasps at the final pose);
   hold    the episode's external wrench ramps on at the final pose (`xfrc_applied` at the tool's CoM); the
           tool's angle and position errors are averaged over the hold.
 
@@ -38,8 +38,9 @@ The contact controller (per control tick, joint torques clipped to the motors' r
     observed state, so the loop is closed at the level of grasps;
   * f_l: inverse dynamics of the tool: the wrench solve's contact forces (inside the friction cones) for
     m (a_ref - g) while moving, and for -m g - w_ext during the hold (the task's wrench is known, as when
-    tightening a bolt; `feedforward_external=False` leaves it to the grasp's passive stiffness), plus `squeeze` newtons along each contact
-    normal projected onto the grasp matrix's null space (internal force: grips without changing the net wrench);
+    tightening a bolt; `feedforward_external=False` leaves it to the grasp's passive stiffness), plus `squeeze`
+    newtons along each contact normal projected onto the grasp matrix's null space (internal force: grips
+    without changing the net wrench);
   * J_l: the Jacobian of the link point closest to its contact point;
   * a grasp change (one link per decision, as the action space allows: add, remove or slide) is a transition
     of `transition` seconds in three equal phases: *unload* -- the forces go over to the links the old and new
@@ -58,7 +59,8 @@ tilt onto the table (measured in C MuJoCo, same controller).
 Contact model: MJX (mujoco-mjx 3.17) misses tilted capsule-box contacts that C MuJoCo finds, so the physics
 model replaces every hand capsule, for contact, by `spheres_per_capsule` spheres along its axis (sphere-box and
 sphere-plane are exact in MJX) and lists the contacts explicitly: tool x table, tool x medial/distal-link spheres
-(friction = the episode's), distal spheres x table. The surrogate's model file is unchanged.
+(friction = the episode's), distal spheres x table, tool x start pedestals. The surrogate's geometry (the same
+model file) is unchanged.
 """
 from __future__ import annotations
 
@@ -456,8 +458,8 @@ class Physics:
             action = jnp.asarray(policy.act(self.observe(carry.data, carry.grasp, t, episode)), jnp.int32)
             grasp = jnp.where(decision, self.space.apply(carry.grasp, action)[0], carry.grasp)
             prev = carry.ref
-            still = prev.replace(q0=prev.q1, p0=prev.p1, f0=prev.f1, f_mid=prev.f1, changed=prev.changed & False,
-                                 moving=prev.moving & False, q_lift=prev.q_lift * 0)  # hold segments: stay at the last reference
+            still = prev.replace(q0=prev.q1, p0=prev.p1, f0=prev.f1, f_mid=prev.f1, changed=jnp.zeros_like(prev.changed),
+                                 moving=jnp.zeros_like(prev.moving), q_lift=jnp.zeros_like(prev.q_lift))  # hold: stay
             ref = jax.tree.map(lambda a, b: jnp.where(decision, a, b),
                                self.reference(episode, grasp, t, pos, quat, carry.grasp), still)
 

@@ -1,6 +1,7 @@
 """`python -m experiments physics --set evalA|evalB|eval|all --policy dp-opt|dp-base|rl|random|four-tips`: grasp sequences
-executed by the contact controller in MuJoCo MJX, closed loop (the policy observes the simulated state at every
-waypoint), all episodes in one batch. Prints each episode's tool angle error under the final torque (180 when the
+executed by the contact controller in MuJoCo MJX, all episodes in one batch. At every waypoint the policy acts on
+the simulated state; `rl` reads all of it (closed loop), `dp-opt` reads the grasp and waypoint, `dp-base`,
+`random` and `four-tips` are fixed sequences (open loop). Prints each episode's tool angle error under the final torque (180 when the
 tool fell or touched the table), position error and fall time, and the mean with a 95% interval; writes
 results/physics/<set>_<policy>.json, an angle-trace PNG and (with --render) a key frame PNG and a GIF."""
 from __future__ import annotations
@@ -25,7 +26,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--policy-dir", default="results/train/dp/seed0/policy", help="saved PPO policy for --policy rl")
     p.add_argument("--episodes", type=int, default=None, help="only the first N episodes of the set")
     p.add_argument("--seed", type=int, default=0, help="for --policy random")
-    p.add_argument("--render", action="store_true", help="key frame PNG + GIF of the first episode (needs GL)")
+    p.add_argument("--render", action="store_true",
+                   help="key frame (last frame) PNG + GIF of the first episode; needs MUJOCO_GL=egl|osmesa set")
 
 
 def nominal_actions(env: surrogate.Surrogate) -> jax.Array:

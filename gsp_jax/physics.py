@@ -124,6 +124,8 @@ class PhysicsConfig:
         return max(1, int(round(seconds / self.tick)))
 
     def __post_init__(self):
+        if self.transition > self.segment:
+            raise ValueError(f"PhysicsConfig.transition must be <= segment ({self.segment}), got {self.transition}")
         for name in ("timestep", "segment", "hold", "transition", "ramp", "kp", "fall_angle"):
             value = getattr(self, name)
             if not value > 0:
@@ -157,7 +159,8 @@ def physics_model(path=hand_lib.SCENE_XML, config: PhysicsConfig = PhysicsConfig
         mujoco.mju_quat2Mat(mat, base.geom_quat[g])
         axis = mat.reshape(3, 3)[:, 2]
         body = spec.body(bname)
-        for k, z in enumerate(np.linspace(-half, half, config.spheres_per_capsule)):
+        n_s = config.spheres_per_capsule
+        for k, z in enumerate(np.linspace(-half, half, n_s) if n_s > 1 else [0.0]):
             sname = f"{gname}_sphere{k}"
             body.add_geom(name=sname, type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[radius, 0, 0],
                           pos=base.geom_pos[g] + axis * z, contype=0, conaffinity=0, density=0.0, group=3)
@@ -192,7 +195,8 @@ def physics_model(path=hand_lib.SCENE_XML, config: PhysicsConfig = PhysicsConfig
 
 @struct.dataclass
 class Reference:
-    """What the controller tracks over one segment: start (at the observed pose) and end (next waypoint)."""
+    """What the controller tracks over one segment: start (waypoint t, or the observed pose) and end (waypoint
+    t+1)."""
 
     q0: jax.Array  # (J,) joint targets at the segment's start [rad]
     q1: jax.Array  # (J,) ... and end
@@ -261,8 +265,8 @@ class Physics:
         self.ctrl_range = tuple(np.asarray(m.actuator_ctrlrange[self.hand_act].T, np.float32))  # motor limits (J,) x 2
         self.finger_tool_pairs = np.array(
             [p for p in range(m.npair) if self.tool_body in (m.geom_bodyid[m.pair_geom1[p]], m.geom_bodyid[m.pair_geom2[p]])
-             and TABLE_GEOM not in (mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, m.pair_geom1[p]),
-                                    mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, m.pair_geom2[p]))])
+             and not {TABLE_GEOM, *PEDESTALS} & {mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, m.pair_geom1[p]),
+                                                 mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, m.pair_geom2[p])}])
         box_names = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g) for g in range(m.ngeom) if m.geom_bodyid[g] == self.tool_body]
         self.pedestal_geoms = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, n) for n in PEDESTALS])
         self.pedestal_specs = [(box_names.index(tg), x, half) for tg, x, half in PEDESTALS.values()]
@@ -340,7 +344,7 @@ class Physics:
         return sol.forces + self.config.squeeze * internal.reshape(-1, 3)
 
     def reference(self, episode: Episode, grasp: jax.Array, t: jax.Array, pos, quat, previous=None) -> Reference:
-        """References of decision t: `grasp` realised at the observed pose (pos, quat) and at waypoint t+1; forces
+        """References of decision t: `grasp` realised at the pose (pos, quat) and at waypoint t+1; forces
         for the reference acceleration at t (as the surrogate's term (a)) and for gravity at t+1; the change from
         grasp `previous` (default: none)."""
         previous = grasp if previous is None else previous
@@ -427,7 +431,9 @@ class Physics:
         data = jax.lax.fori_loop(0, self.config.control_every, lambda _, d: mjx.step(mx, d), data)
         angle, perr, fell_now = self._status(data, ref_pos, ref_quat, lifted)
         fell = carry.fell | fell_now
-        data = jax.tree.map(lambda old, new: jnp.where(carry.fell, old, new), carry.data, data)
+        finite = jnp.all(jnp.isfinite(data.qpos)) & jnp.all(jnp.isfinite(data.qvel))
+        keep = carry.fell | ~finite  # freeze: a fallen tool stays put, a non-finite step is never stored
+        data = jax.tree.map(lambda old, new: jnp.where(keep, old, new), carry.data, data)
         fall_tick = jnp.where(fell & ~carry.fell, carry.tick, carry.fall_tick)
         carry = carry.replace(data=data, fell=fell, fall_tick=fall_tick, tick=carry.tick + 1)
         return carry, (angle, perr, data.qpos)

@@ -1,18 +1,17 @@
 """Pictures of simulated episodes: frames from a `physics.Result.qpos` trace with mujoco's offscreen renderer.
 
-Optional: needs an OpenGL backend. `MUJOCO_GL=egl` works headless on the CPU machines here and on NVIDIA GPUs
-(with the driver's libEGL); `osmesa` is the software fallback where installed. Nothing else in the library
-imports this module, so the physics check runs without any GL.
+Optional: needs an OpenGL backend, chosen by the `MUJOCO_GL` environment variable, which must be set before
+anything imports mujoco (e.g. `MUJOCO_GL=egl python -m experiments physics --render`). `egl` works headless on
+the CPU machines here; the GPU machines we measured on have no libEGL (there `MUJOCO_GL=egl` makes `import
+mujoco` fail), so render from a saved `qpos` trace on a CPU. `osmesa` is the software fallback where installed.
+Nothing else in the library imports this module, so the physics check runs without any GL.
 """
 from __future__ import annotations
 
-import os
 import pathlib
 
 import mujoco
 import numpy as np
-
-os.environ.setdefault("MUJOCO_GL", "egl")
 
 
 def frames(model: mujoco.MjModel, qpos: np.ndarray, every: int = 1, camera: str = "front",

@@ -75,7 +75,9 @@ def _rotation_vector(phys, qpos_a, qpos_b):
     return np.degrees(vel)
 
 
-def test_four_fingertips_hold_and_one_fingertip_drops(runs):
+def test_four_fingertips_hold_a_short_lift_and_one_fingertip_drops(runs):
+    """On the tests' short lift (2.6 cm, 0.5 s hold): four tips hold +-1 N m within 5 degrees; the index tip alone
+    falls (180). On the full nominal episode the four tips fall 0.35 s into the hold in MJX (see the README)."""
     res = runs["res"]
     for row in (0, 1):
         assert not res.fell[row], (row, res.fall_time[row])
@@ -107,6 +109,7 @@ def test_torque_sign_sets_rotation_sign(passive):
     assert np.linalg.norm(plus) > 0.3 and np.linalg.norm(minus) > 0.3, (plus, minus)
     cos = plus @ minus / np.linalg.norm(plus) / np.linalg.norm(minus)
     assert cos < -0.5, (plus, minus)
+    assert plus[2] > 0 and minus[2] < 0, (plus, minus)  # +1 N m about +z turns the tool about +z
 
 
 def test_no_nan_and_falls_freeze(phys, runs):

@@ -353,12 +353,11 @@ class Physics:
         sur, last = self.surrogate, episode.n_steps - 1
         wp = episode.waypoints
         t_next = jnp.minimum(t + 1, last)
-        acc = (wp[t_next] - 2 * wp[jnp.minimum(t, last)] + wp[jnp.maximum(t - 1, 0)]) / episode.dt**2
         now = sur.realise(grasp, pos, quat)
         nxt = sur.realise(grasp, wp[t_next], episode.quats[t_next])
-        zero3 = jnp.zeros(3, jnp.float32)
-        f0 = self.grip_forces(now, episode, pos, quat, jnp.concatenate([episode.mass * (acc - sur.gravity), zero3]))
-        weight = jnp.concatenate([-episode.mass * sur.gravity, zero3])
+        move = sur.move_wrench(episode, t)
+        f0 = self.grip_forces(now, episode, pos, quat, move)
+        weight = jnp.concatenate([-episode.mass * sur.gravity, jnp.zeros(3, jnp.float32)])
         f1 = self.grip_forces(nxt, episode, wp[t_next], episode.quats[t_next], weight)
         expected = episode.w_ext if self.config.feedforward_external else jnp.zeros_like(episode.w_ext)
         f_hold = self.grip_forces(nxt, episode, wp[t_next], episode.quats[t_next], weight - expected)
@@ -372,7 +371,7 @@ class Physics:
         points = kinematics.closest_on_links(self.hand, now.ik.q, now.points)
         jac = kinematics.point_jacobian(self.hand, axes, anchors, self.hand.link_body, points)[link]  # (3, J)
         q_lift = jac.T @ jnp.linalg.solve(jac @ jac.T + 1e-6 * jnp.eye(3), -self.config.lift * normal)
-        f_mid = self.grip_forces(shared, episode, pos, quat, jnp.concatenate([episode.mass * (acc - sur.gravity), zero3]))
+        f_mid = self.grip_forces(shared, episode, pos, quat, move)
         return Reference(q0=now.ik.q, q1=nxt.ik.q, p0=now.points, p1=nxt.points, f0=f0, f1=f1, f_hold=f_hold,
                          f_mid=f_mid, active=nxt.realised, changed=changed, moving=moving, q_lift=q_lift * jnp.any(changed))
 

@@ -138,12 +138,11 @@ class Surrogate:
         """Reward terms of moving, with new grasp contacts `now` (at the current pose) and `nxt` (at waypoint
         t+1), from waypoint t. Depends on the previous grasp only through `redundant`."""
         cfg = self.reward_config
-        wp, dt, m = episode.waypoints, episode.dt, episode.mass
+        wp, m = episode.waypoints, episode.mass
         last = episode.n_steps - 1
         t_next = jnp.minimum(t + 1, last)
-        acc = (wp[t_next] - 2 * wp[jnp.minimum(t, last)] + wp[jnp.maximum(t - 1, 0)]) / dt**2
         zero3 = jnp.zeros(3, jnp.float32)
-        move = self.wrench_error(now, episode, tool_pos, tool_quat, jnp.concatenate([m * (acc - self.gravity), zero3]))
+        move = self.wrench_error(now, episode, tool_pos, tool_quat, self.move_wrench(episode, t))
         pos_n, quat_n = wp[t_next], episode.quats[t_next]
         hold = self.wrench_error(nxt, episode, pos_n, quat_n, jnp.concatenate([-m * self.gravity, zero3]))
         ext = self.wrench_error(
@@ -162,6 +161,13 @@ class Surrogate:
         fall = jnp.any(unmet > cfg.fall_unmet)
         terms = RewardTerms(**terms, unmet=unmet, collision=collision, fall=fall, reward=jnp.zeros(()))
         return terms.replace(reward=self.reward(terms, redundant))
+
+    def move_wrench(self, episode: Episode, t: jax.Array) -> jax.Array:
+        """(6,) wrench the contacts must supply while moving on from waypoint t: m (a - g), with the desired
+        acceleration a from the waypoints' finite differences, and no torque about the CoM."""
+        wp, last = episode.waypoints, episode.n_steps - 1
+        acc = (wp[jnp.minimum(t + 1, last)] - 2 * wp[jnp.minimum(t, last)] + wp[jnp.maximum(t - 1, 0)]) / episode.dt**2
+        return jnp.concatenate([episode.mass * (acc - self.gravity), jnp.zeros(3, jnp.float32)])
 
     def reward(self, terms: RewardTerms, redundant: jax.Array) -> jax.Array:
         """The shaped reward from a step's terms, with the redundant flag given (the terms' own is ignored)."""

@@ -35,3 +35,11 @@ def _random_q(hand, rng, n):
 def random_q():
     """random_q(hand, rng, n): n joint configurations (n, J), uniform within the joint limits, float32."""
     return _random_q
+
+
+@pytest.fixture(scope="session")
+def sur(hand):
+    """A Surrogate of that hand (stateless, so one serves every module)."""
+    from gsp_jax import surrogate
+
+    return surrogate.Surrogate(hand)

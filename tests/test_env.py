@@ -18,7 +18,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from gymnasium.utils.env_checker import check_env  # noqa: E402
 
-from gsp_jax import dp, scenario, surrogate  # noqa: E402
+from gsp_jax import dp, scenario  # noqa: E402
 from gsp_jax.env import GraspEnv  # noqa: E402
 from gsp_jax.gym_env import GymGraspEnv  # noqa: E402
 
@@ -32,11 +32,6 @@ def _np(tree):
 
 
 # ------------------------------------------------------------------------------------------ fixtures
-@pytest.fixture(scope="module")
-def sur(hand):
-    return surrogate.Surrogate(hand)
-
-
 @pytest.fixture(scope="module")
 def episodes():
     """Three reduced episodes, stacked (leaves (3, ...))."""

@@ -15,7 +15,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from gsp_jax import dp, pretrain, scenario, surrogate  # noqa: E402
+from gsp_jax import dp, pretrain, scenario  # noqa: E402
 from gsp_jax.ppo import networks as nets  # noqa: E402
 
 
@@ -24,11 +24,6 @@ def _np(tree):
 
 
 # ------------------------------------------------------------------------------------------ fixtures
-@pytest.fixture(scope="module")
-def sur(hand):
-    return surrogate.Surrogate(hand)
-
-
 @pytest.fixture(scope="module")
 def nominal(sur):
     """The nominal episode (stacked, N = 1), its table (built once), and the table's DP solution (numpy)."""

@@ -20,6 +20,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 from brax.envs import base as brax_base
+from flax import struct
 
 from gsp_jax import dp
 from gsp_jax.grasps import GraspSpace
@@ -92,6 +93,22 @@ def table_step(table: dp.Table, state: State, action: jax.Array) -> tuple[State,
     moved = moved.replace(done=table.terminal[state.grasp, action, tc], terms=RewardTerms.zeros().replace(reward=reward))
     out = jax.tree.map(lambda old, new: jnp.where(state.done, old, new), state, moved)
     return out, jnp.where(state.done, 0.0, reward), out.done
+
+
+@struct.dataclass
+class TableModel:
+    """One episode's DP table as a step model (`step(state, action)`, like `Surrogate.step`): exact for the
+    discrete states the surrogate visits from `reset`, with lookups instead of IK and wrench solves. For
+    lookahead over an episode whose table is already built (evaluation); online, a new episode has none."""
+
+    table: dp.Table  # one episode's table (no leading batch axis)
+    space: GraspSpace = struct.field(pytree_node=False)
+
+    def step(self, state: State, action: jax.Array) -> tuple[State, jax.Array, jax.Array]:
+        return table_step(self.table, state, jnp.asarray(action, jnp.int32))
+
+    def reset(self, episode: Episode) -> State:
+        return table_state(episode, self.table, episode.start_grasp, 0)
 
 
 class GraspEnv(brax_base.Env):

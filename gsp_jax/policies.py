@@ -2,7 +2,12 @@
 
 `act` takes one surrogate `State` (continuous state plus episode input) and returns an int32 action; it is
 pure, so `jax.jit` and `jax.vmap` apply, and the surrogate evaluation, lookahead and the physics check call every
-policy the same way. Here: the two DP policies of the paper and the trained PPO actor.
+policy the same way. A policy may read any field of the state except `terms` (the last step's reward terms).
+
+    DP baseline   SequencePolicy(solution of the nominal training episode .actions)   open loop
+    DP optimal    TablePolicy(solution of the episode itself .policy)                  closed loop, (grasp, t)
+    RL            NetworkPolicy(params, networks, space)                               deterministic PPO actor
+    Ll (L1, L2)   Lookahead(base=any of these, model=surrogate, depth=l)               `gsp_jax.lookahead`
 """
 from __future__ import annotations
 
@@ -12,7 +17,9 @@ from flax import struct
 
 from gsp_jax.env import observation
 from gsp_jax.grasps import GraspSpace
+from gsp_jax.lookahead import Lookahead  # noqa: F401  (re-exported: the Ll policies)
 from gsp_jax.ppo import networks as nets
+from gsp_jax.ppo.train import PPOConfig
 from gsp_jax.surrogate import State
 
 
@@ -46,9 +53,14 @@ class NetworkPolicy:
     params: nets.Params
     networks: nets.Networks = struct.field(pytree_node=False)
     space: GraspSpace = struct.field(pytree_node=False)
+    reward_scale: float = struct.field(pytree_node=False, default=PPOConfig.reward_scale)  # of the training run
 
     def act(self, state: State) -> jax.Array:
         return nets.mode(self.networks.logits(self.params, observation(self.space, state)))
+
+    def value(self, state: State) -> jax.Array:
+        """The critic's estimate of the return from `state`, in reward units (the lookahead's cut-off value)."""
+        return self.networks.value(self.params, observation(self.space, state)) / self.reward_scale
 
 
 def rollout(env, policy, episode) -> tuple[jax.Array, State]:

@@ -95,8 +95,10 @@ class Contacts:
     realised: jax.Array  # (L,) bool, active and within contact_tol: these links carry force
 
 
+@jax.tree_util.register_static
 class Surrogate:
-    """The surrogate model of a hand + tool scene. Stateless: all methods are pure functions of their inputs."""
+    """The surrogate model of a hand + tool scene. Stateless: all methods are pure functions of their inputs.
+    A static pytree (no leaves), so a policy that holds one (`lookahead.Lookahead`) passes through `jit`."""
 
     def __init__(
         self,

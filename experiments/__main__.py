@@ -15,6 +15,10 @@ COMMANDS = {  # command -> (module, one-line help)
     "physics": ("experiments.physics", "MJX physics check: a policy's grasp sequences, angle error under the torque"),
     "physics-corr": ("experiments.physics_correlation", "rank correlation of surrogate return and simulated error"),
     "bench-physics": ("experiments.bench_physics", "simulated episodes/s: one MJX batch vs one at a time"),
+    "fig4a": ("experiments.fig4a", "Fig. 4a: surrogate returns relative to DP optimal, 95% CI, RM-ANOVA"),
+    "fig4b": ("experiments.fig4b", "Fig. 4b: the same policies closed loop in MJX, angle error under the torque"),
+    "table1": ("experiments.table1", "Table 1: online wall-clock time per unseen episode, beside the paper's"),
+    "reproduce": ("experiments.reproduce", "everything above in sequence, one Markdown report (--quick on CPU)"),
 }
 
 

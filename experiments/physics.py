@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments.common import dp_tables, results_dir, table
+from experiments.stats import mean_ci
 from gsp_jax import dp, physics, policies, scenario, surrogate
 
 POLICIES = ("dp-opt", "dp-base", "rl", "random", "four-tips")
@@ -66,16 +67,6 @@ def make_policy(env: surrogate.Surrogate, kind: str, set_name: str, episodes: di
         params = ppo.load_policy(args.policy_dir, networks)
         return policies.NetworkPolicy(params, networks, env.space), None
     raise ValueError(f"--policy must be one of {POLICIES}, got {kind!r}")
-
-
-def mean_ci(x: np.ndarray) -> tuple[float, float]:
-    """Mean and the half-width of its 95% t-interval."""
-    from scipy import stats
-
-    x = np.asarray(x, np.float64)
-    if len(x) < 2:
-        return float(x.mean()), float("nan")
-    return float(x.mean()), float(stats.t.ppf(0.975, len(x) - 1) * x.std(ddof=1) / np.sqrt(len(x)))
 
 
 def result_rows(names, res: physics.Result) -> list[dict]:

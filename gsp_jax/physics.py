@@ -460,7 +460,8 @@ class Physics:
             pos, quat, _ = self.tool_pose(carry.data)
             if c.targets_at == "reference":
                 pos, quat = wp[t], quats[t]
-            action = jnp.asarray(policy.act(self.observe(carry.data, carry.grasp, t, episode)), jnp.int32)
+            observed = self.observe(carry.data, carry.grasp, t, episode)  # the policy acts only at waypoints
+            action = jax.lax.cond(decision, lambda s: jnp.asarray(policy.act(s), jnp.int32), lambda s: jnp.int32(0), observed)
             grasp = jnp.where(decision, self.space.apply(carry.grasp, action)[0], carry.grasp)
             prev = carry.ref
             still = prev.replace(q0=prev.q1, p0=prev.p1, f0=prev.f1, f_mid=prev.f1, changed=jnp.zeros_like(prev.changed),

@@ -1,0 +1,94 @@
+"""What the evaluation experiments share: the unseen episodes, their DP tables, and the five policies of the paper
+behind one interface (`act(state)`), built the same way for the surrogate evaluation (Fig. 4a), the physics check
+(Fig. 4b) and the timing (Table 1).
+
+    ctx = evaluation.context("eval", n_episodes=None)      # 27 evaluation episodes, tables, DP solutions, RL
+    policy, axis = evaluation.make(ctx, "L2")               # axis: 0 if the policy differs per episode, else None
+"""
+from __future__ import annotations
+
+import dataclasses
+import pathlib
+
+import jax
+import numpy as np
+
+from experiments.common import dp_tables
+from gsp_jax import dp, env as env_lib, policies, scenario
+from gsp_jax.ppo import networks as nets
+from gsp_jax.ppo import train as ppo
+from gsp_jax.surrogate import Surrogate
+
+POLICIES = ("dp-base", "rl", "L1", "L2", "dp-opt")  # the paper's order (Table 1)
+LOOKAHEAD_DEPTH = {"L1": 1, "L2": 2}
+TRAINED_POLICY = pathlib.Path("results/train/dp/seed0/policy")  # what `python -m experiments train` writes
+SHIPPED_POLICY = pathlib.Path("models/policies/ppo_dp_seed0")  # a copy of a full-preset GPU run, shipped
+PAPER = dict(  # the paper's numbers, printed beside ours
+    table1_s={"dp-base": 1.34, "rl": 1.23, "L1": 2.68, "L2": 4.30, "dp-opt": 151.79},
+    table1_machine="32-core Xeon Silver 4216, 2.1 GHz",
+)
+
+
+@dataclasses.dataclass
+class Context:
+    surrogate: Surrogate
+    set_name: str
+    names: list[str]  # episode names
+    batch: object  # stacked Episode (N, ...)
+    tables: dp.Table  # stacked (N, ...), the episodes' DP tables
+    solutions: dp.Solution  # stacked, DP optimal per episode
+    nominal_actions: jax.Array  # (T,) the DP baseline: the nominal training episode's optimal sequence
+    rl: policies.NetworkPolicy  # the PPO actor (deterministic), with its critic
+    rl_source: str  # where the RL policy was read from
+
+
+def subset(episodes: dict, n: int | None) -> dict:
+    """`n` episodes spread evenly over the set (both evaluation sets stay represented); all if n is None."""
+    if n is None or n >= len(episodes):
+        return episodes
+    if n < 1:
+        raise ValueError(f"episodes: need at least 1, got {n}")
+    keep = np.unique(np.linspace(0, len(episodes) - 1, n).round().astype(int))
+    items = list(episodes.items())
+    return dict(items[i] for i in keep)
+
+
+def load_rl(sur: Surrogate, policy_dir: str | pathlib.Path | None = None) -> tuple[policies.NetworkPolicy, str]:
+    """The PPO policy: `policy_dir` if given, else the one `train` wrote (results/train/dp/seed0), else the shipped
+    copy under models/policies/."""
+    candidates = [pathlib.Path(policy_dir)] if policy_dir else [TRAINED_POLICY, SHIPPED_POLICY]
+    for path in candidates:
+        if path.exists():
+            obs = env_lib.observation_size(sur.space, scenario.N_WAYPOINTS, sur.hand.n_joints)
+            networks = nets.make_networks(obs, sur.n_actions, nets.NetworkConfig())
+            return policies.NetworkPolicy(ppo.load_policy(path, networks), networks, sur.space), str(path)
+    raise FileNotFoundError(
+        f"policy_dir: no PPO policy at {', '.join(map(str, candidates))}; run `python -m experiments train --seeds 1`"
+    )
+
+
+def context(set_name: str = "eval", n_episodes: int | None = None, policy_dir=None) -> Context:
+    sur = Surrogate()
+    episodes = subset(scenario.episode_set(set_name), n_episodes)
+    tag = set_name if n_episodes is None else f"{set_name}{len(episodes)}"
+    tables = dp_tables(sur, tag, episodes)
+    batch = scenario.stack(list(episodes.values()))
+    solutions = jax.jit(jax.vmap(dp.backup))(tables, batch.start_grasp)
+    nominal = dp_tables(sur, "nominal", scenario.nominal())
+    nominal_actions = dp.backup(jax.tree.map(lambda x: x[0], nominal), scenario.make_episode().start_grasp).actions
+    rl, source = load_rl(sur, policy_dir)
+    return Context(sur, set_name, list(episodes), batch, tables, solutions, nominal_actions, rl, source)
+
+
+def make(ctx: Context, name: str, model=None):
+    """(policy, policy_axis) of one of `POLICIES` for the context's episode batch. Lookahead runs its tree and
+    rollouts in `model` (default: the surrogate itself, what an online planner has for an unseen episode)."""
+    if name == "dp-base":
+        return policies.SequencePolicy(ctx.nominal_actions), None
+    if name == "dp-opt":
+        return policies.TablePolicy(ctx.solutions.policy), 0
+    if name == "rl":
+        return ctx.rl, None
+    if name in LOOKAHEAD_DEPTH:
+        return policies.Lookahead(ctx.rl, model or ctx.surrogate, depth=LOOKAHEAD_DEPTH[name]), None
+    raise ValueError(f"policy: expected one of {POLICIES}, got {name!r}")

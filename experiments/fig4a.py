@@ -1,0 +1,116 @@
+"""`python -m experiments fig4a [--set eval] [--episodes N] [--backend table|surrogate]`: the paper's Fig. 4a.
+
+Every policy (DP baseline, RL, L1, L2, DP optimal) runs each unseen evaluation episode in the surrogate, all
+episodes of a policy in one vmapped program; the return is reported relative to DP optimal (return - DP optimal
+return: 0 is optimal), with 95% t-intervals over episodes and a one-way repeated-measures ANOVA (episodes as
+subjects) with Holm-corrected paired post-hoc tests. `--backend surrogate` steps the surrogate itself (two IK and
+three wrench solves per step, also inside the lookahead trees: a GPU job); `table` steps the episodes' DP tables,
+which give the same MDP for the discrete states the surrogate visits from a reset (tests check it) at a fraction of
+the cost (the CPU default). Writes results/fig4a/returns.json and fig4a.png; prints the table last.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import jax
+import numpy as np
+
+from experiments import evaluation, stats
+from experiments.common import results_dir, table
+from gsp_jax import lookahead, policies
+from gsp_jax.env import TableModel
+
+COMPARED = ("dp-base", "rl", "L1", "L2")  # relative to dp-opt
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--set", default="eval", choices=["evalA", "evalB", "eval", "val"])
+    p.add_argument("--episodes", type=int, default=None, help="only N episodes, spread over the set")
+    p.add_argument("--backend", default=None, choices=["table", "surrogate"], help="default: surrogate on a GPU, else table")
+    p.add_argument("--policy-dir", default=None, help="PPO policy (default: results/train/dp/seed0, else the shipped one)")
+
+
+def returns(ctx: evaluation.Context, name: str, backend: str) -> np.ndarray:
+    """Return of policy `name` on every episode of the context (N,), stepping `backend`."""
+    policy, axis = evaluation.make(ctx, name)
+    space = ctx.surrogate.space
+
+    def one(ep, table, pol):
+        model = TableModel(table, space) if backend == "table" else ctx.surrogate
+        if isinstance(pol, policies.Lookahead):
+            pol = pol.replace(model=model)
+        return lookahead.rollout(model, pol, model.reset(ep))[0]
+
+    return np.asarray(jax.jit(jax.vmap(one, (0, 0, axis)))(ctx.batch, ctx.tables, policy))
+
+
+def run(ctx: evaluation.Context, backend: str, out) -> dict:
+    rets, wall = {}, {}
+    for name in evaluation.POLICIES:
+        t0 = time.perf_counter()
+        rets[name] = returns(ctx, name, backend)
+        wall[name] = time.perf_counter() - t0
+        print(f"  {name:8s} mean return {rets[name].mean():9.3f}   ({wall[name]:.1f} s incl. compile, {backend})", flush=True)
+    gap = float(np.max(np.abs(rets["dp-opt"] - np.asarray(ctx.solutions.ret))))
+    result = dict(set=ctx.set_name, episodes=ctx.names, backend=backend, rl_policy=ctx.rl_source,
+                  returns={n: r.tolist() for n, r in rets.items()}, dp_opt_rollout_vs_table_max_abs=gap, wall_s=wall,
+                  r_min=ctx.surrogate.reward_config.r_min)
+    result |= analyse(result)
+    (out / "returns.json").write_text(json.dumps(result, indent=1))
+    plot(result["relative"], len(ctx.names), out / "fig4a.png")
+    return result
+
+
+def analyse(result: dict) -> dict:
+    """Relative returns with 95% intervals, and the RM-ANOVA with post-hoc tests, from saved `returns`."""
+    rets = {n: np.asarray(r) for n, r in result["returns"].items()}
+    rel = {n: rets[n] - rets["dp-opt"] for n in COMPARED}
+    summary = {
+        n: dict(zip(["mean", "ci95"], stats.mean_ci(rel[n])))
+        | dict(optimal=int(np.sum(rel[n] > -1e-4)), falls=int(np.sum(rets[n] <= result["r_min"])))
+        for n in COMPARED
+    }
+    try:
+        anova = stats.rm_anova(np.stack([rel[n] for n in COMPARED], axis=1), list(COMPARED))
+    except ImportError as e:  # statsmodels missing (a bare GPU image): `reproduce --report-only` redoes this
+        return dict(relative=summary, anova=None, anova_text=f"ANOVA skipped: {e}")
+    return dict(relative=summary, anova_text=anova.summary(),
+                anova=dict(f=anova.f, df=[anova.df_num, anova.df_den], p=anova.p, posthoc=[vars(c) for c in anova.posthoc]))
+
+
+def plot(summary: dict, n: int, path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.6))
+    names = list(summary)
+    means = [summary[k]["mean"] for k in names]
+    cis = [summary[k]["ci95"] for k in names]
+    ax.bar(names, means, yerr=cis, capsize=6, color=["#999999", "#4c72b0", "#55a868", "#2e7d32"][: len(names)])
+    ax.axhline(0, color="k", lw=0.8)
+    ax.set_ylabel("return - DP optimal return")
+    ax.set_title(f"Surrogate, {n} unseen episodes (95% CI)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
+def print_result(result: dict) -> None:
+    print(result["anova_text"])
+    rows = [[n, s["mean"], s["ci95"], f"{s['optimal']}/{len(result['episodes'])}", s["falls"]]
+            for n, s in result["relative"].items()]
+    print(table(["policy", "return - DP opt", "95% CI +-", "optimal on", "falls"], rows, ".3f"))
+
+
+def main(args: argparse.Namespace) -> None:
+    backend = args.backend or ("surrogate" if jax.default_backend() == "gpu" else "table")
+    ctx = evaluation.context(args.set, args.episodes, args.policy_dir)
+    print(f"Fig. 4a: {len(ctx.names)} episodes of '{args.set}', backend {backend}, RL policy {ctx.rl_source}", flush=True)
+    out = results_dir("fig4a")
+    result = run(ctx, backend, out)
+    print(f"wrote {out / 'returns.json'}, {out / 'fig4a.png'}")
+    print_result(result)

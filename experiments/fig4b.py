@@ -1,0 +1,90 @@
+"""`python -m experiments fig4b [--set eval] [--episodes N] [--policies ...]`: the paper's Fig. 4b.
+
+The policies of Fig. 4a run closed loop in the MJX physics check (`gsp_jax.physics`): at every waypoint each acts
+on the simulated state (L1 and L2 search the surrogate from it), the contact controller executes the grasp, and
+after the last waypoint the episode's torque is applied; the score is the mean tool angle error under it, 180 deg
+when the tool fell or touched the table. All episodes of a policy run in one batch. Each policy's result is saved
+as soon as it is done (results/fig4b/<policy>.json) and reused when the command runs again with the same episodes
+(`--fresh` to redo), so an interrupted run loses at most one policy. Writes fig4b.png; prints the table last.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import jax
+import numpy as np
+
+from experiments import evaluation, stats
+from experiments.common import results_dir, table
+from experiments.physics import result_rows
+from gsp_jax import physics
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--set", default="eval", choices=["evalA", "evalB", "eval", "val"])
+    p.add_argument("--episodes", type=int, default=None, help="only N episodes, spread over the set")
+    p.add_argument("--policies", nargs="+", default=list(evaluation.POLICIES), choices=evaluation.POLICIES)
+    p.add_argument("--policy-dir", default=None)
+    p.add_argument("--fresh", action="store_true", help="ignore saved per-policy results")
+
+
+def run(ctx: evaluation.Context, names, out, fresh: bool = False) -> dict:
+    phys = physics.Physics(ctx.surrogate)
+    results = {}
+    for name in names:
+        path = out / f"{name}.json"
+        if path.exists() and not fresh:
+            saved = json.loads(path.read_text())
+            if saved["episodes"] == ctx.names and saved["rl_policy"] == ctx.rl_source:
+                results[name] = saved
+                print(f"  {name:8s} (saved) mean angle error {saved['mean_deg']:.1f} deg", flush=True)
+                continue
+        policy, axis = evaluation.make(ctx, name)
+        t0 = time.perf_counter()
+        res = jax.block_until_ready(phys.simulate_batch(policy, ctx.batch, axis))
+        wall = time.perf_counter() - t0
+        mean, ci = stats.mean_ci(res.angle_error)
+        rows = result_rows(ctx.names, res)
+        results[name] = dict(policy=name, episodes=ctx.names, rl_policy=ctx.rl_source, mean_deg=mean, ci95_deg=ci,
+                             falls=int(np.sum(res.fell)), held=[r for r in rows if not r["fell"]], per_episode=rows,
+                             wall_s_incl_compile=wall, platform=jax.default_backend())
+        path.write_text(json.dumps(results[name], indent=1))
+        print(f"  {name:8s} mean angle error {mean:.1f} deg (+-{ci:.1f}), {results[name]['falls']}/{len(ctx.names)} "
+              f"fell ({wall:.0f} s incl. compile)", flush=True)
+    plot(results, len(ctx.names), out / "fig4b.png")
+    return results
+
+
+def plot(results: dict, n: int, path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.6))
+    names = list(results)
+    ax.bar(names, [results[k]["mean_deg"] for k in names], yerr=[np.nan_to_num(results[k]["ci95_deg"]) for k in names],
+           capsize=6, color="#4c72b0")
+    ax.set_ylim(0, 190)
+    ax.set_ylabel("mean tool angle error [deg] (180 = fell)")
+    ax.set_title(f"MJX physics, {n} unseen episodes (95% CI)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)
+
+
+def print_result(results: dict) -> None:
+    rows = [[n, r["mean_deg"], r["ci95_deg"], f"{r['falls']}/{len(r['episodes'])}"] for n, r in results.items()]
+    print(table(["policy", "angle error [deg]", "95% CI +-", "fell"], rows, ".1f"))
+
+
+def main(args: argparse.Namespace) -> None:
+    ctx = evaluation.context(args.set, args.episodes, args.policy_dir)
+    print(f"Fig. 4b: {len(ctx.names)} episodes of '{args.set}' in MJX on {jax.default_backend()}, "
+          f"RL policy {ctx.rl_source}", flush=True)
+    out = results_dir("fig4b")
+    results = run(ctx, args.policies, out, args.fresh)
+    print(f"wrote {out}/<policy>.json, {out / 'fig4b.png'}")
+    print_result(results)

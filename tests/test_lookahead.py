@@ -1,0 +1,170 @@
+"""Lookahead (Algorithm 2) against a plain recursive search, DP at full depth, and the rollout cost-improvement
+property; on the surrogate itself (continuous states) and on DP tables (exact for discrete states)."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gsp_jax import dp, lookahead, policies, scenario
+from gsp_jax.env import TableModel, observation_size, table_state
+from gsp_jax.ppo import networks as nets
+
+
+def _eval_episodes(n_steps):
+    a, b = scenario.eval_set_a(), scenario.eval_set_b()
+    picks = [a["shift+4mm_-1Nm"], a["shift-6mm_+1Nm"], b["mass2m0_comy+1cm"], b["mass0.5m0_comy-2cm"]]
+    return scenario.stack([e.head(n_steps) for e in picks])
+
+
+@pytest.fixture(scope="module")
+def solved(sur):
+    """4 evaluation episodes (both sets) cut to 6 waypoints, with their DP tables and solutions."""
+    eps = _eval_episodes(6)
+    tables, sols = jax.jit(jax.vmap(lambda e: dp.solve(sur, e)))(eps)
+    return eps, tables, sols
+
+
+@pytest.fixture(scope="module")
+def network(sur):
+    """A small PPO actor-critic with random weights (a deterministic policy that is neither DP nor trivial)."""
+    networks = nets.make_networks(observation_size(sur.space, 6, sur.hand.n_joints), sur.n_actions, nets.NetworkConfig(hidden=(32, 32)))
+    return policies.NetworkPolicy(networks.init(jax.random.PRNGKey(3)), networks, sur.space)
+
+
+def _pick(tree, i):
+    return jax.tree.map(lambda x: x[i], tree)
+
+
+def _reference_q(step, act, value, state, depth, horizon):
+    """Plain recursive Algorithm 2 (no sharing, no vmap): q[a] for every first action."""
+    step, act = jax.jit(step), jax.jit(act)
+
+    def rollout(s):
+        ret, i = 0.0, 0
+        while (horizon is None or i < horizon) and not bool(s.done):
+            s, r, _ = step(s, act(s))
+            ret, i = ret + float(r), i + 1
+        if value is not None and not bool(s.done):
+            ret += float(value(s))
+        return ret
+
+    def best(s, d):
+        if d == 0:
+            return rollout(s)
+        return max(q_of(s, d))
+
+    def q_of(s, d):
+        out = []
+        for a in range(16):
+            child, r, _ = step(s, jnp.int32(a))
+            out.append(float(r) + best(child, d - 1))
+        return out
+
+    return np.array(q_of(state, depth))
+
+
+def test_search_on_the_surrogate_matches_a_recursive_search_from_a_continuous_state(sur, solved):
+    """From an off-waypoint state (tool 2-3 mm and a few degrees off, moving): the vmapped search with shared
+    rollouts gives the same 16 Q-values and action as a plain recursive search stepping the surrogate (depth 1
+    here, the continuous root's children; deeper levels are exercised on tables below)."""
+    eps, _, sols = solved
+    ep = _pick(eps, 2).head(5)
+    state = sur.discrete_state(ep, sols.grasps[2, 1], 1)
+    tilt = jnp.array([np.cos(0.03), 0.0, np.sin(0.03), 0.0], jnp.float32)  # 3.4 deg about y
+    state = state.replace(
+        tool_pos=state.tool_pos + jnp.array([0.002, -0.003, 0.001]),
+        tool_quat=tilt,
+        tool_vel=jnp.array([0.01, 0.0, 0.02, 0.1, 0.0, 0.0]),
+    )
+    base = policies.SequencePolicy(sols.actions[0, :5])
+    plan = jax.jit(lambda s: lookahead.search(sur, s, base, depth=1))(state)
+    ref = _reference_q(sur.step, base.act, None, state, 1, None)
+    np.testing.assert_allclose(np.asarray(plan.q), ref, rtol=1e-4, atol=1e-4)
+    assert int(plan.action) == int(np.argmax(ref))
+    assert float(plan.value) == pytest.approx(ref.max(), rel=1e-4, abs=1e-4)
+
+
+def test_search_with_truncated_rollouts_and_a_critic_matches_a_recursive_search(sur, solved, network):
+    """m = 1 rollout steps plus the critic's value at the cut-off, on a DP table; and the best path's score."""
+    eps, tables, sols = solved
+    model = TableModel(_pick(tables, 0), sur.space)
+    state = table_state(_pick(eps, 0), model.table, sols.grasps[0, 2], 2)
+    plan = jax.jit(lambda s, m: lookahead.search(m, s, network, depth=2, horizon=1, value=network.value))(state, model)
+    ref = _reference_q(model.step, network.act, network.value, state, 2, 1)
+    np.testing.assert_allclose(np.asarray(plan.q), ref, rtol=1e-4, atol=1e-4)
+    assert int(plan.path[0]) == int(plan.action) == int(np.argmax(ref))
+
+
+def test_full_depth_lookahead_is_dp_optimal_from_every_start_grasp(sur):
+    """l = T: the complete tree is the whole problem, so running the lookahead policy from any grasp at
+    waypoint 0 earns the DP optimal value of that grasp (3-waypoint episodes, 4,096 paths per decision)."""
+    eps = jax.tree.map(lambda x: x[1:3], _eval_episodes(3))
+    tables, sols = jax.jit(jax.vmap(lambda e: dp.solve(sur, e)))(eps)
+    base = policies.SequencePolicy(jnp.zeros(3, jnp.int32))
+
+    def run(ep, table, g):
+        model = TableModel(table, sur.space)
+        return lookahead.rollout(model, policies.Lookahead(base, model, depth=3), table_state(ep, table, g, 0))[0]
+
+    grasps = jnp.arange(sur.space.n_grasps, dtype=jnp.int32)
+    ret = jax.jit(jax.vmap(jax.vmap(run, (None, None, 0)), (0, 0, None)))(eps, tables, grasps)
+    np.testing.assert_allclose(np.asarray(ret), np.asarray(sols.value[:, :, 0]), rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("base_name", ["dp-baseline", "network"])
+def test_l1_never_earns_less_than_its_base_policy_from_any_state(sur, solved, network, base_name):
+    """Cost improvement of rollout (deterministic model): from every discrete state (grasp, waypoint) of the
+    evaluation episodes, running L1 over a base policy earns at least what the base policy earns (and never
+    more than DP optimal); it strictly improves at many states."""
+    eps, tables, sols = solved
+    base = policies.SequencePolicy(sols.actions[0]) if base_name == "dp-baseline" else network
+    n_g, n_t = sur.space.n_grasps, eps.waypoints.shape[1]
+
+    def returns(ep, table, g, t):
+        model = TableModel(table, sur.space)
+        start = table_state(ep, table, g, t)
+        base_ret = lookahead.rollout(model, base, start)[0]
+        l1_ret = lookahead.rollout(model, policies.Lookahead(base, model, depth=1), start)[0]
+        return base_ret, l1_ret
+
+    g, t = jnp.meshgrid(jnp.arange(n_g, dtype=jnp.int32), jnp.arange(n_t, dtype=jnp.int32), indexing="ij")
+    per_state = jax.vmap(returns, (None, None, 0, 0))
+    base_ret, l1_ret = jax.jit(jax.vmap(per_state, (0, 0, None, None)))(eps, tables, g.ravel(), t.ravel())
+    base_ret, l1_ret = np.asarray(base_ret), np.asarray(l1_ret)
+    assert np.all(l1_ret >= base_ret - 1e-4), f"L1 below its base at {np.sum(l1_ret < base_ret - 1e-4)} states"
+    assert np.mean(l1_ret > base_ret + 1e-3) > 0.1  # and it does improve, at many states
+    # never above the DP optimum of the state
+    dp_value = np.asarray(sols.value[:, :, :n_t]).reshape(len(base_ret), -1)
+    assert np.all(l1_ret <= dp_value + 1e-4)
+
+
+def test_vmapped_search_equals_looped_search(sur, solved, network):
+    eps, tables, sols = solved
+    model = TableModel(_pick(tables, 1), sur.space)
+    ep = _pick(eps, 1)
+    states = jax.vmap(lambda g, t: table_state(ep, model.table, g, t))(jnp.array([0, 17, 101, 287]), jnp.array([0, 2, 3, 5]))
+    search = jax.jit(lambda s: lookahead.search(model, s, network, depth=2))
+    batched = jax.vmap(lambda s: lookahead.search(model, s, network, depth=2))(states)
+    for i in range(4):
+        one = search(_pick(states, i))
+        np.testing.assert_allclose(np.asarray(batched.q[i]), np.asarray(one.q), rtol=1e-5, atol=1e-5)
+        assert int(batched.action[i]) == int(one.action)
+
+
+def test_lookahead_from_a_finished_state_and_bad_arguments(sur, solved):
+    eps, tables, sols = solved
+    model = TableModel(_pick(tables, 0), sur.space)
+    done = table_state(_pick(eps, 0), model.table, 0, 6).replace(done=jnp.array(True))
+    plan = lookahead.search(model, done, policies.SequencePolicy(sols.actions[0]), depth=1)
+    np.testing.assert_array_equal(np.asarray(plan.q), 0.0)
+    with pytest.raises(ValueError, match="depth"):
+        lookahead.search(model, done, policies.SequencePolicy(sols.actions[0]), depth=0)
+    with pytest.raises(ValueError, match="horizon"):
+        lookahead.search(model, done, policies.SequencePolicy(sols.actions[0]), depth=1, horizon=-1)
+
+
+def test_shared_rollouts_cover_every_leaf(sur):
+    """The distinct leaf grasps of a depth-l tree: 11 (l = 1) and 51 (l = 2) for the paper's hand, i.e. the grasps
+    within l link changes (options per link 3, 3, 2, 4, 2, 2)."""
+    assert lookahead._ball_size(sur.space, 1) == 1 + 10
+    assert lookahead._ball_size(sur.space, 2) == 1 + 10 + 40

@@ -27,7 +27,7 @@ demo: $(STAMP)
 	JAX_PLATFORMS=cpu $(PY) -m experiments surrogate --episode nominal
 
 test: $(STAMP)
-	JAX_PLATFORMS=cpu $(PY) -m pytest -q tests
+	JAX_PLATFORMS=cpu $(PY) -m pytest -q -n 2 tests --nbmake --nbmake-timeout=1200 experiments/notebooks
 
 bench: $(STAMP)
 	$(PY) -m experiments bench-surrogate

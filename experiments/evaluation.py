@@ -8,6 +8,7 @@ behind one interface (`act(state)`), built the same way for the surrogate evalua
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import pathlib
 
 import jax
@@ -22,7 +23,8 @@ from gsp_jax.surrogate import Surrogate
 POLICIES = ("dp-base", "rl", "L1", "L2", "dp-opt")  # the paper's order (Table 1)
 LOOKAHEAD_DEPTH = {"L1": 1, "L2": 2}
 TRAINED_POLICY = pathlib.Path("results/train/dp/seed0/policy")  # what `python -m experiments train` writes
-SHIPPED_POLICY = pathlib.Path("models/policies/ppo_dp_seed0")  # a copy of a full-preset GPU run, shipped
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+SHIPPED_POLICY = ROOT / "models/policies/ppo_dp_seed0"  # a copy of results/train/dp/seed0/policy of a full GPU run
 PAPER = dict(  # the paper's numbers, printed beside ours
     table1_s={"dp-base": 1.34, "rl": 1.23, "L1": 2.68, "L2": 4.30, "dp-opt": 151.79},
     table1_machine="32-core Xeon Silver 4216, 2.1 GHz",
@@ -40,6 +42,17 @@ class Context:
     nominal_actions: jax.Array  # (T,) the DP baseline: the nominal training episode's optimal sequence
     rl: policies.NetworkPolicy  # the PPO actor (deterministic), with its critic
     rl_source: str  # where the RL policy was read from
+
+
+def fingerprint(ctx: Context) -> str:
+    """Hash of what a saved result depends on: the library and model sources, the episodes, the RL parameters."""
+    h = hashlib.sha256()
+    for path in sorted([*ROOT.glob("gsp_jax/**/*.py"), *ROOT.glob("models/*.xml"), ROOT / "experiments/evaluation.py"]):
+        h.update(path.read_bytes())
+    h.update(repr(ctx.names).encode())
+    for leaf in jax.tree.leaves(ctx.rl.params):
+        h.update(np.asarray(leaf).tobytes())
+    return h.hexdigest()[:16]
 
 
 def subset(episodes: dict, n: int | None) -> dict:
@@ -61,7 +74,8 @@ def load_rl(sur: Surrogate, policy_dir: str | pathlib.Path | None = None) -> tup
         if path.exists():
             obs = env_lib.observation_size(sur.space, scenario.N_WAYPOINTS, sur.hand.n_joints)
             networks = nets.make_networks(obs, sur.n_actions, nets.NetworkConfig())
-            return policies.NetworkPolicy(ppo.load_policy(path, networks), networks, sur.space), str(path)
+            shown = path.resolve().relative_to(ROOT) if path.resolve().is_relative_to(ROOT) else path
+            return policies.NetworkPolicy(ppo.load_policy(path, networks), networks, sur.space), str(shown)
     raise FileNotFoundError(
         f"policy_dir: no PPO policy at {', '.join(map(str, candidates))}; run `python -m experiments train --seeds 1`"
     )

@@ -4,8 +4,8 @@ The policies of Fig. 4a run closed loop in the MJX physics check (`gsp_jax.physi
 on the simulated state (L1 and L2 search the surrogate from it), the contact controller executes the grasp, and
 after the last waypoint the episode's torque is applied; the score is the mean tool angle error under it, 180 deg
 when the tool fell or touched the table. All episodes of a policy run in one batch. Each policy's result is saved
-as soon as it is done (results/fig4b/<policy>.json) and reused when the command runs again with the same episodes
-(`--fresh` to redo), so an interrupted run loses at most one policy. Writes fig4b.png; prints the table last.
+as soon as it is done (results/fig4b/<policy>.json) and reused when the command runs again with the same episodes,
+policy parameters and library sources (`--fresh` to redo), so an interrupted run loses at most one policy. Writes fig4b.png; prints the table last.
 """
 from __future__ import annotations
 
@@ -32,12 +32,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(ctx: evaluation.Context, names, out, fresh: bool = False) -> dict:
     phys = physics.Physics(ctx.surrogate)
+    stamp = evaluation.fingerprint(ctx)
     results = {}
     for name in names:
         path = out / f"{name}.json"
         if path.exists() and not fresh:
             saved = json.loads(path.read_text())
-            if saved["episodes"] == ctx.names and saved["rl_policy"] == ctx.rl_source:
+            if saved.get("fingerprint") == stamp:
                 results[name] = saved
                 print(f"  {name:8s} (saved) mean angle error {saved['mean_deg']:.1f} deg", flush=True)
                 continue
@@ -49,7 +50,7 @@ def run(ctx: evaluation.Context, names, out, fresh: bool = False) -> dict:
         rows = result_rows(ctx.names, res)
         results[name] = dict(policy=name, episodes=ctx.names, rl_policy=ctx.rl_source, mean_deg=mean, ci95_deg=ci,
                              falls=int(np.sum(res.fell)), held=[r for r in rows if not r["fell"]], per_episode=rows,
-                             wall_s_incl_compile=wall, platform=jax.default_backend())
+                             wall_s_incl_compile=wall, platform=jax.default_backend(), fingerprint=stamp)
         path.write_text(json.dumps(results[name], indent=1))
         print(f"  {name:8s} mean angle error {mean:.1f} deg (+-{ci:.1f}), {results[name]['falls']}/{len(ctx.names)} "
               f"fell ({wall:.0f} s incl. compile)", flush=True)

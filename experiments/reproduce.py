@@ -63,6 +63,11 @@ def main(args: argparse.Namespace) -> None:
                                       patience=None, out="train"))
     sections = dict(preset=preset, device=f"{device.device_kind} ({device.platform})",
                     date=datetime.datetime.now().isoformat(timespec="minutes"))
+    saved = out / "report.json"
+    if args.skip and saved.exists():  # a partial run adds to the stages already reported in `out`
+        previous = json.loads(saved.read_text())
+        if previous.get("preset") == preset:
+            sections = previous | sections
 
     if "fig4a" not in args.skip:
         print(f"[1/3] Fig. 4a ({p['backend']} backend)", flush=True)
@@ -89,10 +94,9 @@ def main(args: argparse.Namespace) -> None:
         fig4b.print_result(res)
         shutil.copy(results_dir("fig4b") / "fig4b.png", out / "fig4b.png")
         sections["fig4b"] = res
-    sections["wall_s"] = time.perf_counter() - t_start
     (out / "report.json").write_text(json.dumps(sections, indent=1, default=str))
     (out / "REPORT.md").write_text(report(sections))
-    print(f"wrote {out / 'REPORT.md'} ({sections['wall_s'] / 60:.1f} min)")
+    print(f"wrote {out / 'REPORT.md'} ({(time.perf_counter() - t_start) / 60:.1f} min)")
 
 
 def rebuild(out: pathlib.Path) -> None:
@@ -114,24 +118,30 @@ def _claims(sections: dict) -> list[tuple[str, str, str]]:
     rows = []
     if sections.get("fig4a", {}).get("anova"):
         f = sections["fig4a"]
-        post = {(c["a"], c["b"]): c for c in f["anova"]["posthoc"]}
+        tests = {kind: {(c["a"], c["b"]): c for c in f[kind]["posthoc"]} for kind in ("anova", "rank") if f.get(kind)}
 
-        def better(a, b):  # is a significantly better than b (higher return)?
-            c = post.get((a, b)) or post.get((b, a))
-            diff = c["diff"] if (c["a"], c["b"]) == (a, b) else -c["diff"]
-            return diff > 0 and c["p_holm"] < 0.05, f"{a} - {b} = {diff:+.3f}, Holm p = {c['p_holm']:.3g}"
+        def compare(kind, a, b):  # (a - b, Holm p) from the post-hoc tests of `kind`
+            post = tests.get(kind, {})
+            if (a, b) in post:
+                return post[(a, b)]["diff"], post[(a, b)]["p_holm"]
+            if (b, a) in post:
+                return -post[(b, a)]["diff"], post[(b, a)]["p_holm"]
+            return float("nan"), float("nan")
+
+        def claim(a, b, text):
+            diff, p = compare("anova", a, b)
+            med, p_rank = compare("rank", a, b)
+            ours = f"mean {a} - {b} = {diff:+.3f}, paired t Holm p = {p:.3g}; median {med:+.3f}, Wilcoxon Holm p = {p_rank:.3g}"
+            return text, ours, "yes" if diff > 0 and p < 0.05 else "no"
 
         for a in ("rl", "L1", "L2"):
-            ok, text = better(a, "dp-base")
-            rows.append((f"{a} significantly outperforms DP baseline (surrogate)", text, "yes" if ok else "no"))
+            rows.append(claim(a, "dp-base", f"{a} significantly outperforms DP baseline (surrogate)"))
         for a in ("L1", "L2"):
-            ok, text = better(a, "rl")
-            rows.append((f"{a} significantly outperforms RL (P < 0.05, surrogate)", text, "yes" if ok else "no"))
+            rows.append(claim(a, "rl", f"{a} significantly outperforms RL (P < 0.05, surrogate)"))
         rel = f["relative"]
-        ok = rel["L2"]["mean"] - rel["L1"]["mean"] <= rel["L1"]["mean"] - rel["rl"]["mean"] + 1e-9
+        gain1, gain2 = rel["L1"]["mean"] - rel["rl"]["mean"], rel["L2"]["mean"] - rel["L1"]["mean"]
         rows.append(("most of the lookahead gain comes from L1 (diminishing returns)",
-                     f"RL -> L1 {rel['L1']['mean'] - rel['rl']['mean']:+.3f}, L1 -> L2 {rel['L2']['mean'] - rel['L1']['mean']:+.3f}",
-                     "yes" if ok else "no"))
+                     f"RL -> L1 {gain1:+.3f}, L1 -> L2 {gain2:+.3f}", "yes" if gain1 > 0 and gain2 <= gain1 else "no"))
     if "table1" in sections:
         t = sections["table1"]["policies"]
         ok = all(t[n]["warm_s"] < t["dp-opt"]["warm_s"] for n in ("dp-base", "rl", "L1", "L2"))
@@ -139,12 +149,15 @@ def _claims(sections: dict) -> list[tuple[str, str, str]]:
                      ", ".join(f"{n} {r['warm_s']:.3g} s" for n, r in t.items()), "yes" if ok else "no"))
     if "fig4b" in sections:
         b = sections["fig4b"]
-        best = min(b, key=lambda n: b[n]["mean_deg"])
-        rows.append(("DP optimal performs best in physics", f"lowest mean error: {best} ({b[best]['mean_deg']:.1f} deg)",
-                     "yes" if best == "dp-opt" else "no"))
-        ok = all(b[n]["mean_deg"] <= min(b["dp-base"]["mean_deg"], b["rl"]["mean_deg"]) for n in ("L1", "L2"))
-        rows.append(("lookahead generally outperforms DP baseline and RL in physics",
-                     ", ".join(f"{n} {r['mean_deg']:.1f}" for n, r in b.items()), "yes" if ok else "no"))
+        errors = {n: r["mean_deg"] for n, r in b.items()}
+        tied = max(errors.values()) - min(errors.values()) < 1e-6
+        listing = ", ".join(f"{n} {e:.1f}" for n, e in errors.items())
+        best = min(errors, key=errors.get)
+        first = errors["dp-opt"] <= min(errors.values()) + 1e-6
+        rows.append(("DP optimal performs best in physics", ("all tied: " if tied else f"lowest: {best}; ") + listing,
+                     "yes" if first and not tied else "no"))
+        ok = not tied and all(errors[n] < min(errors["dp-base"], errors["rl"]) for n in ("L1", "L2"))
+        rows.append(("lookahead generally outperforms DP baseline and RL in physics", listing, "yes" if ok else "no"))
         falls = sum(r["falls"] for r in b.values())
         total = sum(len(r["episodes"]) for r in b.values())
         if falls == total:
@@ -154,22 +167,29 @@ def _claims(sections: dict) -> list[tuple[str, str, str]]:
 
 
 def report(s: dict) -> str:
+    stage = {"Fig. 4a": sum(s["fig4a"]["wall_s"].values()) if "fig4a" in s else None,
+             "Table 1": s.get("table1", {}).get("wall_s"),
+             "Fig. 4b": sum(r["wall_s_incl_compile"] for r in s["fig4b"].values()) if "fig4b" in s else None}
+    times = ", ".join(f"{k} {v / 60:.1f} min" for k, v in stage.items() if v is not None)
     lines = [f"# gsp_jax: the paper's evaluation, reproduced ({s['preset']} preset)", "",
-             f"Generated by `python -m experiments reproduce --{s['preset']}` on {s['device']}, {s['date']}, "
-             f"in {s['wall_s'] / 60:.1f} min.", ""]
+             f"Generated by `python -m experiments reproduce --{s['preset']}` on {s['device']}, {s['date']}. "
+             f"Stage wall times, compilation included: {times}.", ""]
     if "fig4a" in s:
         f = s["fig4a"]
         lines += ["## Fig. 4a: surrogate return relative to DP optimal", "",
                   f"{len(f['episodes'])} unseen evaluation episodes, stepped on the {f['backend']} backend; "
-                  f"RL policy `{f['rl_policy']}`. Return - DP optimal return (0 is optimal; a fall costs -200).", "",
+                  f"RL policy `{f['rl_policy']}`. Return - DP optimal return (0 is optimal; a fall costs {f['r_min']:g}).", "",
                   "![Fig. 4a](fig4a.png)", "", "| policy | mean | 95% CI ± | optimal on | falls |", "|---|---|---|---|---|"]
         for n, r in f["relative"].items():
             lines.append(f"| {n} | {r['mean']:.3f} | {r['ci95']:.3f} | {r['optimal']}/{len(f['episodes'])} | {r['falls']} |")
         lines += ["", "```", f["anova_text"], "```", ""]
         if "table_vs_surrogate_max_abs" in f:
             worst = max(f["table_vs_surrogate_max_abs"].values())
-            lines += [f"Surrogate-stepped returns vs table-stepped returns: max |difference| {worst:.2e} over all "
-                      "policies and episodes.", ""]
+            per = ", ".join(f"{n} {v:.2g}" for n, v in f["table_vs_surrogate_max_abs"].items())
+            lines += [f"Cross-check, surrogate-stepped vs table-stepped returns, max |difference| per policy: {per}. "
+                      "The tables are built by the same IK and wrench kernels, batched; on a CPU the two agree to "
+                      "1e-5 (tests), on a GPU float32 reductions in the iterative solves differ in order, which moves "
+                      "marginal rewards" + (f" (largest: {worst:.2g})." if worst > 1e-3 else "."), ""]
     if "table1" in s:
         t = s["table1"]
         batched = any("batch" in r for r in t["policies"].values())

@@ -19,10 +19,11 @@ traced, so `jax.vmap` runs one search per (state, episode, policy parameters) in
 
 Shared rollouts. Below the root every state is the surrogate's discrete state of its (grasp, waypoint): the tool
 on the waypoint, the grasp realised by IK from the fixed start configuration, the velocity of the waypoint
-move. So two leaves with the same grasp differ only in `done` (and `terms`, which no policy reads): the rollout
-runs once per distinct leaf grasp, and leaves that already ended get 0. An action sets one link, so the leaves
-lie within l link changes of the root's grasp: 11 distinct grasps for l = 1 and 51 for l = 2 with the paper's
-hand, against 16 and 256 leaves. A test checks the search against a plain recursive one.
+move. So two live leaves (paths that have not ended) with the same grasp are the same state up to `terms`,
+which no policy reads: the rollout runs once per distinct live leaf grasp. Paths that ended early stay frozen
+where they ended (another waypoint) and are not rolled out. An action sets one link, so the leaves lie within
+l link changes of the root's grasp: 11 distinct grasps for l = 1 and 51 for l = 2 with the paper's hand,
+against 16 and 256 leaves. Tests check the search against a plain recursive one and a brute-force enumeration.
 """
 from __future__ import annotations
 
@@ -81,13 +82,13 @@ def search(model, state: State, base, depth: int = 1, horizon: int | None = None
     n_a = space.n_actions
     leaves, path_reward = _expand(model, state, depth, n_a)  # leaves: (A^l, ...) states; path_reward (A^l,)
 
-    # One rollout per distinct leaf grasp (all leaves are at the same waypoint).
-    n_unique = _ball_size(space, depth)
-    grasps = leaves.grasp
-    unique, first, inverse = jnp.unique(grasps, size=n_unique, fill_value=grasps[0], return_index=True, return_inverse=True)
-    del unique
+    # One rollout per distinct grasp among the live leaves (all at waypoint t + l); the paths that ended early
+    # (frozen at an earlier waypoint) share one extra key and are scored 0 beyond their rewards.
+    n_g = space.n_grasps
+    key = jnp.where(leaves.done, n_g, leaves.grasp)
+    _, first, inverse = jnp.unique(key, size=_ball_size(space, depth) + 1, fill_value=n_g, return_index=True,
+                                   return_inverse=True)
     reps = jax.tree.map(lambda x: x[first], leaves)
-    reps = reps.replace(done=reps.t >= state.episode.waypoints.shape[-2])  # live copies (ended leaves: masked below)
     rep_value, _ = jax.vmap(lambda s: rollout(model, base, s, horizon, value))(reps)
     leaf_value = jnp.where(leaves.done, 0.0, rep_value[inverse.reshape(-1)])
 
@@ -120,7 +121,8 @@ _BALL_CACHE: dict = {}
 def _ball_size(space: GraspSpace, depth: int) -> int:
     """Most distinct grasps one grasp reaches by paths of exactly `depth` actions (static; from the grasp space's
     transitions, so it holds for any action set)."""
-    key = (id(space), depth)
+    key = (tuple(np.asarray(space.n_options).tolist()), tuple(np.asarray(space.action_link).tolist()),
+           tuple(np.asarray(space.action_option).tolist()), depth)
     if key not in _BALL_CACHE:
         g = np.arange(space.n_grasps)
         adjacency = np.zeros((space.n_grasps, space.n_grasps), np.int64)

@@ -41,3 +41,14 @@ def test_mean_ci_and_bad_input():
         stats.rm_anova(SCORES[:, :2], ["a", "b", "c"])
     with pytest.raises(ValueError, match="finite"):
         stats.rm_anova(np.where(SCORES == 7, np.nan, SCORES), ["a", "b", "c"])
+
+
+def test_friedman_matches_the_worked_example():
+    """Ranks within subjects: (1,2,3), (1,2,3), (1.5,1.5,3), (1,2.5,2.5) -> rank sums 4.5, 8, 11.5;
+    chi2 = 12 / (4*3*4) * (4.5^2 + 8^2 + 11.5^2) - 3*4*4 = 6.125, tie-corrected by 1 - (6 + 6) / (4 * (27 - 3))
+    = 0.875 -> 7.0 on 2 df, p = exp(-7/2) (the chi2(2) tail in closed form)."""
+    res = stats.rank_tests(SCORES, ["a", "b", "c"])
+    assert res.chi2 == pytest.approx(7.0, rel=1e-9)
+    assert res.p == pytest.approx(np.exp(-3.5), rel=1e-9)
+    by = {(c.a, c.b): c for c in res.posthoc}
+    assert by[("a", "c")].diff == -4.0 and by[("a", "c")].t == 0.0  # every difference negative: W+ = 0

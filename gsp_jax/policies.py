@@ -17,10 +17,12 @@ from flax import struct
 
 from gsp_jax.env import observation
 from gsp_jax.grasps import GraspSpace
-from gsp_jax.lookahead import Lookahead  # noqa: F401  (re-exported: the Ll policies)
+from gsp_jax.lookahead import Lookahead  # re-exported: the Ll policies
 from gsp_jax.ppo import networks as nets
 from gsp_jax.ppo.train import PPOConfig
 from gsp_jax.surrogate import State
+
+__all__ = ["Lookahead", "NetworkPolicy", "SequencePolicy", "TablePolicy", "rollout"]
 
 
 @struct.dataclass

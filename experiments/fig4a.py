@@ -96,7 +96,8 @@ def plot(summary: dict, n: int, path) -> None:
     cis = [summary[k]["ci95"] for k in names]
     ax.bar(names, means, yerr=cis, capsize=6, color=["#999999", "#4c72b0", "#55a868", "#2e7d32"][: len(names)])
     ax.axhline(0, color="k", lw=0.8)
-    ax.set_ylabel("return - DP optimal return")
+    ax.set_yscale("symlog", linthresh=0.05)  # falls (-200) and the lookahead's hundredths on one axis
+    ax.set_ylabel("return - DP optimal return (symlog)")
     ax.set_title(f"Surrogate, {n} unseen episodes (95% CI)")
     fig.tight_layout()
     fig.savefig(path, dpi=130)

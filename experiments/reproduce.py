@@ -211,10 +211,13 @@ def report(s: dict) -> str:
         n = len(next(iter(b.values()))["episodes"])
         lines += ["## Fig. 4b: the same policies closed loop in MJX", "",
                   f"{n} unseen episodes; mean tool angle error under the final torque, 180° when the tool fell.", "",
-                  "![Fig. 4b](fig4b.png)", "", "| policy | mean [deg] | 95% CI ± | fell |", "|---|---|---|---|"]
+                  "![Fig. 4b](fig4b.png)", "", "| policy | mean [deg] | 95% CI ± | fell | mean time of the fall [s] |",
+                  "|---|---|---|---|---|"]
         for name, r in b.items():
             ci = "–" if not np.isfinite(r["ci95_deg"]) else f"{r['ci95_deg']:.1f}"
-            lines.append(f"| {name} | {r['mean_deg']:.1f} | {ci} | {r['falls']}/{len(r['episodes'])} |")
+            times = [e["fall_time_s"] for e in r["per_episode"] if e["fell"]]
+            when = f"{np.mean(times):.2f}" if times else "–"
+            lines.append(f"| {name} | {r['mean_deg']:.1f} | {ci} | {r['falls']}/{len(r['episodes'])} | {when} |")
         lines.append("")
     claims = _claims(s)
     if claims:

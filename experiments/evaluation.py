@@ -43,11 +43,22 @@ class Context:
     rl: policies.NetworkPolicy  # the PPO actor (deterministic), with its critic
     rl_source: str  # where the RL policy was read from
 
+    def take(self, n: int | None) -> "Context":
+        """The same context on `n` of its episodes, spread evenly (as `subset`): no new tables."""
+        if n is None or n >= len(self.names):
+            return self
+        keep = np.unique(np.linspace(0, len(self.names) - 1, max(1, n)).round().astype(int))
+        pick = lambda tree: jax.tree.map(lambda x: x[keep], tree)  # noqa: E731
+        return dataclasses.replace(self, names=[self.names[i] for i in keep], batch=pick(self.batch),
+                                   tables=pick(self.tables), solutions=pick(self.solutions))
+
 
 def fingerprint(ctx: Context) -> str:
     """Hash of what a saved result depends on: the library and model sources, the episodes, the RL parameters."""
     h = hashlib.sha256()
-    for path in sorted([*ROOT.glob("gsp_jax/**/*.py"), *ROOT.glob("models/*.xml"), ROOT / "experiments/evaluation.py"]):
+    sources = [*ROOT.glob("gsp_jax/**/*.py"), *ROOT.glob("models/*.xml")]
+    sources += [ROOT / "experiments" / f for f in ("evaluation.py", "physics.py", "fig4b.py")]
+    for path in sorted(sources):
         h.update(path.read_bytes())
     h.update(repr(ctx.names).encode())
     for leaf in jax.tree.leaves(ctx.rl.params):
@@ -83,8 +94,9 @@ def load_rl(sur: Surrogate, policy_dir: str | pathlib.Path | None = None) -> tup
 
 def context(set_name: str = "eval", n_episodes: int | None = None, policy_dir=None) -> Context:
     sur = Surrogate()
-    episodes = subset(scenario.episode_set(set_name), n_episodes)
-    tag = set_name if n_episodes is None else f"{set_name}{len(episodes)}"
+    everything = scenario.episode_set(set_name)
+    episodes = subset(everything, n_episodes)
+    tag = set_name if len(episodes) == len(everything) else f"{set_name}{len(episodes)}"
     tables = dp_tables(sur, tag, episodes)
     batch = scenario.stack(list(episodes.values()))
     solutions = jax.jit(jax.vmap(dp.backup))(tables, batch.start_grasp)

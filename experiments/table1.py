@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 
 import jax
@@ -74,6 +75,8 @@ def run(ctx: evaluation.Context, batch: int, repeats: int, out) -> dict:
     device = jax.devices()[0]
     result = dict(platform=device.platform, device=str(device.device_kind), episode=ctx.names[0], repeats=repeats,
                   policies=rows, paper=evaluation.PAPER, wall_s=time.perf_counter() - t_start)
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        result["note"] = "JAX's persistent compilation cache was on (JAX_COMPILATION_CACHE_DIR): compile times may be cache hits"
     (out / f"{device.platform}.json").write_text(json.dumps(result, indent=1))
     return result
 

@@ -10,7 +10,7 @@ import json
 import jax
 
 from experiments.common import results_dir, table, timed
-from experiments.physics import nominal_actions
+from experiments.common import nominal_actions
 from gsp_jax import physics, policies, scenario, surrogate
 
 

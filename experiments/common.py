@@ -63,3 +63,32 @@ def dp_tables(env, set_name: str, episodes: dict, batch_size: int = 4):
     np.savez(tmp, **{k: np.asarray(v) for k, v in vars(tables).items()})
     tmp.replace(path)
     return tables
+
+
+def nominal_actions(env) -> jax.Array:
+    """The DP baseline's open-loop sequence: the nominal training episode's optimal actions (T,)."""
+    tables = dp_tables(env, "nominal", scenario.nominal())
+    first = jax.tree.map(lambda x: x[0], tables)
+    return dp.backup(first, scenario.make_episode().start_grasp).actions
+
+
+def bar_png(path, names, means, cis, ylabel: str, title: str, color, ylim=None, symlog: float | None = None) -> None:
+    """A bar chart of means with error bars (95% intervals); `symlog`: a symmetric-log y axis with this linear
+    threshold, and a line at zero."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.6))
+    ax.bar(names, means, yerr=cis, capsize=6, color=color)
+    if symlog is not None:
+        ax.axhline(0, color="k", lw=0.8)
+        ax.set_yscale("symlog", linthresh=symlog)
+    if ylim is not None:
+        ax.set_ylim(*ylim)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=130)
+    plt.close(fig)

@@ -14,7 +14,7 @@ import pathlib
 import jax
 import numpy as np
 
-from experiments.common import dp_tables
+from experiments.common import dp_tables, nominal_actions
 from gsp_jax import dp, env as env_lib, policies, scenario
 from gsp_jax.ppo import networks as nets
 from gsp_jax.ppo import train as ppo
@@ -47,7 +47,7 @@ class Context:
         """The same context on `n` of its episodes, spread evenly (as `subset`): no new tables."""
         if n is None or n >= len(self.names):
             return self
-        keep = np.unique(np.linspace(0, len(self.names) - 1, max(1, n)).round().astype(int))
+        keep = spread(len(self.names), n)
         pick = lambda tree: jax.tree.map(lambda x: x[keep], tree)  # noqa: E731
         return dataclasses.replace(self, names=[self.names[i] for i in keep], batch=pick(self.batch),
                                    tables=pick(self.tables), solutions=pick(self.solutions))
@@ -66,13 +66,18 @@ def fingerprint(ctx: Context) -> str:
     return h.hexdigest()[:16]
 
 
+def spread(total: int, n: int) -> np.ndarray:
+    """Indices of `n` of `total` items spread evenly, first and last included."""
+    if n < 1:
+        raise ValueError(f"episodes: need at least 1, got {n}")
+    return np.unique(np.linspace(0, total - 1, n).round().astype(int))
+
+
 def subset(episodes: dict, n: int | None) -> dict:
     """`n` episodes spread evenly over the set (both evaluation sets stay represented); all if n is None."""
     if n is None or n >= len(episodes):
         return episodes
-    if n < 1:
-        raise ValueError(f"episodes: need at least 1, got {n}")
-    keep = np.unique(np.linspace(0, len(episodes) - 1, n).round().astype(int))
+    keep = spread(len(episodes), n)
     items = list(episodes.items())
     return dict(items[i] for i in keep)
 
@@ -100,10 +105,8 @@ def context(set_name: str = "eval", n_episodes: int | None = None, policy_dir=No
     tables = dp_tables(sur, tag, episodes)
     batch = scenario.stack(list(episodes.values()))
     solutions = jax.jit(jax.vmap(dp.backup))(tables, batch.start_grasp)
-    nominal = dp_tables(sur, "nominal", scenario.nominal())
-    nominal_actions = dp.backup(jax.tree.map(lambda x: x[0], nominal), scenario.make_episode().start_grasp).actions
     rl, source = load_rl(sur, policy_dir)
-    return Context(sur, set_name, list(episodes), batch, tables, solutions, nominal_actions, rl, source)
+    return Context(sur, set_name, list(episodes), batch, tables, solutions, nominal_actions(sur), rl, source)
 
 
 def make(ctx: Context, name: str, model=None):

@@ -19,7 +19,7 @@ import jax
 import numpy as np
 
 from experiments import evaluation, stats
-from experiments.common import results_dir, table
+from experiments.common import bar_png, results_dir, table
 from gsp_jax import lookahead, policies
 from gsp_jax.env import TableModel
 
@@ -85,23 +85,11 @@ def analyse(result: dict) -> dict:
 
 
 def plot(summary: dict, n: int, path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(5, 3.6))
     names = list(summary)
-    means = [summary[k]["mean"] for k in names]
-    cis = [summary[k]["ci95"] for k in names]
-    ax.bar(names, means, yerr=cis, capsize=6, color=["#999999", "#4c72b0", "#55a868", "#2e7d32"][: len(names)])
-    ax.axhline(0, color="k", lw=0.8)
-    ax.set_yscale("symlog", linthresh=0.05)  # falls (-200) and the lookahead's hundredths on one axis
-    ax.set_ylabel("return - DP optimal return (symlog)")
-    ax.set_title(f"Surrogate, {n} unseen episodes (95% CI)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
+    bar_png(path, names, [summary[k]["mean"] for k in names], [summary[k]["ci95"] for k in names],
+            "return - DP optimal return (symlog)", f"Surrogate, {n} unseen episodes (95% CI)",
+            ["#999999", "#4c72b0", "#55a868", "#2e7d32"][: len(names)],
+            symlog=0.05)  # falls (-200) and the lookahead's hundredths on one axis
 
 
 def print_result(result: dict) -> None:

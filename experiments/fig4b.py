@@ -17,7 +17,7 @@ import jax
 import numpy as np
 
 from experiments import evaluation, stats
-from experiments.common import results_dir, table
+from experiments.common import bar_png, results_dir, table
 from experiments.physics import result_rows
 from gsp_jax import physics
 
@@ -59,21 +59,10 @@ def run(ctx: evaluation.Context, names, out, fresh: bool = False) -> dict:
 
 
 def plot(results: dict, n: int, path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(5, 3.6))
     names = list(results)
-    ax.bar(names, [results[k]["mean_deg"] for k in names], yerr=[np.nan_to_num(results[k]["ci95_deg"]) for k in names],
-           capsize=6, color="#4c72b0")
-    ax.set_ylim(0, 190)
-    ax.set_ylabel("mean tool angle error [deg] (180 = fell)")
-    ax.set_title(f"MJX physics, {n} unseen episodes (95% CI)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=130)
-    plt.close(fig)
+    bar_png(path, names, [results[k]["mean_deg"] for k in names], [np.nan_to_num(results[k]["ci95_deg"]) for k in names],
+            "mean tool angle error [deg] (180 = fell)", f"MJX physics, {n} unseen episodes (95% CI)", "#4c72b0",
+            ylim=(0, 190))
 
 
 def print_result(results: dict) -> None:

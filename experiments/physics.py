@@ -14,7 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.common import dp_tables, results_dir, table
+from experiments.common import dp_tables, nominal_actions, results_dir, table
+from experiments.evaluation import load_rl
 from experiments.stats import mean_ci
 from gsp_jax import dp, physics, policies, scenario, surrogate
 
@@ -29,13 +30,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="for --policy random")
     p.add_argument("--render", action="store_true",
                    help="key frame (last frame) PNG + GIF of the first episode; needs MUJOCO_GL=egl|osmesa set")
-
-
-def nominal_actions(env: surrogate.Surrogate) -> jax.Array:
-    """The DP baseline's open-loop sequence: the nominal episode's optimal actions (T,)."""
-    tables = dp_tables(env, "nominal", scenario.nominal())
-    first = jax.tree.map(lambda x: x[0], tables)
-    return dp.backup(first, scenario.make_episode().start_grasp).actions
 
 
 def make_policy(env: surrogate.Surrogate, kind: str, set_name: str, episodes: dict, args=None):
@@ -58,14 +52,7 @@ def make_policy(env: surrogate.Surrogate, kind: str, set_name: str, episodes: di
         ring = int(np.flatnonzero((space.action_link == space.link_names.index("ring_distal")) & (space.action_option == 1))[0])
         return policies.SequencePolicy(jnp.full(scenario.N_WAYPOINTS, ring, jnp.int32)), None
     if kind == "rl":
-        from gsp_jax import env as env_lib
-        from gsp_jax.ppo import networks as nets
-        from gsp_jax.ppo import train as ppo
-
-        obs = env_lib.observation_size(env.space, scenario.N_WAYPOINTS, env.hand.n_joints)
-        networks = nets.make_networks(obs, env.n_actions, nets.NetworkConfig())
-        params = ppo.load_policy(args.policy_dir, networks)
-        return policies.NetworkPolicy(params, networks, env.space), None
+        return load_rl(env, args.policy_dir)[0], None
     raise ValueError(f"--policy must be one of {POLICIES}, got {kind!r}")
 
 

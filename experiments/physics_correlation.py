@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments.common import dp_tables, results_dir, table
-from experiments.physics import nominal_actions
+from experiments.common import nominal_actions
 from gsp_jax import dp, physics, policies, scenario, surrogate
 
 

@@ -78,7 +78,7 @@ def search(model, state: State, base, depth: int = 1, horizon: int | None = None
         raise ValueError(f"depth: the lookahead depth l must be >= 1, got {depth}")
     if horizon is not None and horizon < 0:
         raise ValueError(f"horizon: the rollout length m must be >= 0 or None (to the episode's end), got {horizon}")
-    space: GraspSpace = _space_of(model)
+    space: GraspSpace = model.space
     n_a = space.n_actions
     leaves, path_reward = _expand(model, state, depth, n_a)  # leaves: (A^l, ...) states; path_reward (A^l,)
 
@@ -109,10 +109,6 @@ def _expand(model, state: State, depth: int, n_a: int):
     leaves, sub = jax.vmap(lambda s: _expand(model, s, depth - 1, n_a))(children)  # (A, A^(d-1), ...)
     flat = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), leaves)
     return flat, (rewards[:, None] + sub).reshape(-1)
-
-
-def _space_of(model) -> GraspSpace:
-    return model.space
 
 
 _BALL_CACHE: dict = {}

@@ -15,7 +15,7 @@ import jax
 import numpy as np
 
 from experiments.common import dp_tables, nominal_actions
-from gsp_jax import dp, env as env_lib, policies, scenario
+from gsp_jax import dp, env as env_lib, hand, policies, scenario
 from gsp_jax.ppo import networks as nets
 from gsp_jax.ppo import train as ppo
 from gsp_jax.surrogate import Surrogate
@@ -24,7 +24,7 @@ POLICIES = ("dp-base", "rl", "L1", "L2", "dp-opt")  # the paper's order (Table 1
 LOOKAHEAD_DEPTH = {"L1": 1, "L2": 2}
 TRAINED_POLICY = pathlib.Path("results/train/dp/seed0/policy")  # what `python -m experiments train` writes
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-SHIPPED_POLICY = ROOT / "models/policies/ppo_dp_seed0"  # a copy of results/train/dp/seed0/policy of a full GPU run
+SHIPPED_POLICY = hand.MODELS_DIR / "policies/ppo_dp_seed0"  # a copy of results/train/dp/seed0/policy of a full GPU run
 PAPER = dict(  # the paper's numbers, printed beside ours
     table1_s={"dp-base": 1.34, "rl": 1.23, "L1": 2.68, "L2": 4.30, "dp-opt": 151.79},
     table1_machine="32-core Xeon Silver 4216, 2.1 GHz",
@@ -56,7 +56,8 @@ class Context:
 def fingerprint(ctx: Context) -> str:
     """Hash of what a saved result depends on: the library and model sources, the episodes, the RL parameters."""
     h = hashlib.sha256()
-    sources = [*ROOT.glob("gsp_jax/**/*.py"), *ROOT.glob("models/*.xml")]
+    package = pathlib.Path(hand.__file__).parent
+    sources = [*package.glob("**/*.py"), *hand.MODELS_DIR.glob("*.xml")]
     sources += [ROOT / "experiments" / f for f in ("evaluation.py", "physics.py", "fig4b.py")]
     for path in sorted(sources):
         h.update(path.read_bytes())

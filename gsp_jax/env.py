@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from brax.envs import base as brax_base
 from flax import struct
 
@@ -105,7 +106,7 @@ class TableModel:
     space: GraspSpace = struct.field(pytree_node=False)
 
     def step(self, state: State, action: jax.Array) -> tuple[State, jax.Array, jax.Array]:
-        return table_step(self.table, state, jnp.asarray(action, jnp.int32))
+        return table_step(self.table, state, self.space.checked(action))
 
     def reset(self, episode: Episode) -> State:
         return table_state(episode, self.table, episode.start_grasp, 0)
@@ -120,7 +121,7 @@ class GraspEnv(brax_base.Env):
       tables: optional `dp.Table` per episode, stacked (N, ...) (`dp.build_tables`): the table backend.
       auto_reset: move on to the next episode when one ends (training); off, a finished state is absorbing.
 
-    `state.info`: `episode` (index into the set), `return` (running return of the current episode).
+    `state.info`: `episode_index` (index into the set; not `episode`, which Gymnasium tools reserve for episode statistics), `return` (running return of the current episode).
     `state.metrics`: `episode_return` (the return of the episode that ended at this step; read it where `done`).
     """
 
@@ -133,6 +134,11 @@ class GraspEnv(brax_base.Env):
         n = episodes.waypoints.shape[0]
         if tables is not None and tables.reward.shape[0] != n:
             raise ValueError(f"tables.reward: leading axis {tables.reward.shape[0]} != number of episodes {n}")
+        starts = np.asarray(episodes.start_grasp)
+        bad = (starts < 0) | (starts >= surrogate.space.n_grasps)
+        if np.any(bad):
+            i = int(np.argmax(bad))
+            raise ValueError(f"episodes.start_grasp[{i}]: {starts[i]} is not in [0, {surrogate.space.n_grasps})")
         self.surrogate, self.episodes, self.tables, self.auto_reset = surrogate, episodes, tables, auto_reset
         self.space = surrogate.space
         self.n_episodes, self.n_steps = n, episodes.waypoints.shape[1]
@@ -166,12 +172,12 @@ class GraspEnv(brax_base.Env):
             reward=zero,
             done=jnp.array(False),
             metrics={"episode_return": zero},
-            info={"episode": idx, "return": zero},
+            info={"episode_index": idx, "return": zero},
         )
 
     def step(self, state: brax_base.State, action: jax.Array) -> brax_base.State:
-        idx = state.info["episode"]
-        action = jnp.asarray(action, jnp.int32)
+        idx = state.info["episode_index"]
+        action = self.space.checked(action)
         if self.tables is not None:
             sim, reward, done = table_step(_TableView(self.tables, idx), state.pipeline_state, action)
         else:
@@ -189,7 +195,7 @@ class GraspEnv(brax_base.Env):
             reward=reward,
             done=done,
             metrics={"episode_return": ret},
-            info={"episode": idx_next, "return": jnp.where(done & self.auto_reset, 0.0, ret)},
+            info={"episode_index": idx_next, "return": jnp.where(done & self.auto_reset, 0.0, ret)},
         )
 
     # -------------------------------------------------------------------------------------------- helpers

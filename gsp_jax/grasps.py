@@ -4,6 +4,12 @@ A grasp gives every contact link one of its options (0 = "not in contact"); with
 (3, 3, 2, 4, 2, 2) there are 288 grasps. An action sets one link to one of its options, so there are 16 actions
 (the sum); an action that sets a link to the option it already has leaves the grasp unchanged ("redundant").
 Grasps are numbered in mixed radix, the first link varying slowest; actions link by link, option by option.
+
+Out-of-range actions. Every Python-level entry point (`Surrogate.step` and `GraspEnv.step` called with a concrete
+action, the Gymnasium env, `policies.SequencePolicy` / `TablePolicy`) raises a ValueError naming the value
+(`check_actions`). Inside `jit`/`vmap`, where nothing can raise, `apply` clips the action to [0, n_actions): -1
+acts as action 0, n_actions and above as the last action. Validate actions before tracing, or wrap the jitted
+function with `jax.experimental.checkify` around your own `checkify.check`.
 """
 from __future__ import annotations
 
@@ -57,9 +63,28 @@ class GraspSpace:
         """Per-link options (..., L) -> grasp index (...)."""
         return jnp.sum(jnp.asarray(options, jnp.int32) * self.radix, axis=-1)
 
+    def check_actions(self, actions, field: str = "action") -> None:
+        """Raise ValueError naming `field` and the first value outside [0, n_actions); traced values (inside
+        `jit`/`vmap`) pass unchecked (see the module docstring)."""
+        if isinstance(actions, jax.core.Tracer):
+            return
+        a = np.asarray(actions)
+        if not np.issubdtype(a.dtype, np.integer) and not np.all(a == np.round(a)):
+            raise ValueError(f"{field}: {a.ravel()[a.ravel() != np.round(a.ravel())][0]} is not an integer action")
+        bad = (a < 0) | (a >= self.n_actions)
+        if np.any(bad):
+            raise ValueError(f"{field}: {a[bad].ravel()[0]} is not in [0, {self.n_actions})")
+
+    def checked(self, action, field: str = "action") -> jax.Array:
+        """`action` as int32, checked (`check_actions`) if concrete, clipped into [0, n_actions) if traced."""
+        self.check_actions(action, field)
+        return jnp.clip(jnp.asarray(action, jnp.int32), 0, self.n_actions - 1)
+
     def apply(self, grasp: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """(next grasp, redundant?) after `action` from `grasp`; both broadcast."""
-        grasp, action = jnp.asarray(grasp, jnp.int32), jnp.asarray(action, jnp.int32)
+        """(next grasp, redundant?) after `action` from `grasp`; both broadcast. Actions outside
+        [0, n_actions) are clipped (see the module docstring)."""
+        grasp = jnp.asarray(grasp, jnp.int32)
+        action = jnp.clip(jnp.asarray(action, jnp.int32), 0, self.n_actions - 1)  # traced: no check possible
         link, opt = jnp.asarray(self.action_link)[action], jnp.asarray(self.action_option)[action]
         place = jnp.asarray(self.radix)[link]
         current = (grasp // place) % jnp.asarray(self.n_options, jnp.int32)[link]

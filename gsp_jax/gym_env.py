@@ -46,8 +46,7 @@ class GymGraspEnv(gym.Env):
     def step(self, action):
         if self._state is None:
             raise RuntimeError("step: call reset() first")
-        if not self.action_space.contains(int(action)):
-            raise ValueError(f"action: {action} is not in [0, {self.action_space.n})")
+        self.env.space.check_actions(action)
         self._state = self._step(self._state, jnp.asarray(int(action), jnp.int32))
         return self._obs(), float(self._state.reward), bool(self._state.done), False, self._info()
 
@@ -56,4 +55,4 @@ class GymGraspEnv(gym.Env):
 
     def _info(self) -> dict:
         sim = self._state.pipeline_state
-        return {"episode": int(self._state.info["episode"]), "t": int(sim.t), "grasp": int(sim.grasp)}
+        return {"episode_index": int(self._state.info["episode_index"]), "t": int(sim.t), "grasp": int(sim.grasp)}

@@ -22,7 +22,9 @@ import pathlib
 import mujoco
 import numpy as np
 
-MODELS_DIR = pathlib.Path(__file__).resolve().parent.parent / "models"
+_PACKAGE = pathlib.Path(__file__).resolve().parent
+# The model files: `models/` of the source tree, which an installed wheel carries as package data gsp_jax/models/.
+MODELS_DIR = _PACKAGE / "models" if (_PACKAGE / "models" / "scene.xml").is_file() else _PACKAGE.parent / "models"
 SCENE_XML = MODELS_DIR / "scene.xml"
 TOOL_BODY = "wrench"
 PALM_BODY = "palm"
@@ -85,6 +87,12 @@ class HandModel:
     @property
     def n_links(self) -> int:
         return len(self.link_names)
+
+    def tool_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """The tool's axis-aligned bounding box in the tool frame, (3,) lower and upper corners [m]."""
+        signs = np.array(np.meshgrid(*[[-1.0, 1.0]] * 3, indexing="ij")).reshape(3, -1).T  # (8, 3) corners
+        corners = self.tool_box_pos[:, None] + np.einsum("bij,bcj->bci", self.tool_box_mat, signs * self.tool_box_half[:, None])
+        return corners.reshape(-1, 3).min(0), corners.reshape(-1, 3).max(0)
 
 
 def _text(model: mujoco.MjModel, name: str) -> str:

@@ -13,10 +13,11 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from gsp_jax.env import observation
-from gsp_jax.grasps import GraspSpace
+from gsp_jax.grasps import GraspSpace, default_space
 from gsp_jax.lookahead import Lookahead  # re-exported: the Ll policies
 from gsp_jax.ppo import networks as nets
 from gsp_jax.ppo.train import PPOConfig
@@ -32,6 +33,9 @@ class TablePolicy:
 
     table: jax.Array  # (G, T) int32
 
+    def __post_init__(self):
+        _check_concrete(self.table, "TablePolicy.table")
+
     def act(self, state: State) -> jax.Array:
         return self.table[state.grasp, jnp.minimum(state.t, self.table.shape[1] - 1)]
 
@@ -42,6 +46,9 @@ class SequencePolicy:
     episode, replayed on an unseen one."""
 
     actions: jax.Array  # (T,) int32
+
+    def __post_init__(self):
+        _check_concrete(self.actions, "SequencePolicy.actions")
 
     def act(self, state: State) -> jax.Array:
         return self.actions[jnp.minimum(state.t, self.actions.shape[0] - 1)]
@@ -63,6 +70,13 @@ class NetworkPolicy:
     def value(self, state: State) -> jax.Array:
         """The critic's estimate of the return from `state`, in reward units (the lookahead's cut-off value)."""
         return self.networks.value(self.params, observation(self.space, state)) / self.reward_scale
+
+
+def _check_concrete(actions, field: str) -> None:
+    """Actions given to a policy from Python are checked against the model's action space (values that JAX
+    passes through when it rebuilds the policy inside a transformation are not: see `grasps`)."""
+    if isinstance(actions, (np.ndarray, jax.Array)) and not isinstance(actions, jax.core.Tracer):
+        default_space().check_actions(actions, field)
 
 
 def rollout(env, policy, episode) -> tuple[jax.Array, State]:

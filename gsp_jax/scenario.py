@@ -19,6 +19,7 @@ DT = 0.25  # nominal time between waypoints [s]
 M0 = 0.35  # nominal tool mass [kg]
 INERTIA0 = (2.5e-5, 1.1e-3, 1.12e-3)  # nominal principal inertia about the centre of mass [kg m^2]
 FRICTION0 = 0.8  # nominal finger-tool Coulomb friction coefficient
+FRICTION_MAX = 3.0  # a plausible friction coefficient is in (0, FRICTION_MAX] (rubber on metal is ~1-2)
 Z_START, Z_END = 0.014, 0.06  # nominal start and end heights of the tool frame [m]
 TORQUE0 = 1.0  # magnitude of the final external torque about +z through the centre of mass [N m]
 HEIGHT_SHIFTS_MM = (-6, -4, -2, 2, 4, 6, 8)
@@ -79,7 +80,7 @@ def make_episode(
     z = min_jerk(Z_START + dz, Z_END + dz)
     waypoints = np.stack([np.zeros_like(z), np.zeros_like(z), z], -1)
     g0 = grasps.default_space().encode(START_OPTIONS) if start_grasp is None else start_grasp
-    return Episode(
+    ep = Episode(
         waypoints=jnp.asarray(waypoints, jnp.float32),
         quats=jnp.tile(jnp.asarray([1.0, 0.0, 0.0, 0.0], jnp.float32), (N_WAYPOINTS, 1)),
         dt=jnp.asarray(DT, jnp.float32),
@@ -90,6 +91,7 @@ def make_episode(
         friction=jnp.asarray(friction, jnp.float32),
         start_grasp=jnp.asarray(g0, jnp.int32),
     )
+    return validate(ep)
 
 
 def _fmt_mm(mm: float) -> str:
@@ -185,8 +187,13 @@ class EpisodeError(ValueError):
     """An episode's input is invalid; the message names the field and the value."""
 
 
-def validate(ep: Episode, name: str = "episode", n_grasps: int | None = None) -> Episode:
-    """Check one episode; raise `EpisodeError` naming the field and value on the first problem found."""
+def validate(ep: Episode, name: str = "episode", n_grasps: int | None = None, hand=None) -> Episode:
+    """Check one episode against the hand model (default: `models/scene.xml`): raise `EpisodeError` naming the
+    field and value on the first problem found. `n_grasps` defaults to the model's grasp count."""
+    from gsp_jax import grasps, hand as hand_lib  # local: both read the model file
+
+    hand = hand or hand_lib.load()
+    n_grasps = grasps.space_of(hand).n_grasps if n_grasps is None else n_grasps
     t = None
     for field, (shape, per_wp) in _FIELDS.items():
         x = np.asarray(getattr(ep, field))
@@ -206,8 +213,15 @@ def validate(ep: Episode, name: str = "episode", n_grasps: int | None = None) ->
         raise EpisodeError(f"{name}.mass: {float(ep.mass)} (must be > 0)")
     if np.any(np.asarray(ep.inertia) <= 0):
         raise EpisodeError(f"{name}.inertia: {np.asarray(ep.inertia).tolist()} (must be > 0)")
-    if float(ep.friction) <= 0:
-        raise EpisodeError(f"{name}.friction: {float(ep.friction)} (must be > 0)")
+    if not 0 < float(ep.friction) <= FRICTION_MAX:
+        raise EpisodeError(f"{name}.friction: {float(ep.friction)} (must be in (0, {FRICTION_MAX:g}])")
+    lo, hi = hand.tool_bounds()
+    com = np.asarray(ep.com)
+    if np.any((com < lo) | (com > hi)):
+        raise EpisodeError(
+            f"{name}.com: {com.tolist()} is outside the tool (its bounding box in the tool frame: "
+            f"{lo.round(4).tolist()} .. {hi.round(4).tolist()} m)"
+        )
     norms = np.linalg.norm(np.asarray(ep.quats), axis=-1)
     if np.any(np.abs(norms - 1) > 1e-3):
         i = int(np.argmax(np.abs(norms - 1)))
@@ -221,8 +235,8 @@ def validate(ep: Episode, name: str = "episode", n_grasps: int | None = None) ->
             f"{name}.waypoints[{i}]: {wp[i].tolist()} is out of the hand's reach (table frame box {lo.tolist()} .. {hi.tolist()} m)"
         )
     g = int(ep.start_grasp)
-    if g < 0 or (n_grasps is not None and g >= n_grasps):
-        raise EpisodeError(f"{name}.start_grasp: {g} (must be in 0..{(n_grasps or 1) - 1})")
+    if not 0 <= g < n_grasps:
+        raise EpisodeError(f"{name}.start_grasp: {g} (must be in 0..{n_grasps - 1})")
     return ep
 
 
@@ -265,14 +279,11 @@ def save(path: str | pathlib.Path, episodes: dict[str, Episode]) -> None:
 
 def load(path: str | pathlib.Path) -> dict[str, Episode]:
     """Read and validate named episodes from a JSON file written by `save` (or by hand)."""
-    from gsp_jax import grasps
-
     try:
         doc = json.loads(pathlib.Path(path).read_text())
     except json.JSONDecodeError as e:
         raise EpisodeError(f"{path}: not valid JSON ({e})") from e
     if not isinstance(doc, dict) or not isinstance(doc.get("episodes"), dict):
         raise EpisodeError(f"{path}: expected an object with an 'episodes' object")
-    n = grasps.default_space().n_grasps
-    return {k: validate(from_dict(v, k), k, n_grasps=n) for k, v in doc["episodes"].items()}
+    return {k: validate(from_dict(v, k), k) for k, v in doc["episodes"].items()}
 

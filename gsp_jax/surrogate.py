@@ -206,7 +206,9 @@ class Surrogate:
         )
 
     def step(self, state: State, action: jax.Array) -> tuple[State, jax.Array, jax.Array]:
-        """One decision. A finished state is absorbing (reward 0, done)."""
+        """One decision. A finished state is absorbing (reward 0, done). A concrete action outside
+        [0, n_actions) raises ValueError; a traced one is clipped into range (`grasps`)."""
+        self.space.check_actions(action)
         ep = state.episode
         new_grasp, redundant = self.space.apply(state.grasp, action)
         t_next = jnp.minimum(state.t + 1, ep.n_steps - 1)

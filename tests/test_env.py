@@ -83,7 +83,7 @@ def table_fns(table_env):
 def _actions(rng, state, policy, p_optimal=0.6):
     """Per environment: the DP-optimal action of its (episode, grasp, t) with probability p_optimal, else a
     uniformly random one. Computed in numpy from the state, so both backends get the same actions."""
-    ep = np.asarray(state.info["episode"])
+    ep = np.asarray(state.info["episode_index"])
     sim = state.pipeline_state
     g, t = np.asarray(sim.grasp), np.minimum(np.asarray(sim.t), T - 1)
     optimal = policy[ep, g, t]
@@ -107,7 +107,7 @@ def test_table_backend_equals_surrogate_backend_step_for_step(sur, episodes, tab
         msg = f"step {step}"
         np.testing.assert_allclose(a.reward, b.reward, atol=1e-4, rtol=1e-5, err_msg=msg)
         np.testing.assert_array_equal(a.done, b.done, err_msg=msg)
-        np.testing.assert_array_equal(a.info["episode"], b.info["episode"], err_msg=msg)
+        np.testing.assert_array_equal(a.info["episode_index"], b.info["episode_index"], err_msg=msg)
         np.testing.assert_allclose(a.info["return"], b.info["return"], atol=1e-4, err_msg=msg)
         np.testing.assert_allclose(a.metrics["episode_return"], b.metrics["episode_return"], atol=1e-4, err_msg=msg)
         np.testing.assert_array_equal(a.pipeline_state.grasp, b.pipeline_state.grasp, err_msg=msg)
@@ -116,7 +116,7 @@ def test_table_backend_equals_surrogate_backend_step_for_step(sur, episodes, tab
         done.append(np.asarray(a.done))
         times.append(np.asarray(a.pipeline_state.t))
         rewards.append(np.asarray(a.reward))
-        visited |= set(np.asarray(a.info["episode"]).tolist())
+        visited |= set(np.asarray(a.info["episode_index"]).tolist())
         if step < N_STEPS:
             act = jnp.asarray(_actions(rng, a, policy))
             a, b = table_fns["vstep"](a, act), vstep_s(b, act)
@@ -137,24 +137,24 @@ def test_auto_reset_cycles_episodes_and_reports_the_return(table_env, table_fns,
     start = np.asarray(episodes.start_grasp)
     rng = np.random.default_rng(1)
     state = table_fns["reset"](jax.random.PRNGKey(3))
-    visited, ended, total = [int(state.info["episode"])], 0, 0.0
+    visited, ended, total = [int(state.info["episode_index"])], 0, 0.0
     for step in range(40):
-        ep = int(state.info["episode"])
+        ep = int(state.info["episode_index"])
         act = jnp.asarray(_actions(rng, jax.tree.map(lambda x: x[None], state), policy)[0])
         state = table_fns["step"](state, act)
         total += float(state.reward)
         if bool(state.done):
             ended += 1
             np.testing.assert_allclose(float(state.metrics["episode_return"]), total, rtol=1e-6, atol=1e-5)
-            assert int(state.info["episode"]) == (ep + 1) % n, f"step {step}: {ep} -> {int(state.info['episode'])}"
+            assert int(state.info["episode_index"]) == (ep + 1) % n, f"step {step}: {ep} -> {int(state.info['episode_index'])}"
             assert int(state.pipeline_state.t) == 0 and not bool(state.pipeline_state.done)
             assert int(state.pipeline_state.grasp) == start[(ep + 1) % n]
             assert float(state.info["return"]) == 0.0
             np.testing.assert_array_equal(state.obs, table_fns["reset_to"](jnp.int32((ep + 1) % n)).obs)
-            visited.append(int(state.info["episode"]))
+            visited.append(int(state.info["episode_index"]))
             total = 0.0
         else:
-            assert int(state.info["episode"]) == ep
+            assert int(state.info["episode_index"]) == ep
             np.testing.assert_allclose(float(state.info["return"]), total, rtol=1e-6, atol=1e-5)
     assert ended >= n + 1 and set(visited) == set(range(n))  # the whole set was cycled
 
@@ -178,7 +178,7 @@ def test_without_auto_reset_a_finished_state_is_absorbing(sur, episodes, tables,
             for x, y in zip(jax.tree.leaves(after.pipeline_state), jax.tree.leaves(state.pipeline_state)):
                 np.testing.assert_array_equal(x, y)
             np.testing.assert_array_equal(after.obs, state.obs)
-            assert int(after.info["episode"]) == ep
+            assert int(after.info["episode_index"]) == ep
             assert float(after.info["return"]) == float(state.info["return"])
     # a failing first step also ends the episode and is absorbing at t = 1
     state = env.reset_to(0)
@@ -216,7 +216,7 @@ def test_vmapped_reset_and_step_equal_single_calls(table_fns, policy):
         batch = table_fns["vstep"](batch, jnp.asarray(act))
         singles = [table_fns["step"](s, jnp.int32(a)) for s, a in zip(singles, act)]
     # the batch is not trivially uniform: the keys picked different episodes
-    assert len(set(np.asarray(table_fns["vreset"](keys).info["episode"]).tolist())) > 1
+    assert len(set(np.asarray(table_fns["vreset"](keys).info["episode_index"]).tolist())) > 1
 
 
 # ------------------------------------------------------------------------------------------ 5. bad input
@@ -230,6 +230,35 @@ def test_bad_input_raises_naming_the_field(sur, episodes, tables):
     with pytest.raises(ValueError, match=r"tables\.reward"):
         GraspEnv(sur, episodes, tables=two)
     GraspEnv(sur, jax.tree.map(lambda x: x[:2], episodes), tables=two)  # consistent: accepted
+    bad_start = episodes.replace(start_grasp=episodes.start_grasp.at[1].set(999))
+    with pytest.raises(ValueError, match=r"episodes\.start_grasp\[1\]: 999"):
+        GraspEnv(sur, bad_start)
+
+
+@pytest.mark.parametrize("bad", [-1, 16, 1000])
+def test_out_of_range_actions_raise_at_every_python_entry_point(sur, episodes, tables, table_env, bad):
+    """A concrete action outside [0, 16) raises a ValueError naming the value: the brax env, the table model,
+    the surrogate step, the DP policies. Inside jit it is clipped (documented in gsp_jax.grasps)."""
+    from gsp_jax import env as env_lib, policies
+
+    state = table_env.reset_to(0)
+    msg = rf"action: {bad} is not in \[0, 16\)"
+    with pytest.raises(ValueError, match=msg):
+        table_env.step(state, bad)
+    model = env_lib.TableModel(jax.tree.map(lambda x: x[0], tables), sur.space)
+    with pytest.raises(ValueError, match=msg):
+        model.step(state.pipeline_state, np.int32(bad))
+    with pytest.raises(ValueError, match=msg):
+        sur.step(state.pipeline_state, bad)
+    with pytest.raises(ValueError, match=rf"SequencePolicy\.actions: {bad} "):
+        policies.SequencePolicy(jnp.asarray([0, bad, 2], jnp.int32))
+    with pytest.raises(ValueError, match=rf"TablePolicy\.table: {bad} "):
+        policies.TablePolicy(jnp.full((288, T), bad, jnp.int32))
+    # traced: clipped into range, the documented behaviour
+    clipped = jax.jit(model.step)(state.pipeline_state, jnp.int32(bad))
+    expect = model.step(state.pipeline_state, min(max(bad, 0), 15))
+    np.testing.assert_array_equal(clipped[0].grasp, expect[0].grasp)
+    assert float(clipped[1]) == float(expect[1])
 
 
 # ------------------------------------------------------------------------------------------ 6. gymnasium
@@ -255,7 +284,7 @@ def test_gymnasium_seeding_episodes_and_invalid_action(gym_env, table_fns, episo
         for a in (2, 5, 9):
             obs, *_ = gym_env.step(a)
             out.append(obs)
-        return info["episode"], np.stack(out)
+        return info["episode_index"], np.stack(out)
 
     seeds = list(range(12))
     first = [run(s) for s in seeds]
@@ -266,7 +295,7 @@ def test_gymnasium_seeding_episodes_and_invalid_action(gym_env, table_fns, episo
     assert len({ep for ep, _ in first}) > 1  # the seed does choose among the episodes
     for i in range(3):
         obs, info = gym_env.reset(options={"episode": i})
-        assert info["episode"] == i and info["t"] == 0 and info["grasp"] == int(episodes.start_grasp[i])
+        assert info["episode_index"] == i and info["t"] == 0 and info["grasp"] == int(episodes.start_grasp[i])
         np.testing.assert_array_equal(obs, np.asarray(table_fns["reset_to"](jnp.int32(i)).obs))
         total, terminated, steps = 0.0, False, 0
         while not terminated:

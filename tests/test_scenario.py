@@ -207,6 +207,10 @@ BAD = {
     "start_grasp_fraction": (lambda d: d.update(start_grasp=1.5), "start_grasp", (1.5,)),
     "start_grasp_out_of_range": (lambda d: d.update(start_grasp=288), "start_grasp", (288,)),
     "start_grasp_negative": (lambda d: d.update(start_grasp=-1), "start_grasp", (-1,)),
+    "start_grasp_far_out": (lambda d: d.update(start_grasp=999), "start_grasp", (999,)),
+    "com_outside_the_tool": (lambda d: d["com"].__setitem__(1, 1.0), "com", (1.0,)),
+    "com_just_below_the_tool": (lambda d: d["com"].__setitem__(2, -0.007), "com", (-0.007,)),
+    "friction_implausibly_high": (lambda d: d.update(friction=3.5), "friction", (3.5,)),
 }
 
 
@@ -262,6 +266,24 @@ def test_valid_edited_file_is_accepted(tmp_path):
     assert float(back.mass) == pytest.approx(0.5)
     assert float(back.friction) == pytest.approx(0.3)
     assert float(back.waypoints[-1, 2]) == pytest.approx(0.099)
+
+
+def test_make_episode_rejects_what_validate_rejects():
+    """The constructor users call directly checks its result too: no silent episode with a CoM off the tool."""
+    with pytest.raises(sc.EpisodeError, match=r"episode\.com: \[0\.0, 1\.0"):
+        sc.make_episode(com_y_cm=100)
+    with pytest.raises(sc.EpisodeError, match=r"episode\.start_grasp: 999"):
+        sc.make_episode(start_grasp=999)
+    with pytest.raises(sc.EpisodeError, match=r"episode\.friction: 5\.0"):
+        sc.make_episode(friction=5.0)
+    assert float(sc.make_episode(friction=sc.FRICTION_MAX).friction) == sc.FRICTION_MAX  # the bound is allowed
+
+
+def test_tool_bounds_enclose_the_boxes(hand):
+    """The CoM check's box: the tool model's boxes (handle and head) span x -9..10 cm, y and z a few mm."""
+    lo, hi = hand.tool_bounds()
+    np.testing.assert_allclose(lo, [-0.09, -0.025, -0.006], atol=1e-9)
+    np.testing.assert_allclose(hi, [0.10, 0.025, 0.006], atol=1e-9)
 
 
 def test_validate_accepts_every_set_member():

@@ -1,0 +1,72 @@
+"""The package installs as a package: the wheel carries the model files and the shipped policy, and a
+non-editable install into a fresh virtual environment steps the surrogate from a directory outside the checkout.
+
+Needs the package registry (it installs the pinned dependencies into the new environment; pip's cache makes
+that quick after `make test` has installed them once). Marked `network`; skipped when PyPI cannot be reached or
+with GSP_JAX_OFFLINE=1.
+"""
+from __future__ import annotations
+
+import os
+import pathlib
+import socket
+import subprocess
+import sys
+import zipfile
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+STEP_ONCE = """
+import json, pathlib, jax, jax.numpy as jnp
+import gsp_jax
+from gsp_jax import hand, scenario, surrogate
+env = surrogate.Surrogate()
+state = jax.jit(env.reset)(scenario.make_episode())
+state, reward, done = jax.jit(env.step)(state, jnp.int32(3))
+from experiments import evaluation
+print(json.dumps(dict(package=str(pathlib.Path(gsp_jax.__file__).parent), models=str(hand.MODELS_DIR),
+                      reward=float(reward), grasp=int(state.grasp), policy=evaluation.SHIPPED_POLICY.is_dir())))
+"""
+
+
+def _pypi_reachable() -> bool:
+    try:
+        socket.create_connection(("pypi.org", 443), timeout=5).close()
+        return True
+    except OSError:
+        return False
+
+
+@pytest.mark.network
+@pytest.mark.timeout(1200)
+def test_wheel_installs_outside_the_checkout_and_steps_the_surrogate(tmp_path):
+    if os.environ.get("GSP_JAX_OFFLINE") == "1" or not _pypi_reachable():
+        pytest.skip("offline: the install test needs the package registry")
+    pip = [sys.executable, "-m", "pip", "--disable-pip-version-check", "-q"]
+    run = lambda cmd, **kw: subprocess.run(cmd, check=True, capture_output=True, text=True, **kw)  # noqa: E731
+
+    run([*pip, "wheel", "--no-deps", "-w", str(tmp_path / "dist"), str(ROOT)])
+    (wheel,) = (tmp_path / "dist").glob("gsp_jax-*.whl")
+    names = zipfile.ZipFile(wheel).namelist()
+    for f in ("scene.xml", "hand.xml", "wrench.xml", "policies/ppo_dp_seed0/_METADATA"):
+        assert f"gsp_jax/models/{f}" in names, f"{f} is not in the wheel"
+    assert not any(n.startswith("models/") for n in names)  # one copy, inside the package
+
+    venv = tmp_path / "venv"
+    run([sys.executable, "-m", "venv", str(venv)])
+    py = str(venv / "bin" / "python")
+    run([py, "-m", "pip", "--disable-pip-version-check", "-q", "install", "-c", str(ROOT / "requirements.lock"), str(wheel)])
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
+    out = run([py, "-c", STEP_ONCE], cwd=elsewhere, env=dict(env, JAX_PLATFORMS="cpu"))
+    import json
+
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    site = str(venv)
+    assert result["package"].startswith(site) and result["models"].startswith(site), result  # not the checkout
+    assert result["policy"], "the shipped policy is not in the installed package"
+    assert -200.0 <= result["reward"] < 0.0 and result["grasp"] >= 0, result
+    assert "Failed to import warp" not in out.stdout + out.stderr  # users' output stays clean

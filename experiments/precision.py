@@ -1,20 +1,21 @@
-"""How precise the surrogate's float32 rewards are: the spread that the tests' tolerances are taken from.
+"""How precise the surrogate's float32 rewards are: the spread that the tests' tolerances (tests/tolerances.py)
+are taken from.
 
-The surrogate's rewards come out of iterative solvers (60 Levenberg-Marquardt IK iterations with an accept/reject
-test, 150 projected-gradient wrench iterations) run in float32. Two computations of the same reward along two
-paths (vmapped vs looped, table vs step, another CPU's instruction set) differ in the last bits, and the solvers
-amplify those differences. This measures by how much, on whole DP tables (G x A x T rewards per episode),
-against the native float32 table of the unperturbed episode:
+The rewards come out of iterative solvers (60 Levenberg-Marquardt IK iterations with an accept/reject test, 150
+projected-gradient wrench iterations) run in float32. Two computations of the same reward along two paths
+(vmapped vs looped, table vs step, another CPU's instruction set) differ in the last bits, and the solvers
+amplify those differences. This measures by how much, over the reward terms of every (grasp, waypoint) of an
+episode (what the DP table is built from), against the native float32 computation of the unperturbed episode:
 
-* `isa=...`: the same table with XLA's CPU code generation restricted to an older instruction set
-  (`XLA_FLAGS=--xla_cpu_max_isa=...`, a subprocess each): what another x86 CPU computes,
-* `ulp k`: the episode's inputs (waypoints, mass, CoM, friction) each moved by +-1 ulp at random (seed k):
-  the spread a last-bit difference anywhere upstream causes,
-* `float64`: the same solvers in float64 (`jax_enable_x64`): the float32 rounding error itself.
+* `isa=...`: XLA's CPU code generation restricted to an older instruction set (`XLA_FLAGS=--xla_cpu_max_isa=...`,
+  a subprocess each): what another x86 CPU computes,
+* `inputs +-1 ulp`: the episode's inputs (waypoints, mass, CoM, friction) each moved by 1 ulp, random signs:
+  the spread that a last-bit difference anywhere upstream causes,
+* `float64`: the same solvers in float64 (`jax_enable_x64`).
 
-Reported per comparison: the largest and the 99.9th percentile |reward difference| over entries where neither
-fails, the same for the DP value of every (grasp, waypoint 0) and for the IK error, and the fraction of entries
-whose outcome (fail or not) flips. The tests' tolerances (`tests/conftest.py`) cite these figures.
+Reported: |reward difference| (median, 99th percentile, share above 1e-3, largest) where neither computation
+fails, the wrench terms' and the IK error's 99th percentiles, the largest DP value difference at waypoint 0, and
+how many entries flip between failing and not. Raw runs are kept in results/precision/raw/ (`--reuse`).
 
     python -m experiments precision                      # nominal + one evaluation-B episode, 16 waypoints
     python -m experiments precision --isa AVX2 SSE4_2 --ulp 4
@@ -26,7 +27,6 @@ import json
 import os
 import subprocess
 import sys
-import tempfile
 
 import numpy as np
 
@@ -38,6 +38,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--isa", nargs="*", default=["AVX2", "SSE4_2"], help="XLA CPU instruction sets to compare")
     p.add_argument("--ulp", type=int, default=3, help="number of random 1-ulp input perturbations")
     p.add_argument("--no-float64", action="store_true", help="skip the float64 comparison")
+    p.add_argument("--reuse", action="store_true", help="compare the runs saved in results/precision/raw/ again")
     p.add_argument("--worker", help=argparse.SUPPRESS)  # internal: write tables to this .npz and exit
     p.add_argument("--perturb", type=int, default=-1, help=argparse.SUPPRESS)  # internal: ulp seed (-1: none)
 
@@ -77,69 +78,71 @@ def _terms(env, ep, g, t):
 
 
 def _worker(args) -> None:
-    """Build the tables (and DP values) of the chosen episodes in this process and save them."""
+    """The reward terms of every (grasp, waypoint) of the chosen episodes (as the DP table computes them, without
+    the redundant flag) and their DP values, computed in this process; saved to args.worker."""
     import jax
     import jax.numpy as jnp
 
-    x64 = bool(jax.config.jax_enable_x64)
     from gsp_jax import dp
     from gsp_jax.surrogate import Surrogate
 
     env = Surrogate()
+    x64 = bool(jax.config.jax_enable_x64)
+
+    @jax.jit
+    def terms_and_values(ep):
+        table, sol = dp.solve(env, ep)
+        per = jax.vmap(jax.vmap(lambda g, t: _terms(env, ep, g, t), (None, 0)), (0, None))
+        return per(jnp.arange(env.space.n_grasps), jnp.arange(ep.n_steps)), table.ik_error, sol.value[:, 0]
+
     out = {}
-    solve = jax.jit(lambda e: dp.solve(env, e))
     for name in args.episodes:
         ep = _episode(name, x64)
         if args.perturb >= 0:
             ep = _perturbed(ep, args.perturb)
-        table, sol = jax.block_until_ready(solve(ep))
-        out[f"{name}/reward"] = np.asarray(table.reward, np.float64)
-        out[f"{name}/terminal"] = np.asarray(table.terminal)
-        out[f"{name}/ik_error"] = np.asarray(table.ik_error, np.float64)
-        out[f"{name}/value"] = np.asarray(sol.value[:, 0], np.float64)
-        terms = jax.jit(jax.vmap(jax.vmap(lambda g, t: _terms(env, ep, g, t), (None, 0)), (0, None)))(
-            jnp.arange(env.space.n_grasps), jnp.arange(ep.n_steps))
-        for k in ("wrench_move", "ik_next", "wrench_hold", "wrench_ext", "unmet", "reward"):
+        terms, ik_error, value = jax.block_until_ready(terms_and_values(ep))
+        out[f"{name}/ik_error"] = np.asarray(ik_error, np.float64)
+        out[f"{name}/value"] = np.asarray(value, np.float64)
+        out[f"{name}/failed"] = np.asarray(terms.collision | terms.fall)
+        for k in ("wrench_move", "ik_next", "wrench_hold", "unmet", "reward"):
             out[f"{name}/{k}"] = np.asarray(getattr(terms, k), np.float64)
     np.savez(args.worker, **out)
 
 
-def _run(tmp: str, label: str, episodes, isa: str | None = None, perturb: int = -1, x64: bool = False) -> dict:
+def _run(path, label: str, episodes, isa: str | None = None, perturb: int = -1, x64: bool = False) -> None:
+    """One worker process, with XLA's instruction set restricted (isa), inputs perturbed, or float64."""
     env = dict(os.environ, JAX_PLATFORMS=os.environ.get("JAX_PLATFORMS", "cpu"))
     if isa:
         env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_cpu_max_isa={isa}".strip()
     if x64:
         env["JAX_ENABLE_X64"] = "1"
-    path = os.path.join(tmp, f"{label.split()[0].replace('=', '_')}{perturb if perturb >= 0 else ''}.npz")
-    cmd = [sys.executable, "-m", "experiments", "precision", "--worker", path, "--perturb", str(perturb), "--episodes", *episodes]
+    cmd = [sys.executable, "-m", "experiments", "precision", "--worker", str(path), "--perturb", str(perturb), "--episodes", *episodes]
     print(f"  {label} ...", flush=True)
     subprocess.run(cmd, env=env, check=True)
-    with np.load(path) as d:
-        return {k: d[k] for k in d.files}
 
 
-def _compare(ref: dict, other: dict, episodes, r_min: float) -> dict:
-    dr, dv, dik, flips, n = [], [], [], 0, 0
-    for name in episodes:
-        a, b = ref[f"{name}/reward"], other[f"{name}/reward"]
-        fail_a, fail_b = a <= r_min, b <= r_min
-        both = ~fail_a & ~fail_b
-        dr.append(np.abs(a - b)[both])
-        flips += int(np.sum(fail_a != fail_b))
-        n += a.size
-        va, vb = ref[f"{name}/value"], other[f"{name}/value"]
-        ok = (va > r_min) & (vb > r_min)
-        dv.append(np.abs(va - vb)[ok])
-        dik.append(np.abs(ref[f"{name}/ik_error"] - other[f"{name}/ik_error"]).ravel())
-    dr, dv, dik = (np.concatenate(x) for x in (dr, dv, dik))
+def _compare(ref: dict, other: dict, episodes) -> dict:
+    """Differences over every (grasp, waypoint) of the episodes: rewards and terms where neither fails."""
+    cat = lambda key, mask=None: np.concatenate(  # noqa: E731
+        [np.abs(ref[f"{e}/{key}"] - other[f"{e}/{key}"])[mask(e) if mask else ...].ravel() for e in episodes]
+    )
+    live = lambda e: ~ref[f"{e}/failed"] & ~other[f"{e}/failed"]  # noqa: E731
+    dr, wrench = cat("reward", live), np.concatenate([cat("wrench_move", live), cat("wrench_hold", live), cat("unmet", live)])
+    value = cat("value", lambda e: (ref[f"{e}/value"] > -200) & (other[f"{e}/value"] > -200))
+    flips = sum(int(np.sum(ref[f"{e}/failed"] != other[f"{e}/failed"])) for e in episodes)
     return dict(
-        reward_max=float(dr.max()),
-        reward_p999=float(np.quantile(dr, 0.999)),
+        n=int(dr.size),
         reward_median=float(np.median(dr)),
-        value_max=float(dv.max()),
-        ik_max_mm=float(dik.max() * 1e3),
-        ik_p999_mm=float(np.quantile(dik, 0.999) * 1e3),
-        flip_fraction=flips / n,
+        reward_p99=float(np.quantile(dr, 0.99)),
+        reward_max=float(dr.max()),
+        reward_above_1e3=float(np.mean(dr > 1e-3)),
+        wrench_p99=float(np.quantile(wrench, 0.99)),
+        wrench_max=float(wrench.max()),
+        ik_p99_um=float(np.quantile(cat("ik_error"), 0.99) * 1e6),
+        ik_max_um=float(cat("ik_error").max() * 1e6),
+        value_max=float(value.max()),
+        flips=flips,
+        entries=int(sum(ref[f"{e}/failed"].size for e in episodes)),
     )
 
 
@@ -147,29 +150,29 @@ def main(args) -> None:
     if args.worker:
         return _worker(args)
     from experiments.common import results_dir, table
-    from gsp_jax.surrogate import RewardConfig
 
-    r_min = RewardConfig().r_min
-    print(f"precision of the surrogate's rewards: DP tables of {', '.join(args.episodes)}", flush=True)
-    with tempfile.TemporaryDirectory() as tmp:
-        tmp = str(results_dir("precision", "raw"))
-        ref = _run(tmp, "native float32 (reference)", args.episodes)
-        runs = {}
-        for isa in args.isa:
-            runs[f"isa={isa}"] = _run(tmp, f"isa={isa}", args.episodes, isa=isa)
-        for k in range(args.ulp):
-            runs[f"ulp {k}"] = _run(tmp, f"inputs +-1 ulp (seed {k})", args.episodes, perturb=k)
-        if not args.no_float64:
-            runs["float64"] = _run(tmp, "float64", args.episodes, x64=True)
-    rows, result = [], {}
-    for label, other in runs.items():
-        c = _compare(ref, other, args.episodes, r_min)
-        result[label] = c
-        rows.append([label, f"{c['reward_max']:.2e}", f"{c['reward_p999']:.2e}", f"{c['reward_median']:.1e}",
-                     f"{c['value_max']:.2e}", f"{c['ik_max_mm']:.2e}", f"{c['flip_fraction']:.1e}"])
-    path = results_dir("precision") / "precision.json"
-    path.write_text(json.dumps(dict(episodes=args.episodes, vs_native_float32=result), indent=1))
-    n = sum(ref[f"{e}/reward"].size for e in args.episodes)
-    print(f"\n{n} rewards compared with the native float32 table (|difference| where neither fails); {path}\n")
-    print(table(["vs native float32", "reward max", "reward p99.9", "median", "DP value max", "IK err max [mm]",
-                 "fail flips"], rows))
+    raw = results_dir("precision", "raw")
+    print(f"precision of the surrogate's float32 rewards: every (grasp, waypoint) of {', '.join(args.episodes)}", flush=True)
+    runs = {"native": ("native float32 (reference)", {})}
+    runs.update({f"isa_{isa}": (f"isa={isa}", dict(isa=isa)) for isa in args.isa})
+    runs.update({f"ulp{k}": (f"inputs +-1 ulp (seed {k})", dict(perturb=k)) for k in range(args.ulp)})
+    if not args.no_float64:
+        runs["float64"] = ("float64", dict(x64=True))
+    data = {}
+    for key, (label, kw) in runs.items():
+        path = raw / f"{key}.npz"
+        if not (args.reuse and path.exists()):
+            _run(path, label, args.episodes, **kw)
+        with np.load(path) as d:
+            data[key] = {k: d[k] for k in d.files}
+    ref = data.pop("native")
+    result = {runs[k][0]: _compare(ref, other, args.episodes) for k, other in data.items()}
+    out = results_dir("precision") / "precision.json"
+    out.write_text(json.dumps(dict(episodes=args.episodes, vs_native_float32=result), indent=1))
+    rows = [[label, f"{c['reward_median']:.1e}", f"{c['reward_p99']:.1e}", f"{100 * c['reward_above_1e3']:.2f}%",
+             f"{c['reward_max']:.2e}", f"{c['wrench_p99']:.1e}", f"{c['ik_p99_um']:.2f}", f"{c['ik_max_um']:.0f}",
+             f"{c['value_max']:.1e}", f"{c['flips']}/{c['entries']}"] for label, c in result.items()]
+    print(f"\n|difference| from the native float32 computation, over (grasp, waypoint) entries where neither fails "
+          f"({next(iter(result.values()))['n']} of them); {out}\n")
+    print(table(["vs native float32", "reward median", "p99", "> 1e-3", "max", "wrench p99", "IK err p99 [um]",
+                 "IK max [um]", "DP value max", "fail flips"], rows))

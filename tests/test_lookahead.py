@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import tolerances as tol
 from gsp_jax import dp, lookahead, policies, scenario
 from gsp_jax.env import TableModel, observation_size, table_state
 from gsp_jax.ppo import networks as nets
@@ -81,9 +82,11 @@ def test_search_on_the_surrogate_matches_a_recursive_search_from_a_continuous_st
     base = policies.SequencePolicy(sols.actions[0, :5])
     plan = jax.jit(lambda s: lookahead.search(sur, s, base, depth=1))(state)
     ref = _reference_q(sur.step, base.act, None, state, 1, None)
-    np.testing.assert_allclose(np.asarray(plan.q), ref, rtol=1e-4, atol=1e-4)
-    assert ref[int(plan.action)] >= ref.max() - 1e-4  # the best action (up to float ties)
-    assert float(plan.value) == pytest.approx(ref.max(), rel=1e-4, abs=1e-4)
+    # two float32 computations of the surrogate's rewards (vmapped in the search, single steps here): their
+    # precision, tests/tolerances.py
+    tol.assert_close_with_rare_ties(np.asarray(plan.q), ref, tol.REWARD_ATOL, "q")
+    assert ref[int(plan.action)] >= ref.max() - 2 * tol.REWARD_ATOL  # the best action (up to float ties)
+    assert float(plan.value) == pytest.approx(ref.max(), abs=tol.REWARD_ATOL)
 
 
 def test_search_with_truncated_rollouts_and_a_critic_matches_a_recursive_search(sur, solved, network):

@@ -16,6 +16,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
+import tolerances as tol  # noqa: E402
 from gsp_jax import scenario, surrogate, wrench  # noqa: E402
 
 T = scenario.N_WAYPOINTS
@@ -91,10 +92,6 @@ def _state_at(env, fns, ep, grasp, t):
 
 def _stack_states(states):
     return jax.tree.map(lambda *xs: jnp.stack(xs), *states)
-
-
-def _index(tree, i):
-    return jax.tree.map(lambda x: x[i], tree)
 
 
 # (episode, grasp, waypoint t, action): different grasps, waypoints, both episodes, and every action once
@@ -176,26 +173,28 @@ def test_reset(env, fns, episodes):
 
 
 def test_vmapped_step_equals_looped_step(env, fns, batch):
-    for i, (single, action) in enumerate(zip(batch["singles"], batch["actions"])):
-        s1, r1, d1 = fns["step"](single, action)
-        outb = _index(batch["out"], i)
-        np.testing.assert_allclose(float(batch["reward"][i]), float(r1), rtol=1e-5, atol=1e-5)
-        assert bool(batch["done"][i]) == bool(d1)
-        assert int(outb.grasp) == int(s1.grasp)
-        assert int(outb.t) == int(s1.t)
-        # q: 1e-4 rad. The IK is only weakly regularised (w_regular 3e-3 m/rad), so along nearly flat directions
-        # float32 rounding differences between the batched and the single program move a joint by ~3e-5 rad
-        # (seen on one spread joint) without changing the contact errors, which are compared at 1e-5 below.
-        np.testing.assert_allclose(np.asarray(outb.q), np.asarray(s1.q), atol=1e-4)
-        np.testing.assert_allclose(np.asarray(outb.tool_pos), np.asarray(s1.tool_pos), atol=1e-7)
-        np.testing.assert_allclose(np.asarray(outb.tool_vel), np.asarray(s1.tool_vel), atol=1e-6)
-        for name in ("wrench_move", "ik_next", "wrench_hold", "wrench_ext", "redundant", "reward"):
-            np.testing.assert_allclose(
-                float(getattr(outb.terms, name)), float(getattr(s1.terms, name)), rtol=1e-5, atol=1e-5, err_msg=name
-            )
-        np.testing.assert_allclose(np.asarray(outb.terms.unmet), np.asarray(s1.terms.unmet), atol=1e-5)
-        assert bool(outb.terms.fall) == bool(s1.terms.fall)
-        assert bool(outb.terms.collision) == bool(s1.terms.collision)
+    """The vmapped step and the single step agree to the solvers' float32 precision (tests/tolerances.py): exactly
+    in the discrete transition, to WRENCH_ATOL in the wrench terms, to REWARD_ATOL in the IK term and reward with
+    rare IK bifurcations, and in the fall flag wherever unmet is clear of the threshold."""
+    singles = [fns["step"](single, action) for single, action in zip(batch["singles"], batch["actions"])]
+    one = jax.tree.map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *[s for s, _, _ in singles])
+    out = jax.tree.map(np.asarray, batch["out"])
+    np.testing.assert_array_equal(out.grasp, one.grasp)
+    np.testing.assert_array_equal(out.t, one.t)
+    np.testing.assert_array_equal(out.tool_pos, one.tool_pos)
+    np.testing.assert_allclose(out.tool_vel, one.tool_vel, atol=1e-6)
+    np.testing.assert_array_equal(out.terms.redundant, one.terms.redundant)
+    for name in ("wrench_move", "wrench_hold", "wrench_ext"):
+        tol.assert_close_with_rare_ties(getattr(out.terms, name), getattr(one.terms, name), tol.WRENCH_ATOL, name)
+    tol.assert_close_with_rare_ties(out.terms.unmet, one.terms.unmet, tol.WRENCH_ATOL, "unmet")
+    agree = tol.assert_close_with_rare_ties(out.terms.ik_next, one.terms.ik_next, tol.REWARD_ATOL, "ik_next")
+    tol.assert_close_with_rare_ties(batch["reward"], [float(r) for _, r, _ in singles], tol.REWARD_ATOL, "reward")
+    np.testing.assert_allclose(out.q[agree], one.q[agree], atol=tol.Q_ATOL)
+    clear = np.all(np.abs(one.terms.unmet - env.reward_config.fall_unmet) > tol.UNMET_MARGIN, axis=-1)
+    assert clear.mean() > 0.9  # ties at the fall threshold are rare
+    np.testing.assert_array_equal(out.terms.fall[clear], one.terms.fall[clear])
+    tol.assert_close_with_rare_ties(out.terms.collision, one.terms.collision, 0.0, "collision")
+    tol.assert_close_with_rare_ties(batch["done"], [bool(d) for _, _, d in singles], 0.0, "done")
 
 
 def test_step_transition_grasp_time_pose(env, batch):

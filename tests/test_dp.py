@@ -262,7 +262,7 @@ def test_batched_solve_equals_separate_solves(solved, episodes, fns):
     for i, name in enumerate(["nominal", "evalB"]):
         table, sol = solved[name]
         np.testing.assert_array_equal(tables.next_grasp[i], table.next_grasp)
-        tol.assert_close_with_rare_ties(tables.terminal[i], table.terminal, 0, f"{name} terminal")
+        tol.assert_close_with_rare_ties(tables.terminal[i], table.terminal, 0, f"{name} terminal", tol.FLIP_FRACTION)
         tol.assert_close_with_rare_ties(tables.reward[i], table.reward, tol.REWARD_ATOL, f"{name} reward")
         tol.assert_close_with_rare_ties(
             tables.ik_error[i], table.ik_error, tol.REWARD_ATOL * surrogate.RewardConfig().ik_scale, f"{name} IK error"

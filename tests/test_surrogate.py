@@ -193,8 +193,8 @@ def test_vmapped_step_equals_looped_step(env, fns, batch):
     clear = np.all(np.abs(one.terms.unmet - env.reward_config.fall_unmet) > tol.UNMET_MARGIN, axis=-1)
     assert clear.mean() > 0.9  # ties at the fall threshold are rare
     np.testing.assert_array_equal(out.terms.fall[clear], one.terms.fall[clear])
-    tol.assert_close_with_rare_ties(out.terms.collision, one.terms.collision, 0.0, "collision")
-    tol.assert_close_with_rare_ties(batch["done"], [bool(d) for _, _, d in singles], 0.0, "done")
+    tol.assert_close_with_rare_ties(out.terms.collision, one.terms.collision, 0.0, "collision", tol.FLIP_FRACTION)
+    tol.assert_close_with_rare_ties(batch["done"], [bool(d) for _, _, d in singles], 0.0, "done", tol.FLIP_FRACTION)
 
 
 def test_step_transition_grasp_time_pose(env, batch):

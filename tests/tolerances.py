@@ -30,6 +30,7 @@ WRENCH_ATOL = 1e-5  # a wrench term or unmet fraction (normalised): 3x the large
 IK_ATOL = 3e-5  # an IK error [m]: 3x its largest 99th percentile (11 um); REWARD_ATOL at ik_scale = 1 cm
 Q_ATOL = 1e-3  # joint angles [rad] of converged IK: rounding moves a joint along flat directions (~3e-5 rad seen)
 TIE_FRACTION = 0.03  # at most this fraction of compared entries may be bifurcations (measured 0.6 .. 1.3 % > 1e-3)
+FLIP_FRACTION = 1e-3  # at most this fraction of fail/survive outcomes may flip (measured <= 2 in 9,216: 2.2e-4)
 UNMET_MARGIN = 5e-3  # a fall flag is compared only where unmet is this far from its threshold (>> its p99 3.6e-6)
 
 

@@ -26,3 +26,19 @@ def _import_mjx_quietly() -> None:
 
 
 _import_mjx_quietly()
+
+
+def _register_gymnasium() -> None:
+    """`gymnasium.make("gsp_jax/GraspSequence-v0", ...)` and `gymnasium.make_vec(...)` (gsp_jax.gym_env); the
+    environment's modules are imported only when one is made."""
+    import gymnasium
+
+    if "gsp_jax/GraspSequence-v0" not in gymnasium.registry:
+        gymnasium.register(
+            id="gsp_jax/GraspSequence-v0",
+            entry_point="gsp_jax.gym_env:make",
+            vector_entry_point="gsp_jax.gym_env:make_vector",
+        )
+
+
+_register_gymnasium()

@@ -8,6 +8,7 @@ COMMANDS = {  # command -> (module, one-line help)
     "surrogate": ("experiments.surrogate_demo", "reward terms of a few meaningful grasps on one episode"),
     "bench-surrogate": ("experiments.bench_surrogate", "surrogate steps/s: vmapped vs one step at a time"),
     "bench-dp": ("experiments.bench_dp", "DP solve time: one episode, 27 batched, vs the step-at-a-time table"),
+    "bench-gym": ("experiments.bench_gym", "Gymnasium vector env steps/s: the native vmapped one vs SyncVectorEnv"),
     "dp": ("experiments.dp", "exact DP (Bellman backups) over an episode set; grasp sequences and timeline"),
     "train": ("experiments.train", "PPO on the training episodes, with or without DP pretraining, over seeds"),
     "train-curves": ("experiments.train_curves", "Fig. 3: PPO training curves with and without DP pretraining"),

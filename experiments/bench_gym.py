@@ -2,8 +2,9 @@
 
 Both run the registered environment over the 9 training episodes with the table backend (cached DP tables),
 random actions from a seeded generator, autoreset on. The native `GraspVectorEnv` steps all N environments as one
-jitted, vmapped call; Gymnasium's `SyncVectorEnv` steps N `GymGraspEnv`s one after another (each a jitted
-single-environment call). Steps/s counts environment steps (N per vector step), warm (one step first to compile).
+jitted, vmapped call; Gymnasium's `SyncVectorEnv` steps N `GymGraspEnv`s one after another (one Python step and one
+dispatch of the shared compiled single-environment step each). Steps/s counts environment steps (N per vector
+step), warm (one step first to compile), over about `--seconds` each; the table is printed last.
 """
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ from gsp_jax.surrogate import Surrogate
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--envs", type=int, nargs="+", default=[1, 4, 16, 64, 256, 1024])
-    p.add_argument("--sync-max", type=int, default=256, help="largest N for SyncVectorEnv (it is slow)")
+    p.add_argument("--sync-max", type=int, default=1024, help="largest N for SyncVectorEnv (it is slow)")
     p.add_argument("--seconds", type=float, default=3.0, help="time per measurement")
 
 

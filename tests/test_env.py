@@ -1,4 +1,4 @@
-"""Tests of gsp_jax.env (the brax `GraspEnv`) and gsp_jax.gym_env (its Gymnasium view).
+"""Tests of gsp_jax.env (the brax `GraspEnv`); its Gymnasium views are tested in test_gym.py.
 
 Everything runs on a set of three reduced episodes (the first T = 3 waypoints of the nominal lift, of a +6 mm
 shift with -1 N m, and of an evaluation-set-B episode), whose DP tables are built once per module. The surrogate
@@ -11,17 +11,14 @@ import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
-import gymnasium as gym  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
-from gymnasium.utils.env_checker import check_env  # noqa: E402
 
 import tolerances as tol  # noqa: E402
 from gsp_jax import dp, scenario  # noqa: E402
 from gsp_jax.env import GraspEnv  # noqa: E402
-from gsp_jax.gym_env import GymGraspEnv  # noqa: E402
 
 T = 3  # waypoints of the reduced episodes
 N_ENVS = 12  # vmapped environments of the backend comparison
@@ -261,54 +258,3 @@ def test_out_of_range_actions_raise_at_every_python_entry_point(sur, episodes, t
     expect = model.step(state.pipeline_state, min(max(bad, 0), 15))
     np.testing.assert_array_equal(clipped[0].grasp, expect[0].grasp)
     assert float(clipped[1]) == float(expect[1])
-
-
-# ------------------------------------------------------------------------------------------ 6. gymnasium
-@pytest.fixture(scope="module")
-def gym_env(table_env):
-    return GymGraspEnv(table_env)
-
-
-def test_gymnasium_env_checker_passes(gym_env):
-    """gymnasium's own env_checker accepts GymGraspEnv (spaces, reset/step signatures, seeding, dtypes)."""
-    check_env(gym_env, skip_render_check=True)
-    assert isinstance(gym_env.action_space, gym.spaces.Discrete) and gym_env.action_space.n == 16
-
-
-def test_gymnasium_seeding_episodes_and_invalid_action(gym_env, table_fns, episodes, solutions, policy):
-    """The same seed replays the same observations and episode choice; options={'episode': i} starts episode i
-    (obs equal to GraspEnv.reset_to); the DP policy's episode terminates at T with the DP return; an invalid
-    action or episode raises ValueError."""
-
-    def run(seed):
-        obs, info = gym_env.reset(seed=seed)
-        out = [obs]
-        for a in (2, 5, 9):
-            obs, *_ = gym_env.step(a)
-            out.append(obs)
-        return info["episode_index"], np.stack(out)
-
-    seeds = list(range(12))
-    first = [run(s) for s in seeds]
-    again = [run(s) for s in reversed(seeds)][::-1]  # other order: the seed alone decides
-    for s, (ep1, obs1), (ep2, obs2) in zip(seeds, first, again):
-        assert ep1 == ep2, f"seed {s}"
-        np.testing.assert_array_equal(obs1, obs2, err_msg=f"seed {s}")
-    assert len({ep for ep, _ in first}) > 1  # the seed does choose among the episodes
-    for i in range(3):
-        obs, info = gym_env.reset(options={"episode": i})
-        assert info["episode_index"] == i and info["t"] == 0 and info["grasp"] == int(episodes.start_grasp[i])
-        np.testing.assert_array_equal(obs, np.asarray(table_fns["reset_to"](jnp.int32(i)).obs))
-        total, terminated, steps = 0.0, False, 0
-        while not terminated:
-            obs, r, terminated, truncated, info = gym_env.step(int(policy[i, info["grasp"], info["t"]]))
-            assert not truncated and obs.dtype == np.float32 and gym_env.observation_space.contains(obs)
-            total, steps = total + r, steps + 1
-        assert steps == T
-        np.testing.assert_allclose(total, solutions.ret[i], rtol=1e-5, atol=1e-4)
-    gym_env.reset(seed=0)
-    for bad in (-1, 16, 100):
-        with pytest.raises(ValueError, match="action"):
-            gym_env.step(bad)
-    with pytest.raises(ValueError, match="episode"):
-        gym_env.reset(options={"episode": 3})

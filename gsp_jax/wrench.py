@@ -80,18 +80,23 @@ def solve(
     wrench: jax.Array,
     center: jax.Array,
     cfg: WrenchConfig = WrenchConfig(),
+    init: jax.Array | None = None,
+    prefer: jax.Array | None = None,
 ) -> WrenchResult:
     """Best contact forces for one problem.
 
     points (K, 3), normals (K, 3) inward unit normals, active (K,) bool (inactive contacts carry no force),
     mu () friction coefficient, wrench (6,) required net (force [N], torque [N m] about `center` (3,)).
+    `init` (K, 3): forces to start from (a warm start, e.g. the previous control tick's; default zero).
+    `prefer` (K, 3): forces the penalty pulls towards instead of zero, rho |f - prefer|^2 (e.g. a grip along the
+    normals: the solution then squeezes as far as the cones and the wrench allow; `error` keeps rho |f|^2).
     Differentiable (fixed iterations in a `lax.scan`); `vmap` it over problems. Matmuls run in full float32.
     """
     with jax.default_matmul_precision("highest"):
-        return _solve(points, normals, active, mu, wrench, center, cfg)
+        return _solve(points, normals, active, mu, wrench, center, cfg, init, prefer)
 
 
-def _solve(points, normals, active, mu, wrench, center, cfg) -> WrenchResult:
+def _solve(points, normals, active, mu, wrench, center, cfg, init=None, prefer=None) -> WrenchResult:
     dtype = points.dtype
     wrench, center, mu = (jnp.asarray(x, dtype) for x in (wrench, center, mu))  # one dtype (x64 mode mixes them)
     k = points.shape[0]
@@ -110,10 +115,11 @@ def _solve(points, normals, active, mu, wrench, center, cfg) -> WrenchResult:
     def iteration(carry, _):
         x, x_prev = carry
         y = x + beta * (x - x_prev)
-        grad = a.T @ (a @ y - b) + rho * y
+        grad = a.T @ (a @ y - b) + rho * (y - target)
         return (project(y - grad / lip), x), None
 
-    x0 = jnp.zeros(3 * k, dtype)
+    target = 0.0 if prefer is None else jnp.asarray(prefer, dtype).reshape(-1) * jnp.repeat(mask[:, 0], 3)
+    x0 = jnp.zeros(3 * k, dtype) if init is None else project(jnp.asarray(init, dtype).reshape(-1))
     (x, _), _ = jax.lax.scan(iteration, (x0, x0), None, length=cfg.iterations)
     res_scaled = a @ x - b
     return WrenchResult(

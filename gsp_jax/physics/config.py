@@ -1,0 +1,89 @@
+"""`PhysicsConfig`: every setting of the physics check (simulation, timeline, controller, outcome) in one place,
+each with the reason for its value."""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+from gsp_jax import scenario
+
+
+@dataclasses.dataclass(frozen=True)
+class PhysicsConfig:
+    """Simulation, controller and outcome settings of the physics check."""
+
+    # --- simulation
+    timestep: float = 0.002  # [s] physics step (the scene's; contacts of 4 mm solref stay stable at it)
+    control_every: int = 1  # physics steps per control tick: every step (measured: see README "physics check")
+    solver_iterations: int = 20  # Newton iterations per step (MJX stops earlier when converged)
+    ls_iterations: int = 20  # line-search iterations
+    spheres_per_capsule: int = 4  # contact spheres replacing each hand capsule (MJX misses tilted capsule-box)
+    tool_contact_links: tuple[str, ...] = ("medial", "distal")  # hand capsules (name suffixes) that touch the tool
+    table_friction: float = 0.6
+    # --- timeline
+    segment: float = scenario.DT  # [s] between waypoints (episodes must have this dt)
+    hold: float = 1.0  # [s] under the external wrench at the final pose, rounded to whole segments
+    ramp: float = 0.1  # [s] for the external wrench to reach its full value
+    # --- a grasp change (one link), inside one segment: unload, move, then load once in contact
+    unload: float = 0.04  # [s] the leaving link's share of the wrench goes over to the links that stay
+    move: float = 0.13  # [s] the link travels clear of the tool to its new contact (or to its parking point)
+    load: float = 0.04  # [s] the arriving link takes its share, from the moment it is within contact_tol
+    clearance: float = 0.012  # [m] how far off the surface a moving link travels (more than a fingertip radius)
+    contact_tol: float = 0.0015  # [m] a link this close to the contact surface (along the normal) touches it
+    reach_tol: float = 0.006  # [m] ... if also this close to its contact point across the surface (the surrogate's
+    # IK accepts contacts within 5 mm)
+    # --- controller: object-level impedance on the observed tool
+    tool_freq: float = 6.0  # [Hz] natural frequency of the tool's pose error (mass- and inertia-normalised)
+    tool_damping: float = 1.0  # damping ratio of the tool's pose error
+    tool_radius: float = 0.05  # [m] rotational gains act as on a mass m at this radius (plus the tool's inertia)
+    feedforward_external: bool = True  # the known external wrench is fed forward (as when tightening a bolt)
+    squeeze: float = 4.0  # [N] internal grip force per contact (null space of the grasp matrix)
+    friction_margin: float = 0.7  # the force solve uses this fraction of the friction coefficient
+    force_iterations: int = 40  # projected-gradient iterations of the force solve per tick (warm-started)
+    # --- controller: the fingers (Cartesian impedance through J^T from the measured joint state, no IK)
+    finger_kp: float = 300.0  # [N/m] contact-point stiffness: 0.3 N per mm, a tenth of the grip forces
+    finger_kd: float = 3.0  # [N s/m] contact-point damping (the joints add the model's own damping)
+    held_stiffness_ratio: float = 0.1  # a touching link's stiffness across the surface, as a fraction: 4 links at
+    # 30 N/m stay below the tool's own stiffness (m kp ~ 500 N/m), so a slip is corrected by the tool's wrench, not
+    # followed by the fingers
+    posture_kp: float = 0.02  # [N m/rad] weak pull of every joint to its start angle (the fingers' spare DoF)
+    gravity_compensation: bool = True  # add the fingers' own gravity and bias forces (MuJoCo's qfrc_bias)
+    # --- outcome
+    fall_angle: float = 90.0  # [deg] tool rotation from its reference beyond which it counts as fallen
+    fall_distance: float = 0.03  # [m] tool position error beyond which it counts as fallen
+    table_margin: float = 0.0005  # [m] lowest tool point below this height: touching the table
+    fallen_error: float = 180.0  # [deg] the angle error reported for a fallen tool
+
+    @property
+    def tick(self) -> float:
+        """[s] control period."""
+        return self.timestep * self.control_every
+
+    def ticks(self, seconds: float) -> int:
+        return max(1, int(round(seconds / self.tick)))
+
+    @property
+    def tool_gains(self) -> tuple[float, float]:
+        """(kp [1/s^2], kd [1/s]) of the tool's pose error, per unit mass (translation) or inertia (rotation)."""
+        w = 2 * math.pi * self.tool_freq
+        return w * w, 2 * self.tool_damping * w
+
+    def __post_init__(self):
+        for name in ("timestep", "segment", "hold", "ramp", "unload", "move", "load", "clearance", "contact_tol", "reach_tol",
+                     "tool_freq", "tool_radius", "fall_angle", "fall_distance", "friction_margin"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and value > 0):
+                raise ValueError(f"PhysicsConfig.{name} must be > 0, got {value!r}")
+        for name in ("control_every", "solver_iterations", "ls_iterations", "spheres_per_capsule", "force_iterations"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and value >= 1):
+                raise ValueError(f"PhysicsConfig.{name} must be an int >= 1, got {value!r}")
+        for name in ("tool_damping", "held_stiffness_ratio", "squeeze", "finger_kp", "finger_kd", "posture_kp"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and value >= 0):
+                raise ValueError(f"PhysicsConfig.{name} must be >= 0, got {value!r}")
+        if self.unload + self.move + self.load > self.segment:
+            raise ValueError(f"PhysicsConfig.unload + move + load must be <= segment ({self.segment} s), got "
+                             f"{self.unload} + {self.move} + {self.load}")
+        if self.friction_margin > 1:
+            raise ValueError(f"PhysicsConfig.friction_margin must be in (0, 1], got {self.friction_margin}")

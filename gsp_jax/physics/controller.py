@@ -1,0 +1,292 @@
+"""The contact controller: object-level impedance on the observed tool, the wrench spread over the active
+contacts by the friction-cone force solve, fingers in Cartesian impedance through J^T, and grasp changes of one
+link at a time. Pure JAX, one episode (vmap for batches), backend-neutral: it reads an `Observation` and returns
+motor commands, so MJX and C MuJoCo step the same controller.
+
+Per control tick, with the tool observed at pose (p, R), velocity (v, w), and the reference motion (p_r, v_r, a_r)
+of the episode's waypoints (a cubic Hermite spline through them):
+
+  tool wrench   F = m (a_r + kp (c_r - c) + kd (v_r - v_c) - g) - s w_ext,      (c: centre of mass)
+                T = I_w (kp e_R - kd w) + w x I_w w - s tau_ext                  (e_R: rotation error vector)
+                with kp, kd from `tool_freq` / `tool_damping` (mass- and inertia-normalised, so every tool
+                responds alike) and s the external wrench's ramp (0 while lifting; fed forward in the hold);
+  contacts      the grasp's contact points and normals on the *observed* tool; forces f in the friction cones
+                (a `friction_margin` of mu) that best supply (F, T) (`wrench.solve`, warm-started from the last
+                tick), plus `squeeze` along the normals projected onto the grasp matrix's null space;
+  fingers       every contact link has a target point fixed to the tool (its contact point minus the link radius
+                along the normal: the link's centre line touching the surface), so targets move with the observed
+                tool; tau = sum_l J_l^T (f_l + K (x*_l - x_l) + D (v*_l - J_l dq)) + bias + posture, with J_l the
+                Jacobian of the link point nearest its target at the *measured* joint angles: no IK while the
+                tool is held. Fingers that hold nothing keep their tip at a parking point fixed to the tool.
+
+A grasp change (a decision that changes one link's option) runs inside its segment:
+
+  unload  (`unload` s) the link's load fraction goes to 0: the force is the blend s f_with + (1 - s) f_without
+          of the solves with and without it, so the links that stay carry the whole wrench before it lets go;
+  move    (`move` s) the link travels a path fixed to the tool: back off its contact by `clearance` along the
+          normal, across (sideways first when the new normal differs), to `clearance` off the new contact, in;
+          a link that is removed stops at its first point and parks there;
+  load    once within `contact_tol` of its contact target, the link's load fraction rises to 1 in `load` s.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from gsp_jax import grasps, kinematics, wrench
+from gsp_jax.hand import HandModel
+from gsp_jax.physics.config import PhysicsConfig
+from gsp_jax.physics.scene import Observation
+from gsp_jax.scenario import Episode
+
+N_PATH = 5  # points of a moving link's path
+PATH_TIMES = np.array([0.0, 0.2, 0.5, 0.8, 1.0], np.float32)  # when (fraction of `move`) the path reaches each point
+
+
+@struct.dataclass
+class Motion:
+    """The tool's reference motion at one time."""
+
+    pos: jax.Array  # (3,) tool frame origin [m]
+    vel: jax.Array  # (3,) [m/s]
+    acc: jax.Array  # (3,) [m/s^2]
+    quat: jax.Array  # (4,) orientation (w, x, y, z)
+
+
+@struct.dataclass
+class ControllerState:
+    """What the controller remembers between ticks (one episode). L links."""
+
+    options: jax.Array  # (L,) int32, the reference grasp's options (after the segment's decision)
+    previous: jax.Array  # (L,) int32, the options before it
+    changed: jax.Array  # (L,) bool, the link this segment changes
+    start: jax.Array  # () [s] when the segment started
+    path: jax.Array  # (N_PATH, 3) the changed link's path, tool frame [m]
+    park: jax.Array  # (L, 3) where each link waits when it holds nothing, tool frame [m]
+    anchor: jax.Array  # (L, 3) where each touching link touches: its centre line, tool frame [m]
+    anchored: jax.Array  # (L,) bool, the link touches at `anchor` (else it heads for its option's nominal point)
+    load: jax.Array  # (L,) the share of the wrench each link may carry, in [0, 1]
+    f_with: jax.Array  # (L, 3) last tick's forces with the changed link (warm start) [N]
+    f_without: jax.Array  # (L, 3) ... and without it
+    q_rest: jax.Array  # (J,) posture the spare degrees of freedom are pulled to [rad]
+
+
+def reference_motion(episode: Episode, time: jax.Array) -> Motion:
+    """The waypoints as a C1 cubic Hermite spline in time (tangents by central differences, one-sided at the
+    ends), still after the last waypoint; orientation normalised-linear between waypoint quaternions."""
+    wp, dt, T = episode.waypoints, episode.dt, episode.n_steps
+    s = jnp.clip(time / dt, 0.0, T - 1.0)
+    i = jnp.minimum(jnp.floor(s).astype(jnp.int32), T - 2)
+    u = s - i
+    tangent = lambda j: (wp[jnp.minimum(j + 1, T - 1)] - wp[jnp.maximum(j - 1, 0)]) / (  # noqa: E731
+        (jnp.minimum(j + 1, T - 1) - jnp.maximum(j - 1, 0)) * dt) * dt
+    p0, p1, m0, m1 = wp[i], wp[i + 1], tangent(i), tangent(i + 1)
+    h = jnp.stack([2 * u**3 - 3 * u**2 + 1, u**3 - 2 * u**2 + u, -2 * u**3 + 3 * u**2, u**3 - u**2])
+    dh = jnp.stack([6 * u**2 - 6 * u, 3 * u**2 - 4 * u + 1, -6 * u**2 + 6 * u, 3 * u**2 - 2 * u])
+    ddh = jnp.stack([12 * u - 6, 6 * u - 4, -12 * u + 6, 6 * u - 2])
+    basis = jnp.stack([p0, m0, p1, m1])  # (4, 3)
+    moving = time < (T - 1) * dt
+    qa, qb = episode.quats[i], episode.quats[i + 1]
+    qb = jnp.where(jnp.dot(qa, qb) < 0, -qb, qb)
+    quat = (1 - u) * qa + u * qb
+    return Motion(pos=h @ basis, vel=jnp.where(moving, dh @ basis / dt, 0.0),
+                  acc=jnp.where(moving, ddh @ basis / dt**2, 0.0), quat=quat / jnp.linalg.norm(quat))
+
+
+def quat_mul(a: jax.Array, b: jax.Array) -> jax.Array:
+    w1, x1, y1, z1 = a
+    w2, x2, y2, z2 = b
+    return jnp.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                      w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+
+
+def rotation_error(q_ref: jax.Array, q: jax.Array) -> jax.Array:
+    """(3,) world-frame rotation vector that turns orientation q into q_ref [rad]."""
+    e = quat_mul(q_ref, q * jnp.array([1.0, -1.0, -1.0, -1.0]))
+    e = jnp.where(e[0] < 0, -e, e)
+    v = e[1:]
+    n = jnp.sqrt(jnp.sum(v**2) + 1e-18)
+    return 2 * jnp.arctan2(n, e[0]) * v / n
+
+
+def _smooth(u: jax.Array) -> jax.Array:
+    return u * u * (3 - 2 * u)
+
+
+class Controller:
+    """The contact controller of one hand model (see the module docstring). Stateless after construction."""
+
+    def __init__(self, hand: HandModel, space: grasps.GraspSpace, config: PhysicsConfig, ctrl_range, gravity):
+        self.hand, self.space, self.config = hand, space, config
+        self.ctrl_range = tuple(jnp.asarray(r, jnp.float32) for r in ctrl_range)
+        self.gravity = jnp.asarray(gravity, jnp.float32)
+        fingers = [n.split("_")[0] for n in hand.link_names]
+        self.finger_names = tuple(dict.fromkeys(fingers))
+        self.link_finger = np.array([self.finger_names.index(f) for f in fingers])  # (L,)
+        self.is_tip = np.array([n.endswith("distal") for n in hand.link_names])  # (L,) the finger's parking link
+        li = np.arange(hand.n_links)[:, None]
+        radius = hand.link_radius[:, None, None]
+        self.targets_tool = (hand.option_pos - radius * hand.option_normal)[li[:, 0]].astype(np.float32)  # (L, K, 3)
+        self.wrench_config = wrench.WrenchConfig(iterations=config.force_iterations)
+
+    # ----------------------------------------------------------------------------------------- geometry
+    def _frame(self, obs: Observation):
+        mat = kinematics.quat_to_mat(obs.tool_quat)
+        return obs.tool_pos, mat, mat @ obs.tool_vel[3:]  # position, rotation, world angular velocity
+
+    def _links(self, q: jax.Array, near: jax.Array):
+        """Link points (L, 3) nearest the world points `near` (L, 3) at joint angles q, and their Jacobians
+        (L, 3, J)."""
+        pos, mat, axes, anchors = kinematics.chain(self.hand, q)
+        centre, axis = kinematics.segments_on_links(self.hand, pos, mat)
+        x = kinematics.closest_on_segments(self.hand, centre, axis, near)
+        return x, kinematics.point_jacobian(self.hand, axes, anchors, self.hand.link_body, x)
+
+    def _target(self, options: jax.Array) -> jax.Array:
+        """(L, 3) tool-frame targets of the links' centre lines for `options` (L,) (meaningless where 0)."""
+        return jnp.asarray(self.targets_tool)[np.arange(self.hand.n_links), options]
+
+    def _on_surface(self, here: jax.Array, options: jax.Array) -> jax.Array:
+        """Tool-frame points `here` (L, 3) moved along their option's normal onto the nominal contact level: where a
+        link touches, keeping where along the surface it touches."""
+        n = jnp.asarray(self.hand.option_normal, jnp.float32)[np.arange(self.hand.n_links), options]
+        return here - jnp.sum((here - self._target(options)) * n, -1, keepdims=True) * n
+
+    # ------------------------------------------------------------------------------------------- phases
+    def start(self, episode: Episode, q0: jax.Array, obs: Observation) -> ControllerState:
+        """The state at the episode's start: the start grasp's links that touch loaded, every link parked where
+        it is."""
+        c = self.config
+        opts = self.space.decode(episode.start_grasp)
+        p, mat, _ = self._frame(obs)
+        x, _ = self._links(q0, p + self._target(opts) @ mat.T)
+        L = self.hand.n_links
+        zeros = jnp.zeros((L, 3), jnp.float32)
+        here = (x - p) @ mat
+        nrm = jnp.asarray(self.hand.option_normal, jnp.float32)[np.arange(L), opts]
+        gap = jnp.sum((self._target(opts) - here) * nrm, -1)
+        across = jnp.linalg.norm(self._target(opts) - here - gap[:, None] * nrm, axis=-1)
+        touching = (opts > 0) & (gap < c.contact_tol) & (across < c.reach_tol)
+        return ControllerState(options=opts, previous=opts, changed=jnp.zeros(L, bool), start=jnp.float32(0.0),
+                               path=jnp.zeros((N_PATH, 3), jnp.float32), park=here,
+                               anchor=self._on_surface(here, opts), anchored=touching,
+                               load=touching.astype(jnp.float32), f_with=zeros, f_without=zeros, q_rest=q0)
+
+    def begin_segment(self, cs: ControllerState, obs: Observation, grasp: jax.Array, time: jax.Array) -> ControllerState:
+        """A new segment at `time` with reference grasp `grasp` (at most one link differs from the current one):
+        the changed link's path, and parking points."""
+        c, L = self.config, self.hand.n_links
+        new, old = self.space.decode(grasp), cs.options
+        changed = new != old
+        link = jnp.argmax(changed)
+        p, mat, _ = self._frame(obs)
+        park_world = p + cs.park @ mat.T
+        x, _ = self._links(obs.q, park_world)
+        here = ((x - p) @ mat)[link]  # the link's point now, tool frame
+        n_all = jnp.asarray(self.hand.option_normal, jnp.float32)[np.arange(L)]
+        n_old = jnp.where(old[link] > 0, n_all[link, old[link]], 0.0)
+        n_new = jnp.where(new[link] > 0, n_all[link, new[link]], 0.0)
+        a = jnp.where(old[link] > 0, jnp.where(cs.anchored[link], cs.anchor[link], self._target(old)[link]), here)
+        a1 = a - c.clearance * n_old
+        side = n_new - jnp.dot(n_new, n_old) * n_old  # the new normal's part across the old one
+        a2 = a1 - c.clearance * side
+        b = jnp.where(new[link] > 0, self._target(new)[link], a1)
+        b1 = b - c.clearance * n_new
+        path = jnp.where(new[link] > 0, jnp.stack([a, a1, a2, b1, b]), jnp.stack([a, a1, a1, a1, a1]))
+        any_change = jnp.any(changed)
+        park = jnp.where(any_change & (jnp.arange(L) == link)[:, None] & (new[link] == 0), path[-1], cs.park)
+        return cs.replace(options=new, previous=old, changed=changed, start=jnp.asarray(time, jnp.float32),
+                          path=jnp.where(any_change, path, cs.path), park=park)
+
+    # -------------------------------------------------------------------------------------------- a tick
+    def tool_wrench(self, obs: Observation, episode: Episode, ref: Motion, external: jax.Array) -> jax.Array:
+        """(6,) force and torque about the CoM the contacts must supply (impedance on the observed pose)."""
+        kp, kd = self.config.tool_gains
+        p, mat, omega = self._frame(obs)
+        r_com = mat @ episode.com
+        com, com_ref = p + r_com, ref.pos + kinematics.quat_to_mat(ref.quat) @ episode.com
+        v_com = obs.tool_vel[:3] + jnp.cross(omega, r_com)
+        acc = ref.acc + kp * (com_ref - com) + kd * (ref.vel - v_com)
+        inertia = (mat * episode.inertia) @ mat.T
+        # rotational stiffness as of a mass m at `tool_radius`: the inertia about a thin tool's long axis is ~50x
+        # smaller, and inertia-normalised gains would leave it free to roll under an offset CoM's grip forces
+        inertia_ref = inertia + episode.mass * self.config.tool_radius**2 * jnp.eye(3)
+        alpha = kp * rotation_error(ref.quat, obs.tool_quat) - kd * omega
+        torque = inertia_ref @ alpha + jnp.cross(omega, inertia @ omega)
+        return jnp.concatenate([episode.mass * (acc - self.gravity), torque]) - external
+
+    def _forces(self, points, normals, active, mu, required, com, init):
+        """Cone forces (L, 3) on the links `active` (L,) that supply `required`, pulled towards `squeeze` newtons
+        along each normal (the grip: it lives in the grasp matrix's null space, inside the cones)."""
+        prefer = self.config.squeeze * normals
+        return wrench.solve(points, normals, active, mu, required, com, self.wrench_config, init, prefer).forces
+
+    def control(self, cs: ControllerState, obs: Observation, episode: Episode, ref: Motion, time: jax.Array,
+                external: jax.Array) -> tuple[jax.Array, ControllerState]:
+        """Joint torques (J,) for one tick at `time`, and the next state. `external` (6,): the external wrench
+        the controller feeds forward (zero while lifting)."""
+        c, L = self.config, self.hand.n_links
+        with jax.default_matmul_precision("highest"):
+            p, mat, omega = self._frame(obs)
+            tau_s = time - cs.start
+            unloading = cs.changed & (tau_s < c.unload)
+            u = jnp.clip((tau_s - c.unload) / c.move, 0.0, 1.0)
+            travelling = cs.changed & (u < 1)
+            current = jnp.where(unloading, cs.previous, cs.options)  # the option each link's force acts at
+            # targets fixed to the observed tool
+            times = jnp.asarray(PATH_TIMES)
+            seg = jnp.clip(jnp.searchsorted(times, u, side="right") - 1, 0, N_PATH - 2)
+            w = _smooth(jnp.clip((u - times[seg]) / (times[seg + 1] - times[seg]), 0.0, 1.0))
+            on_path = (1 - w) * cs.path[seg] + w * cs.path[seg + 1]
+            moving = cs.changed & (tau_s >= c.unload) & (u < 1)
+            anchored = cs.anchored & ~moving
+            tgt = jnp.where((current > 0)[:, None], self._target(current), cs.park)
+            tgt = jnp.where(cs.changed[:, None], on_path, tgt)
+            tgt = jnp.where(anchored[:, None], cs.anchor, tgt)
+            busy_link = (current > 0) | cs.changed
+            busy = jnp.zeros(len(self.finger_names), bool).at[self.link_finger].max(busy_link)[self.link_finger]
+            tracked = busy_link | (~busy & self.is_tip)
+            x_ref = p + tgt @ mat.T
+            v_ref = obs.tool_vel[:3] + jnp.cross(omega, x_ref - p)
+            x, jac = self._links(obs.q, x_ref)
+            v = jnp.einsum("lij,j->li", jac, obs.dq)
+
+            # load fractions: down when a link is to let go, up once an arriving link touches
+            want = (current > 0) & ~unloading & ~travelling
+            nrm = jnp.asarray(self.hand.option_normal, jnp.float32)[np.arange(L), current] @ mat.T
+            gap = jnp.sum((x_ref - x) * nrm, -1)  # > 0: the link is off the surface
+            across = jnp.linalg.norm(x_ref - x - gap[:, None] * nrm, axis=-1)
+            touching = (gap < c.contact_tol) & (across < c.reach_tol)
+            arrive = (current > 0) & ~anchored & ~travelling & touching
+            anchor = jnp.where(arrive[:, None], self._on_surface((x - p) @ mat, current), cs.anchor)
+            anchored = anchored | arrive
+            up = jnp.where(anchored, jnp.minimum(cs.load + c.tick / c.load, 1.0), cs.load)
+
+            load = jnp.where(want, up, jnp.maximum(cs.load - c.tick / c.unload, 0.0))
+            # every tracked link is pulled to its target; a touching link only weakly across the surface (there the
+            # force solve holds the tool; a stiff pull to a point on a tool that slips would pull the tool with it)
+            held = (anchored & (current > 0))[:, None]
+            err, derr = x_ref - x, v_ref - v
+            err_n, derr_n = jnp.sum(err * nrm, -1, keepdims=True) * nrm, jnp.sum(derr * nrm, -1, keepdims=True) * nrm
+            across = c.held_stiffness_ratio
+            f_track = c.finger_kp * jnp.where(held, err_n + across * (err - err_n), err)
+            f_track = f_track + c.finger_kd * jnp.where(held, derr_n + across * (derr - derr_n), derr)
+            f_track = tracked[:, None] * f_track
+            # the force solve on the observed tool, blended over the changed link's load
+            radius = jnp.asarray(self.hand.link_radius, jnp.float32)[:, None]
+            surface = jnp.where(anchored[:, None], anchor, self._target(current)) + radius * (nrm @ mat)
+            pts = p + surface @ mat.T
+            required = self.tool_wrench(obs, episode, ref, external)
+            mu = c.friction_margin * episode.friction
+            com = p + mat @ episode.com
+            active = (current > 0) & (load > 0)
+            f_a = self._forces(pts, nrm, active, mu, required, com, cs.f_with)
+            f_b = self._forces(pts, nrm, active & ~cs.changed, mu, required, com, cs.f_without)
+            share = jnp.sum(load * cs.changed)
+            forces = share * f_a + (1 - share) * f_b
+            tau = jnp.einsum("lij,li->j", jac, forces + f_track) + c.posture_kp * (cs.q_rest - obs.q)
+            tau = tau + jnp.where(c.gravity_compensation, obs.bias, 0.0)
+            tau = jnp.clip(tau, *self.ctrl_range)
+        return tau, cs.replace(load=load, f_with=f_a, f_without=f_b, anchor=anchor, anchored=anchored)

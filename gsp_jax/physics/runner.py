@@ -1,0 +1,199 @@
+"""The episode runner: a policy's decisions at the waypoints, the contact controller between them, stepped by
+MuJoCo MJX (`Physics.simulate`, pure JAX: jit and vmap over episodes) or by C MuJoCo (`backend="c"`, the
+reference implementation of the engine; `gsp_jax.physics.c_backend`).
+
+Timeline of an episode (times in `PhysicsConfig`): T decision segments of `segment` seconds, then `hold` seconds
+at the final pose. At the start of segment k < T the policy observes the *simulated* state (joint angles, tool
+pose and velocity: the surrogate's `State`) and picks an action; the new reference grasp is executed by the
+controller during the segment while the tool tracks the reference motion from waypoint k to k+1. In the hold the
+episode's external wrench ramps on (`xfrc_applied` at the tool's CoM, known to the controller); the tool's angle
+and position errors are averaged over the hold.
+
+A tool that touches the table (after the first segment, when the start pedestals drop), moves `fall_distance`
+from its reference or turns more than `fall_angle` has fallen: its angle error is 180 degrees and its simulation
+freezes there (a dropped tool never reaches the solver as NaN).
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+from mujoco import mjx
+
+from gsp_jax.physics.config import PhysicsConfig
+from gsp_jax.physics.controller import Controller, ControllerState, reference_motion
+from gsp_jax.physics.scene import Observation, Scene
+from gsp_jax.scenario import Episode
+from gsp_jax.surrogate import RewardTerms, State, Surrogate
+
+BACKENDS = ("mjx", "c")
+
+
+@struct.dataclass
+class Result:
+    """One simulated episode. Shapes for one episode (a batch adds a leading axis); K control ticks in all."""
+
+    actions: jax.Array  # (T,) int32, the policy's actions
+    grasps: jax.Array  # (T,) int32, reference grasp after each decision
+    angle_error: jax.Array  # () [deg] mean tool angle error over the hold; `fallen_error` (180) if it fell
+    position_error: jax.Array  # () [m] mean tool position error over the hold (meaningless if it fell)
+    max_angle: jax.Array  # () [deg] largest angle error before the hold (the lift's tilt); 180 if it fell then
+    fell: jax.Array  # () bool: touched the table, dropped, or turned past fall_angle
+    fall_time: jax.Array  # () [s] when it fell; -1 if it did not
+    angle: jax.Array  # (K,) [deg] angle error after each control tick
+    qpos: jax.Array  # (K, nq) the simulated configuration after each control tick (for plots and video)
+
+
+@struct.dataclass
+class _Carry:
+    data: mjx.Data
+    cs: ControllerState
+    grasp: jax.Array
+    fell: jax.Array
+    fall_tick: jax.Array
+
+
+class Physics:
+    """Scene + contact controller + episode runner for one hand/tool model. Stateless after construction."""
+
+    def __init__(self, surrogate: Surrogate | None = None, config: PhysicsConfig = PhysicsConfig(), path=None):
+        self.surrogate = surrogate or Surrogate()
+        self.hand, self.space, self.config = self.surrogate.hand, self.surrogate.space, config
+        self.scene = Scene(self.hand, config, path)
+        self.model = self.scene.model
+        self.controller = Controller(self.hand, self.space, config, self.scene.ctrl_range, self.hand.gravity)
+        c = config
+        self.n_segment = c.ticks(c.segment)  # control ticks per segment
+        self.n_hold = max(1, int(round(c.hold / c.segment)))  # hold segments
+        self._jitted = {}
+
+    def n_ticks(self, n_steps: int) -> int:
+        """Control ticks of an episode with n_steps waypoints (the length of `Result.angle`)."""
+        return (n_steps + self.n_hold) * self.n_segment
+
+    def hold_time(self, n_steps: int) -> float:
+        """Simulated time at which the hold starts [s]."""
+        return n_steps * self.n_segment * self.config.tick
+
+    # ------------------------------------------------------------------ the pieces both backends share
+    def start(self, episode: Episode):
+        """(initial qpos (nq,), controller state) of an episode: the start grasp realised by IK at waypoint 0,
+        the tool at rest there."""
+        q0 = self.surrogate.realise(episode.start_grasp, episode.waypoints[0], episode.quats[0]).ik.q
+        qpos = self.scene.initial_qpos(episode, q0)
+        obs = self.scene.observe(qpos, jnp.zeros(self.model.nv), jnp.zeros(self.model.nv))
+        return qpos, self.controller.start(episode, q0, obs)
+
+    def decide(self, policy, cs: ControllerState, obs: Observation, grasp, episode: Episode, k):
+        """Segment k's decision: the policy acts on the observed state if k < T; (action (-1 in the hold), new
+        grasp, controller state for the segment)."""
+        T = episode.n_steps
+        decision, t = k < T, jnp.minimum(k, T - 1)
+        state = State(grasp=jnp.asarray(grasp, jnp.int32), t=jnp.asarray(t, jnp.int32), q=obs.q, tool_pos=obs.tool_pos,
+                      tool_quat=obs.tool_quat, tool_vel=obs.tool_vel, episode=episode, done=jnp.array(False),
+                      terms=RewardTerms.zeros())
+        action = jax.lax.cond(decision, lambda s: jnp.asarray(policy.act(s), jnp.int32), lambda s: jnp.int32(0), state)
+        grasp = jnp.where(decision, self.space.apply(grasp, action)[0], grasp)
+        cs = self.controller.begin_segment(cs, obs, grasp, k * self.n_segment * self.config.tick)
+        return jnp.where(decision, action, -1), grasp, cs
+
+    def external(self, episode: Episode, j) -> jax.Array:
+        """(6,) the external wrench applied during control tick j (ramped on in the hold)."""
+        c = self.config
+        held = (j + 1) * c.tick - self.hold_time(episode.n_steps)
+        return jnp.clip(held / c.ramp, 0.0, 1.0) * episode.w_ext
+
+    def tick(self, cs: ControllerState, obs: Observation, episode: Episode, j):
+        """Control tick j: (motor commands (nu,), tool external wrench (6,), controller state)."""
+        c = self.config
+        time = j * c.tick
+        ext = self.external(episode, j)
+        tau, cs = self.controller.control(cs, obs, episode, reference_motion(episode, time), time,
+                                          ext if c.feedforward_external else jnp.zeros(6))
+        ctrl = jnp.zeros(self.model.nu, jnp.float32).at[self.scene.hand_act].set(tau)
+        return ctrl, ext, cs
+
+    def check(self, obs: Observation, episode: Episode, j):
+        """Status after control tick j: (angle error [deg], position error [m], fallen?)."""
+        ref = reference_motion(episode, (j + 1) * self.config.tick)
+        return self.scene.status(obs, ref.pos, ref.quat, j >= self.n_segment)
+
+    def result(self, actions, grasps, angle, perr, qpos, fell, fall_tick, n_steps) -> Result:
+        c, n_before = self.config, n_steps * self.n_segment
+        return Result(
+            actions=actions, grasps=grasps,
+            angle_error=jnp.where(fell, c.fallen_error, jnp.mean(angle[..., n_before:], -1)),
+            position_error=jnp.mean(perr[..., n_before:], -1),
+            max_angle=jnp.where(fell & (fall_tick < n_before), c.fallen_error, jnp.max(angle[..., :n_before], -1)),
+            fell=fell, fall_time=jnp.where(fell, (fall_tick + 1).astype(jnp.float32) * c.tick, -1.0),
+            angle=angle, qpos=qpos)
+
+    # ---------------------------------------------------------------------------------- the MJX runner
+    def _observe(self, data: mjx.Data) -> Observation:
+        return self.scene.observe(data.qpos, data.qvel, data.qfrc_bias)
+
+    def simulate(self, policy, episode: Episode) -> Result:
+        """One episode of `policy` (anything with `act(State) -> action`) on `episode`, stepped by MJX; see the
+        module docstring. Open loop is `policies.SequencePolicy`; closed loop any policy that reads the state."""
+        c, T, n, scene = self.config, episode.n_steps, self.n_segment, self.scene
+        fields = scene.episode_fields(episode)
+        qpos, cs = self.start(episode)
+        data = mjx.make_data(scene.mx).replace(qpos=qpos)
+        carry = _Carry(data=data, cs=cs, grasp=jnp.asarray(episode.start_grasp, jnp.int32), fell=jnp.array(False),
+                       fall_tick=jnp.asarray(-1, jnp.int32))
+
+        def segment(carry: _Carry, k):
+            action, grasp, cs = self.decide(policy, carry.cs, self._observe(carry.data), carry.grasp, episode, k)
+            mx = scene.mjx_model(fields, k == 0)
+
+            def tick(carry: _Carry, i):
+                j = k * n + i
+                ctrl, ext, cs = self.tick(carry.cs, self._observe(carry.data), episode, j)
+                xfrc = jnp.zeros((self.model.nbody, 6), jnp.float32).at[scene.tool_body].set(ext)
+                data = carry.data.replace(ctrl=ctrl, xfrc_applied=xfrc)
+                data = jax.lax.fori_loop(0, c.control_every, lambda _, d: mjx.step(mx, d), data)
+                angle, perr, fell_now = self.check(self._observe(data), episode, j)
+                keep = carry.fell | fell_now  # freeze: a fallen tool stays put, a non-finite step is never stored
+                data = jax.tree.map(lambda old, new: jnp.where(keep, old, new), carry.data, data)
+                fall_tick = jnp.where(fell_now & ~carry.fell, j, carry.fall_tick)
+                carry = carry.replace(data=data, cs=cs, fell=carry.fell | fell_now, fall_tick=fall_tick)
+                return carry, (angle, perr, data.qpos)
+
+            carry, trace = jax.lax.scan(tick, carry.replace(cs=cs, grasp=grasp), jnp.arange(n))
+            return carry, (action, grasp, trace)
+
+        carry, (actions, grasps, trace) = jax.lax.scan(segment, carry, jnp.arange(T + self.n_hold))
+        angle, perr, qpos = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), trace)
+        return self.result(actions[:T], grasps[:T], angle, perr, qpos, carry.fell, carry.fall_tick, T)
+
+    def simulate_batch(self, policy, episodes: Episode, policy_axis: int | None = None, backend: str = "mjx",
+                       progress: bool = False) -> Result:
+        """Every episode of a batch (leading axis) with `policy`; with policy_axis=0 the policy pytree carries the
+        same batch axis (e.g. one `SequencePolicy` per episode). backend "mjx": `simulate` vmapped, one XLA
+        kernel (jitted once per structure); "c": C MuJoCo (`c_backend.simulate`), the same controller."""
+        check_episodes(episodes, self.config)
+        if backend == "c":
+            from gsp_jax.physics import c_backend
+
+            return c_backend.simulate(self, policy, episodes, policy_axis, progress=progress)
+        if backend != "mjx":
+            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        key = policy_axis
+        if key not in self._jitted:
+            self._jitted[key] = jax.jit(jax.vmap(self.simulate, in_axes=(policy_axis, 0)))
+        return self._jitted[key](policy, episodes)
+
+
+def check_episodes(episodes: Episode, config: PhysicsConfig) -> None:
+    """Clear errors for episodes the physics check cannot run (concrete arrays only)."""
+    dt = np.asarray(episodes.dt)
+    if not np.allclose(dt, config.segment, rtol=1e-5):
+        raise ValueError(f"episode.dt must equal PhysicsConfig.segment = {config.segment} s, got {np.unique(dt)}")
+    for name in ("mass", "friction"):
+        value = np.asarray(getattr(episodes, name))
+        if not np.all(np.isfinite(value) & (value > 0)):
+            raise ValueError(f"episode.{name} must be finite and > 0, got {value}")
+    inertia = np.asarray(episodes.inertia)
+    if not np.all(np.isfinite(inertia) & (inertia > 0)):
+        raise ValueError(f"episode.inertia must be finite and > 0, got {inertia}")

@@ -1,5 +1,13 @@
 """Pictures of simulated episodes: frames from a `physics.Result.qpos` trace with mujoco's offscreen renderer.
 
+The frames are drawn from a restyled copy of the model (the caller's model is never changed, see `styled`): each
+finger in its own colour-blind-friendly colour (Okabe-Ito; `finger_colours()` gives them for a legend), found by
+the name prefix of the body a geom hangs from (``thumb_*``, ``index_*``, ...); the tool steel blue-grey, the palm
+dark grey, the table light, matte and drawn out to the horizon; a brighter headlight and soft shadows. The views
+(`VIEWS`, free cameras): ``"closeup"`` (default) looks down obliquely from the handle's end, so the fingertips on
+both sides of the handle show (thumb on -y, the other fingers on +y); ``"head"`` the same from the head's end;
+``"side"`` the whole hand and the tool's height from the thumb's side. A camera of the model works too (``"front"``).
+
 Optional: needs an OpenGL backend, chosen by the `MUJOCO_GL` environment variable, which must be set before
 anything imports mujoco (e.g. `MUJOCO_GL=egl python -m experiments physics --render`). `egl` works headless on
 the CPU machines here; the GPU machines we measured on have no libEGL (there `MUJOCO_GL=egl` makes `import
@@ -8,28 +16,94 @@ Nothing else in the library imports this module, so the physics check runs witho
 """
 from __future__ import annotations
 
+import copy
 import pathlib
 
 import mujoco
 import numpy as np
 
+# Okabe-Ito colours, one per finger (the prefix of its bodies' names).
+FINGER_RGB = {"thumb": (0.835, 0.369, 0.0),  # vermillion
+              "index": (0.0, 0.447, 0.698),  # blue
+              "middle": (0.0, 0.620, 0.451),  # bluish green
+              "ring": (0.800, 0.475, 0.655)}  # reddish purple
+PALM_RGB = (0.40, 0.40, 0.43)
+TOOL_RGB = (0.45, 0.50, 0.58)  # steel
+PEDESTAL_RGB = (0.80, 0.76, 0.68)
+TOOL_BODY = "wrench"
+TABLE_SCALE = 50.0  # the table is drawn this much larger (no black sky behind the hand)
+# Free cameras: lookat [m] (the tool lies at about (0.02, 0, 0.014 .. 0.06), the palm at z = 0.15),
+# distance [m], azimuth and elevation [deg].
+VIEWS = {"closeup": dict(lookat=(0.01, 0.0, 0.045), distance=0.30, azimuth=20.0, elevation=-30.0),  # handle end
+         "head": dict(lookat=(0.01, 0.0, 0.045), distance=0.30, azimuth=160.0, elevation=-30.0),  # head end
+         "side": dict(lookat=(0.01, 0.0, 0.075), distance=0.32, azimuth=90.0, elevation=-25.0)}  # thumb side
 
-def frames(model: mujoco.MjModel, qpos: np.ndarray, every: int = 1, camera: str = "front",
+
+def finger_colours() -> dict[str, tuple[float, float, float]]:
+    """{finger: (r, g, b) in [0, 1]}, the colours the frames give each finger (for a legend)."""
+    return dict(FINGER_RGB)
+
+
+def styled(model: mujoco.MjModel, size: tuple[int, int] = (0, 0)) -> mujoco.MjModel:
+    """A copy of `model` restyled for pictures (colours, lights, an offscreen buffer of at least `size` (H, W))."""
+    m = copy.deepcopy(model)
+    for g in range(m.ngeom):
+        body = m.body(m.geom_bodyid[g]).name
+        finger = body.split("_")[0]
+        if finger in FINGER_RGB:
+            m.geom_rgba[g, :3] = FINGER_RGB[finger]
+        elif body == "palm":
+            m.geom_rgba[g, :3] = PALM_RGB
+        elif body == TOOL_BODY:
+            m.geom_rgba[g, :3] = TOOL_RGB
+        elif m.geom(g).name.startswith("pedestal"):
+            m.geom_rgba[g, :3] = PEDESTAL_RGB
+    for g in np.flatnonzero(m.geom_type == mujoco.mjtGeom.mjGEOM_PLANE):  # the table: out to the horizon
+        m.geom_size[g, :2] *= TABLE_SCALE
+        if m.geom_matid[g] >= 0:
+            m.mat_texrepeat[m.geom_matid[g]] *= TABLE_SCALE
+    m.mat_reflectance[:] = 0.0  # no mirror image of the hand in the table
+    m.vis.headlight.ambient[:] = 0.5
+    m.vis.headlight.diffuse[:] = 0.4
+    m.vis.headlight.specular[:] = 0.1
+    m.light_diffuse[:] = 0.3  # soft shadows
+    m.light_specular[:] = 0.2
+    m.vis.global_.offheight = max(m.vis.global_.offheight, size[0])
+    m.vis.global_.offwidth = max(m.vis.global_.offwidth, size[1])
+    return m
+
+
+def view_camera(name: str) -> mujoco.MjvCamera | str:
+    """The free camera of a view in `VIEWS`, or `name` unchanged (a camera of the model)."""
+    if name not in VIEWS:
+        return name
+    view, cam = VIEWS[name], mujoco.MjvCamera()
+    cam.type = mujoco.mjtCamera.mjCAMERA_FREE
+    cam.lookat[:] = view["lookat"]
+    cam.distance, cam.azimuth, cam.elevation = view["distance"], view["azimuth"], view["elevation"]
+    return cam
+
+
+def frames(model: mujoco.MjModel, qpos: np.ndarray, every: int = 1, camera: str = "closeup",
            size: tuple[int, int] = (360, 480)) -> np.ndarray:
-    """RGB frames (N, H, W, 3) uint8 of the configurations qpos (K, nq), every `every`-th one."""
+    """RGB frames (N, H, W, 3) uint8 of the configurations qpos (K, nq), every `every`-th one, seen from
+    `camera` (a view in `VIEWS` or a camera of the model); `size` is (H, W)."""
     qpos = np.asarray(qpos)
     if qpos.ndim != 2 or qpos.shape[1] != model.nq:
         raise ValueError(f"qpos must have shape (K, {model.nq}), got {qpos.shape}")
-    data = mujoco.MjData(model)
-    h, w = size
+    m = styled(model, size)
+    cam = view_camera(camera)
+    data = mujoco.MjData(m)
     out = []
-    with mujoco.Renderer(model, h, w) as renderer:
+    with mujoco.Renderer(m, *size) as renderer:
         for q in qpos[::every]:
             data.qpos[:] = q
-            mujoco.mj_forward(model, data)
-            renderer.update_scene(data, camera=camera)
+            mujoco.mj_forward(m, data)
+            renderer.update_scene(data, camera=cam)
             out.append(renderer.render().copy())
     return np.stack(out)
+
+
 
 
 def save_gif(path, images: np.ndarray, fps: float) -> pathlib.Path:

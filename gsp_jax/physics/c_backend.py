@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from gsp_jax.physics.scene import AWAY
 from gsp_jax.scenario import Episode
 
 
@@ -54,8 +55,9 @@ def simulate(phys, policy, episodes: Episode, policy_axis: int | None = None, pr
     qpos0, cs = start(episodes)
     qpos0 = np.asarray(qpos0, np.float64)
     models, datas = [], []
+    field_list = [jax.tree.map(lambda x: x[e], fields) for e in range(N)]
     for e in range(N):
-        m = scene.c_model(jax.tree.map(lambda x: x[e], fields))
+        m = scene.c_model(field_list[e])
         d = mujoco.MjData(m)
         d.qpos[:] = qpos0[e]
         mujoco.mj_forward(m, d)
@@ -91,11 +93,12 @@ def simulate(phys, policy, episodes: Episode, policy_axis: int | None = None, pr
         action, grasp, cs = decide(policy, cs, state, grasp, episodes, k)
         actions.append(np.asarray(action))
         grasps.append(np.asarray(grasp))
-        if k <= 1:
-            for e in range(N):
-                scene.c_support(models[e], jax.tree.map(lambda x: x[e], fields), supported=k == 0)
         for i in range(n):
             j = k * n + i
+            drop = float(scene.pedestal_drop(j * c.tick))
+            if drop > AWAY:  # sinking (afterwards they stay away)
+                for e in range(N):
+                    scene.c_pedestals(models[e], field_list[e], drop)
             status, ctrl, ext, cs = tick(cs, state, episodes, j)
             if j > 0:
                 record(j - 1, status, state[0])

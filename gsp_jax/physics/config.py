@@ -20,6 +20,8 @@ class PhysicsConfig:
     spheres_per_capsule: int = 4  # contact spheres replacing each hand capsule (MJX misses tilted capsule-box)
     tool_contact_links: tuple[str, ...] = ("medial", "distal")  # hand capsules (name suffixes) that touch the tool
     table_friction: float = 0.6
+    pedestal_speed: float = 0.02  # [m/s] the start pedestals sink away after the first segment at this speed:
+    # dropped at once, a tool the fingers hold by friction sags ~2 mm before the grip takes its weight (measured)
     # --- timeline
     segment: float = scenario.DT  # [s] between waypoints (episodes must have this dt)
     hold: float = 1.0  # [s] under the external wrench at the final pose, rounded to whole segments
@@ -33,11 +35,11 @@ class PhysicsConfig:
     reach_tol: float = 0.006  # [m] ... if also this close to its contact point across the surface (the surrogate's
     # IK accepts contacts within 5 mm)
     # --- controller: object-level impedance on the observed tool
-    tool_freq: float = 6.0  # [Hz] natural frequency of the tool's pose error (mass- and inertia-normalised)
+    tool_freq: float = 10.0  # [Hz] natural frequency of the tool's pose error (mass- and inertia-normalised)
     tool_damping: float = 1.0  # damping ratio of the tool's pose error
     tool_radius: float = 0.05  # [m] rotational gains act as on a mass m at this radius (plus the tool's inertia)
     feedforward_external: bool = True  # the known external wrench is fed forward (as when tightening a bolt)
-    squeeze: float = 4.0  # [N] internal grip force per contact (null space of the grasp matrix)
+    squeeze: float = 8.0  # [N] internal grip force per contact (null space of the grasp matrix)
     friction_margin: float = 0.7  # the force solve uses this fraction of the friction coefficient
     force_iterations: int = 40  # projected-gradient iterations of the force solve per tick (warm-started)
     # --- controller: the fingers (Cartesian impedance through J^T from the measured joint state, no IK)
@@ -70,7 +72,7 @@ class PhysicsConfig:
 
     def __post_init__(self):
         for name in ("timestep", "segment", "hold", "ramp", "unload", "move", "load", "clearance", "contact_tol", "reach_tol",
-                     "tool_freq", "tool_radius", "fall_angle", "fall_distance", "friction_margin"):
+                     "tool_freq", "tool_radius", "pedestal_speed", "fall_angle", "fall_distance", "friction_margin"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and value > 0):
                 raise ValueError(f"PhysicsConfig.{name} must be > 0, got {value!r}")

@@ -137,8 +137,9 @@ class Controller:
         return obs.tool_pos, mat, mat @ obs.tool_vel[3:]  # position, rotation, world angular velocity
 
     def _links(self, q: jax.Array, near: jax.Array):
-        """Link points (L, 3) nearest the world points `near` (L, 3) at joint angles q, and their Jacobians
-        (L, 3, J)."""
+        """Link points (L, 3) on the links' centre lines nearest the world points `near` (L, 3) at joint angles q,
+        and their Jacobians (L, 3, J). (Forces act there too: measured, that held better than at the touching
+        point one radius out.)"""
         pos, mat, axes, anchors = kinematics.chain(self.hand, q)
         centre, axis = kinematics.segments_on_links(self.hand, pos, mat)
         x = kinematics.closest_on_segments(self.hand, centre, axis, near)
@@ -250,12 +251,12 @@ class Controller:
             tracked = busy_link | (~busy & self.is_tip)
             x_ref = p + tgt @ mat.T
             v_ref = obs.tool_vel[:3] + jnp.cross(omega, x_ref - p)
+            nrm = jnp.asarray(self.hand.option_normal, jnp.float32)[np.arange(L), current] @ mat.T
             x, jac = self._links(obs.q, x_ref)
             v = jnp.einsum("lij,j->li", jac, obs.dq)
 
             # load fractions: down when a link is to let go, up once an arriving link touches
             want = (current > 0) & ~unloading & ~travelling
-            nrm = jnp.asarray(self.hand.option_normal, jnp.float32)[np.arange(L), current] @ mat.T
             gap = jnp.sum((x_ref - x) * nrm, -1)  # > 0: the link is off the surface
             across = jnp.linalg.norm(x_ref - x - gap[:, None] * nrm, axis=-1)
             touching = (gap < c.contact_tol) & (across < c.reach_tol)

@@ -145,10 +145,9 @@ class Physics:
 
         def segment(carry: _Carry, k):
             action, grasp, cs = self.decide(policy, carry.cs, self._observe(carry.data), carry.grasp, episode, k)
-            mx = scene.mjx_model(fields, k == 0)
-
             def tick(carry: _Carry, i):
                 j = k * n + i
+                mx = scene.mjx_model(fields, scene.pedestal_drop(j * c.tick))
                 ctrl, ext, cs = self.tick(carry.cs, self._observe(carry.data), episode, j)
                 xfrc = jnp.zeros((self.model.nbody, 6), jnp.float32).at[scene.tool_body].set(ext)
                 data = carry.data.replace(ctrl=ctrl, xfrc_applied=xfrc)

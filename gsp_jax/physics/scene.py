@@ -9,8 +9,9 @@ sphere-plane are exact in MJX) and lists the contacts explicitly: tool x table, 
 model file) is unchanged.
 
 The start: the tool rests at waypoint 0 on two small pedestals (support by contact, standing in for the table the
-scene starts it on: at the table's height the fingertips cannot reach the side faces); they drop away after the
-first segment, and from then on the fingers alone hold the tool.
+scene starts it on: at the table's height the fingertips cannot reach the side faces); they sink away after the
+first segment (at at `pedestal_speed`: the fingers take the weight over a few tens of milliseconds), and from
+then on the fingers alone hold the tool.
 """
 from __future__ import annotations
 
@@ -156,12 +157,17 @@ class Scene:
         return EpisodeFields(mass=episode.mass, inertia=episode.inertia, com=episode.com,
                              friction=jnp.asarray(episode.friction, jnp.float32), pedestal_pos=jnp.stack(ped))
 
-    def mjx_model(self, fields: EpisodeFields, supported: jax.Array) -> mjx.Model:
-        """The MJX model with one episode's fields; the pedestals in place if `supported`, else dropped away."""
+    def pedestal_drop(self, time) -> jax.Array:
+        """How far [m] (<= 0) the pedestals have sunk at `time`: in place for the first segment, then sinking at
+        `pedestal_speed`, so the fingers take the tool's weight over a few tens of milliseconds."""
+        c = self.config
+        return -jnp.minimum(c.pedestal_speed * jnp.maximum(time - c.segment, 0.0), -AWAY)
+
+    def mjx_model(self, fields: EpisodeFields, drop: jax.Array) -> mjx.Model:
+        """The MJX model with one episode's fields, the pedestals `drop` (<= 0) metres below their start."""
         mx, b = self.mx, self.tool_body
-        ped = fields.pedestal_pos.at[:, 2].add(jnp.where(supported, 0.0, AWAY))
         return mx.replace(
-            geom_pos=mx.geom_pos.at[self.pedestal_geoms].set(ped),
+            geom_pos=mx.geom_pos.at[self.pedestal_geoms].set(fields.pedestal_pos.at[:, 2].add(drop)),
             body_mass=mx.body_mass.at[b].set(fields.mass),
             body_inertia=mx.body_inertia.at[b].set(fields.inertia),
             body_ipos=mx.body_ipos.at[b].set(fields.com),
@@ -176,11 +182,10 @@ class Scene:
         m.pair_friction[self.finger_tool_pairs, :2] = fields.friction
         return m
 
-    def c_support(self, model: mujoco.MjModel, fields: EpisodeFields, supported: bool) -> None:
-        """Put the pedestals of a C model in place or drop them away (in place)."""
+    def c_pedestals(self, model: mujoco.MjModel, fields: EpisodeFields, drop: float) -> None:
+        """Set the pedestals of a C model `drop` (<= 0) metres below their start (in place)."""
         ped = np.array(fields.pedestal_pos)
-        if not supported:
-            ped[:, 2] += AWAY
+        ped[:, 2] += drop
         model.geom_pos[self.pedestal_geoms] = ped
 
     def initial_qpos(self, episode: Episode, q: jax.Array) -> jax.Array:

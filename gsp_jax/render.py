@@ -104,8 +104,6 @@ def frames(model: mujoco.MjModel, qpos: np.ndarray, every: int = 1, camera: str 
     return np.stack(out)
 
 
-
-
 def save_gif(path, images: np.ndarray, fps: float) -> pathlib.Path:
     """Write frames (N, H, W, 3) as an animated GIF (Pillow, which matplotlib already needs)."""
     from PIL import Image

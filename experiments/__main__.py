@@ -15,6 +15,7 @@ COMMANDS = {  # command -> (module, one-line help)
     "bench-ppo": ("experiments.bench_ppo", "PPO env steps/s and wall time to the DP-baseline return"),
     "physics": ("experiments.physics", "MJX physics check: a policy's grasp sequences, angle error under the torque"),
     "physics-corr": ("experiments.physics_correlation", "rank correlation of surrogate return and simulated error"),
+    "physics-agree": ("experiments.physics_agreement", "MJX against C MuJoCo: held/fell agreement and hold angles"),
     "bench-physics": ("experiments.bench_physics", "simulated episodes/s: one MJX batch vs one at a time"),
     "fig4a": ("experiments.fig4a", "Fig. 4a: surrogate returns relative to DP optimal, 95% CI, RM-ANOVA"),
     "fig4b": ("experiments.fig4b", "Fig. 4b: the same policies closed loop in MJX, angle error under the torque"),

@@ -1,12 +1,22 @@
-"""`python -m experiments physics --set evalA|evalB|eval|all --policy dp-opt|dp-base|rl|random|four-tips`: grasp sequences
-executed by the contact controller in MuJoCo MJX, all episodes in one batch. At every waypoint the policy acts on
-the simulated state; `rl` reads all of it (closed loop), `dp-opt` reads the grasp and waypoint, `dp-base`,
-`random` and `four-tips` are fixed sequences (open loop). Prints each episode's tool angle error under the final torque (180 when the
-tool fell or touched the table), position error and fall time, and the mean with a 95% interval; writes
-results/physics/<set>_<policy>.json, an angle-trace PNG and (with --render) a key frame PNG and a GIF."""
+"""`python -m experiments physics --set evalA|evalB|eval|all --policy dp-opt|dp-base|rl|random|four-tips|scripted|one-tip
+[--backend mjx|c]`: grasp sequences executed by the contact controller in MuJoCo (MJX, one batch, or C MuJoCo), all
+episodes together. At every waypoint the policy acts on the simulated state; `rl` reads all of it (closed loop),
+`dp-opt` reads the grasp and waypoint; the others are fixed sequences (open loop):
+
+  four-tips  add the ring tip at waypoint 0 (T1 I1 . M1 . R1), then keep the grasp;
+  scripted   two sequences on every episode: (i) `add-slide` adds the ring tip at waypoint 2, slides the middle tip
+             M1 -> M2 at 6 and back at 10; (ii) `alternate` adds the ring tip at 0, then changes at every waypoint,
+             sliding the middle tip between M2 and M1 (two four-contact grasps);
+  one-tip    removes the middle tip at 0 and the thumb at 1: the index tip alone (must drop the tool).
+
+Prints each episode's tool angle error under the final torque (180 when the tool fell or touched the table),
+position error, largest tilt during the lift and fall time, and the mean with a 95% interval; writes
+results/physics/<set>_<policy>[_c].json (`summary.falls`, `summary.mean_angle_error_deg`, per sequence for
+`scripted`), the traces, an angle-trace PNG and (with --render) a key frame PNG and a GIF."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 
@@ -19,7 +29,23 @@ from experiments.evaluation import load_rl
 from experiments.stats import mean_ci
 from gsp_jax import dp, physics, policies, scenario, surrogate
 
-POLICIES = ("dp-opt", "dp-base", "rl", "random", "four-tips")
+POLICIES = ("dp-opt", "dp-base", "rl", "random", "four-tips", "scripted", "one-tip")
+
+
+def action(space, link: str, option: int) -> int:
+    """The action that sets `link` to `option`."""
+    return int(np.flatnonzero((space.action_link == space.link_names.index(link)) & (space.action_option == option))[0])
+
+
+def scripted_sequences(space, n_steps: int = scenario.N_WAYPOINTS) -> dict[str, np.ndarray]:
+    """The scripted sequences (see the module docstring), (T,) actions each. "Keep the grasp" is the thumb tip set
+    to the option it has (a redundant action: the surrogate's action set has no null action yet)."""
+    keep = action(space, "thumb_distal", 1)
+    ring, m1, m2 = action(space, "ring_distal", 1), action(space, "middle_distal", 1), action(space, "middle_distal", 2)
+    add_slide = np.full(n_steps, keep)
+    add_slide[2], add_slide[6], add_slide[10] = ring, m2, m1
+    alternate = np.array([ring] + [m2 if t % 2 else m1 for t in range(1, n_steps)])
+    return {"add-slide": add_slide.astype(np.int32), "alternate": alternate.astype(np.int32)}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -28,6 +54,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--policy-dir", default="results/train/dp/seed0/policy", help="saved PPO policy for --policy rl")
     p.add_argument("--episodes", type=int, default=None, help="only the first N episodes of the set")
     p.add_argument("--seed", type=int, default=0, help="for --policy random")
+    p.add_argument("--backend", default="mjx", choices=physics.BACKENDS,
+                   help="mjx: one XLA batch (GPU); c: C MuJoCo, the engine's reference implementation (CPU)")
     p.add_argument("--render", action="store_true",
                    help="key frame (last frame) PNG + GIF of the first episode; needs MUJOCO_GL=egl|osmesa set")
 
@@ -48,9 +76,12 @@ def make_policy(env: surrogate.Surrogate, kind: str, set_name: str, episodes: di
         actions = jax.vmap(dp.random_sequence, (0, 0, 0, None))(tables, batch.start_grasp, keys, env.reward_config.r_min)
         return policies.SequencePolicy(actions), 0
     if kind == "four-tips":  # a reference without grasp changes: add the ring tip at t = 0, then keep the grasp
-        space = env.space
-        ring = int(np.flatnonzero((space.action_link == space.link_names.index("ring_distal")) & (space.action_option == 1))[0])
+        ring = action(env.space, "ring_distal", 1)
         return policies.SequencePolicy(jnp.full(scenario.N_WAYPOINTS, ring, jnp.int32)), None
+    if kind == "one-tip":  # the index tip alone: the middle tip lets go at 0, the thumb at 1
+        seq = np.full(scenario.N_WAYPOINTS, action(env.space, "index_distal", 1), np.int32)
+        seq[0], seq[1] = action(env.space, "middle_distal", 0), action(env.space, "thumb_distal", 0)
+        return policies.SequencePolicy(jnp.asarray(seq)), None
     if kind == "rl":
         return load_rl(env, args.policy_dir)[0], None
     raise ValueError(f"--policy must be one of {POLICIES}, got {kind!r}")
@@ -109,6 +140,15 @@ def render_episode(phys: physics.Physics, qpos: np.ndarray, stem) -> list:
         return []
 
 
+def _summary(names, res, **extra) -> dict:
+    mean, ci = mean_ci(res.angle_error)
+    held = ~np.asarray(res.fell)
+    return dict(episodes=len(names), falls=int(np.sum(res.fell)), mean_angle_error_deg=mean, ci95_deg=ci,
+                mean_hold_angle_deg_where_held=float(np.mean(np.asarray(res.angle_error)[held])) if held.any() else None,
+                max_lift_tilt_deg_where_held=float(np.max(np.asarray(res.max_angle)[held])) if held.any() else None,
+                **extra)
+
+
 def main(args: argparse.Namespace) -> None:
     env = surrogate.Surrogate()
     episodes = scenario.episode_set(args.set)
@@ -116,29 +156,42 @@ def main(args: argparse.Namespace) -> None:
         episodes = dict(list(episodes.items())[: args.episodes])
     names = list(episodes)
     phys = physics.Physics(env)
-    policy, axis = make_policy(env, args.policy, args.set, episodes, args)
-    batch = scenario.stack(list(episodes.values()))
-    print(f"physics check: {len(names)} episodes of '{args.set}', policy {args.policy}, "
-          f"{phys.n_ticks(scenario.N_WAYPOINTS) * phys.config.control_every} MJX steps each, one batch on "
-          f"{jax.devices()[0].platform} (compiling first) ...", flush=True)
+    if args.policy == "scripted":  # every sequence on every episode, one batch
+        seqs = scripted_sequences(env.space)
+        labels = [f"{k}/{n}" for k in seqs for n in names]
+        batch = scenario.stack([episodes[n] for _ in seqs for n in names])
+        policy, axis = policies.SequencePolicy(jnp.asarray(np.repeat(np.stack(list(seqs.values())), len(names), 0))), 0
+    else:
+        labels = names
+        policy, axis = make_policy(env, args.policy, args.set, episodes, args)
+        batch = scenario.stack(list(episodes.values()))
+    print(f"physics check: {len(labels)} episodes of '{args.set}', policy {args.policy}, backend {args.backend}, "
+          f"{phys.n_ticks(scenario.N_WAYPOINTS) * phys.config.control_every} physics steps each "
+          f"({jax.devices()[0].platform}; compiling first) ...", flush=True)
     t0 = time.perf_counter()
-    res = jax.block_until_ready(phys.simulate_batch(policy, batch, axis))
+    res = jax.block_until_ready(phys.simulate_batch(policy, batch, axis, backend=args.backend, progress=True))
     wall = time.perf_counter() - t0
-    rows = result_rows(names, res)
+    rows = result_rows(labels, res)
     out = results_dir("physics")
-    stem = out / f"{args.set}_{args.policy}"
-    mean, ci = mean_ci(res.angle_error)
-    summary = dict(set=args.set, policy=args.policy, episodes=len(names), mean_angle_error_deg=mean, ci95_deg=ci,
-                   falls=int(np.sum(res.fell)), wall_s_incl_compile=wall, config=vars(phys.config) | {})
+    stem = out / (f"{args.set}_{args.policy}" + ("" if args.backend == "mjx" else f"_{args.backend}"))
+    summary = dict(set=args.set, policy=args.policy, backend=args.backend, device=jax.devices()[0].device_kind,
+                   **_summary(labels, res), wall_s_incl_compile=wall, config=dataclasses.asdict(phys.config))
+    if args.policy == "scripted":
+        summary["sequences"] = {}
+        for i, k in enumerate(seqs):
+            part = jax.tree.map(lambda x: x[i * len(names) : (i + 1) * len(names)], res)
+            summary["sequences"][k] = dict(actions=[int(a) for a in seqs[k]], **_summary(names, part))
     stem.with_suffix(".json").write_text(json.dumps(dict(summary=summary, episodes=rows), indent=1))
-    np.savez_compressed(f"{stem}_trace.npz", angle=np.asarray(res.angle), qpos=np.asarray(res.qpos), names=names)
-    trace_png(phys, names, res, f"{stem}_angle.png", f"{args.policy} on {args.set}")
+    np.savez_compressed(f"{stem}_trace.npz", angle=np.asarray(res.angle), qpos=np.asarray(res.qpos), names=labels)
+    trace_png(phys, labels, res, f"{stem}_angle.png", f"{args.policy} on {args.set} ({args.backend})")
     files = [stem.with_suffix(".json"), f"{stem}_trace.npz", f"{stem}_angle.png"]
     if args.render:
         files += render_episode(phys, np.asarray(res.qpos[0]), stem)
-    print(table(["episode", "angle err [deg]", "pos err [mm]", "max lift angle", "fell at [s]"],
+    print(table(["episode", "angle err [deg]", "pos err [mm]", "max lift tilt", "fell at [s]"],
                 [[r["episode"], r["angle_error_deg"], r["position_error_mm"], r["max_lift_angle_deg"],
                   f"{r['fall_time_s']:.2f}" if r["fell"] else "-"] for r in rows], ".1f"))
-    print(f"\n{args.policy} on {args.set}: mean angle error {mean:.1f} deg (95% CI +-{ci:.1f}), "
-          f"{summary['falls']}/{len(names)} fell; {wall:.1f} s including compile")
-    print("wrote " + ", ".join(map(str, files)))
+    for k, part in summary.get("sequences", {"": summary}).items():
+        print(f"\n{args.policy}{' ' + k if k else ''} on {args.set}: {part['falls']}/{part['episodes']} fell; mean angle "
+              f"error {part['mean_angle_error_deg']:.1f} deg (95% CI +-{part['ci95_deg']:.1f}); where held: hold angle "
+              f"{part['mean_hold_angle_deg_where_held']} deg, largest lift tilt {part['max_lift_tilt_deg_where_held']} deg")
+    print(f"{wall:.1f} s including compile\nwrote " + ", ".join(map(str, files)))

@@ -1,8 +1,8 @@
-"""Tests of gsp_jax.physics (the MJX physics check).
+"""Tests of gsp_jax.physics: the contact controller in MJX and in C MuJoCo.
 
-MJX on a 2-core CPU is slow (about 75 s to compile an episode runner), so one batched run of short episodes (4
-waypoints lifting the tool 2.6 cm in 0.75 s, then 0.5 s of hold) is compiled once per module and every test reads
-it; the single-episode runner is compiled once more for the batched-vs-single comparison.
+MJX on a 2-core CPU is slow (about a minute to compile an episode runner), so one batch of short episodes (the first 5
+waypoints of the lift, then 0.5 s of hold) runs once per module in each backend and every
+test reads it; the single-episode runner is compiled once more for the batched-vs-single comparison.
 """
 from __future__ import annotations
 
@@ -19,19 +19,18 @@ import pytest  # noqa: E402
 from mujoco import mjx  # noqa: E402
 
 from gsp_jax import physics, policies, scenario  # noqa: E402
+from gsp_jax.physics import controller as ctl  # noqa: E402
 from gsp_jax.surrogate import Surrogate  # noqa: E402
 
-T = 4
+T = 5
 CONFIG = physics.PhysicsConfig(hold=0.5)
+TILT = 10.0  # [deg] the largest tilt the tests allow while the tool is held
+ROWS = ("four 2m0 +1Nm", "four -1Nm", "index alone", "pinch one side", "change every waypoint")
 
 
 def _short(ep: scenario.Episode) -> scenario.Episode:
-    """The episode cut to T waypoints that lift it 2.6 cm (high enough that a tilt under the torque does not
-    reach the table)."""
-    z0 = float(ep.waypoints[0, 2])
-    z = scenario.min_jerk(z0, z0 + 0.026, T)
-    wp = np.stack([np.zeros(T), np.zeros(T), z], -1).astype(np.float32)
-    return ep.head(T).replace(waypoints=jnp.asarray(wp))
+    """The episode's first T waypoints (the start of its lift: 4.5 mm in 1 s)."""
+    return ep.head(T)
 
 
 def _action(space, link: str, option: int) -> int:
@@ -44,117 +43,121 @@ def phys():
 
 
 @pytest.fixture(scope="module")
-def runs(phys):
-    """One batch: rows 0/1/5 four fingertips under +1 / -1 / 0 N m (ring added at t = 0, then held), row 2 the
-    index tip alone, rows 3/4 the four-fingertip sequence on evaluation episodes (+4 mm shift, -1 N m; 2 m0, CoM
-    +2 cm)."""
+def batch(phys):
+    """The rows of `ROWS`: four fingertips (ring added at t = 0, then kept) on a 2 m0 tool under +1 N m and on the
+    nominal tool under -1 N m; the index tip alone; index and middle tips on the same side (no opposing contact);
+    four tips with a change at every waypoint (the middle tip slides M2 <-> M1)."""
     sp = phys.space
     nominal = scenario.make_episode()
-    index_only = int(sp.encode([0, 1, 0, 0, 0, 0]))
-    evals = scenario.episode_set("eval")
-    eps = [_short(nominal), _short(nominal.replace(w_ext=-nominal.w_ext)),
-           _short(nominal.replace(start_grasp=jnp.int32(index_only))),
-           _short(evals["shift+4mm_-1Nm"]), _short(evals["mass2m0_comy+2cm"]),
-           _short(nominal.replace(w_ext=jnp.zeros_like(nominal.w_ext)))]
-    four = [_action(sp, "ring_distal", 1)] + [_action(sp, "thumb_distal", 1)] * (T - 1)
-    hold_index = [_action(sp, "index_distal", 1)] * T
-    acts = jnp.asarray([four, four, hold_index, four, four, four], jnp.int32)
-    batch = scenario.stack(eps)
-    res = jax.device_get(phys.simulate_batch(policies.SequencePolicy(acts), batch, policy_axis=0))
-    return dict(res=res, eps=eps, acts=acts)
-
-
-def _rotation_vector(phys, qpos_a, qpos_b):
-    """Rotation vector [deg] (3,) taking the tool's final orientation in run a to that in run b."""
-    a = phys.tool_qpos + 3
-    qa, qb = qpos_a[-1, a : a + 4].astype(np.float64), qpos_b[-1, a : a + 4].astype(np.float64)
-    rel = np.zeros(4)
-    mujoco.mju_mulQuat(rel, qb, np.array([qa[0], -qa[1], -qa[2], -qa[3]]))
-    vel = np.zeros(3)
-    mujoco.mju_quat2Vel(vel, rel, 1.0)
-    return np.degrees(vel)
-
-
-def test_four_fingertips_hold_a_short_lift_and_one_fingertip_drops(runs):
-    """On the tests' short lift (2.6 cm, 0.5 s hold): four tips hold +-1 N m within 5 degrees; the index tip alone
-    falls (180). On the full nominal episode the four tips fall 0.35 s into the hold in MJX (see the README)."""
-    res = runs["res"]
-    for row in (0, 1):
-        assert not res.fell[row], (row, res.fall_time[row])
-        assert res.angle_error[row] < 5.0, (row, res.angle_error[row])
-        assert res.max_angle[row] < 10.0, (row, res.max_angle[row])
-        assert res.position_error[row] < 0.01, (row, res.position_error[row])
-    assert res.fell[2] and res.angle_error[2] == CONFIG.fallen_error
-    # the index tip alone holds the tool only while the start pedestals are there: it falls in the next segment
-    assert 0.25 < res.fall_time[2] < 0.5, res.fall_time[2]
+    heavy = scenario.make_episode(mass_factor=2.0)
+    eps = [_short(heavy), _short(nominal.replace(w_ext=-nominal.w_ext)),
+           _short(nominal.replace(start_grasp=sp.encode([0, 1, 0, 0, 0, 0]))),
+           _short(nominal.replace(start_grasp=sp.encode([0, 1, 0, 1, 0, 0]))), _short(nominal)]
+    ring, keep = _action(sp, "ring_distal", 1), _action(sp, "index_distal", 1)
+    m1, m2 = _action(sp, "middle_distal", 1), _action(sp, "middle_distal", 2)
+    acts = jnp.asarray([[ring] + [keep] * (T - 1)] * 2 + [[keep] * T] * 2 + [[ring, keep, m2, m1, m2]], jnp.int32)
+    return scenario.stack(eps), policies.SequencePolicy(acts), eps
 
 
 @pytest.fixture(scope="module")
-def passive(runs):
-    """The four-fingertip rows under +1 / -1 / 0 N m with a controller that does not feed the torque forward."""
-    ph = physics.Physics(Surrogate(), dataclasses.replace(CONFIG, feedforward_external=False))
-    rows = np.array([0, 1, 5])
-    batch = scenario.stack([runs["eps"][i] for i in rows])
-    res = ph.simulate_batch(policies.SequencePolicy(runs["acts"][rows]), batch, policy_axis=0)
-    return ph, jax.device_get(res)
+def runs(phys, batch):
+    episodes, policy, _ = batch
+    return {b: jax.device_get(phys.simulate_batch(policy, episodes, policy_axis=0, backend=b)) for b in physics.BACKENDS}
 
 
-def test_torque_sign_sets_rotation_sign(passive):
-    """Against the same grasp held without torque, +1 N m and -1 N m turn the tool in opposite directions. The
-    controller here leaves the torque to the grasp (with the feed-forward on, what is left is what the
-    feed-forward misses, whose sign need not follow the torque's)."""
-    phys, res = passive
-    qpos = res.qpos
-    plus, minus = _rotation_vector(phys, qpos[2], qpos[0]), _rotation_vector(phys, qpos[2], qpos[1])
-    assert np.linalg.norm(plus) > 0.3 and np.linalg.norm(minus) > 0.3, (plus, minus)
-    cos = plus @ minus / np.linalg.norm(plus) / np.linalg.norm(minus)
-    assert cos < -0.5, (plus, minus)
-    assert plus[2] > 0 and minus[2] < 0, (plus, minus)  # +1 N m about +z turns the tool about +z
+@pytest.mark.parametrize("backend", physics.BACKENDS)
+def test_four_fingertips_hold_and_changes_keep_the_tool(runs, backend):
+    """Four tips hold a 2 m0 tool under +1 N m and the nominal one under -1 N m; a change at every waypoint keeps
+    the tool within TILT during the lift and holds it."""
+    res = runs[backend]
+    for row in (0, 1, 4):
+        assert not res.fell[row], (ROWS[row], float(res.fall_time[row]))
+        assert res.angle_error[row] < 5.0, (ROWS[row], float(res.angle_error[row]))
+        assert res.max_angle[row] < TILT, (ROWS[row], float(res.max_angle[row]))
+        assert res.position_error[row] < 0.005, (ROWS[row], float(res.position_error[row]))
+
+
+@pytest.mark.parametrize("backend", physics.BACKENDS)
+def test_one_fingertip_and_a_one_sided_pinch_drop_the_tool(runs, backend):
+    """Without an opposing contact the tool falls once the start pedestals sink away (after 0.25 s)."""
+    res = runs[backend]
+    for row in (2, 3):
+        assert res.fell[row] and res.angle_error[row] == CONFIG.fallen_error, ROWS[row]
+        assert 0.25 < res.fall_time[row] < 0.75, (ROWS[row], float(res.fall_time[row]))
+
+
+def test_mjx_and_c_mujoco_agree(runs):
+    """The same controller stepped by MJX and by C MuJoCo: the same outcome in every row, hold angles within 2
+    degrees and tool paths within 2 mm where held."""
+    a, b = runs["mjx"], runs["c"]
+    np.testing.assert_array_equal(a.fell, b.fell)
+    np.testing.assert_array_equal(a.grasps, b.grasps)
+    held = ~np.asarray(a.fell)
+    np.testing.assert_allclose(a.angle_error[held], b.angle_error[held], atol=2.0)
+    np.testing.assert_allclose(a.position_error[held], b.position_error[held], atol=0.002)
 
 
 def test_no_nan_and_falls_freeze(phys, runs):
-    res = runs["res"]
-    assert np.all(np.isfinite(res.qpos)) and np.all(np.isfinite(res.angle))
-    assert np.all(np.isfinite(res.angle_error)) and np.all(np.isfinite(res.position_error))
-    assert not res.fell[5]
-    # a fallen episode is frozen from its fall on
-    k = int(round(float(res.fall_time[2]) / CONFIG.tick))
-    np.testing.assert_array_equal(res.qpos[2, k:], np.broadcast_to(res.qpos[2, k - 1], res.qpos[2, k:].shape))
-    # the actions and grasps are the ones given
-    np.testing.assert_array_equal(res.actions, np.asarray(runs["acts"]))
-    assert res.qpos.shape == (6, phys.n_ticks(T), phys.model.nq)
+    for res in runs.values():
+        assert np.all(np.isfinite(res.qpos)) and np.all(np.isfinite(res.angle))
+        k = int(round(float(res.fall_time[2]) / CONFIG.tick))
+        np.testing.assert_array_equal(res.qpos[2, k:], np.broadcast_to(res.qpos[2, k - 1], res.qpos[2, k:].shape))
+        assert res.qpos.shape == (5, phys.n_ticks(T), phys.model.nq)
 
 
-def test_batched_equals_single(phys, runs):
+def test_batched_equals_single(phys, batch, runs):
     """Row 1 run alone equals its row in the batch up to float reassociation (which contact dynamics amplify a
     little): tool path within 1 mm, angle within 2 degrees at every tick, the same grasps and outcome."""
-    single = jax.jit(phys.simulate)
-    policy = policies.SequencePolicy(runs["acts"][1])
-    one = jax.device_get(single(policy, runs["eps"][1]))
-    res, a = runs["res"], phys.tool_qpos
+    _, policy, eps = batch
+    one = jax.device_get(jax.jit(phys.simulate)(policies.SequencePolicy(policy.actions[1]), eps[1]))
+    res, a = runs["mjx"], phys.scene.tool_qpos
     np.testing.assert_allclose(one.qpos[:, a : a + 3], res.qpos[1, :, a : a + 3], atol=1e-3)
     np.testing.assert_allclose(one.angle, res.angle[1], atol=2.0)
-    np.testing.assert_allclose(one.angle_error, res.angle_error[1], atol=0.5)
     assert bool(one.fell) == bool(res.fell[1])
     np.testing.assert_array_equal(one.grasps, res.grasps[1])
+
+
+def test_reference_motion_interpolates_the_waypoints():
+    """The spline passes through every waypoint; its velocity and acceleration are the derivatives of its path
+    (central differences), and it stays at the last waypoint afterwards."""
+    ep = scenario.make_episode()
+    f = jax.jit(ctl.reference_motion)
+    for t in range(ep.n_steps):
+        np.testing.assert_allclose(f(ep, t * ep.dt).pos, ep.waypoints[t], atol=1e-6)
+    h = 1e-3
+    for time in (0.3, 1.1, 2.45, 3.6):
+        m, a, b = f(ep, time), f(ep, time - h), f(ep, time + h)
+        np.testing.assert_allclose(m.vel, (b.pos - a.pos) / (2 * h), atol=2e-4)
+        np.testing.assert_allclose(m.acc, (b.vel - a.vel) / (2 * h), atol=2e-2)
+    end = f(ep, 10.0)
+    np.testing.assert_allclose(end.pos, ep.waypoints[-1], atol=1e-6)
+    assert float(jnp.abs(end.vel).max()) == 0.0
+
+
+def test_rotation_error_matches_mujoco():
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        q1, q2 = (x / np.linalg.norm(x) for x in rng.normal(size=(2, 4)))
+        rel, vel = np.zeros(4), np.zeros(3)
+        mujoco.mju_mulQuat(rel, q1, np.array([q2[0], -q2[1], -q2[2], -q2[3]]))
+        mujoco.mju_quat2Vel(vel, rel, 1.0)  # the rotation taking q2 to q1, in the world frame
+        np.testing.assert_allclose(ctl.rotation_error(jnp.asarray(q1), jnp.asarray(q2)), vel, atol=1e-5)
 
 
 def test_mjx_finds_the_fingertip_contacts_c_mujoco_finds(phys):
     """The reason for the contact spheres: at the four-tip grasp, MJX's contacts equal C MuJoCo's (mujoco-mjx 3.17
     missed tilted capsule-box contacts entirely)."""
-    sur, sp = phys.surrogate, phys.space
+    sur, sp, scene = phys.surrogate, phys.space, phys.scene
     ep = scenario.make_episode()
-    grasp = sp.encode([1, 1, 0, 1, 0, 1])
-    c = sur.realise(grasp, ep.waypoints[0], ep.quats[0])
-    mx = phys.model_for(ep)
-    d = phys.initial_data(mx, ep, c.ik.q, ep.waypoints[0])
+    c = sur.realise(sp.encode([1, 1, 0, 1, 0, 1]), ep.waypoints[0], ep.quats[0])
+    fields = scene.episode_fields(ep)
+    mx = scene.mjx_model(fields, 0.0)
+    d = mjx.make_data(mx).replace(qpos=scene.initial_qpos(ep, c.ik.q))
     d = jax.jit(mjx.forward)(mx, d)
-    m = phys.model
+    m = scene.c_model(jax.device_get(fields))
     cd = mujoco.MjData(m)
     cd.qpos[:] = np.asarray(d.qpos)
-    m.geom_pos[:] = np.asarray(mx.geom_pos)
     mujoco.mj_forward(m, cd)
-    m.geom_pos[:] = np.asarray(phys.mx.geom_pos)
     c_dist = sorted(float(x.dist) for x in cd.contact[: cd.ncon])
     dist = np.asarray(d._impl.contact.dist)
     mjx_dist = sorted(float(x) for x in dist[dist < 0])
@@ -165,12 +168,17 @@ def test_mjx_finds_the_fingertip_contacts_c_mujoco_finds(phys):
 def test_bad_input_errors_name_the_field(phys):
     with pytest.raises(ValueError, match="PhysicsConfig.hold"):
         physics.PhysicsConfig(hold=0.0)
-    with pytest.raises(ValueError, match="targets_at"):
-        physics.PhysicsConfig(targets_at="somewhere")
+    with pytest.raises(ValueError, match="unload"):
+        physics.PhysicsConfig(move=0.3)
     with pytest.raises(ValueError, match="control_every"):
         dataclasses.replace(CONFIG, control_every=0)
+    with pytest.raises(ValueError, match="friction_margin"):
+        dataclasses.replace(CONFIG, friction_margin=1.5)
     ep = scenario.stack([scenario.make_episode()])
+    pol = policies.SequencePolicy(jnp.zeros(16, jnp.int32))
     with pytest.raises(ValueError, match="episode.dt"):
-        phys.simulate_batch(policies.SequencePolicy(jnp.zeros(16, jnp.int32)), ep.replace(dt=ep.dt * 2))
+        phys.simulate_batch(pol, ep.replace(dt=ep.dt * 2))
     with pytest.raises(ValueError, match="episode.mass"):
-        phys.simulate_batch(policies.SequencePolicy(jnp.zeros(16, jnp.int32)), ep.replace(mass=-ep.mass))
+        phys.simulate_batch(pol, ep.replace(mass=-ep.mass))
+    with pytest.raises(ValueError, match="backend"):
+        phys.simulate_batch(pol, ep, backend="bullet")

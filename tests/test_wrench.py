@@ -74,7 +74,7 @@ def _cone_generators(normal, mu, m, outer):
     return (normal[None] + s * (np.cos(th)[:, None] * a + np.sin(th)[:, None] * b)).T
 
 
-def _polyhedral_optimum(points, normals, active, mu, w, center, outer, m=512):
+def _polyhedral_optimum(points, normals, active, mu, w, center, outer, m=512, prefer=None):
     """min |S(G f - w)|^2 + rho |f|^2 with each active f_k in the polyhedral cone (f = E lam, lam >= 0), inactive
     f_k = 0: a non-negative least-squares problem, solved exactly by scipy's active-set NNLS. Returns (value,
     forces (K, 3))."""
@@ -85,7 +85,8 @@ def _polyhedral_optimum(points, normals, active, mu, w, center, outer, m=512):
             e[3 * i : 3 * i + 3, i * m : (i + 1) * m] = _cone_generators(normals[i], mu, m, outer)
     a = S @ _grasp_matrix_np(points, center)
     mat = np.vstack([a @ e, np.sqrt(RHO) * e])
-    rhs = np.concatenate([S @ w, np.zeros(3 * k)])
+    pull = np.zeros(3 * k) if prefer is None else np.sqrt(RHO) * (prefer * active[:, None]).ravel()
+    rhs = np.concatenate([S @ w, pull])
     lam, rnorm = nnls(mat, rhs, maxiter=50 * k * m)
     return rnorm**2, (e @ lam).reshape(k, 3)
 
@@ -263,6 +264,29 @@ def test_solve_matches_conic_reference(scipy_problems, i):
     np.testing.assert_allclose(err, np.sum((S @ r) ** 2) + RHO * np.sum(forces**2), rtol=1e-4)
     # and those forces are the optimum's (strong convexity: close values => close minimisers)
     np.testing.assert_allclose(forces, f_ref, atol=0.05 * max(np.abs(f_ref).max(), 0.1))
+
+
+@pytest.mark.parametrize("i", range(4))
+def test_solve_with_a_preferred_grip_and_a_warm_start_matches_conic_reference(scipy_problems, i):
+    """`prefer` (the physics controller's squeeze: 8 N along every normal) changes the penalty to rho |f - prefer|^2:
+    the solution equals NNLS's over the sandwiching polyhedral cones with that pull, and a warm start from another
+    point reaches the same optimum (the problem is strongly convex)."""
+    prob = scipy_problems[i]
+    p, n, a, mu, w, c = _as_f64(prob)
+    prefer = 8.0 * n
+    lo, _ = _polyhedral_optimum(p, n, a, mu, w, c, outer=True, prefer=prefer)
+    hi, f_ref = _polyhedral_optimum(p, n, a, mu, w, c, outer=False, prefer=prefer)
+    cfg = wrench.WrenchConfig(iterations=1500)
+    jp = jnp.asarray(prefer, jnp.float32)
+    for init in (None, jnp.asarray(np.random.default_rng(i).normal(size=p.shape) * 5.0, jnp.float32)):
+        res = wrench.solve(*_as_jax(prob), cfg, init, jp)
+        forces = np.asarray(res.forces, np.float64)
+        r = _grasp_matrix_np(p, c) @ forces.ravel() - w
+        value = np.sum((S @ r) ** 2) + RHO * np.sum(((forces - prefer) * a[:, None]) ** 2)
+        assert lo * (1 - 2e-3) - 1e-6 <= value <= hi * (1 + 2e-3) + 1e-6, (value, lo, hi)
+        assert np.all(_cone_violation(forces[a], n[a], mu) <= 1e-5 * max(np.abs(forces).max(), 1e-3))
+        assert np.all(forces[~a] == 0.0)
+        np.testing.assert_allclose(forces, f_ref, atol=0.05 * max(np.abs(f_ref).max(), 0.1))
 
 
 def test_solve_batch_accuracy_against_conic_reference():

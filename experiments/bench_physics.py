@@ -1,58 +1,71 @@
-"""`python -m experiments bench-physics`: simulated episodes per second of the MJX physics check, one batch of
-`--batch` episodes against the same episodes run one at a time (the same jitted single-episode function called in
-a Python loop), measured side by side in one run. The default is the full episode (16 waypoints + 1 s hold);
-`--waypoints 4` shortens it for a quick run on a CPU."""
+"""`python -m experiments bench-physics`: the cost of the physics check, one policy's batch of episodes (default
+the 27 evaluation episodes with the four-tip grasp), stepped by MJX (one XLA batch) and by C MuJoCo (lockstep, one
+JAX controller call per tick for the whole batch), measured side by side in one run: the first call (compile
+included, what a user waits for) and a second, warm call; with the falls of each, so a faster setting that
+changes the outcome shows. `--variant NAME:key=value,...` adds `PhysicsConfig` variants (e.g.
+`ctrl2:control_every=2`); `--waypoints 4` shortens the episodes for a quick run on a CPU."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 
 from experiments.common import results_dir, table, timed
-from experiments.common import nominal_actions
+from experiments.physics import action
 from gsp_jax import physics, policies, scenario, surrogate
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--batch", type=int, default=256, help="episodes in the batched run")
-    p.add_argument("--loop", type=int, default=4, help="episodes run one at a time")
+    p.add_argument("--set", default="eval")
     p.add_argument("--waypoints", type=int, default=scenario.N_WAYPOINTS, help="episode length (shorter: quicker)")
+    p.add_argument("--variant", action="append", default=[], help="NAME:key=value,... a PhysicsConfig variant")
+    p.add_argument("--backends", nargs="+", default=list(physics.BACKENDS), choices=physics.BACKENDS)
     p.add_argument("--out", default=None)
+
+
+def _variants(specs) -> list[tuple[str, physics.PhysicsConfig]]:
+    out = [("default", physics.PhysicsConfig())]
+    for spec in specs:
+        name, _, body = spec.partition(":")
+        kw = {}
+        for item in filter(None, body.split(",")):
+            key, _, value = item.partition("=")
+            field = {f.name: f for f in dataclasses.fields(physics.PhysicsConfig)}.get(key)
+            if field is None:
+                raise ValueError(f"--variant {spec!r}: PhysicsConfig has no field {key!r}")
+            kw[key] = type(getattr(physics.PhysicsConfig(), key))(value)
+        out.append((name, physics.PhysicsConfig(**kw)))
+    return out
 
 
 def main(args: argparse.Namespace) -> None:
     env = surrogate.Surrogate()
-    phys = physics.Physics(env)
     device = jax.devices()[0]
-    evals = list(scenario.episode_set("eval").values())
-    eps = [evals[i % len(evals)].head(args.waypoints) for i in range(max(args.batch, args.loop))]
-    policy = policies.SequencePolicy(nominal_actions(env)[: args.waypoints])
-    steps = phys.n_ticks(args.waypoints) * phys.config.control_every  # MJX steps per episode
-    print(f"device: {device.platform} ({device.device_kind}); {steps} MJX steps per episode "
-          f"({phys.model.npair} contact pairs)", flush=True)
-
-    single = jax.jit(phys.simulate)
-    _, c_single = timed(single, policy, eps[0])
-    _, t_single = timed(lambda: [single(policy, e) for e in eps[: args.loop]])
-    per_single = t_single / args.loop
-    print(f"one at a time: compile+first {c_single:.1f} s, warm {per_single:.2f} s per episode", flush=True)
-
-    batch = scenario.stack(eps[: args.batch])
-    _, c_batch = timed(phys.simulate_batch, policy, batch)
-    _, t_batch = timed(phys.simulate_batch, policy, batch)
-    print(f"batch of {args.batch}: compile+first {c_batch:.1f} s, warm {t_batch:.2f} s", flush=True)
-
-    rows = [
-        ["one at a time", 1, c_single, per_single, 1 / per_single, steps / per_single, 1.0],
-        ["one batch", args.batch, c_batch, t_batch, args.batch / t_batch, steps * args.batch / t_batch,
-         per_single * args.batch / t_batch],
-    ]
-    out = dict(device=f"{device.platform} ({device.device_kind})", waypoints=args.waypoints, mjx_steps=steps,
-               rows=[dict(zip(["mode", "batch", "compile_s", "warm_s", "episodes_per_s", "mjx_steps_per_s",
-                               "speedup"], r)) for r in rows])
+    eps = [e.head(args.waypoints) for e in scenario.episode_set(args.set).values()]
+    batch = scenario.stack(eps)
+    ring = action(env.space, "ring_distal", 1)
+    policy = policies.SequencePolicy(jnp.full(args.waypoints, ring, jnp.int32))
+    print(f"device: {device.platform} ({device.device_kind}); {len(eps)} episodes of '{args.set}', four tips", flush=True)
+    rows = []
+    for name, config in _variants(args.variant):
+        phys = physics.Physics(env, config)
+        steps = phys.n_ticks(args.waypoints) * config.control_every
+        for backend in args.backends:
+            run = lambda: jax.block_until_ready(phys.simulate_batch(policy, batch, backend=backend))  # noqa: E731
+            res, first = timed(run)
+            _, warm = timed(run)
+            rows.append([name, backend, len(eps), first, warm, len(eps) / warm, steps * len(eps) / warm,
+                         int(np.sum(res.fell))])
+            print(f"{name} {backend}: first call {first:.1f} s, warm {warm:.1f} s, {rows[-1][-1]} fell", flush=True)
+    head = ["variant", "backend", "episodes", "first call [s]", "warm [s]", "episodes/s", "steps/s", "fell"]
+    out = dict(device=f"{device.platform} ({device.device_kind})", waypoints=args.waypoints,
+               rows=[dict(zip(head, r)) for r in rows])
     path = args.out or results_dir("bench") / f"physics_{device.platform}.json"
     with open(path, "w") as f:
         json.dump(out, f, indent=1)
     print(f"wrote {path}\n")
-    print(table(["mode", "batch", "compile [s]", "warm [s]", "episodes/s", "MJX steps/s", "speed-up"], rows, ".2f"))
+    print(table(head, rows, ".2f"))

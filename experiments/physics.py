@@ -4,9 +4,10 @@ episodes together. At every waypoint the policy acts on the simulated state; `rl
 `dp-opt` reads the grasp and waypoint; the others are fixed sequences (open loop):
 
   four-tips  add the ring tip at waypoint 0 (T1 I1 . M1 . R1), then keep the grasp;
-  scripted   two sequences on every episode: (i) `add-slide` adds the ring tip at waypoint 2, slides the middle tip
-             M1 -> M2 at 6 and back at 10; (ii) `alternate` adds the ring tip at 0, then changes at every waypoint,
-             sliding the middle tip between M2 and M1 (two four-contact grasps);
+  scripted   three sequences on every episode: (i) `add-slide` adds the ring tip at waypoint 2, slides the middle
+             tip M1 -> M2 at 6 and back at 10; `add-slide-ring0` the same with the ring tip added at 0 (the three-tip
+             start grasp alone does not hold the tool: see the README); (ii) `alternate` adds the ring tip at 0,
+             then changes at every waypoint, sliding the middle tip between M2 and M1 (two four-contact grasps);
   one-tip    removes the middle tip at 0 and the thumb at 1: the index tip alone (must drop the tool).
 
 Prints each episode's tool angle error under the final torque (180 when the tool fell or touched the table),
@@ -44,8 +45,11 @@ def scripted_sequences(space, n_steps: int = scenario.N_WAYPOINTS) -> dict[str, 
     ring, m1, m2 = action(space, "ring_distal", 1), action(space, "middle_distal", 1), action(space, "middle_distal", 2)
     add_slide = np.full(n_steps, keep)
     add_slide[2], add_slide[6], add_slide[10] = ring, m2, m1
+    early = add_slide.copy()
+    early[0], early[2] = ring, keep
     alternate = np.array([ring] + [m2 if t % 2 else m1 for t in range(1, n_steps)])
-    return {"add-slide": add_slide.astype(np.int32), "alternate": alternate.astype(np.int32)}
+    return {"add-slide": add_slide.astype(np.int32), "add-slide-ring0": early.astype(np.int32),
+            "alternate": alternate.astype(np.int32)}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

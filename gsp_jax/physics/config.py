@@ -37,6 +37,9 @@ class PhysicsConfig:
     # --- controller: object-level impedance on the observed tool
     tool_freq: float = 10.0  # [Hz] natural frequency of the tool's pose error (mass- and inertia-normalised)
     tool_damping: float = 1.0  # damping ratio of the tool's pose error
+    feedback_limit: float = 2.0  # the pose feedback's force is capped at this many tool weights (its torque at
+    # as many weights x tool_radius; measured on the 27 evaluation episodes in C MuJoCo: 1 weight let light tools
+    # lag and fall, 2 and 3 held alike)
     tool_radius: float = 0.05  # [m] rotational gains act as on a mass m at this radius (plus the tool's inertia)
     feedforward_external: bool = True  # the known external wrench is fed forward (as when tightening a bolt)
     squeeze: float = 8.0  # [N] internal grip force per contact (null space of the grasp matrix)
@@ -72,7 +75,7 @@ class PhysicsConfig:
 
     def __post_init__(self):
         for name in ("timestep", "segment", "hold", "ramp", "unload", "move", "load", "clearance", "contact_tol", "reach_tol",
-                     "tool_freq", "tool_radius", "pedestal_speed", "fall_angle", "fall_distance", "friction_margin"):
+                     "tool_freq", "feedback_limit", "tool_radius", "pedestal_speed", "fall_angle", "fall_distance", "friction_margin"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and value > 0):
                 raise ValueError(f"PhysicsConfig.{name} must be > 0, got {value!r}")

@@ -42,7 +42,8 @@ from gsp_jax.physics.scene import Observation
 from gsp_jax.scenario import Episode
 
 N_PATH = 5  # points of a moving link's path
-PATH_TIMES = np.array([0.0, 0.2, 0.5, 0.8, 1.0], np.float32)  # when (fraction of `move`) the path reaches each point
+PATH_TIMES = np.array([0.0, 0.15, 0.4, 0.65, 1.0], np.float32)  # when (fraction of `move`) the path reaches each
+# point: the last leg, onto the tool, gets the most time (a slow arrival does not kick the tool)
 
 
 @struct.dataclass
@@ -209,14 +210,20 @@ class Controller:
         r_com = mat @ episode.com
         com, com_ref = p + r_com, ref.pos + kinematics.quat_to_mat(ref.quat) @ episode.com
         v_com = obs.tool_vel[:3] + jnp.cross(omega, r_com)
-        acc = ref.acc + kp * (com_ref - com) + kd * (ref.vel - v_com)
+        c, weight = self.config, episode.mass * jnp.linalg.norm(self.gravity)
+        feedback = episode.mass * (kp * (com_ref - com) + kd * (ref.vel - v_com))
         inertia = (mat * episode.inertia) @ mat.T
         # rotational stiffness as of a mass m at `tool_radius`: the inertia about a thin tool's long axis is ~50x
         # smaller, and inertia-normalised gains would leave it free to roll under an offset CoM's grip forces
-        inertia_ref = inertia + episode.mass * self.config.tool_radius**2 * jnp.eye(3)
-        alpha = kp * rotation_error(ref.quat, obs.tool_quat) - kd * omega
-        torque = inertia_ref @ alpha + jnp.cross(omega, inertia @ omega)
-        return jnp.concatenate([episode.mass * (acc - self.gravity), torque]) - external
+        inertia_ref = inertia + episode.mass * c.tool_radius**2 * jnp.eye(3)
+        turn = inertia_ref @ (kp * rotation_error(ref.quat, obs.tool_quat) - kd * omega)
+        # the feedback is capped: a contact's impact spikes the observed velocity, and an uncapped damping term
+        # would turn the spike into grip forces the motors cannot give (measured: the tool thrown out of the hand)
+        clip = lambda v, top: v * jnp.minimum(1.0, top / (jnp.linalg.norm(v) + 1e-9))  # noqa: E731
+        feedback, turn = clip(feedback, c.feedback_limit * weight), clip(turn, c.feedback_limit * weight * c.tool_radius)
+        force = episode.mass * (ref.acc - self.gravity) + feedback
+        torque = turn + jnp.cross(omega, inertia @ omega)
+        return jnp.concatenate([force, torque]) - external
 
     def _forces(self, points, normals, active, mu, required, com, init):
         """Cone forces (L, 3) on the links `active` (L,) that supply `required`, pulled towards `squeeze` newtons

@@ -28,6 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--policies", nargs="+", default=list(evaluation.POLICIES), choices=evaluation.POLICIES)
     p.add_argument("--policy-dir", default=None)
     p.add_argument("--fresh", action="store_true", help="ignore saved per-policy results")
+    p.add_argument("--backend", default="mjx", choices=physics.BACKENDS, help="mjx (one XLA batch) or c (C MuJoCo)")
 
 
 def run(ctx: evaluation.Context, names, out, fresh: bool = False) -> dict:
@@ -44,7 +45,7 @@ def run(ctx: evaluation.Context, names, out, fresh: bool = False) -> dict:
                 continue
         policy, axis = evaluation.make(ctx, name)
         t0 = time.perf_counter()
-        res = jax.block_until_ready(phys.simulate_batch(policy, ctx.batch, axis))
+        res = jax.block_until_ready(phys.simulate_batch(policy, ctx.batch, axis, backend=args.backend))
         wall = time.perf_counter() - t0
         mean, ci = stats.mean_ci(res.angle_error)
         rows = result_rows(ctx.names, res)

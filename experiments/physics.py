@@ -61,7 +61,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backend", default="mjx", choices=physics.BACKENDS,
                    help="mjx: one XLA batch (GPU); c: C MuJoCo, the engine's reference implementation (CPU)")
     p.add_argument("--render", action="store_true",
-                   help="key frame (last frame) PNG + GIF of the first episode; needs MUJOCO_GL=egl|osmesa set")
+                   help="key frame PNG + GIF of one episode (--render-episode); needs MUJOCO_GL=egl|osmesa set")
+    p.add_argument("--render-episode", default=None, help="which episode to render (a name in the printed table; "
+                   "default the first); the key frame is the last frame before a fall, else the end of the hold")
+    p.add_argument("--render-window", type=float, nargs=2, default=None, metavar=("FROM", "TO"),
+                   help="render only this time window [s] into the GIF")
 
 
 def make_policy(env: surrogate.Surrogate, kind: str, set_name: str, episodes: dict, args=None):
@@ -126,8 +130,9 @@ def trace_png(phys: physics.Physics, names, res: physics.Result, path, title: st
     plt.close(fig)
 
 
-def render_episode(phys: physics.Physics, qpos: np.ndarray, stem) -> list:
-    """Key frame (end of the hold) PNG and a GIF at 25 frames per simulated second; [] if no GL backend."""
+def render_episode(phys: physics.Physics, qpos: np.ndarray, stem, window=None, key: int = -1) -> list:
+    """Key frame (frame `key`) PNG and a GIF at 25 frames per simulated second (of the time `window`, default all);
+    [] if no GL backend."""
     try:
         from gsp_jax import render
     except Exception as e:  # noqa: BLE001 - rendering is optional
@@ -135,9 +140,9 @@ def render_episode(phys: physics.Physics, qpos: np.ndarray, stem) -> list:
         return []
     try:
         every = max(1, int(round(0.04 / phys.config.tick)))
-        images = render.frames(phys.model, qpos, every=every)
-        png = render.save_png(f"{stem}_keyframe.png", images[-1])
-        gif = render.save_gif(f"{stem}.gif", images, fps=25)
+        png = render.save_png(f"{stem}_keyframe.png", render.frames(phys.model, qpos[key][None], size=(480, 640))[0])
+        lo, hi = (0, len(qpos)) if window is None else (int(window[0] / phys.config.tick), int(window[1] / phys.config.tick))
+        gif = render.save_gif(f"{stem}.gif", render.frames(phys.model, qpos[lo:hi], every=every), fps=25)
         return [png, gif]
     except Exception as e:  # noqa: BLE001
         print(f"rendering skipped ({type(e).__name__}: {e}); set MUJOCO_GL=egl or osmesa")
@@ -190,7 +195,10 @@ def main(args: argparse.Namespace) -> None:
     trace_png(phys, labels, res, f"{stem}_angle.png", f"{args.policy} on {args.set} ({args.backend})")
     files = [stem.with_suffix(".json"), f"{stem}_trace.npz", f"{stem}_angle.png"]
     if args.render:
-        files += render_episode(phys, np.asarray(res.qpos[0]), stem)
+        i = labels.index(args.render_episode) if args.render_episode else 0
+        key = int(round(float(res.fall_time[i]) / phys.config.tick)) - 2 if bool(res.fell[i]) else -1
+        files += render_episode(phys, np.asarray(res.qpos[i]), f"{stem}_{labels[i].replace('/', '_')}",
+                                args.render_window, key)
     print(table(["episode", "angle err [deg]", "pos err [mm]", "max lift tilt", "fell at [s]"],
                 [[r["episode"], r["angle_error_deg"], r["position_error_mm"], r["max_lift_angle_deg"],
                   f"{r['fall_time_s']:.2f}" if r["fell"] else "-"] for r in rows], ".1f"))

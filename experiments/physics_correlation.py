@@ -24,6 +24,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--episodes", type=int, default=None, help="only the first N episodes of the set")
     p.add_argument("--chunk", type=int, default=512, help="sequences per MJX batch")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--backend", default="mjx", choices=physics.BACKENDS, help="mjx (one XLA batch) or c (C MuJoCo)")
 
 
 def spearman(x, y) -> float:
@@ -62,7 +63,8 @@ def main(args: argparse.Namespace) -> None:
     angle, fell = [], []
     for i in range(0, n_e * k, args.chunk):
         sl = slice(i, min(i + args.chunk, n_e * k))
-        res = phys.simulate_batch(policies.SequencePolicy(flat_act[sl]), jax.tree.map(lambda x: x[sl], flat_eps), 0)
+        res = phys.simulate_batch(policies.SequencePolicy(flat_act[sl]), jax.tree.map(lambda x: x[sl], flat_eps), 0,
+                                   backend=args.backend)
         angle.append(np.asarray(res.angle_error))
         fell.append(np.asarray(res.fell))
         print(f"  {sl.stop}/{n_e * k} done, {time.perf_counter() - t0:.0f} s", flush=True)

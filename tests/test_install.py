@@ -26,8 +26,11 @@ env = surrogate.Surrogate()
 state = jax.jit(env.reset)(scenario.make_episode())
 state, reward, done = jax.jit(env.step)(state, jnp.int32(3))
 from experiments import evaluation
+from gsp_jax import physics
+nbody = physics.Physics(env).model.nbody  # the physics subpackage and its scene (world, palm, 16 finger bodies, tool)
 print(json.dumps(dict(package=str(pathlib.Path(gsp_jax.__file__).parent), models=str(hand.MODELS_DIR),
-                      reward=float(reward), grasp=int(state.grasp), policy=evaluation.SHIPPED_POLICY.is_dir())))
+                      reward=float(reward), grasp=int(state.grasp), policy=evaluation.SHIPPED_POLICY.is_dir(),
+                      nbody=nbody)))
 """
 
 
@@ -68,5 +71,6 @@ def test_wheel_installs_outside_the_checkout_and_steps_the_surrogate(tmp_path):
     site = str(venv)
     assert result["package"].startswith(site) and result["models"].startswith(site), result  # not the checkout
     assert result["policy"], "the shipped policy is not in the installed package"
+    assert result["nbody"] == 19, "the physics scene did not build from the installed package"
     assert -200.0 <= result["reward"] < 0.0 and result["grasp"] >= 0, result
     assert "Failed to import warp" not in out.stdout + out.stderr  # users' output stays clean

@@ -174,6 +174,8 @@ def test_bad_input_errors_name_the_field(phys):
         physics.PhysicsConfig(move=0.3)
     with pytest.raises(ValueError, match="control_every"):
         dataclasses.replace(CONFIG, control_every=0)
+    with pytest.raises(ValueError, match="PhysicsConfig.slide"):
+        physics.PhysicsConfig(slide="roll")
     with pytest.raises(ValueError, match="friction_margin"):
         dataclasses.replace(CONFIG, friction_margin=1.5)
     ep = scenario.stack([scenario.make_episode()])

@@ -197,6 +197,10 @@ class Controller:
         b = jnp.where(new[link] > 0, self._target(new)[link], a1)
         b1 = b - c.clearance * n_new
         path = jnp.where(new[link] > 0, jnp.stack([a, a1, a2, b1, b]), jnp.stack([a, a1, a1, a1, a1]))
+        if c.slide == "contact":  # a slide along one face stays on it, pressed lightly (`slide_depth` into it)
+            along = a + jnp.linspace(0.0, 1.0, N_PATH)[:, None] * (b - a) + c.slide_depth * n_new
+            same_face = (old[link] > 0) & (new[link] > 0) & (jnp.dot(n_old, n_new) > 0.99)
+            path = jnp.where(same_face, along.at[-1].set(b), path)
         any_change = jnp.any(changed)
         park = jnp.where(any_change & (jnp.arange(L) == link)[:, None] & (new[link] == 0), path[-1], cs.park)
         return cs.replace(options=new, previous=old, changed=changed, start=jnp.asarray(time, jnp.float32),

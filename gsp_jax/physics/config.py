@@ -73,14 +73,15 @@ class PhysicsConfig:
 
     @property
     def tool_gains(self) -> tuple[float, float]:
-        """(kp [1/s^2], kd [1/s]) of the tool's pose error, per unit mass (translation) or inertia (rotation)."""
+        """(kp [1/s^2], kd [1/s]) of the tool's pose error, per unit mass (translation) or per unit of the inertia
+        the controller assumes (rotation: the tool's own plus its mass at `tool_radius`)."""
         w = 2 * math.pi * self.tool_freq
         return w * w, 2 * self.tool_damping * w
 
     def __post_init__(self):
         for name in ("timestep", "segment", "hold", "ramp", "unload", "move", "load", "slide_depth", "clearance",
-                     "contact_tol", "reach_tol",
-                     "tool_freq", "feedback_limit", "tool_radius", "pedestal_speed", "fall_angle", "fall_distance", "friction_margin"):
+                     "contact_tol", "reach_tol", "tool_freq", "feedback_limit", "tool_radius", "pedestal_speed",
+                     "fall_angle", "fall_distance", "friction_margin"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and value > 0):
                 raise ValueError(f"PhysicsConfig.{name} must be > 0, got {value!r}")

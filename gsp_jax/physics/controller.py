@@ -6,27 +6,31 @@ motor commands, so MJX and C MuJoCo step the same controller.
 Per control tick, with the tool observed at pose (p, R), velocity (v, w), and the reference motion (p_r, v_r, a_r)
 of the episode's waypoints (a cubic Hermite spline through them):
 
-  tool wrench   F = m (a_r + kp (c_r - c) + kd (v_r - v_c) - g) - s w_ext,      (c: centre of mass)
-                T = I_w (kp e_R - kd w) + w x I_w w - s tau_ext                  (e_R: rotation error vector)
-                with kp, kd from `tool_freq` / `tool_damping` (mass- and inertia-normalised, so every tool
-                responds alike) and s the external wrench's ramp (0 while lifting; fed forward in the hold);
-  contacts      the grasp's contact points and normals on the *observed* tool; forces f in the friction cones
-                (a `friction_margin` of mu) that best supply (F, T) (`wrench.solve`, warm-started from the last
-                tick), plus `squeeze` along the normals projected onto the grasp matrix's null space;
-  fingers       every contact link has a target point fixed to the tool (its contact point minus the link radius
-                along the normal: the link's centre line touching the surface), so targets move with the observed
-                tool; tau = sum_l J_l^T (f_l + K (x*_l - x_l) + D (v*_l - J_l dq)) + bias + posture, with J_l the
-                Jacobian of the link point nearest its target at the *measured* joint angles: no IK while the
-                tool is held. Fingers that hold nothing keep their tip at a parking point fixed to the tool.
+  tool wrench   F = m (a_r - g) + m [kp (c_r - c) + kd (v_r - v_c)] - s f_ext          (c: centre of mass)
+                T = I' [kp e_R - kd w] + w x I w - s tau_ext                         (e_R: rotation error vector)
+                kp, kd from `tool_freq` / `tool_damping`; I' = I + m tool_radius^2 (a thin tool's inertia about its
+                long axis alone would leave it free to roll); each bracket capped at `feedback_limit` tool weights
+                (times tool_radius for the torque); s the external wrench's ramp (0 while lifting, 1 in the hold);
+  contacts      the grasp's contact points on the *observed* tool (where each link touches); forces f in the
+                friction cones (`friction_margin` of mu) that supply (F, T), with `squeeze` newtons along every
+                normal as the solve's preferred forces, so the grip lives in the grasp matrix's null space and
+                inside the cones (`wrench.solve(prefer=...)`, warm-started from the last tick);
+  fingers       tau = sum_l J_l^T (f_l + K (x*_l - x_l) + D (v*_l - J_l dq)) + bias + posture, with J_l the
+                Jacobian of link l's centre-line point nearest its target x*_l at the *measured* joint angles: no IK
+                while the tool is held. Targets are fixed to the observed tool: a touching link's where it touches
+                (stiff along the normal, `held_stiffness_ratio` across); an arriving link's its option's nominal
+                point (contact point minus the link radius along the normal); a free finger's parking point.
 
 A grasp change (a decision that changes one link's option) runs inside its segment:
 
   unload  (`unload` s) the link's load fraction goes to 0: the force is the blend s f_with + (1 - s) f_without
           of the solves with and without it, so the links that stay carry the whole wrench before it lets go;
   move    (`move` s) the link travels a path fixed to the tool: back off its contact by `clearance` along the
-          normal, across (sideways first when the new normal differs), to `clearance` off the new contact, in;
-          a link that is removed stops at its first point and parks there;
-  load    once within `contact_tol` of its contact target, the link's load fraction rises to 1 in `load` s.
+          normal, across (sideways first when the new normal differs), to `clearance` off the new contact, in
+          (slowly: the last leg gets the most time); a link that is removed stops at its first point and parks
+          there; `slide="contact"` keeps a slide along one face on the face instead;
+  load    once the link touches (within `contact_tol` of the surface and `reach_tol` of its point), its target
+          becomes where it touches and its load fraction rises to 1 in `load` s.
 """
 from __future__ import annotations
 

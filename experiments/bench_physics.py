@@ -15,7 +15,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments.common import results_dir, table, timed
-from experiments.physics import action
 from gsp_jax import physics, policies, scenario, surrogate
 
 
@@ -47,7 +46,7 @@ def main(args: argparse.Namespace) -> None:
     device = jax.devices()[0]
     eps = [e.head(args.waypoints) for e in scenario.episode_set(args.set).values()]
     batch = scenario.stack(eps)
-    ring = action(env.space, "ring_distal", 1)
+    ring = env.space.action("ring_distal", 1)
     policy = policies.SequencePolicy(jnp.full(args.waypoints, ring, jnp.int32))
     print(f"device: {device.platform} ({device.device_kind}); {len(eps)} episodes of '{args.set}', four tips", flush=True)
     rows = []

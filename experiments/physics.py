@@ -33,16 +33,11 @@ from gsp_jax import dp, physics, policies, scenario, surrogate
 POLICIES = ("dp-opt", "dp-base", "rl", "random", "four-tips", "scripted", "one-tip")
 
 
-def action(space, link: str, option: int) -> int:
-    """The action that sets `link` to `option`."""
-    return int(np.flatnonzero((space.action_link == space.link_names.index(link)) & (space.action_option == option))[0])
-
-
 def scripted_sequences(space, n_steps: int = scenario.N_WAYPOINTS) -> dict[str, np.ndarray]:
     """The scripted sequences (see the module docstring), (T,) actions each. "Keep the grasp" is the thumb tip set
     to the option it has (a redundant action: the surrogate's action set has no null action yet)."""
-    keep = action(space, "thumb_distal", 1)
-    ring, m1, m2 = action(space, "ring_distal", 1), action(space, "middle_distal", 1), action(space, "middle_distal", 2)
+    keep = space.action("thumb_distal", 1)
+    ring, m1, m2 = space.action("ring_distal", 1), space.action("middle_distal", 1), space.action("middle_distal", 2)
     add_slide = np.full(n_steps, keep)
     add_slide[2], add_slide[6], add_slide[10] = ring, m2, m1
     early = add_slide.copy()
@@ -84,11 +79,11 @@ def make_policy(env: surrogate.Surrogate, kind: str, set_name: str, episodes: di
         actions = jax.vmap(dp.random_sequence, (0, 0, 0, None))(tables, batch.start_grasp, keys, env.reward_config.r_min)
         return policies.SequencePolicy(actions), 0
     if kind == "four-tips":  # a reference without grasp changes: add the ring tip at t = 0, then keep the grasp
-        ring = action(env.space, "ring_distal", 1)
+        ring = env.space.action("ring_distal", 1)
         return policies.SequencePolicy(jnp.full(scenario.N_WAYPOINTS, ring, jnp.int32)), None
     if kind == "one-tip":  # the index tip alone: the middle tip lets go at 0, the thumb at 1
-        seq = np.full(scenario.N_WAYPOINTS, action(env.space, "index_distal", 1), np.int32)
-        seq[0], seq[1] = action(env.space, "middle_distal", 0), action(env.space, "thumb_distal", 0)
+        seq = np.full(scenario.N_WAYPOINTS, env.space.action("index_distal", 1), np.int32)
+        seq[0], seq[1] = env.space.action("middle_distal", 0), env.space.action("thumb_distal", 0)
         return policies.SequencePolicy(jnp.asarray(seq)), None
     if kind == "rl":
         return load_rl(env, args.policy_dir)[0], None

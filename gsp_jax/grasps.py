@@ -98,6 +98,15 @@ class GraspSpace:
             for n, o in zip(self.link_names, opts)
         )
 
+    def action(self, link: str, option: int) -> int:
+        """The action that sets `link` (a name of `link_names`) to `option`."""
+        if link not in self.link_names:
+            raise ValueError(f"link: {link!r} is not one of {self.link_names}")
+        li = self.link_names.index(link)
+        if not 0 <= option < self.n_options[li]:
+            raise ValueError(f"option: {option} is not in [0, {self.n_options[li]}) for link {link!r}")
+        return int(np.flatnonzero((self.action_link == li) & (self.action_option == option))[0])
+
     def action_label(self, action: int) -> str:
         link, opt = self.link_names[self.action_link[action]], self.action_option[action]
         return f"{link}->{'off' if opt == 0 else opt}"

@@ -89,6 +89,17 @@ def test_apply_scalar(space):
     assert int(nxt2) == int(nxt) and bool(red2)
 
 
+def test_action_by_link_name(space):
+    """`action(link, option)` is the action whose link and option those are, and bad names or options raise."""
+    for a in range(space.n_actions):
+        link, opt = space.link_names[space.action_link[a]], int(space.action_option[a])
+        assert space.action(link, opt) == a
+    with pytest.raises(ValueError, match="link"):
+        space.action("pinky_distal", 1)
+    with pytest.raises(ValueError, match="option"):
+        space.action("ring_distal", 2)
+
+
 def test_label_of_default_start_grasp(space):
     g = int(scenario.make_episode().start_grasp)
     assert tuple(np.asarray(space.decode(g)).tolist()) == scenario.START_OPTIONS

@@ -33,10 +33,6 @@ def _short(ep: scenario.Episode) -> scenario.Episode:
     return ep.head(T)
 
 
-def _action(space, link: str, option: int) -> int:
-    return int(np.flatnonzero((space.action_link == space.link_names.index(link)) & (space.action_option == option))[0])
-
-
 @pytest.fixture(scope="module")
 def phys():
     return physics.Physics(Surrogate(), CONFIG)
@@ -55,8 +51,8 @@ def batch(phys):
            _short(nominal.replace(start_grasp=sp.encode([0, 1, 0, 0, 0, 0]))),
            _short(nominal.replace(start_grasp=sp.encode([0, 1, 0, 1, 0, 0]))),
            _short(nominal.replace(w_ext=jnp.zeros_like(nominal.w_ext)))]
-    ring, keep = _action(sp, "ring_distal", 1), _action(sp, "index_distal", 1)
-    m1, m2 = _action(sp, "middle_distal", 1), _action(sp, "middle_distal", 2)
+    ring, keep = sp.action("ring_distal", 1), sp.action("index_distal", 1)
+    m1, m2 = sp.action("middle_distal", 1), sp.action("middle_distal", 2)
     acts = jnp.asarray([[ring] + [keep] * (T - 1)] * 2 + [[keep] * T] * 2 + [[ring, keep, m2, m1, m2]], jnp.int32)
     return scenario.stack(eps), policies.SequencePolicy(acts), eps
 

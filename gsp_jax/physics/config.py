@@ -46,7 +46,7 @@ class PhysicsConfig:
     # lag and fall, 2 and 3 held alike)
     tool_radius: float = 0.05  # [m] rotational gains act as on a mass m at this radius (plus the tool's inertia)
     feedforward_external: bool = True  # the known external wrench is fed forward (as when tightening a bolt)
-    squeeze: float = 8.0  # [N] internal grip force per contact (null space of the grasp matrix)
+    squeeze: float = 8.0  # [N] grip along each normal: the force solve's preferred forces (their null-space part)
     friction_margin: float = 0.7  # the force solve uses this fraction of the friction coefficient
     force_iterations: int = 40  # projected-gradient iterations of the force solve per tick (warm-started)
     # --- controller: the fingers (Cartesian impedance through J^T from the measured joint state, no IK)

@@ -131,9 +131,8 @@ class Controller:
         self.finger_names = tuple(dict.fromkeys(fingers))
         self.link_finger = np.array([self.finger_names.index(f) for f in fingers])  # (L,)
         self.is_tip = np.array([n.endswith("distal") for n in hand.link_names])  # (L,) the finger's parking link
-        li = np.arange(hand.n_links)[:, None]
         radius = hand.link_radius[:, None, None]
-        self.targets_tool = (hand.option_pos - radius * hand.option_normal)[li[:, 0]].astype(np.float32)  # (L, K, 3)
+        self.targets_tool = (hand.option_pos - radius * hand.option_normal).astype(np.float32)  # (L, K, 3)
         self.wrench_config = wrench.WrenchConfig(iterations=config.force_iterations)
 
     # ----------------------------------------------------------------------------------------- geometry
@@ -154,27 +153,34 @@ class Controller:
         """(L, 3) tool-frame targets of the links' centre lines for `options` (L,) (meaningless where 0)."""
         return jnp.asarray(self.targets_tool)[np.arange(self.hand.n_links), options]
 
+    def _normal(self, options: jax.Array) -> jax.Array:
+        """(L, 3) tool-frame inward normals of the links' `options` (L,) (meaningless where 0)."""
+        return jnp.asarray(self.hand.option_normal, jnp.float32)[np.arange(self.hand.n_links), options]
+
     def _on_surface(self, here: jax.Array, options: jax.Array) -> jax.Array:
         """Tool-frame points `here` (L, 3) moved along their option's normal onto the nominal contact level: where a
         link touches, keeping where along the surface it touches."""
-        n = jnp.asarray(self.hand.option_normal, jnp.float32)[np.arange(self.hand.n_links), options]
+        n = self._normal(options)
         return here - jnp.sum((here - self._target(options)) * n, -1, keepdims=True) * n
+
+    def _touching(self, target: jax.Array, point: jax.Array, normal: jax.Array) -> jax.Array:
+        """(L,) bool: link points `point` (L, 3) touch the surface of their `target`s (L, 3) with inward `normal`s
+        (L, 3), all in one frame: within `contact_tol` of it along the normal and `reach_tol` across it."""
+        gap = jnp.sum((target - point) * normal, -1)  # > 0: the link is off the surface
+        across = jnp.linalg.norm(target - point - gap[..., None] * normal, axis=-1)
+        return (gap < self.config.contact_tol) & (across < self.config.reach_tol)
 
     # ------------------------------------------------------------------------------------------- phases
     def start(self, episode: Episode, q0: jax.Array, obs: Observation) -> ControllerState:
         """The state at the episode's start: the start grasp's links that touch loaded, every link parked where
         it is."""
-        c = self.config
         opts = self.space.decode(episode.start_grasp)
         p, mat, _ = self._frame(obs)
         x, _ = self._links(q0, p + self._target(opts) @ mat.T)
         L = self.hand.n_links
         zeros = jnp.zeros((L, 3), jnp.float32)
         here = (x - p) @ mat
-        nrm = jnp.asarray(self.hand.option_normal, jnp.float32)[np.arange(L), opts]
-        gap = jnp.sum((self._target(opts) - here) * nrm, -1)
-        across = jnp.linalg.norm(self._target(opts) - here - gap[:, None] * nrm, axis=-1)
-        touching = (opts > 0) & (gap < c.contact_tol) & (across < c.reach_tol)
+        touching = (opts > 0) & self._touching(self._target(opts), here, self._normal(opts))
         return ControllerState(options=opts, previous=opts, changed=jnp.zeros(L, bool), start=jnp.float32(0.0),
                                path=jnp.zeros((N_PATH, 3), jnp.float32), park=here,
                                anchor=self._on_surface(here, opts), anchored=touching,
@@ -191,9 +197,8 @@ class Controller:
         park_world = p + cs.park @ mat.T
         x, _ = self._links(obs.q, park_world)
         here = ((x - p) @ mat)[link]  # the link's point now, tool frame
-        n_all = jnp.asarray(self.hand.option_normal, jnp.float32)[np.arange(L)]
-        n_old = jnp.where(old[link] > 0, n_all[link, old[link]], 0.0)
-        n_new = jnp.where(new[link] > 0, n_all[link, new[link]], 0.0)
+        n_old = jnp.where(old[link] > 0, self._normal(old)[link], 0.0)
+        n_new = jnp.where(new[link] > 0, self._normal(new)[link], 0.0)
         a = jnp.where(old[link] > 0, jnp.where(cs.anchored[link], cs.anchor[link], self._target(old)[link]), here)
         a1 = a - c.clearance * n_old
         side = n_new - jnp.dot(n_new, n_old) * n_old  # the new normal's part across the old one
@@ -243,7 +248,7 @@ class Controller:
                 external: jax.Array) -> tuple[jax.Array, ControllerState]:
         """Joint torques (J,) for one tick at `time`, and the next state. `external` (6,): the external wrench
         the controller feeds forward (zero while lifting)."""
-        c, L = self.config, self.hand.n_links
+        c = self.config
         with jax.default_matmul_precision("highest"):
             p, mat, omega = self._frame(obs)
             tau_s = time - cs.start
@@ -266,29 +271,25 @@ class Controller:
             tracked = busy_link | (~busy & self.is_tip)
             x_ref = p + tgt @ mat.T
             v_ref = obs.tool_vel[:3] + jnp.cross(omega, x_ref - p)
-            nrm = jnp.asarray(self.hand.option_normal, jnp.float32)[np.arange(L), current] @ mat.T
+            nrm = self._normal(current) @ mat.T
             x, jac = self._links(obs.q, x_ref)
             v = jnp.einsum("lij,j->li", jac, obs.dq)
 
             # load fractions: down when a link is to let go, up once an arriving link touches
             want = (current > 0) & ~unloading & ~travelling
-            gap = jnp.sum((x_ref - x) * nrm, -1)  # > 0: the link is off the surface
-            across = jnp.linalg.norm(x_ref - x - gap[:, None] * nrm, axis=-1)
-            touching = (gap < c.contact_tol) & (across < c.reach_tol)
-            arrive = (current > 0) & ~anchored & ~travelling & touching
+            arrive = (current > 0) & ~anchored & ~travelling & self._touching(x_ref, x, nrm)
             anchor = jnp.where(arrive[:, None], self._on_surface((x - p) @ mat, current), cs.anchor)
             anchored = anchored | arrive
             up = jnp.where(anchored, jnp.minimum(cs.load + c.tick / c.load, 1.0), cs.load)
-
             load = jnp.where(want, up, jnp.maximum(cs.load - c.tick / c.unload, 0.0))
             # every tracked link is pulled to its target; a touching link only weakly across the surface (there the
             # force solve holds the tool; a stiff pull to a point on a tool that slips would pull the tool with it)
             held = (anchored & (current > 0))[:, None]
             err, derr = x_ref - x, v_ref - v
             err_n, derr_n = jnp.sum(err * nrm, -1, keepdims=True) * nrm, jnp.sum(derr * nrm, -1, keepdims=True) * nrm
-            across = c.held_stiffness_ratio
-            f_track = c.finger_kp * jnp.where(held, err_n + across * (err - err_n), err)
-            f_track = f_track + c.finger_kd * jnp.where(held, derr_n + across * (derr - derr_n), derr)
+            ratio = c.held_stiffness_ratio
+            f_track = c.finger_kp * jnp.where(held, err_n + ratio * (err - err_n), err)
+            f_track = f_track + c.finger_kd * jnp.where(held, derr_n + ratio * (derr - derr_n), derr)
             f_track = tracked[:, None] * f_track
             # the force solve on the observed tool, blended over the changed link's load
             radius = jnp.asarray(self.hand.link_radius, jnp.float32)[:, None]

@@ -163,11 +163,16 @@ class Scene:
         c = self.config
         return -jnp.minimum(c.pedestal_speed * jnp.maximum(time - c.segment, 0.0), -AWAY)
 
+    @staticmethod
+    def pedestal_positions(fields: EpisodeFields, drop):
+        """(P, 3) pedestal centres `drop` (<= 0) metres below their start (jax or numpy arrays)."""
+        return fields.pedestal_pos + np.array([0.0, 0.0, 1.0], np.float32) * drop
+
     def mjx_model(self, fields: EpisodeFields, drop: jax.Array) -> mjx.Model:
         """The MJX model with one episode's fields, the pedestals `drop` (<= 0) metres below their start."""
         mx, b = self.mx, self.tool_body
         return mx.replace(
-            geom_pos=mx.geom_pos.at[self.pedestal_geoms].set(fields.pedestal_pos.at[:, 2].add(drop)),
+            geom_pos=mx.geom_pos.at[self.pedestal_geoms].set(self.pedestal_positions(fields, drop)),
             body_mass=mx.body_mass.at[b].set(fields.mass),
             body_inertia=mx.body_inertia.at[b].set(fields.inertia),
             body_ipos=mx.body_ipos.at[b].set(fields.com),
@@ -177,16 +182,14 @@ class Scene:
     def c_model(self, fields: EpisodeFields) -> mujoco.MjModel:
         """A C MuJoCo model (a copy) with one episode's fields (numpy, one episode), pedestals in place."""
         m, b = copy.copy(self.model), self.tool_body
-        m.geom_pos[self.pedestal_geoms] = np.asarray(fields.pedestal_pos)
+        self.c_pedestals(m, fields, 0.0)
         m.body_mass[b], m.body_inertia[b], m.body_ipos[b] = fields.mass, fields.inertia, fields.com
         m.pair_friction[self.finger_tool_pairs, :2] = fields.friction
         return m
 
     def c_pedestals(self, model: mujoco.MjModel, fields: EpisodeFields, drop: float) -> None:
         """Set the pedestals of a C model `drop` (<= 0) metres below their start (in place)."""
-        ped = np.array(fields.pedestal_pos)
-        ped[:, 2] += drop
-        model.geom_pos[self.pedestal_geoms] = ped
+        model.geom_pos[self.pedestal_geoms] = self.pedestal_positions(fields, drop)
 
     def initial_qpos(self, episode: Episode, q: jax.Array) -> jax.Array:
         """(nq,) hand at joint angles q (J,), tool at rest on waypoint 0."""

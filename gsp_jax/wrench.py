@@ -128,3 +128,54 @@ def _solve(points, normals, active, mu, wrench, center, cfg, init=None, prefer=N
         error=jnp.sum(res_scaled**2) + rho * jnp.sum(x**2),
         unmet=jnp.sqrt(jnp.sum(res_scaled**2)) / jnp.sqrt(jnp.sum(b**2) + 1e-12),
     )
+
+
+def least_friction(points, normals, wrench, center, facets: int = 64, tol: float = 1e-4) -> tuple[float, float]:
+    """The least friction coefficient at which point contacts can supply a wrench at all, however hard they press:
+    the infimum of mu over which {f in the Coulomb cones, G f = wrench} is non-empty. numpy/scipy, not jittable: a
+    diagnosis (is a grasp physically able to hold the tool?), not a kernel.
+
+    points (K, 3), normals (K, 3) inward unit normals of the contacts that carry force, wrench (6,) (force [N],
+    torque [N m] about `center` (3,)). Each cone is replaced by the `facets`-sided pyramid circumscribing it, which
+    contains the cone and lies inside the cone of mu / cos(pi / facets); a linear programme (scipy HiGHS) decides
+    feasibility, bisection on mu brackets the infimum. Returns (lower, upper): the cones of any mu > upper can
+    supply the wrench, those of mu < lower cannot; (inf, inf) if no friction suffices (e.g. every normal on one
+    side)."""
+    import numpy as np
+    from scipy.optimize import linprog
+
+    points, normals = np.asarray(points, float).reshape(-1, 3), np.asarray(normals, float).reshape(-1, 3)
+    wrench, center = np.asarray(wrench, float).reshape(6), np.asarray(center, float).reshape(3)
+    k = len(points)
+    if k == 0 or not np.all(np.isfinite(points)) or not np.all(np.isfinite(normals)):
+        raise ValueError(f"least_friction: points and normals must be finite (K, 3) arrays with K >= 1, got {k} "
+                         "contacts")
+    g = np.asarray(grasp_matrix(jnp.asarray(points), jnp.asarray(center)), float)
+    angles = np.linspace(0.0, 2 * np.pi, facets, endpoint=False)
+
+    def feasible(mu: float) -> bool:
+        rows = []
+        for i, n in enumerate(normals):
+            t1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+            t1 /= np.linalg.norm(t1)
+            t2 = np.cross(n, t1)
+            for d in np.cos(angles)[:, None] * t1 + np.sin(angles)[:, None] * t2:  # d . f <= mu n . f
+                row = np.zeros(3 * k)
+                row[3 * i : 3 * i + 3] = d - mu * n
+                rows.append(row)
+            row = np.zeros(3 * k)
+            row[3 * i : 3 * i + 3] = -n  # pushing only
+            rows.append(row)
+        res = linprog(np.zeros(3 * k), A_ub=np.array(rows), b_ub=np.zeros(len(rows)), A_eq=g, b_eq=wrench,
+                      bounds=[(None, None)] * (3 * k), method="highs")
+        return res.status == 0
+
+    lo, hi = 0.0, 1e3
+    if not feasible(hi):
+        return float("inf"), float("inf")
+    if feasible(0.0):
+        return 0.0, 0.0
+    while hi - lo > tol * max(hi, 1e-3):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if feasible(mid) else (mid, hi)
+    return float(lo), float(hi / np.cos(np.pi / facets))

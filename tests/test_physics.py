@@ -75,6 +75,31 @@ def test_four_fingertips_hold_and_changes_keep_the_tool(runs, backend):
         assert res.position_error[row] < 0.005, (ROWS[row], float(res.position_error[row]))
 
 
+def test_a_tip_added_at_the_lowest_start_arrives_before_the_pedestals_sink():
+    """The lowest start (path -6 mm: the tool 1.4 mm above the table): the ring tip added at waypoint 0 must touch
+    the tool before the pedestals sink at 0.25 s, since the three-tip start grasp alone cannot hold it (it needs
+    mu > 0.8: `wrench.least_friction`). A free link pulled along the damped least-squares step arrives (the
+    default); a Cartesian spring J^T kp e barely lowers the near-straight ring finger, the tip is late and the tool
+    touches the table (C MuJoCo, 3 waypoints)."""
+    env = Surrogate()
+    ep = scenario.make_episode(shift_mm=-6.0, torque=0.0).head(3)
+    policy = policies.SequencePolicy(jnp.full((1, 3), env.space.action("ring_distal", 1), jnp.int32))
+    touched, fell = {}, {}
+    for name, stiffness in (("dls", CONFIG.free_stiffness), ("cartesian", 0.0)):
+        phys = physics.Physics(env, dataclasses.replace(CONFIG, free_stiffness=stiffness))
+        res = jax.device_get(phys.simulate_batch(policy, scenario.stack([ep]), policy_axis=0, backend="c"))
+        m, d = phys.model, mujoco.MjData(phys.model)
+        d.qpos[:] = res.qpos[0, phys.n_segment - 1]  # the last tick before the pedestals sink
+        mujoco.mj_forward(m, d)
+        ring = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "ring_distal")
+        touched[name] = any({m.geom_bodyid[c.geom1], m.geom_bodyid[c.geom2]} == {ring, phys.scene.tool_body}
+                            for c in d.contact[: d.ncon])
+        fell[name] = bool(res.fell[0]) and float(res.fall_time[0])
+    assert CONFIG.free_stiffness > 0
+    assert touched == {"dls": True, "cartesian": False} and not fell["dls"] and 0.25 < fell["cartesian"] < 0.4, (
+        touched, fell)
+
+
 @pytest.mark.parametrize("backend", physics.BACKENDS)
 def test_one_fingertip_and_a_one_sided_pinch_drop_the_tool(runs, backend):
     """Without an opposing contact the tool falls once the start pedestals sink away (after 0.25 s)."""

@@ -423,3 +423,32 @@ def test_float64_wrench_under_x64_gives_the_float32_solution():
         out = wrench.solve(pts, nrm, act, 0.8, jnp.asarray(w, jnp.float64), jnp.zeros(3, jnp.float64))
         assert out.forces.dtype == jnp.float32
         np.testing.assert_allclose(np.asarray(out.forces), np.asarray(ref.forces), rtol=1e-5, atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------ least friction (scipy LP)
+@pytest.mark.parametrize("lever,half_width,finger_x", [(0.02, 0.0125, (0.0, 0.03)), (0.01, 0.02, (0.0, 0.02)),
+                                                        (0.035, 0.015, (0.01, 0.04, 0.06))])
+def test_least_friction_of_an_offset_thumb_is_its_lever_over_the_width(lever, half_width, finger_x):
+    """A thumb at x = -lever on the -y face against fingers at x >= 0 on the +y face (CoM at the origin): every
+    squeeze turns the tool about z (least when the fingers press at the nearest, min x), and only friction along x
+    on the two faces (2 half_width apart) can turn it back, so a held tool needs mu > (lever + min x) / (2
+    half_width) however hard the contacts press; the weight makes any finite squeeze need a little more."""
+    points = np.array([[-lever, -half_width, 0.002]] + [[x, half_width, 0.002] for x in finger_x])
+    normals = np.array([[0.0, 1.0, 0.0]] + [[0.0, -1.0, 0.0]] * len(finger_x))
+    lo, hi = wrench.least_friction(points, normals, [0.0, 0.0, 3.4, 0.0, 0.0, 0.0], np.zeros(3))
+    expect = (lever + min(finger_x)) / (2 * half_width)
+    assert lo <= expect * (1 + 1e-3) and hi >= expect * (1 - 1e-3)
+    assert hi - lo < 2e-3 * expect  # the 64-facet pyramids bracket it to 0.12 %
+
+
+def test_least_friction_zero_for_a_support_from_below_and_inf_for_one_side():
+    up = wrench.least_friction([[0.0, 0.0, -0.005]], [[0.0, 0.0, 1.0]], [0.0, 0.0, 3.4, 0.0, 0.0, 0.0], np.zeros(3))
+    assert up == (0.0, 0.0)
+    pinch = wrench.least_friction([[-0.01, 0.01, 0.0], [0.01, 0.01, 0.0]], [[0.0, -1.0, 0.0]] * 2,
+                                  [0.0, 0.0, 3.4, 0.0, 0.0, 0.0], np.zeros(3))
+    assert pinch == (float("inf"), float("inf"))
+    opposed = wrench.least_friction([[0.0, -0.01, 0.0], [0.0, 0.01, 0.0]], [[0.0, 1.0, 0.0], [0.0, -1.0, 0.0]],
+                                    [0.0, 0.0, 3.4, 0.0, 0.0, 0.0], np.zeros(3))
+    assert opposed[1] < 1e-6  # a collinear pinch through the CoM holds with any friction, pressed hard enough
+    with pytest.raises(ValueError, match="least_friction"):
+        wrench.least_friction(np.full((1, 3), np.nan), [[0.0, 0.0, 1.0]], np.zeros(6), np.zeros(3))

@@ -15,11 +15,14 @@ of the episode's waypoints (a cubic Hermite spline through them):
                 friction cones (`friction_margin` of mu) that supply (F, T), with `squeeze` newtons along every
                 normal as the solve's preferred forces, so the grip lives in the grasp matrix's null space and
                 inside the cones (`wrench.solve(prefer=...)`, warm-started from the last tick);
-  fingers       tau = sum_l J_l^T (f_l + K (x*_l - x_l) + D (v*_l - J_l dq)) + bias + posture, with J_l the
+  fingers       tau = sum_l J_l^T (f_l + K_l (x*_l - x_l) + D (v*_l - J_l dq)) + bias + posture, with J_l the
                 Jacobian of link l's centre-line point nearest its target x*_l at the *measured* joint angles: no IK
                 while the tool is held. Targets are fixed to the observed tool: a touching link's where it touches
-                (stiff along the normal, `held_stiffness_ratio` across); an arriving link's its option's nominal
-                point (contact point minus the link radius along the normal); a free finger's parking point.
+                (K stiff along the normal, `held_stiffness_ratio` across); an arriving link's its option's nominal
+                point (contact point minus the link radius along the normal); a free finger's parking point. A link
+                that touches nothing gets K_l = k_free (J_l J_l^T + lam^2 I)^-1: a joint-space spring of
+                `free_stiffness` on the damped least-squares step, which also moves a near-straight finger's tip
+                along the finger.
 
 A grasp change (a decision that changes one link's option) runs inside its segment:
 
@@ -288,7 +291,13 @@ class Controller:
             err, derr = x_ref - x, v_ref - v
             err_n, derr_n = jnp.sum(err * nrm, -1, keepdims=True) * nrm, jnp.sum(derr * nrm, -1, keepdims=True) * nrm
             ratio = c.held_stiffness_ratio
-            f_track = c.finger_kp * jnp.where(held, err_n + ratio * (err - err_n), err)
+            # a free link (travelling, arriving, parked) is pulled as by a joint-space spring towards the damped
+            # least-squares step J^T (J J^T + lam^2)^-1 e: J^T kp e alone is weak along the directions a finger
+            # barely moves in (a near-straight finger lowering its tip), and an arriving tip came too late
+            jjt = jnp.einsum("lij,lkj->lik", jac, jac) + c.free_damping**2 * jnp.eye(3)
+            f_free = c.free_stiffness * jnp.linalg.solve(jjt, err[..., None])[..., 0]
+            f_track = jnp.where(held, c.finger_kp * (err_n + ratio * (err - err_n)), f_free if c.free_stiffness > 0
+                                else c.finger_kp * err)
             f_track = f_track + c.finger_kd * jnp.where(held, derr_n + ratio * (derr - derr_n), derr)
             f_track = tracked[:, None] * f_track
             # the force solve on the observed tool, blended over the changed link's load

@@ -133,44 +133,68 @@ class Physics:
     def _observe(self, data: mjx.Data) -> Observation:
         return self.scene.observe(data.qpos, data.qvel, data.qfrc_bias)
 
-    def simulate(self, policy, episode: Episode) -> Result:
-        """One episode of `policy` (anything with `act(State) -> action`) on `episode`, stepped by MJX; see the
-        module docstring. Open loop is `policies.SequencePolicy`; closed loop any policy that reads the state."""
-        c, T, n, scene = self.config, episode.n_steps, self.n_segment, self.scene
-        fields = scene.episode_fields(episode)
+    def _init(self, episode: Episode) -> _Carry:
+        """The MJX state and controller state of one episode at t = 0."""
         qpos, cs = self.start(episode)
-        data = mjx.make_data(scene.mx).replace(qpos=qpos)
-        carry = _Carry(data=data, cs=cs, grasp=jnp.asarray(episode.start_grasp, jnp.int32), fell=jnp.array(False),
-                       fall_tick=jnp.asarray(-1, jnp.int32))
+        data = mjx.make_data(self.scene.mx).replace(qpos=qpos)
+        return _Carry(data=data, cs=cs, grasp=jnp.asarray(episode.start_grasp, jnp.int32), fell=jnp.array(False),
+                      fall_tick=jnp.asarray(-1, jnp.int32))
+
+    def _decide(self, policy, carry: _Carry, episode: Episode, k):
+        """Segment k's decision for one episode: (carry, (action, grasp))."""
+        action, grasp, cs = self.decide(policy, carry.cs, self._observe(carry.data), carry.grasp, episode, k)
+        return carry.replace(cs=cs, grasp=grasp), (action, grasp)
+
+    def _step(self, carry: _Carry, episode: Episode, fields, j):
+        """Control tick j of one episode in MJX: (carry, (angle, position error, qpos))."""
+        c, scene = self.config, self.scene
+        mx = scene.mjx_model(fields, scene.pedestal_drop(j * c.tick))
+        ctrl, ext, cs = self.tick(carry.cs, self._observe(carry.data), episode, j)
+        xfrc = jnp.zeros((self.model.nbody, 6), jnp.float32).at[scene.tool_body].set(ext)
+        data = carry.data.replace(ctrl=ctrl, xfrc_applied=xfrc)
+        data = jax.lax.fori_loop(0, c.control_every, lambda _, d: mjx.step(mx, d), data)
+        angle, perr, fell_now = self.check(self._observe(data), episode, j)
+        keep = carry.fell | fell_now  # freeze: a fallen tool stays put, a non-finite step is never stored
+        data = jax.tree.map(lambda old, new: jnp.where(keep, old, new), carry.data, data)
+        fall_tick = jnp.where(fell_now & ~carry.fell, j, carry.fall_tick)
+        carry = carry.replace(data=data, cs=cs, fell=carry.fell | fell_now, fall_tick=fall_tick)
+        return carry, (angle, perr, data.qpos)
+
+    def _run(self, policy, episodes: Episode, policy_axis, batched: bool) -> Result:
+        """The MJX episode loop: a scan over segments, each a decision and a scan over its control ticks. With
+        `batched`, every per-episode function is vmapped *inside* the scans (the carry is batched from the start:
+        tracing a vmapped scan instead re-batches its body until the carry's batching settles, which measured 10 s
+        of the trace on a CPU)."""
+        T, n = episodes.n_steps, self.n_segment
+        vm = (lambda f, axes: jax.vmap(f, in_axes=axes)) if batched else (lambda f, axes: f)  # noqa: E731
+        fields = vm(self.scene.episode_fields, 0)(episodes)
+        carry = vm(self._init, 0)(episodes)
 
         def segment(carry: _Carry, k):
-            action, grasp, cs = self.decide(policy, carry.cs, self._observe(carry.data), carry.grasp, episode, k)
-            def tick(carry: _Carry, i):
-                j = k * n + i
-                mx = scene.mjx_model(fields, scene.pedestal_drop(j * c.tick))
-                ctrl, ext, cs = self.tick(carry.cs, self._observe(carry.data), episode, j)
-                xfrc = jnp.zeros((self.model.nbody, 6), jnp.float32).at[scene.tool_body].set(ext)
-                data = carry.data.replace(ctrl=ctrl, xfrc_applied=xfrc)
-                data = jax.lax.fori_loop(0, c.control_every, lambda _, d: mjx.step(mx, d), data)
-                angle, perr, fell_now = self.check(self._observe(data), episode, j)
-                keep = carry.fell | fell_now  # freeze: a fallen tool stays put, a non-finite step is never stored
-                data = jax.tree.map(lambda old, new: jnp.where(keep, old, new), carry.data, data)
-                fall_tick = jnp.where(fell_now & ~carry.fell, j, carry.fall_tick)
-                carry = carry.replace(data=data, cs=cs, fell=carry.fell | fell_now, fall_tick=fall_tick)
-                return carry, (angle, perr, data.qpos)
+            carry, decision = vm(self._decide, (policy_axis, 0, 0, None))(policy, carry, episodes, k)
+            tick = lambda carry, i: vm(self._step, (0, 0, 0, None))(carry, episodes, fields, k * n + i)  # noqa: E731
+            carry, trace = jax.lax.scan(tick, carry, jnp.arange(n))
+            return carry, (decision, trace)
 
-            carry, trace = jax.lax.scan(tick, carry.replace(cs=cs, grasp=grasp), jnp.arange(n))
-            return carry, (action, grasp, trace)
+        carry, ((actions, grasps), trace) = jax.lax.scan(segment, carry, jnp.arange(T + self.n_hold))
+        # (segments, ticks[, batch], ...) -> ([batch,] segments * ticks, ...); decisions -> ([batch,] T)
+        lead = 1 if batched else 0
+        trace = jax.tree.map(lambda x: jnp.moveaxis(x.reshape(-1, *x.shape[2:]), 0, lead), trace)
+        actions, grasps = (jnp.moveaxis(x, 0, lead)[..., :T] for x in (actions, grasps))
+        angle, perr, qpos = trace
+        return self.result(actions, grasps, angle, perr, qpos, carry.fell, carry.fall_tick, T)
 
-        carry, (actions, grasps, trace) = jax.lax.scan(segment, carry, jnp.arange(T + self.n_hold))
-        angle, perr, qpos = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), trace)
-        return self.result(actions[:T], grasps[:T], angle, perr, qpos, carry.fell, carry.fall_tick, T)
+    def simulate(self, policy, episode: Episode) -> Result:
+        """One episode of `policy` (anything with `act(State) -> action`) on `episode`, stepped by MJX; see the
+        module docstring. Open loop is `policies.SequencePolicy`; closed loop any policy that reads the state.
+        Pure JAX: jit it, or vmap it over episodes (`simulate_batch` runs a batch faster to trace)."""
+        return self._run(policy, episode, None, batched=False)
 
     def simulate_batch(self, policy, episodes: Episode, policy_axis: int | None = None, backend: str = "mjx",
                        progress: bool = False) -> Result:
         """Every episode of a batch (leading axis) with `policy`; with policy_axis=0 the policy pytree carries the
         same batch axis (e.g. one `SequencePolicy` per episode). backend "mjx": `simulate` vmapped, one XLA
-        kernel (jitted once per structure); "c": C MuJoCo (`c_backend.simulate`), the same controller."""
+        kernel (jitted once per structure; the per-tick step vmapped inside the scans); "c": C MuJoCo (`c_backend.simulate`), the same controller."""
         check_episodes(episodes, self.config)
         if backend == "c":
             from gsp_jax.physics import c_backend
@@ -180,7 +204,7 @@ class Physics:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         key = policy_axis
         if key not in self._jitted:
-            self._jitted[key] = jax.jit(jax.vmap(self.simulate, in_axes=(policy_axis, 0)))
+            self._jitted[key] = jax.jit(lambda policy, episodes: self._run(policy, episodes, policy_axis, True))
         return self._jitted[key](policy, episodes)
 
 

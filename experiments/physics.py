@@ -6,8 +6,9 @@ episodes together. At every waypoint the policy acts on the simulated state; `rl
   four-tips  add the ring tip at waypoint 0 (T1 I1 . M1 . R1), then keep the grasp;
   scripted   three sequences on every episode: (i) `add-slide` adds the ring tip at waypoint 2, slides the middle
              tip M1 -> M2 at 6 and back at 10; `add-slide-ring0` the same with the ring tip added at 0 (the three-tip
-             start grasp alone does not hold the tool: see the README); (ii) `alternate` adds the ring tip at 0,
-             then changes at every waypoint, sliding the middle tip between M2 and M1 (two four-contact grasps);
+             start grasp cannot hold the tool: it needs friction mu > 0.8, the episodes' mu, printed per sequence as
+             its hardest grasp's least mu); (ii) `alternate` adds the ring tip at 0, then changes at every
+             waypoint, sliding the middle tip between M2 and M1 (two four-contact grasps);
   one-tip    removes the middle tip at 0 and the thumb at 1: the index tip alone (must drop the tool).
 
 Prints each episode's tool angle error under the final torque (180 when the tool fell or touched the table),
@@ -28,7 +29,7 @@ import numpy as np
 from experiments.common import dp_tables, nominal_actions, results_dir, table
 from experiments.evaluation import load_rl
 from experiments.stats import mean_ci
-from gsp_jax import dp, physics, policies, scenario, surrogate
+from gsp_jax import dp, physics, policies, scenario, surrogate, wrench
 
 POLICIES = ("dp-opt", "dp-base", "rl", "random", "four-tips", "scripted", "one-tip")
 
@@ -45,6 +46,17 @@ def scripted_sequences(space, n_steps: int = scenario.N_WAYPOINTS) -> dict[str, 
     alternate = np.array([ring] + [m2 if t % 2 else m1 for t in range(1, n_steps)])
     return {"add-slide": add_slide.astype(np.int32), "add-slide-ring0": early.astype(np.int32),
             "alternate": alternate.astype(np.int32)}
+
+
+def least_friction(env: surrogate.Surrogate, grasp: int, episode: scenario.Episode) -> float:
+    """The least friction coefficient at which `grasp`'s nominal contacts can hold `episode`'s tool at rest (its
+    weight about its CoM), however hard they press (`wrench.least_friction`, upper bound; inf: never)."""
+    opts = np.asarray(env.space.decode(grasp))
+    links = np.flatnonzero(opts)
+    h = env.hand
+    weight = -float(episode.mass) * np.asarray(h.gravity, float)
+    return wrench.least_friction(h.option_pos[links, opts[links]], h.option_normal[links, opts[links]],
+                                 np.concatenate([weight, np.zeros(3)]), np.asarray(episode.com))[1]
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -184,7 +196,15 @@ def main(args: argparse.Namespace) -> None:
         summary["sequences"] = {}
         for i, k in enumerate(seqs):
             part = jax.tree.map(lambda x: x[i * len(names) : (i + 1) * len(names)], res)
-            summary["sequences"][k] = dict(actions=[int(a) for a in seqs[k]], **_summary(names, part))
+            # the grasps the sequence holds the tool with (after each decision; the start grasp has the pedestals'
+            # help), and the friction the hardest of them needs on any episode: where that exceeds the episodes'
+            # mu, no controller can hold the tool
+            held = {(int(g), n) for i_n, n in enumerate(names) for g in np.asarray(part.grasps[i_n])}
+            by_com = {(g, tuple(np.asarray(episodes[n].com).tolist())): episodes[n] for g, n in held}  # mass scales out
+            need = max(least_friction(env, g, ep) for (g, _), ep in by_com.items())
+            summary["sequences"][k] = dict(actions=[int(a) for a in seqs[k]], least_friction_needed=need,
+                                           episode_friction=sorted({float(e.friction) for e in episodes.values()}),
+                                           **_summary(names, part))
     stem.with_suffix(".json").write_text(json.dumps(dict(summary=summary, episodes=rows), indent=1))
     np.savez_compressed(f"{stem}_trace.npz", angle=np.asarray(res.angle), qpos=np.asarray(res.qpos), names=labels)
     trace_png(phys, labels, res, f"{stem}_angle.png", f"{args.policy} on {args.set} ({args.backend})")
@@ -200,5 +220,7 @@ def main(args: argparse.Namespace) -> None:
     for k, part in summary.get("sequences", {"": summary}).items():
         print(f"\n{args.policy}{' ' + k if k else ''} on {args.set}: {part['falls']}/{part['episodes']} fell; mean angle "
               f"error {part['mean_angle_error_deg']:.1f} deg (95% CI +-{part['ci95_deg']:.1f}); where held: hold angle "
-              f"{part['mean_hold_angle_deg_where_held']} deg, largest lift tilt {part['max_lift_tilt_deg_where_held']} deg")
+              f"{part['mean_hold_angle_deg_where_held']} deg, largest lift tilt {part['max_lift_tilt_deg_where_held']} deg"
+              + (f"; its hardest grasp needs mu > {part['least_friction_needed']:.3f} (episodes: "
+                 f"{part['episode_friction']})" if "least_friction_needed" in part else ""))
     print(f"{wall:.1f} s including compile\nwrote " + ", ".join(map(str, files)))

@@ -48,15 +48,15 @@ def scripted_sequences(space, n_steps: int = scenario.N_WAYPOINTS) -> dict[str, 
             "alternate": alternate.astype(np.int32)}
 
 
-def least_friction(env: surrogate.Surrogate, grasp: int, episode: scenario.Episode) -> float:
+def least_friction(env: surrogate.Surrogate, grasp: int, episode: scenario.Episode) -> tuple[float, float]:
     """The least friction coefficient at which `grasp`'s nominal contacts can hold `episode`'s tool at rest (its
-    weight about its CoM), however hard they press (`wrench.least_friction`, upper bound; inf: never)."""
+    weight about its CoM), however hard they press: `wrench.least_friction`'s bracket (lower, upper)."""
     opts = np.asarray(env.space.decode(grasp))
     links = np.flatnonzero(opts)
     h = env.hand
     weight = -float(episode.mass) * np.asarray(h.gravity, float)
     return wrench.least_friction(h.option_pos[links, opts[links]], h.option_normal[links, opts[links]],
-                                 np.concatenate([weight, np.zeros(3)]), np.asarray(episode.com))[1]
+                                 np.concatenate([weight, np.zeros(3)]), np.asarray(episode.com))
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -201,7 +201,7 @@ def main(args: argparse.Namespace) -> None:
             # mu, no controller can hold the tool
             held = {(int(g), n) for i_n, n in enumerate(names) for g in np.asarray(part.grasps[i_n])}
             by_com = {(g, tuple(np.asarray(episodes[n].com).tolist())): episodes[n] for g, n in held}  # mass scales out
-            need = max(least_friction(env, g, ep) for (g, _), ep in by_com.items())
+            need = max(least_friction(env, g, ep) for (g, _), ep in by_com.items())  # the hardest, by its bracket
             summary["sequences"][k] = dict(actions=[int(a) for a in seqs[k]], least_friction_needed=need,
                                            episode_friction=sorted({float(e.friction) for e in episodes.values()}),
                                            **_summary(names, part))
@@ -221,6 +221,7 @@ def main(args: argparse.Namespace) -> None:
         print(f"\n{args.policy}{' ' + k if k else ''} on {args.set}: {part['falls']}/{part['episodes']} fell; mean angle "
               f"error {part['mean_angle_error_deg']:.1f} deg (95% CI +-{part['ci95_deg']:.1f}); where held: hold angle "
               f"{part['mean_hold_angle_deg_where_held']} deg, largest lift tilt {part['max_lift_tilt_deg_where_held']} deg"
-              + (f"; its hardest grasp needs mu > {part['least_friction_needed']:.3f} (episodes: "
-                 f"{part['episode_friction']})" if "least_friction_needed" in part else ""))
+              + ("; its hardest grasp needs mu > {:.4f} (bracket {:.4f}-{:.4f}; episodes: {})".format(
+                  part["least_friction_needed"][0], *part["least_friction_needed"], part["episode_friction"])
+                 if "least_friction_needed" in part else ""))
     print(f"{wall:.1f} s including compile\nwrote " + ", ".join(map(str, files)))

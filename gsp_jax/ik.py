@@ -235,8 +235,12 @@ def _solve(hand, active, targets, tool_pos, tool_mat, cfg) -> IKResult:
         (q, r, _, _), _ = jax.lax.scan(iteration, init, None, length=cfg.iterations)
         return q, jnp.sum(r**2)
 
-    qs, cost = jax.vmap(run)(jnp.asarray(start_configurations(hand, cfg), dtype))
-    q = qs[jnp.argmin(cost)]  # the lowest cost of one objective: ties break towards the earlier start
+    starts = jnp.asarray(start_configurations(hand, cfg), dtype)
+    if len(starts) == 1:  # the model's start alone (the default): one descent
+        q, _ = run(starts[0])
+    else:
+        qs, cost = jax.vmap(run)(starts)
+        q = qs[jnp.argmin(cost)]  # the lowest cost of one objective: ties break towards the earlier start
 
     geo = _geometry(hand, *kinematics.body_poses(hand, q), targets, tool_pos, tool_mat)
     link_error = jnp.where(active, jnp.abs(geo.link_gap), 0.0)
@@ -255,15 +259,18 @@ def _solve(hand, active, targets, tool_pos, tool_mat, cfg) -> IKResult:
 
 def start_configurations(hand: HandModel, cfg: IKConfig) -> np.ndarray:
     """(1 + len(cfg.extra_starts), J) joint configurations the solve starts from: the model's start, then each
-    extra start's per-finger offsets added to every finger (clipped to the joint limits)."""
+    extra start's per-finger offsets added to every finger (the model's joints come finger by finger, each finger's
+    in the same order; clipped to the joint limits)."""
     q0 = np.asarray(hand.q_start, np.float64)
+    fingers = list(dict.fromkeys(n.split("_")[0] for n in hand.joint_names))
+    per_finger = hand.n_joints // len(fingers)
     starts = [q0]
     for offset in cfg.extra_starts:
         offset = np.asarray(offset, np.float64)
-        if offset.ndim != 1 or offset.size == 0 or hand.n_joints % offset.size:
-            raise ValueError(f"IKConfig.extra_starts: each offset needs one value per joint of a finger (a divisor "
-                             f"of the hand's {hand.n_joints} joints), got {tuple(offset.tolist())}")
-        starts.append(np.clip(q0 + np.tile(offset, hand.n_joints // offset.size), *hand.joint_range.T))
+        if offset.shape != (per_finger,) or not np.all(np.isfinite(offset)):
+            raise ValueError(f"IKConfig.extra_starts: each offset needs one finite value per joint of a finger "
+                             f"({per_finger}), got {tuple(np.ravel(offset).tolist())}")
+        starts.append(np.clip(q0 + np.tile(offset, len(fingers)), *hand.joint_range.T))
     return np.stack(starts)
 
 

@@ -130,7 +130,8 @@ def _solve(points, normals, active, mu, wrench, center, cfg, init=None, prefer=N
     )
 
 
-def least_friction(points, normals, wrench, center, facets: int = 64, tol: float = 1e-4) -> tuple[float, float]:
+def least_friction(points, normals, wrench, center, facets: int = 64, tol: float = 1e-4,
+                   max_mu: float = 1e6) -> tuple[float, float]:
     """The least friction coefficient at which point contacts can supply a wrench at all, however hard they press:
     the infimum of mu over which {f in the Coulomb cones, G f = wrench} is non-empty. numpy/scipy, not jittable: a
     diagnosis (is a grasp physically able to hold the tool?), not a kernel.
@@ -139,18 +140,23 @@ def least_friction(points, normals, wrench, center, facets: int = 64, tol: float
     torque [N m] about `center` (3,)). Each cone is replaced by the `facets`-sided pyramid circumscribing it, which
     contains the cone and lies inside the cone of mu / cos(pi / facets); a linear programme (scipy HiGHS) decides
     feasibility, bisection on mu brackets the infimum. Returns (lower, upper): the cones of any mu > upper can
-    supply the wrench, those of mu < lower cannot; (inf, inf) if no friction suffices (e.g. every normal on one
-    side)."""
+    supply the wrench, those of mu < lower cannot (the infimum itself may need unbounded forces); (max_mu, inf) if
+    not even mu = max_mu suffices (e.g. every normal on one side)."""
     import numpy as np
     from scipy.optimize import linprog
 
     points, normals = np.asarray(points, float).reshape(-1, 3), np.asarray(normals, float).reshape(-1, 3)
     wrench, center = np.asarray(wrench, float).reshape(6), np.asarray(center, float).reshape(3)
     k = len(points)
-    if k == 0 or not np.all(np.isfinite(points)) or not np.all(np.isfinite(normals)):
-        raise ValueError(f"least_friction: points and normals must be finite (K, 3) arrays with K >= 1, got {k} "
-                         "contacts")
-    g = np.asarray(grasp_matrix(jnp.asarray(points), jnp.asarray(center)), float)
+    if k == 0 or len(normals) != k or not (np.all(np.isfinite(points)) and np.all(np.isfinite(normals))):
+        raise ValueError(f"least_friction: points and normals must be finite (K, 3) arrays with K >= 1, got "
+                         f"{len(points)} points and {len(normals)} normals")
+    if not (isinstance(facets, int) and facets >= 3):
+        raise ValueError(f"least_friction: facets must be an int >= 3, got {facets!r}")
+    g = np.zeros((6, 3 * k))  # float64 grasp matrix: [I; (p - c)x] per contact
+    for i, r in enumerate(points - center):
+        g[:3, 3 * i : 3 * i + 3] = np.eye(3)
+        g[3:, 3 * i : 3 * i + 3] = [[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]]
     angles = np.linspace(0.0, 2 * np.pi, facets, endpoint=False)
 
     def feasible(mu: float) -> bool:
@@ -168,13 +174,17 @@ def least_friction(points, normals, wrench, center, facets: int = 64, tol: float
             rows.append(row)
         res = linprog(np.zeros(3 * k), A_ub=np.array(rows), b_ub=np.zeros(len(rows)), A_eq=g, b_eq=wrench,
                       bounds=[(None, None)] * (3 * k), method="highs")
+        if res.status not in (0, 2):  # 0 solved, 2 infeasible; anything else would bias the bracket
+            raise RuntimeError(f"least_friction: the LP at mu = {mu:g} ended with status {res.status}: {res.message}")
         return res.status == 0
 
-    lo, hi = 0.0, 1e3
-    if not feasible(hi):
-        return float("inf"), float("inf")
     if feasible(0.0):
         return 0.0, 0.0
+    lo, hi = 0.0, 1.0
+    while not feasible(hi):
+        if hi >= max_mu:
+            return float(max_mu), float("inf")
+        lo, hi = hi, min(10.0 * hi, max_mu)
     while hi - lo > tol * max(hi, 1e-3):
         mid = 0.5 * (lo + hi)
         lo, hi = (lo, mid) if feasible(mid) else (mid, hi)

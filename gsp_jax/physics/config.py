@@ -31,9 +31,10 @@ class PhysicsConfig:
     move: float = 0.13  # [s] the link travels clear of the tool to its new contact (or to its parking point)
     load: float = 0.04  # [s] the arriving link takes its share, from the moment it is within contact_tol
     slide: str = "lift"  # a slide along one face: "lift" travels clear of the tool like any change, "contact"
-    # stays on the face, pressed lightly; measured (C MuJoCo, 27 evaluation episodes, a slide at every waypoint):
-    # lift 3 falls, contact 12 (the sliding tip drags the tool)
-    slide_depth: float = 0.002  # [m] how far into the face a "contact" slide aims (~0.6 N at finger_kp)
+    # stays on the face, pressed lightly; measured (C MuJoCo, 27 evaluation episodes, a slide at every waypoint,
+    # with the Cartesian pull on free links that preceded `free_stiffness`): lift 3 falls, contact 12 (the sliding
+    # tip drags the tool)
+    slide_depth: float = 0.002  # [m] how far into the face a "contact" slide aims (a few newtons: the link is free)
     clearance: float = 0.012  # [m] how far off the surface a moving link travels (more than a fingertip radius)
     contact_tol: float = 0.0015  # [m] a link this close to the contact surface (along the normal) touches it
     reach_tol: float = 0.006  # [m] ... if also this close to its contact point across the surface (the surrogate's
@@ -88,7 +89,7 @@ class PhysicsConfig:
     def __post_init__(self):
         for name in ("timestep", "segment", "hold", "ramp", "unload", "move", "load", "slide_depth", "clearance",
                      "contact_tol", "reach_tol", "tool_freq", "feedback_limit", "tool_radius", "pedestal_speed",
-                     "fall_angle", "fall_distance", "friction_margin"):
+                     "free_damping", "fall_angle", "fall_distance", "friction_margin"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and value > 0):
                 raise ValueError(f"PhysicsConfig.{name} must be > 0, got {value!r}")
@@ -96,7 +97,8 @@ class PhysicsConfig:
             value = getattr(self, name)
             if not (isinstance(value, int) and value >= 1):
                 raise ValueError(f"PhysicsConfig.{name} must be an int >= 1, got {value!r}")
-        for name in ("tool_damping", "held_stiffness_ratio", "squeeze", "finger_kp", "finger_kd", "posture_kp"):
+        for name in ("tool_damping", "held_stiffness_ratio", "squeeze", "finger_kp", "finger_kd", "posture_kp",
+                     "free_stiffness"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and value >= 0):
                 raise ValueError(f"PhysicsConfig.{name} must be >= 0, got {value!r}")

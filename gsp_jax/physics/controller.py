@@ -299,7 +299,7 @@ class Controller:
             f_track = jnp.where(held, c.finger_kp * (err_n + ratio * (err - err_n)), f_free if c.free_stiffness > 0
                                 else c.finger_kp * err)
             f_track = f_track + c.finger_kd * jnp.where(held, derr_n + ratio * (derr - derr_n), derr)
-            f_track = tracked[:, None] * f_track
+            f_track = jnp.where(tracked[:, None], f_track, 0.0)
             # the force solve on the observed tool, blended over the changed link's load
             radius = jnp.asarray(self.hand.link_radius, jnp.float32)[:, None]
             surface = jnp.where(anchored[:, None], anchor, self._target(current)) + radius * (nrm @ mat)

@@ -193,8 +193,9 @@ class Physics:
     def simulate_batch(self, policy, episodes: Episode, policy_axis: int | None = None, backend: str = "mjx",
                        progress: bool = False) -> Result:
         """Every episode of a batch (leading axis) with `policy`; with policy_axis=0 the policy pytree carries the
-        same batch axis (e.g. one `SequencePolicy` per episode). backend "mjx": `simulate` vmapped, one XLA
-        kernel (jitted once per structure; the per-tick step vmapped inside the scans); "c": C MuJoCo (`c_backend.simulate`), the same controller."""
+        same batch axis (e.g. one `SequencePolicy` per episode). backend "mjx": one XLA kernel, `simulate`'s loop
+        with its per-tick step vmapped inside the scans (jitted once per structure); "c": C MuJoCo
+        (`c_backend.simulate`), the same controller."""
         check_episodes(episodes, self.config)
         if backend == "c":
             from gsp_jax.physics import c_backend

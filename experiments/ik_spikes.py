@@ -64,14 +64,13 @@ def main(args: argparse.Namespace) -> None:
         err, col = ik_table(env, batch)
         wall = time.perf_counter() - t0
         s = spikes(err, col)
-        free = ~col
-        out[name] = dict(starts=1 + len(cfg.extra_starts), spikes=int(s.sum()),
-                         spikes_per_episode=[int(x) for x in s.sum((1, 2))],
-                         below_1mm_collision_free=int(np.sum((err < NEIGHBOUR) & free)),
-                         collisions=int(col.sum()), median_error_mm=1e3 * float(np.median(err)), wall_s=wall)
-        rows.append([name, 1 + len(cfg.extra_starts), int(s.sum()), int(np.sum((err < NEIGHBOUR) & free)),
-                     int(col.sum()), 1e3 * float(np.median(err)), err.size, wall])
-        print(f"{name}: {int(s.sum())} spikes over {len(episodes)} episodes", flush=True)
+        o = out[name] = dict(starts=1 + len(cfg.extra_starts), spikes=int(s.sum()),
+                             spikes_per_episode=[int(x) for x in s.sum((1, 2))],
+                             below_1mm_collision_free=int(np.sum((err < NEIGHBOUR) & ~col)),
+                             collisions=int(col.sum()), median_error_mm=1e3 * float(np.median(err)), wall_s=wall)
+        rows.append([name, o["starts"], o["spikes"], o["below_1mm_collision_free"], o["collisions"],
+                     o["median_error_mm"], err.size, wall])
+        print(f"{name}: {o['spikes']} spikes over {len(episodes)} episodes", flush=True)
     path = results_dir("ik") / f"{args.set}_spikes.json"
     path.write_text(json.dumps(dict(set=args.set, episodes=list(episodes), device=jax.devices()[0].device_kind,
                                     variants=out), indent=1))

@@ -56,20 +56,21 @@ def project_cone(f: jax.Array, normal: jax.Array, mu: jax.Array) -> jax.Array:
     return jnp.where(inside, f, jnp.where(polar, 0.0, boundary))
 
 
-def grasp_matrix(points: jax.Array, center: jax.Array) -> jax.Array:
-    """G (6, 3K): stacked [I; [p_k - c]x] so that G @ f.ravel() is the net (force, torque about `center`)."""
+def grasp_matrix(points: jax.Array, center: jax.Array, xp=jnp) -> jax.Array:
+    """G (6, 3K): stacked [I; [p_k - c]x] so that G @ f.ravel() is the net (force, torque about `center`).
+    `xp` is the array module: jax.numpy (traceable) or numpy (float64 inputs stay float64)."""
     r = points - center  # (K, 3)
-    zero = jnp.zeros_like(r[:, 0])
-    cross = jnp.stack(
+    zero = xp.zeros_like(r[:, 0])
+    cross = xp.stack(
         [
-            jnp.stack([zero, -r[:, 2], r[:, 1]], -1),
-            jnp.stack([r[:, 2], zero, -r[:, 0]], -1),
-            jnp.stack([-r[:, 1], r[:, 0], zero], -1),
+            xp.stack([zero, -r[:, 2], r[:, 1]], -1),
+            xp.stack([r[:, 2], zero, -r[:, 0]], -1),
+            xp.stack([-r[:, 1], r[:, 0], zero], -1),
         ],
         -2,
     )  # (K, 3, 3), cross[k] @ f = r_k x f
-    eye = jnp.broadcast_to(jnp.eye(3, dtype=points.dtype), cross.shape)
-    return jnp.concatenate([eye, cross], axis=1).transpose(1, 0, 2).reshape(6, -1)
+    eye = xp.broadcast_to(xp.eye(3, dtype=points.dtype), cross.shape)
+    return xp.concatenate([eye, cross], axis=1).transpose(1, 0, 2).reshape(6, -1)
 
 
 def solve(
@@ -153,26 +154,22 @@ def least_friction(points, normals, wrench, center, facets: int = 64, tol: float
                          f"{len(points)} points and {len(normals)} normals")
     if not (isinstance(facets, int) and facets >= 3):
         raise ValueError(f"least_friction: facets must be an int >= 3, got {facets!r}")
-    g = np.zeros((6, 3 * k))  # float64 grasp matrix: [I; (p - c)x] per contact
-    for i, r in enumerate(points - center):
-        g[:3, 3 * i : 3 * i + 3] = np.eye(3)
-        g[3:, 3 * i : 3 * i + 3] = [[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]]
+    g = grasp_matrix(points, center, xp=np)  # float64
+    # the pyramid's facets, d . f <= mu n . f for `facets` directions d across each normal, and pushing only
+    # (-n . f <= 0): rows (facets + 1) per contact, as D - mu N with D and N independent of mu
     angles = np.linspace(0.0, 2 * np.pi, facets, endpoint=False)
+    d_rows, n_rows = np.zeros((k, facets + 1, 3 * k)), np.zeros((k, facets + 1, 3 * k))
+    for i, n in enumerate(normals):
+        t1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        t1 /= np.linalg.norm(t1)
+        t2 = np.cross(n, t1)
+        d_rows[i, :facets, 3 * i : 3 * i + 3] = np.cos(angles)[:, None] * t1 + np.sin(angles)[:, None] * t2
+        n_rows[i, :facets, 3 * i : 3 * i + 3] = n
+        d_rows[i, facets, 3 * i : 3 * i + 3] = -n
+    d_rows, n_rows = d_rows.reshape(-1, 3 * k), n_rows.reshape(-1, 3 * k)
 
     def feasible(mu: float) -> bool:
-        rows = []
-        for i, n in enumerate(normals):
-            t1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
-            t1 /= np.linalg.norm(t1)
-            t2 = np.cross(n, t1)
-            for d in np.cos(angles)[:, None] * t1 + np.sin(angles)[:, None] * t2:  # d . f <= mu n . f
-                row = np.zeros(3 * k)
-                row[3 * i : 3 * i + 3] = d - mu * n
-                rows.append(row)
-            row = np.zeros(3 * k)
-            row[3 * i : 3 * i + 3] = -n  # pushing only
-            rows.append(row)
-        res = linprog(np.zeros(3 * k), A_ub=np.array(rows), b_ub=np.zeros(len(rows)), A_eq=g, b_eq=wrench,
+        res = linprog(np.zeros(3 * k), A_ub=d_rows - mu * n_rows, b_ub=np.zeros(len(d_rows)), A_eq=g, b_eq=wrench,
                       bounds=[(None, None)] * (3 * k), method="highs")
         if res.status not in (0, 2):  # 0 solved, 2 infeasible; anything else would bias the bracket
             raise RuntimeError(f"least_friction: the LP at mu = {mu:g} ended with status {res.status}: {res.message}")

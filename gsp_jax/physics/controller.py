@@ -294,10 +294,12 @@ class Controller:
             # a free link (travelling, arriving, parked) is pulled as by a joint-space spring towards the damped
             # least-squares step J^T (J J^T + lam^2)^-1 e: J^T kp e alone is weak along the directions a finger
             # barely moves in (a near-straight finger lowering its tip), and an arriving tip came too late
-            jjt = jnp.einsum("lij,lkj->lik", jac, jac) + c.free_damping**2 * jnp.eye(3)
-            f_free = c.free_stiffness * jnp.linalg.solve(jjt, err[..., None])[..., 0]
-            f_track = jnp.where(held, c.finger_kp * (err_n + ratio * (err - err_n)), f_free if c.free_stiffness > 0
-                                else c.finger_kp * err)
+            if c.free_stiffness > 0:
+                jjt = jnp.einsum("lij,lkj->lik", jac, jac) + c.free_damping**2 * jnp.eye(3)
+                f_free = c.free_stiffness * jnp.linalg.solve(jjt, err[..., None])[..., 0]
+            else:
+                f_free = c.finger_kp * err
+            f_track = jnp.where(held, c.finger_kp * (err_n + ratio * (err - err_n)), f_free)
             f_track = f_track + c.finger_kd * jnp.where(held, derr_n + ratio * (derr - derr_n), derr)
             f_track = jnp.where(tracked[:, None], f_track, 0.0)
             # the force solve on the observed tool, blended over the changed link's load

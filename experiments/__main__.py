@@ -18,6 +18,7 @@ COMMANDS = {  # command -> (module, one-line help)
     "physics-corr": ("experiments.physics_correlation", "rank correlation of surrogate return and simulated error"),
     "physics-agree": ("experiments.physics_agreement", "MJX against C MuJoCo: held/fell agreement and hold angles"),
     "bench-physics": ("experiments.bench_physics", "simulated episodes/s: one MJX batch vs one at a time"),
+    "calibrate": ("experiments.calibrate", "the reward's weights and thresholds against physics (train + val episodes)"),
     "fig4a": ("experiments.fig4a", "Fig. 4a: surrogate returns relative to DP optimal, 95% CI, RM-ANOVA"),
     "fig4b": ("experiments.fig4b", "Fig. 4b: the same policies closed loop in MJX, angle error under the torque"),
     "table1": ("experiments.table1", "Table 1: online wall-clock time per unseen episode, beside the paper's"),

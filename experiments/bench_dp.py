@@ -1,6 +1,6 @@
 """`python -m experiments bench-dp`: time to solve DP (table + Bellman backup) for one unseen episode and for
 the 27 evaluation episodes in one batch, beside the paper's way of building the table (one `env.step()` per
-(grasp, action, time): a sample of such calls, extrapolated to all 288 x 16 x 16), in one run."""
+(grasp, action, time): a sample of such calls, extrapolated to all 288 x 17 x 16), in one run."""
 from __future__ import annotations
 
 import argparse

@@ -31,10 +31,10 @@ def rate(envs, n: int, seconds: float) -> float:
     """Environment steps per second over about `seconds` of random actions (after one warm-up step)."""
     rng = np.random.default_rng(0)
     envs.reset(seed=0)
-    envs.step(rng.integers(0, 16, n))
+    envs.step(rng.integers(0, envs.single_action_space.n, n))
     steps, t0 = 0, time.perf_counter()
     while time.perf_counter() - t0 < seconds:
-        envs.step(rng.integers(0, 16, n))
+        envs.step(rng.integers(0, envs.single_action_space.n, n))
         steps += n
     return steps / (time.perf_counter() - t0)
 

@@ -49,7 +49,7 @@ def gym_rate(s, n_steps: int) -> float:
     rng = np.random.default_rng(0)
     t0 = time.perf_counter()
     for _ in range(n_steps):
-        _, _, term, _, _ = g.step(int(rng.integers(16)))
+        _, _, term, _, _ = g.step(int(rng.integers(g.action_space.n)))
         if term:
             g.reset()
     return n_steps / (time.perf_counter() - t0)

@@ -17,7 +17,7 @@ from gsp_jax import scenario, surrogate
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--waypoint", type=int, default=7, help="waypoint whose 288 x 16 pairs are stepped")
+    p.add_argument("--waypoint", type=int, default=7, help="waypoint whose 288 x 17 pairs are stepped")
     p.add_argument("--loop-steps", type=int, default=64, help="pairs stepped one at a time (a sample; rate extrapolated)")
     p.add_argument("--repeats", type=int, default=3, help="timed repeats of the batched call (best is reported)")
     p.add_argument("--out", default=None, help="JSON file for the results (default results/bench_surrogate.json)")

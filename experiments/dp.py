@@ -80,11 +80,14 @@ def main(args: argparse.Namespace) -> None:
         tabs, jnp.asarray([int(episodes[n].start_grasp) for n in names]), jnp.asarray(nominal_actions)
     )
     rows, out = [], []
+    grasps_ = np.asarray(sols.grasps)
+    n_changes = np.sum((grasps_[:, 1:] != grasps_[:, :-1]) & np.asarray(sols.alive), axis=1)  # (E,) grasp changes
     for i, name in enumerate(names):
         labels = [env.space.label(int(g)) for g in sols.grasps[i]]
-        rows.append([name, float(sols.ret[i]), float(baseline[i]), int(np.sum(sols.alive[i]))])
+        rows.append([name, float(sols.ret[i]), float(baseline[i]), int(np.sum(sols.alive[i])), int(n_changes[i])])
         out.append(dict(
             episode=name, dp_optimal_return=float(sols.ret[i]), dp_baseline_return=float(baseline[i]),
+            grasp_changes=int(n_changes[i]),
             actions=sols.actions[i].tolist(), grasps=sols.grasps[i].tolist(), grasp_labels=labels,
             rewards=sols.rewards[i].tolist(), alive=sols.alive[i].tolist(),
         ))
@@ -94,10 +97,12 @@ def main(args: argparse.Namespace) -> None:
         print(f"{name}: start [{out[i]['grasp_labels'][0]}] -> " + " ".join(changes))
     folder = results_dir()
     path = folder / f"dp_{args.set}.json"
-    path.write_text(json.dumps(dict(set=args.set, seconds=elapsed, episodes=out), indent=1))
+    path.write_text(json.dumps(dict(set=args.set, seconds=elapsed, mean_grasp_changes=float(n_changes.mean()),
+                                    episodes=out), indent=1))
     plot = args.plot or names[0]
     png = folder / f"dp_timeline_{re.sub(r'[^A-Za-z0-9._-]', '_', plot)}.png"
     i = names.index(plot)
     timeline_png(env, plot, sols.grasps[i], sols.alive[i], png)
     print(f"\nwrote {path} and {png} ({elapsed:.1f} s incl. compile)\n")
-    print(table(["episode", "DP optimal", "DP baseline", "steps"], rows))
+    print(table(["episode", "DP optimal", "DP baseline", "steps", "grasp changes"], rows))
+    print(f"mean grasp changes per episode (DP optimal): {n_changes.mean():.2f}")

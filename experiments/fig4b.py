@@ -31,9 +31,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backend", default="mjx", choices=physics.BACKENDS, help="mjx (one XLA batch) or c (C MuJoCo)")
 
 
-def run(ctx: evaluation.Context, names, out, fresh: bool = False) -> dict:
+def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str = "mjx") -> dict:
     phys = physics.Physics(ctx.surrogate)
-    stamp = evaluation.fingerprint(ctx)
+    stamp = f"{evaluation.fingerprint(ctx)}-{backend}"
     results = {}
     for name in names:
         path = out / f"{name}.json"
@@ -45,13 +45,14 @@ def run(ctx: evaluation.Context, names, out, fresh: bool = False) -> dict:
                 continue
         policy, axis = evaluation.make(ctx, name)
         t0 = time.perf_counter()
-        res = jax.block_until_ready(phys.simulate_batch(policy, ctx.batch, axis, backend=args.backend))
+        res = jax.block_until_ready(phys.simulate_batch(policy, ctx.batch, axis, backend=backend))
         wall = time.perf_counter() - t0
         mean, ci = stats.mean_ci(res.angle_error)
         rows = result_rows(ctx.names, res)
         results[name] = dict(policy=name, episodes=ctx.names, rl_policy=ctx.rl_source, mean_deg=mean, ci95_deg=ci,
                              falls=int(np.sum(res.fell)), held=[r for r in rows if not r["fell"]], per_episode=rows,
-                             wall_s_incl_compile=wall, platform=jax.default_backend(), fingerprint=stamp)
+                             wall_s_incl_compile=wall, platform=jax.default_backend(), backend=backend,
+                             fingerprint=stamp)
         path.write_text(json.dumps(results[name], indent=1))
         print(f"  {name:8s} mean angle error {mean:.1f} deg (+-{ci:.1f}), {results[name]['falls']}/{len(ctx.names)} "
               f"fell ({wall:.0f} s incl. compile)", flush=True)
@@ -61,8 +62,9 @@ def run(ctx: evaluation.Context, names, out, fresh: bool = False) -> dict:
 
 def plot(results: dict, n: int, path) -> None:
     names = list(results)
+    engine = {"mjx": "MJX", "c": "C MuJoCo"}.get(next(iter(results.values())).get("backend", "mjx"), "MJX")
     bar_png(path, names, [results[k]["mean_deg"] for k in names], [np.nan_to_num(results[k]["ci95_deg"]) for k in names],
-            "mean tool angle error [deg] (180 = fell)", f"MJX physics, {n} unseen episodes (95% CI)", "#4c72b0",
+            "mean tool angle error [deg] (180 = fell)", f"{engine} physics, {n} unseen episodes (95% CI)", "#4c72b0",
             ylim=(0, 190))
 
 
@@ -73,9 +75,9 @@ def print_result(results: dict) -> None:
 
 def main(args: argparse.Namespace) -> None:
     ctx = evaluation.context(args.set, args.episodes, args.policy_dir)
-    print(f"Fig. 4b: {len(ctx.names)} episodes of '{args.set}' in MJX on {jax.default_backend()}, "
+    print(f"Fig. 4b: {len(ctx.names)} episodes of '{args.set}' in {args.backend} (JAX on {jax.default_backend()}), "
           f"RL policy {ctx.rl_source}", flush=True)
     out = results_dir("fig4b")
-    results = run(ctx, args.policies, out, args.fresh)
+    results = run(ctx, args.policies, out, args.fresh, args.backend)
     print(f"wrote {out}/<policy>.json, {out / 'fig4b.png'}")
     print_result(results)

@@ -1,7 +1,8 @@
 """`python -m experiments ik-spikes [--set eval] [--starts "0,-.3,-.3,0;0,-.3,0,0" ...]`: the IK's local minima,
-measured. For every (grasp, waypoint) of every episode of a set, the IK error of the grasp, once with the library's
-`IKConfig()` and once per `--starts` candidate (extra start configurations, `IKConfig.extra_starts`: per-finger
-joint offsets, one start per `;`), side by side. A *spike* is a collision-free IK whose error
+measured. For every (grasp, waypoint) of every episode of a set, the IK error of the grasp, side by side: from the
+model's start alone (`extra_starts=()`), with the library's `IKConfig()`, and once per `--starts` candidate (the
+library's config with `IKConfig.extra_starts` replaced: per-finger joint offsets, one start per `;`; an empty
+string is the start alone; by default the pre-issue-14 candidate). A *spike* is a collision-free IK whose error
 exceeds 2 mm while both neighbouring waypoints of the same grasp are below 1 mm: a solution exists nearby, so the
 solver stopped in a local minimum (the issue-14 definition). Prints a small table last; writes
 results/ik/<set>_spikes.json."""
@@ -25,7 +26,8 @@ SPIKE, NEIGHBOUR = 2e-3, 1e-3  # [m]
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", default="eval", choices=["nominal", "train", "val", "evalA", "evalB", "eval", "all"])
     p.add_argument("--starts", nargs="*", default=["0,-0.3,-0.3,0;0,-0.3,0,0"],
-                   help="candidate extra starts: per-finger joint offsets, starts separated by ';'")
+                   help="candidate extra starts, each replacing IKConfig().extra_starts: per-finger joint offsets, "
+                        "starts separated by ';' ('' = the model's start alone)")
 
 
 def _parse(spec: str) -> tuple:
@@ -54,9 +56,9 @@ def main(args: argparse.Namespace) -> None:
     episodes = scenario.episode_set(args.set)
     batch = scenario.stack(list(episodes.values()))
     default = ik.IKConfig()
-    variants = {"IKConfig()": default}
+    variants = {"start alone": dataclasses.replace(default, extra_starts=()), "IKConfig()": default}
     for spec in args.starts:
-        variants[f"+ {spec}"] = dataclasses.replace(default, extra_starts=default.extra_starts + _parse(spec))
+        variants[f"starts {spec}"] = dataclasses.replace(default, extra_starts=_parse(spec))
     rows, out = [], {}
     for name, cfg in variants.items():
         env = surrogate.Surrogate(ik_config=cfg)

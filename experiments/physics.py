@@ -29,15 +29,14 @@ import numpy as np
 from experiments.common import dp_tables, nominal_actions, results_dir, table
 from experiments.evaluation import load_rl
 from experiments.stats import mean_ci
-from gsp_jax import dp, physics, policies, scenario, surrogate, wrench
+from gsp_jax import dp, grasps, physics, policies, scenario, surrogate, wrench
 
 POLICIES = ("dp-opt", "dp-base", "rl", "random", "four-tips", "scripted", "one-tip")
 
 
 def scripted_sequences(space, n_steps: int = scenario.N_WAYPOINTS) -> dict[str, np.ndarray]:
-    """The scripted sequences (see the module docstring), (T,) actions each. "Keep the grasp" is the thumb tip set
-    to the option it has (a redundant action: the surrogate's action set has no null action yet)."""
-    keep = space.action("thumb_distal", 1)
+    """The scripted sequences (see the module docstring), (T,) actions each; "keep the grasp" is the null action."""
+    keep = grasps.NULL
     ring, m1, m2 = space.action("ring_distal", 1), space.action("middle_distal", 1), space.action("middle_distal", 2)
     add_slide = np.full(n_steps, keep)
     add_slide[2], add_slide[6], add_slide[10] = ring, m2, m1

@@ -1,7 +1,7 @@
 """`python -m experiments reproduce --quick|--full [--out DIR]`: the paper's evaluation in one command, one report.
 
 Runs Fig. 4a (surrogate returns relative to DP optimal, RM-ANOVA), Table 1 (online wall-clock per unseen episode)
-and Fig. 4b (the same policies in MJX) in sequence, then writes DIR/REPORT.md with the figures, tables, and, claim
+and Fig. 4b (the same policies in MJX, or C MuJoCo with --backend c) in sequence, then writes DIR/REPORT.md with the figures, tables, and, claim
 by claim, whether our numbers agree with the paper's. Presets:
 
   quick  (CPU, ~15-25 min): the shipped (or your trained) PPO policy; Fig. 4a on 9 of the 27 evaluation episodes
@@ -42,6 +42,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--policy-dir", default=None, help="PPO policy (default: results/train/dp/seed0, else the shipped one)")
     p.add_argument("--train", action="store_true",
                    help="train the PPO policy first (full preset, seed 0) even if a trained or shipped one exists")
+    p.add_argument("--backend", default="mjx", choices=["mjx", "c"],
+                   help="Fig. 4b's physics engine: mjx (one XLA batch) or c (C MuJoCo, the same controller)")
     p.add_argument("--skip", nargs="*", default=[], choices=["fig4a", "table1", "fig4b"], help="stages to leave out")
     p.add_argument("--report-only", action="store_true",
                    help="rebuild REPORT.md from the saved results (e.g. copied back from a GPU run) without rerunning")
@@ -65,6 +67,7 @@ def main(args: argparse.Namespace) -> None:
         train.main(argparse.Namespace(pretrain="dp", seeds=1, first_seed=0, preset="full", iterations=None, envs=None,
                                       patience=None, out="train"))
     command = f"python -m experiments reproduce --{preset}" + (f" --policy-dir {args.policy_dir}" if args.policy_dir else "")
+    command += f" --backend {args.backend}" if getattr(args, "backend", "mjx") != "mjx" else ""
     sections = dict(preset=preset, device=f"{device.device_kind} ({device.platform})", command=command,
                     date=datetime.datetime.now().isoformat(timespec="minutes"))
     saved = out / "report.json"
@@ -94,9 +97,10 @@ def main(args: argparse.Namespace) -> None:
         table1.print_result(res)
         sections["table1"] = res
     if "fig4b" not in args.skip:
-        print("[3/3] Fig. 4b (MJX)", flush=True)
+        backend = getattr(args, "backend", "mjx")
+        print(f"[3/3] Fig. 4b ({backend})", flush=True)
         ctx = everything.take(p["fig4b_episodes"])
-        res = fig4b.run(ctx, evaluation.POLICIES, results_dir("fig4b"))
+        res = fig4b.run(ctx, evaluation.POLICIES, results_dir("fig4b"), backend=backend)
         fig4b.print_result(res)
         shutil.copy(results_dir("fig4b") / "fig4b.png", out / "fig4b.png")
         sections["fig4b"] = res
@@ -218,7 +222,8 @@ def report(s: dict) -> str:
     if "fig4b" in s:
         b = s["fig4b"]
         n = len(next(iter(b.values()))["episodes"])
-        lines += ["## Fig. 4b: the same policies closed loop in MJX", "",
+        engine = {"mjx": "MJX", "c": "C MuJoCo"}.get(next(iter(b.values())).get("backend", "mjx"), "MJX")
+        lines += [f"## Fig. 4b: the same policies closed loop in physics ({engine})", "",
                   f"{n} unseen episodes; mean tool angle error under the final torque, 180° when the tool fell.", "",
                   "![Fig. 4b](fig4b.png)", "", "| policy | mean [deg] | 95% CI ± | fell | mean time of the fall [s] |",
                   "|---|---|---|---|---|"]

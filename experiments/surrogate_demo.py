@@ -71,4 +71,5 @@ def main(args: argparse.Namespace) -> None:
             ])
     print(table(["grasp", "t", "(a) move", "(b) IK mm", "(c) hold", "(d) ext", "unmet", "status", "reward"], rows))
     print("(a), (c), (d): wrench errors / (m0 g)^2; (b): IK error at the next waypoint in mm; (d) only at the last "
-          "waypoint; unmet: worst fraction of a required wrench the contacts cannot supply (> 30% = fall).")
+          f"waypoint; unmet: worst fraction of a required wrench the contacts cannot supply (> "
+          f"{env.reward_config.fall_unmet:.0%} = fall).")

@@ -1,16 +1,18 @@
 """Exact DP over the discretised surrogate (the paper's Algorithm 1, Bellman backups).
 
 Discrete state: (grasp g, waypoint t) with the tool exactly on waypoint t and every grasp realised by IK from
-the fixed start configuration (the paper's Sec. IV-C). A step's reward depends on the previous grasp only
-through the redundant-action flag; everything else is a function of the new grasp g' and t. So the table
+the fixed start configuration (the paper's Sec. IV-C). A step's reward depends on the previous grasp g only
+through the redundant-action flag and the change term, which is the moving-wrench term of the *shared* grasp
+(g without the link that moves: itself a grasp, realised at waypoint t); everything else is a function of the
+new grasp g' and t. So the table
 
-    reward[g, a, t], next_grasp[g, a], terminal[g, a, t]        (G x A x T = 288 x 16 x 16 for the paper's hand)
+    reward[g, a, t], next_grasp[g, a], terminal[g, a, t]        (G x A x T = 288 x 17 x 16 for the paper's hand)
 
-costs G x T distinct IK solves (4,608: each grasp at each waypoint, shared by the step that arrives there and
-the step that leaves), G x T x 3 wrench solves, and no per-(g, a) physics at all -- against the paper's
-G x A x T = 73,728 `env.step()` calls. Every action is applicable in every grasp (it sets one link), so no
-transition is unreachable; a transition that collides or drops the tool gets R_MIN and ends the episode
-(`terminal`), as do all transitions of the last step.
+costs G x T distinct IK solves (4,608: each grasp at each waypoint, shared by the step that arrives there, the
+step that leaves and the changes it holds the tool through), G x T x 3 wrench solves, and no per-(g, a) physics
+at all -- against the paper's G x A x T = 78,336 `env.step()` calls. Every action is applicable in every grasp
+(the null action keeps it, the others set one link), so no transition is unreachable; a transition that collides
+or drops the tool gets R_MIN and ends the episode (`terminal`), as do all transitions of the last step.
 
 All functions take one episode; `jax.vmap` them over a batch (`scenario.stack`), episodes leading.
 """
@@ -20,8 +22,9 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from gsp_jax.grasps import NULL
 from gsp_jax.scenario import Episode
-from gsp_jax.surrogate import Surrogate
+from gsp_jax.surrogate import Contacts, RewardTerms, Surrogate
 
 
 @struct.dataclass
@@ -50,27 +53,48 @@ class Solution:
 
 def build_table(env: Surrogate, episode: Episode) -> Table:
     """The reward/transition table of one episode from G x T IK solves (see the module docstring)."""
+    contacts = realise_all(env, episode)
+    return table_from_terms(env, episode, grasp_terms(env, episode, contacts), contacts)
+
+
+def realise_all(env: Surrogate, episode: Episode) -> Contacts:
+    """Every grasp realised by IK at every waypoint: leaves (G, T, ...)."""
+    grasps = jnp.arange(env.space.n_grasps, dtype=jnp.int32)
+    realise = jax.vmap(jax.vmap(env.realise, (None, 0, 0)), (0, None, None))
+    return realise(grasps, episode.waypoints, episode.quats)
+
+
+def grasp_terms(env: Surrogate, episode: Episode, contacts: Contacts) -> RewardTerms:
+    """The reward terms (G', T) of arriving in grasp g' by a step from waypoint t, without the previous grasp's
+    part (not redundant, no change): the null action's terms from (g', t)."""
+    n_t = episode.n_steps
+    ts = jnp.arange(n_t, dtype=jnp.int32)
+    nxt = jax.tree.map(lambda x: x[:, jnp.minimum(ts + 1, n_t - 1)], contacts)
+
+    def score(now, nx, t):
+        return env.score(episode, t, episode.waypoints[t], episode.quats[t], now, nx, False)
+
+    return jax.vmap(jax.vmap(score, (0, 0, 0)), (0, 0, None))(contacts, nxt, ts)
+
+
+def table_from_terms(env: Surrogate, episode: Episode, plain: RewardTerms, contacts: Contacts) -> Table:
+    """The table from `grasp_terms`: every (g, a) reads its new grasp's terms, adds its redundant flag and its
+    change term (the shared grasp's moving-wrench term at waypoint t) and is rewarded by `env`'s config."""
     n_g, n_t = env.space.n_grasps, episode.n_steps
     grasps = jnp.arange(n_g, dtype=jnp.int32)
     ts = jnp.arange(n_t, dtype=jnp.int32)
-    realise = jax.vmap(jax.vmap(env.realise, (None, 0, 0)), (0, None, None))
-    contacts = realise(grasps, episode.waypoints, episode.quats)  # leaves (G, T, ...)
-    t_next = jnp.minimum(ts + 1, n_t - 1)
-    nxt = jax.tree.map(lambda x: x[:, t_next], contacts)
-
-    def score(now, nx, t, redundant):
-        return env.score(episode, t, episode.waypoints[t], episode.quats[t], now, nx, redundant)
-
-    per_time = jax.vmap(score, (0, 0, 0, None))
-    plain = jax.vmap(per_time, (0, 0, None, None))(contacts, nxt, ts, jnp.array(False))  # (G', T)
-    redundant_reward = env.reward(plain, jnp.array(True))  # same terms, plus the redundant penalty
-
     actions = jnp.arange(env.space.n_actions, dtype=jnp.int32)
     next_grasp, is_redundant = env.space.apply(grasps[:, None], actions[None, :])  # (G, A)
-    reward = jnp.where(is_redundant[..., None], redundant_reward[next_grasp], plain.reward[next_grasp])
-    failed = plain.collision | plain.fall  # (G', T), independent of redundancy
-    terminal = failed[next_grasp] | (ts == n_t - 1)[None, None, :]
-    return Table(reward=reward, next_grasp=next_grasp, terminal=terminal, ik_error=contacts.ik.error, q=contacts.ik.q)
+    changed = (next_grasp != grasps[:, None])[..., None]  # (G, A, 1)
+    terms = jax.tree.map(lambda x: x[next_grasp], plain)  # (G, A, T, ...)
+    if env.prices_changes:
+        shared = env.space.shared(grasps[:, None], actions[None, :])  # (G, A)
+        change_error, change_unmet = plain.wrench_move[shared], plain.unmet[shared][..., 0]
+    else:
+        change_error = change_unmet = jnp.zeros((), jnp.float32)
+    terms = env.finish(terms, is_redundant[..., None], changed, change_error, change_unmet)
+    terminal = terms.collision | terms.fall | (ts == n_t - 1)[None, None, :]
+    return Table(reward=terms.reward, next_grasp=next_grasp, terminal=terminal, ik_error=contacts.ik.error, q=contacts.ik.q)
 
 
 def build_tables(env: Surrogate, episodes: Episode, batch_size: int | None = None) -> Table:
@@ -133,19 +157,19 @@ def sequence_return(table: Table, start_grasp: jax.Array, actions: jax.Array) ->
 
 
 def random_sequence(table: Table, start_grasp: jax.Array, key: jax.Array, r_min: float, hold: float = 0.0) -> jax.Array:
-    """A random feasible action sequence (T,) int32: at every step, with probability `hold` an action that keeps
-    the grasp, otherwise one drawn uniformly from those that do not fail (reward > r_min) from the current grasp
-    (from all actions when every one fails). Sequences for probing the surrogate against the physics beyond the
-    DP policies; `hold` > 0 gives fewer grasp changes."""
+    """A random feasible action sequence (T,) int32: at every step, with probability `hold` the null action (keep
+    the grasp) if it does not fail, otherwise an action drawn uniformly from those that do not fail (reward >
+    r_min) from the current grasp (from all actions when every one fails). Sequences for probing the surrogate
+    against the physics beyond the DP policies; `hold` > 0 gives fewer grasp changes."""
     keys = jax.random.split(key, 2 * table.reward.shape[2]).reshape(-1, 2, 2)
 
     def choose(g, t):
         ok = table.reward[g, :, t] > r_min
         ok = ok | ~jnp.any(ok)
-        keep = ok & (table.next_grasp[g] == g)
-        stay = jax.random.bernoulli(keys[t, 0], hold) & jnp.any(keep)
-        logits = jnp.where(jnp.where(stay, keep, ok), 0.0, -jnp.inf)
-        return jax.random.categorical(keys[t, 1], logits).astype(jnp.int32)
+        stay = jax.random.bernoulli(keys[t, 0], hold) & ok[NULL]
+        logits = jnp.where(ok, 0.0, -jnp.inf)
+        drawn = jax.random.categorical(keys[t, 1], logits).astype(jnp.int32)
+        return jnp.where(stay, NULL, drawn).astype(jnp.int32)
 
     actions, _, _, _ = _replay(table, jnp.asarray(start_grasp, jnp.int32), choose)
     return actions

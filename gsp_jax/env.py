@@ -30,7 +30,7 @@ from gsp_jax.surrogate import RewardTerms, State, Surrogate
 
 
 def observation_size(space: GraspSpace, n_steps: int, n_joints: int) -> int:
-    return space.n_actions + n_steps + 1 + n_joints + 3 + 4 + 6 + 3 + 3 + 6 + 1 + 3 + 1
+    return sum(space.n_options) + n_steps + 1 + n_joints + 3 + 4 + 6 + 3 + 3 + 6 + 1 + 3 + 1
 
 
 def observation(space: GraspSpace, state: State) -> jax.Array:

@@ -1,9 +1,11 @@
 """The discrete grasp and action spaces.
 
 A grasp gives every contact link one of its options (0 = "not in contact"); with the paper's counts
-(3, 3, 2, 4, 2, 2) there are 288 grasps. An action sets one link to one of its options, so there are 16 actions
-(the sum); an action that sets a link to the option it already has leaves the grasp unchanged ("redundant").
-Grasps are numbered in mixed radix, the first link varying slowest; actions link by link, option by option.
+(3, 3, 2, 4, 2, 2) there are 288 grasps. Action 0 is the *null action*: it keeps the grasp (the paper, Sec. IV-A).
+Every other action sets one link to one of its options ("moving only one finger at a time"), so there are
+1 + 16 = 17 actions; a non-null action that sets a link to the option it already has leaves the grasp unchanged
+and is *redundant* (the surrogate penalises it). Grasps are numbered in mixed radix, the first link varying
+slowest; actions 1.. link by link, option by option.
 
 Out-of-range actions. Every Python-level entry point (`Surrogate.step` and `GraspEnv.step` called with a concrete
 action, the Gymnasium env, `policies.SequencePolicy` / `TablePolicy`) raises a ValueError naming the value
@@ -23,6 +25,7 @@ import numpy as np
 from gsp_jax import hand as hand_lib
 
 LINK_ABBREV = {"thumb": "T", "index": "I", "middle": "M", "ring": "R"}
+NULL = 0  # the null action: keep the current grasp
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -44,15 +47,15 @@ class GraspSpace:
 
     @property
     def n_actions(self) -> int:
-        return int(sum(self.n_options))
+        return 1 + int(sum(self.n_options))
 
     @functools.cached_property
-    def action_link(self) -> np.ndarray:  # (A,) link set by each action
-        return np.repeat(np.arange(self.n_links), self.n_options).astype(np.int32)
+    def action_link(self) -> np.ndarray:  # (A,) link set by each action; -1 for the null action
+        return np.concatenate([[-1], np.repeat(np.arange(self.n_links), self.n_options)]).astype(np.int32)
 
     @functools.cached_property
-    def action_option(self) -> np.ndarray:  # (A,) option the action sets
-        return np.concatenate([np.arange(n) for n in self.n_options]).astype(np.int32)
+    def action_option(self) -> np.ndarray:  # (A,) option the action sets; -1 for the null action
+        return np.concatenate([[-1]] + [np.arange(n) for n in self.n_options]).astype(np.int32)
 
     def decode(self, grasp: jax.Array) -> jax.Array:
         """Grasp index (...) -> per-link options (..., L)."""
@@ -81,14 +84,29 @@ class GraspSpace:
         return jnp.clip(jnp.asarray(action, jnp.int32), 0, self.n_actions - 1)
 
     def apply(self, grasp: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """(next grasp, redundant?) after `action` from `grasp`; both broadcast. Actions outside
-        [0, n_actions) are clipped (see the module docstring)."""
+        """(next grasp, redundant?) after `action` from `grasp`; both broadcast. The null action keeps the grasp
+        and is not redundant. Actions outside [0, n_actions) are clipped (see the module docstring)."""
         grasp = jnp.asarray(grasp, jnp.int32)
         action = jnp.clip(jnp.asarray(action, jnp.int32), 0, self.n_actions - 1)  # traced: no check possible
-        link, opt = jnp.asarray(self.action_link)[action], jnp.asarray(self.action_option)[action]
+        null = action == NULL
+        link = jnp.maximum(jnp.asarray(self.action_link)[action], 0)
+        opt = jnp.asarray(self.action_option)[action]
         place = jnp.asarray(self.radix)[link]
         current = (grasp // place) % jnp.asarray(self.n_options, jnp.int32)[link]
-        return grasp + (opt - current) * place, opt == current
+        nxt = jnp.where(null, grasp, grasp + (opt - current) * place)
+        return nxt, ~null & (opt == current)
+
+    def shared(self, grasp: jax.Array, action: jax.Array) -> jax.Array:
+        """The grasp that holds the tool while `action` is executed from `grasp` (broadcast): `grasp` with the
+        link the action moves released (the contact controller unloads it, moves it, then loads it again). The
+        null action and a redundant one move nothing: `grasp` itself."""
+        grasp = jnp.asarray(grasp, jnp.int32)
+        nxt, _ = self.apply(grasp, action)
+        action = jnp.clip(jnp.asarray(action, jnp.int32), 0, self.n_actions - 1)
+        link = jnp.maximum(jnp.asarray(self.action_link)[action], 0)
+        place = jnp.asarray(self.radix)[link]
+        current = (grasp // place) % jnp.asarray(self.n_options, jnp.int32)[link]
+        return jnp.where(nxt == grasp, grasp, grasp - current * place)
 
     def label(self, grasp: int) -> str:
         """Readable grasp, one token per link: e.g. 'T1 I1 . M2 . .' (letter = finger, digit = option)."""
@@ -108,6 +126,8 @@ class GraspSpace:
         return int(np.flatnonzero((self.action_link == li) & (self.action_option == option))[0])
 
     def action_label(self, action: int) -> str:
+        if action == NULL:
+            return "keep"
         link, opt = self.link_names[self.action_link[action]], self.action_option[action]
         return f"{link}->{'off' if opt == 0 else opt}"
 

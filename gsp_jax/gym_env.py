@@ -175,7 +175,7 @@ _step = jax.jit(GraspEnv.step, static_argnums=0)
 
 class GymGraspEnv(gym.Env):
     """One environment over a `GraspEnv`'s episode set (see the module docstring). Observations
-    (observation_size,) float32, actions in Discrete(16)."""
+    (observation_size,) float32, actions in Discrete(17)."""
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 4}  # one waypoint per 0.25 s
 

@@ -2,9 +2,9 @@
 
 Given the contact links that should touch the tool and where (`targets`), find joint angles by damped
 Gauss-Newton (Levenberg-Marquardt) descent on a sum of squared residuals, from the model's fixed start
-configuration (optionally also from fixed variations of it, `IKConfig.extra_starts`, keeping the lowest cost:
-from the start alone the descent sometimes stops with a fingertip on a tool edge), for a fixed number of
-iterations (static shapes; `vmap` runs every problem in lock step):
+configuration and from fixed variations of it (`IKConfig.extra_starts`, keeping the lowest cost: from the start
+alone the descent sometimes stops in a local minimum), for a fixed number of iterations (static shapes; `vmap`
+runs every problem, and every start, in lock step; the result is a function of (grasp, tool pose) alone):
 
 * active links: distance from the tool's contact point to the link's contact segment, minus the link radius
   (the link's surface passes through the contact point; with the collision terms below this puts a fingertip
@@ -20,6 +20,29 @@ the residuals mix millimetre-scale targets with joint angles of very different l
 equation solve per iteration makes the step scale-free, reaching sub-millimetre error in a few tens of
 iterations where plain gradient descent needs hundreds. The adaptive damping accepts only steps that lower the
 cost, so the iteration is monotone.
+
+Local minima (issue 14), measured with `python -m experiments ik-spikes` as *spikes* (a collision-free IK more than
+2 mm off while both neighbouring waypoints of the same grasp are below 1 mm). Two kinds: (1) a fingertip stopped on
+a tool edge (~5.4 mm off); (2) far more often, near the top of high paths, a finger whose *medial* phalanx is the
+contact stops curled over the tool's edge, ~2.3 mm short: its distal phalanx (an inactive link) sits on its 4 mm
+clearance margin and a medial sphere on its contact slack, so uncurling the finger (the way to the solution, which
+the neighbouring waypoints find) first raises the cost; LM there is stationary (more iterations or another damping
+change nothing). Starting the fingers less curled frees them, and the start is chosen by the cost *without* the pull
+towards the model's start: with it, a converged solution far from the start often costs more than the local minimum
+near it (the pull weighs 3 um per mrad), which is what kept half the spikes of the first extra-start candidate ((0,
+-.3, -.3, 0), (0, -.3, 0, 0)). The default extra starts, chosen on the training set's spike problems from a grid of
+31 per-finger offsets, straighten the middle and distal joints (pip -0.3, dip -0.4), the second also flexing the
+proximal one (mcp +0.3, pip -0.6). Measured on CPU with `python -m experiments ik-spikes`, spikes / converged (< 1
+mm) and collision-free / collisions, start alone -> default, 288 grasps x 16 waypoints per episode: nominal 17 / 979
+/ 1,452 -> 2 / 1,152 / 1,551; training set (9 episodes) 161 / 9,216 / 13,141 -> 20 / 10,551 / 14,009; validation set
+(11, held out) 183 / 11,075 / 16,035 -> 21 / 12,792 / 17,039 (the first candidate, lowest cost *with* the pull:
+training 57, and with ((0, -.3, .3, 0), (0, .6, -.3, 0)) training 27, validation 38). 3.0x the cost of one start
+(CPU, 4,608 IKs vmapped). More collision flags: every new one is on a (grasp, waypoint) that the start alone left
+unconverged (> 1 mm) and none is below 1 mm; converged, collision-free results lost: 3 (training), 1 (nominal), 0
+(validation), against 1,338 / 174 / 1,717 gained. The spikes left are the same curled-finger minimum at other
+(grasp, waypoint)s (2.0 .. 2.8 mm; a few fingertips on an edge): each start set frees the ones it was chosen on and,
+as their neighbours now converge, uncovers others; every finger shares one start, so a grasp that needs one finger
+opened and another not is freed only if some start suits all its fingers at once.
 """
 from __future__ import annotations
 
@@ -37,12 +60,11 @@ from gsp_jax.hand import HandModel
 @dataclasses.dataclass(frozen=True)
 class IKConfig:
     iterations: int = 60  # fixed Gauss-Newton iterations
-    extra_starts: tuple = ()  # more start configurations: per-finger joint offsets (one value per joint of a
-    # finger) from the model's start, the same for every finger; the solve runs from each and keeps the lowest
-    # cost, so the result stays a function of (grasp, pose). Off by default: measured with `python -m experiments
-    # ik-spikes` (H100; evaluation set, 124,416 IKs), ((0, -.3, -.3, 0), (0, -.3, 0, 0)) cut the spikes from 502
-    # to 103 and raised the converged, collision-free solutions from 26,864 to 31,161, but not to 0 spikes, at 3x
-    # the IK's cost; the calibration of the surrogate (issue 14) decides
+    extra_starts: tuple = ((0.0, 0.0, -0.3, -0.4), (0.0, 0.3, -0.6, -0.4))  # more start configurations: per-finger
+    # joint offsets (abd, mcp, pip, dip) from the model's start, the same for every finger; the solve runs from each
+    # and keeps the lowest cost without the pull towards the start, so the result stays a function of (grasp, pose);
+    # 3x the cost of one start. () runs the model's start alone (the default before issue 14: spikes and figures in
+    # the module docstring)
     clearance: float = 0.004  # inactive links keep this far from the tool [m]
     contact_slack: float = 0.001  # active links may sink this far into the tool before the collision term acts [m]
     table_margin: float = 0.001  # every sphere keeps this far above the table [m]
@@ -233,14 +255,16 @@ def _solve(hand, active, targets, tool_pos, tool_mat, cfg) -> IKResult:
     def run(q0):
         init = (q0, *res_jac(q0), jnp.asarray(cfg.damping0, dtype))
         (q, r, _, _), _ = jax.lax.scan(iteration, init, None, length=cfg.iterations)
-        return q, jnp.sum(r**2)
+        return q, jnp.sum(r[: -hand.n_joints] ** 2)  # the cost without the pull towards the start (its last rows)
 
     starts = jnp.asarray(start_configurations(hand, cfg), dtype)
     if len(starts) == 1:  # the model's start alone (the default): one descent
         q, _ = run(starts[0])
     else:
         qs, cost = jax.vmap(run)(starts)
-        q = qs[jnp.argmin(cost)]  # the lowest cost of one objective: ties break towards the earlier start
+        # the lowest cost without the pull: a converged solution far from the start can cost more *with* the pull
+        # than a local minimum near it (the pull is 3 um per mrad); ties break towards the earlier start
+        q = qs[jnp.argmin(cost)]
 
     geo = _geometry(hand, *kinematics.body_poses(hand, q), targets, tool_pos, tool_mat)
     link_error = jnp.where(active, jnp.abs(geo.link_gap), 0.0)

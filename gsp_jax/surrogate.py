@@ -3,18 +3,24 @@
     state = env.reset(episode)                      # grasp realised at waypoint 0
     state, reward, done = env.step(state, action)   # jit- and vmap-able over states, actions, episodes
 
-A step at waypoint t applies the action (set one contact link to one option) to the grasp, then scores the new
-grasp g' with the paper's shaped reward (Sec. IV-B):
+A step at waypoint t applies the action to the grasp g (action 0, the null action, keeps it; every other action
+sets one contact link to one option), then scores the new grasp g' with the paper's shaped reward (Sec. IV-B):
 
   (a) wrench_move  wrench error against gravity and the desired tool acceleration, g' realised by IK at the
                    *current* (observed) tool pose,
   (b) ik_next      IK error of g' realised at the *next* desired pose (waypoint t+1),
   (c) wrench_hold  wrench error against gravity with the contacts of that second IK,
   (d) wrench_ext   at the last step only: wrench error against gravity plus the external wrench w_ext,
-  (e) redundant    1 if the action left the grasp unchanged.
+  (e) redundant    1 if a non-null action left the grasp unchanged (the null action is free),
+  (f) wrench_change when the grasp changes: wrench error of the *shared* grasp (g without the link that moves,
+                   `GraspSpace.shared`; the contact controller unloads that link, moves it and loads it again)
+                   realised at the current pose, against the same moving wrench as (a): the links that stay
+                   must carry the tool through the change. 0 for the null action.
 
 reward = -(weighted sum), or R_MIN when either IK collides (tool, table, self) or any wrench term leaves more
-than `fall_unmet` of its wrench unmet (the tool would fall); R_MIN ends the episode. Every IK starts from the
+than `fall_unmet` of its wrench unmet (the tool would fall; (f) counts when `change_falls`); R_MIN ends the
+episode. The wrench solves use `friction_scale` times the tool's friction coefficient (a margin: the physics'
+contact controller plans its forces inside 0.7 mu). Every IK starts from the
 model's fixed start configuration, so the next joint state is the IK result at the next desired pose (the
 paper's transition). Rotational inertia is not modelled here (the paper's trajectories are pure
 translations): the contacts must supply m (a - g) and zero torque about the CoM while moving; the MJX physics
@@ -30,6 +36,7 @@ from flax import struct
 
 from gsp_jax import grasps, ik, kinematics, wrench
 from gsp_jax import hand as hand_lib
+from gsp_jax.calibration import CALIBRATED
 from gsp_jax.scenario import M0, Episode
 
 
@@ -42,12 +49,25 @@ class RewardConfig:
     w_wrench_hold: float = 1.0  # (c)
     w_wrench_ext: float = 1.0  # (d)
     w_redundant: float = 0.05  # (e)
+    w_wrench_change: float = CALIBRATED["w_wrench_change"]  # (f)
+    change_falls: bool = CALIBRATED["change_falls"]  # (f) leaving more than fall_unmet unmet drops the tool (R_MIN)
+    friction_scale: float = CALIBRATED["friction_scale"]  # the wrench solves' friction coefficient, times the tool's
     ik_scale: float = 0.01  # [m]: an IK error of 1 cm costs w_ik
     wrench_scale: float = (M0 * 9.81) ** 2  # [N^2]: wrench errors are divided by (m0 g)^2
     contact_tol: float = 0.005  # [m]: a link within this of its contact point carries force
-    fall_unmet: float = 0.3  # unmet fraction of a required wrench above which the tool falls
+    fall_unmet: float = CALIBRATED["fall_unmet"]  # unmet fraction of a required wrench above which the tool falls
     max_step_cost: float = 10.0  # cap on a non-failing step's cost ...
     r_min: float = -200.0  # ... so that failing costs more than any T non-failing steps: r_min < -max_step_cost * T
+
+    def __post_init__(self):
+        for name in ("w_wrench_move", "w_ik", "w_wrench_hold", "w_wrench_ext", "w_redundant", "w_wrench_change"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"RewardConfig.{name}: a weight must be >= 0, got {getattr(self, name)}")
+        for name in ("ik_scale", "wrench_scale", "contact_tol", "friction_scale", "fall_unmet", "max_step_cost"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"RewardConfig.{name}: must be > 0, got {getattr(self, name)}")
+        if not self.r_min < 0:
+            raise ValueError(f"RewardConfig.r_min: must be < 0, got {self.r_min}")
 
 
 @struct.dataclass
@@ -59,7 +79,8 @@ class RewardTerms:
     wrench_hold: jax.Array  # () (c) / wrench_scale
     wrench_ext: jax.Array  # () (d) / wrench_scale; 0 before the last step
     redundant: jax.Array  # () (e) 0 or 1
-    unmet: jax.Array  # (3,) unmet wrench fractions of (a), (c), (d)
+    wrench_change: jax.Array  # () (f) / wrench_scale; 0 when the grasp does not change
+    unmet: jax.Array  # (4,) unmet wrench fractions of (a), (c), (d), (f)
     collision: jax.Array  # () bool
     fall: jax.Array  # () bool
     reward: jax.Array  # () the step's reward
@@ -67,7 +88,7 @@ class RewardTerms:
     @classmethod
     def zeros(cls) -> "RewardTerms":
         z = jnp.zeros((), jnp.float32)
-        return cls(z, z, z, z, z, jnp.zeros(3, jnp.float32), jnp.array(False), jnp.array(False), z)
+        return cls(z, z, z, z, z, z, jnp.zeros(4, jnp.float32), jnp.array(False), jnp.array(False), z)
 
 
 @struct.dataclass
@@ -116,6 +137,11 @@ class Surrogate:
     def n_actions(self) -> int:
         return self.space.n_actions
 
+    @property
+    def prices_changes(self) -> bool:
+        """Whether the change term (f) enters the reward at all (a weight or its fall check)."""
+        return self.reward_config.w_wrench_change != 0 or self.reward_config.change_falls
+
     # ------------------------------------------------------------------------------------------- kernels
     def realise(self, grasp: jax.Array, tool_pos: jax.Array, tool_quat: jax.Array) -> Contacts:
         """IK of `grasp` (int) at a tool pose (3,), (4,)."""
@@ -130,39 +156,65 @@ class Surrogate:
     ) -> wrench.WrenchResult:
         """Wrench solve for `required` (6,) = (force, torque about the CoM) that the contacts must supply."""
         com = tool_pos + kinematics.quat_to_mat(tool_quat) @ episode.com
-        return wrench.solve(
-            contacts.points, contacts.normals, contacts.realised, episode.friction, required, com, self.wrench_config
-        )
+        mu = episode.friction * self.reward_config.friction_scale
+        return wrench.solve(contacts.points, contacts.normals, contacts.realised, mu, required, com, self.wrench_config)
 
     def score(
-        self, episode: Episode, t: jax.Array, tool_pos, tool_quat, now: Contacts, nxt: Contacts, redundant
+        self, episode: Episode, t: jax.Array, tool_pos, tool_quat, now: Contacts, nxt: Contacts, redundant,
+        during: Contacts | None = None, changed=False,
     ) -> RewardTerms:
         """Reward terms of moving, with new grasp contacts `now` (at the current pose) and `nxt` (at waypoint
-        t+1), from waypoint t. Depends on the previous grasp only through `redundant`."""
+        t+1), from waypoint t. The previous grasp enters through `redundant`, `changed` (the grasp changes) and
+        `during` (the shared grasp's contacts at the current pose; None: no change term)."""
         cfg = self.reward_config
         wp, m = episode.waypoints, episode.mass
         last = episode.n_steps - 1
         t_next = jnp.minimum(t + 1, last)
         zero3 = jnp.zeros(3, jnp.float32)
-        move = self.wrench_error(now, episode, tool_pos, tool_quat, self.move_wrench(episode, t))
+        move_wrench = self.move_wrench(episode, t)
+        move = self.wrench_error(now, episode, tool_pos, tool_quat, move_wrench)
         pos_n, quat_n = wp[t_next], episode.quats[t_next]
         hold = self.wrench_error(nxt, episode, pos_n, quat_n, jnp.concatenate([-m * self.gravity, zero3]))
         ext = self.wrench_error(
             nxt, episode, pos_n, quat_n, jnp.concatenate([-m * self.gravity, zero3]) - episode.w_ext
         )
         is_last = t >= last
-        unmet = jnp.stack([move.unmet, hold.unmet, jnp.where(is_last, ext.unmet, 0.0)])
-        terms = dict(
+        if during is None:
+            change_error = change_unmet = jnp.zeros((), jnp.float32)
+        else:
+            change = self.wrench_error(during, episode, tool_pos, tool_quat, move_wrench)
+            change_error, change_unmet = change.error / cfg.wrench_scale, change.unmet
+        terms = RewardTerms(
             wrench_move=move.error / cfg.wrench_scale,
             ik_next=nxt.ik.error / cfg.ik_scale,
             wrench_hold=hold.error / cfg.wrench_scale,
             wrench_ext=jnp.where(is_last, ext.error / cfg.wrench_scale, 0.0),
-            redundant=redundant.astype(jnp.float32),
+            redundant=jnp.zeros((), jnp.float32),
+            wrench_change=jnp.zeros((), jnp.float32),
+            unmet=jnp.stack([move.unmet, hold.unmet, jnp.where(is_last, ext.unmet, 0.0), jnp.zeros(())]),
+            collision=now.ik.collision | nxt.ik.collision,
+            fall=jnp.array(False),
+            reward=jnp.zeros(()),
         )
-        collision = now.ik.collision | nxt.ik.collision
-        fall = jnp.any(unmet > cfg.fall_unmet)
-        terms = RewardTerms(**terms, unmet=unmet, collision=collision, fall=fall, reward=jnp.zeros(()))
-        return terms.replace(reward=self.reward(terms, redundant))
+        return self.finish(terms, redundant, changed, change_error, change_unmet)
+
+    def finish(self, terms: RewardTerms, redundant, changed, change_error, change_unmet) -> RewardTerms:
+        """`terms` with the previous grasp's part set -- the redundant flag, and when `changed` the change
+        term (f) (normalised error, unmet fraction) -- and the fall flag and reward recomputed. Broadcasts."""
+        cfg = self.reward_config
+        changed = jnp.asarray(changed, bool)
+        shape = terms.wrench_move.shape
+        change_error = jnp.broadcast_to(jnp.where(changed, change_error, 0.0), shape)
+        change_unmet = jnp.broadcast_to(jnp.where(changed, change_unmet, 0.0), shape)
+        unmet = jnp.concatenate([terms.unmet[..., :3], change_unmet[..., None]], axis=-1)
+        counted = unmet if cfg.change_falls else unmet[..., :3]
+        terms = terms.replace(
+            redundant=jnp.broadcast_to(jnp.asarray(redundant, jnp.float32), shape),
+            wrench_change=change_error,
+            unmet=unmet,
+            fall=jnp.any(counted > cfg.fall_unmet, axis=-1),
+        )
+        return terms.replace(reward=self.reward(terms))
 
     def move_wrench(self, episode: Episode, t: jax.Array) -> jax.Array:
         """(6,) wrench the contacts must supply while moving on from waypoint t: m (a - g), with the desired
@@ -171,15 +223,16 @@ class Surrogate:
         acc = (wp[jnp.minimum(t + 1, last)] - 2 * wp[jnp.minimum(t, last)] + wp[jnp.maximum(t - 1, 0)]) / episode.dt**2
         return jnp.concatenate([episode.mass * (acc - self.gravity), jnp.zeros(3, jnp.float32)])
 
-    def reward(self, terms: RewardTerms, redundant: jax.Array) -> jax.Array:
-        """The shaped reward from a step's terms, with the redundant flag given (the terms' own is ignored)."""
+    def reward(self, terms: RewardTerms) -> jax.Array:
+        """The shaped reward from a step's terms (`terms.fall` and `terms.collision` give R_MIN)."""
         cfg = self.reward_config
         cost = (
             cfg.w_wrench_move * terms.wrench_move
             + cfg.w_ik * terms.ik_next
             + cfg.w_wrench_hold * terms.wrench_hold
             + cfg.w_wrench_ext * terms.wrench_ext
-            + cfg.w_redundant * jnp.asarray(redundant, jnp.float32)
+            + cfg.w_redundant * terms.redundant
+            + cfg.w_wrench_change * terms.wrench_change
         )
         return jnp.where(terms.collision | terms.fall, cfg.r_min, -jnp.minimum(cost, cfg.max_step_cost))
 
@@ -215,7 +268,11 @@ class Surrogate:
         pos_n, quat_n = ep.waypoints[t_next], ep.quats[t_next]
         now = self.realise(new_grasp, state.tool_pos, state.tool_quat)
         nxt = self.realise(new_grasp, pos_n, quat_n)
-        terms = self.score(ep, state.t, state.tool_pos, state.tool_quat, now, nxt, redundant)
+        during = None
+        if self.prices_changes:
+            during = self.realise(self.space.shared(state.grasp, action), state.tool_pos, state.tool_quat)
+        changed = new_grasp != state.grasp
+        terms = self.score(ep, state.t, state.tool_pos, state.tool_quat, now, nxt, redundant, during, changed)
         done = terms.collision | terms.fall | (state.t + 1 >= ep.n_steps)
         vel = jnp.concatenate([(pos_n - state.tool_pos) / ep.dt, jnp.zeros(3, jnp.float32)])
         moved = State(

@@ -3,7 +3,7 @@ enumeration of every action sequence, the optimal sequence against a rollout of 
 IK count, and the open-loop replay (`sequence_return`).
 
 Everything runs on a reduced episode of T = 5 waypoints (the nominal lift's first five, and an evaluation-set-B
-episode's first five), so the brute force enumerates 16^5 = 1,048,576 sequences per start grasp in numpy. Every
+episode's first five), so the brute force enumerates 17^5 = 1,419,857 sequences per start grasp in numpy. Every
 compiled function is built once per module (fixtures below) and reused with fixed shapes: the single-episode
 solve (both episodes), the batched solve, one vmapped surrogate step over a batch of N_BATCH, the vmapped
 discrete state and the vmapped reset at that batch size.
@@ -20,7 +20,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import tolerances as tol  # noqa: E402
-from gsp_jax import dp, ik, scenario, surrogate  # noqa: E402
+from gsp_jax import dp, grasps, ik, scenario, surrogate  # noqa: E402
 
 T = 5  # waypoints of the reduced episodes
 N_BATCH = 20  # batch of every vmapped surrogate call (one compile each)
@@ -143,7 +143,8 @@ def test_backup_equals_brute_force_over_every_sequence(name, solved, episodes, f
 # ------------------------------------------------------------------------------------------ 2. table vs surrogate
 def _triples(table, rng):
     """N_BATCH (g, a, t): random ones plus a redundant action, a failing (R_MIN) transition before the last
-    step, and last-step transitions, so every branch of the table is compared."""
+    step, a last-step transition and a change that fails only through its change term (its new grasp, kept by
+    the null action, survives), so every branch of the table is compared."""
     n_g, n_a, n_t = table.reward.shape
     r_min = table.reward.min()
     g = rng.integers(0, n_g, N_BATCH)
@@ -154,7 +155,8 @@ def _triples(table, rng):
     mid = np.flatnonzero(ts < n_t - 1)[0]
     g[0], a[0], t[0] = gs[mid], as_[mid], ts[mid]
     # a redundant action (leaves the grasp unchanged) from a grasp that survives it
-    gr, ar, tr = np.nonzero((table.reward > r_min) & (table.next_grasp == np.arange(n_g)[:, None])[..., None])
+    same = (table.next_grasp == np.arange(n_g)[:, None]) & (np.arange(n_a) != grasps.NULL)
+    gr, ar, tr = np.nonzero((table.reward > r_min) & same[..., None])
     g[1], a[1], t[1] = gr[0], ar[0], tr[0]
     # a failing transition before the last step
     gf, af, tf = np.nonzero((table.reward == r_min) & (np.arange(n_t) < n_t - 1))
@@ -162,6 +164,10 @@ def _triples(table, rng):
     # the last step (always terminal) by a transition that does not fail: terminal only because it is the last
     gl, al = np.nonzero(table.reward[:, :, n_t - 1] > r_min)
     g[3], a[3], t[3] = gl[0], al[0], n_t - 1
+    # a change that fails although its new grasp survives at that waypoint
+    kept = table.reward[table.next_grasp, grasps.NULL, :]  # (G, A, T): the null action from the new grasp
+    gc, ac, tc = np.nonzero((table.reward == r_min) & (kept > r_min) & (np.arange(n_t) < n_t - 1))
+    g[4], a[4], t[4] = gc[0], ac[0], tc[0]
     return g, a, t
 
 
@@ -179,8 +185,10 @@ def test_table_matches_surrogate_step(solved, episodes, env, fns):
     # the sample covers a failing step, a surviving one, a redundant one and the last step
     assert np.any(reward == env.reward_config.r_min) and np.any(reward > env.reward_config.r_min)
     assert np.any(out.terms.redundant == 1) and np.any((t == T - 1) & (reward > env.reward_config.r_min))
-    # the redundancy flag enters the table's reward exactly as in the step
-    np.testing.assert_array_equal(out.terms.redundant == 1, table.next_grasp[g, a] == g)
+    # the redundancy flag enters the table's reward exactly as in the step: a non-null action that keeps the grasp
+    np.testing.assert_array_equal(out.terms.redundant == 1, (table.next_grasp[g, a] == g) & (a != grasps.NULL))
+    # the sample covers a grasp change that fails only through its change term (the shared grasp drops the tool)
+    assert np.any(out.terms.unmet[:, 3] > env.reward_config.fall_unmet)
 
 
 # ------------------------------------------------------------------------------------------ 3. rollout
@@ -299,25 +307,31 @@ def _ik_problems(jaxpr, iterations: int, n_joints: int) -> int:
 
 
 def test_table_costs_g_times_t_ik_solves(env, episodes, solved):
-    """The table needs G x T IK solves (each grasp at each waypoint), not 2 x G x A x T as stepping would.
+    """The table needs G x T IK solves (each grasp at each waypoint), not 3 x G x A x T as stepping would; each
+    solve runs from the IK's 1 + len(extra_starts) start configurations.
 
     Why the jaxpr: a Python counter around `ik.solve` only counts traces (a vmapped call traces once and sees
     unbatched shapes), so instead the traced program is inspected. The IK is a `lax.scan` of a fixed iteration
     count; with the count set to 37 (the wrench solver uses 150) every 37-step scan is an IK call, and its carry
     q has shape (*batch, J): the number of problems is the product of the batch dims. The counter is checked on
-    `env.reset` (1 solve) and `env.step` (2 solves) first, so a broken counter cannot pass."""
+    `env.reset` (1 solve) and `env.step` (3 solves: the new grasp at the current pose and at the next waypoint, and
+    the shared grasp through a change; 2 without the change term) first, so a broken counter cannot pass."""
     iters = 37
     assert iters not in (env.ik_config.iterations, env.wrench_config.iterations)
     env37 = surrogate.Surrogate(env.hand, ik_config=ik.IKConfig(iterations=iters))
+    per = 1 + len(env37.ik_config.extra_starts)  # each IK problem runs from every start configuration
     ep = episodes["nominal"]
     n_g, n_j = env.space.n_grasps, env.hand.n_joints
     count = lambda f, *args: _ik_problems(jax.make_jaxpr(f)(*args).jaxpr, iters, n_j)  # noqa: E731
-    assert count(env37.reset, ep) == 1
+    assert count(env37.reset, ep) == per
     state = jax.eval_shape(env37.reset, ep)  # abstract: tracing needs no IK to run
-    assert count(env37.step, state, jnp.int32(3)) == 2
-    assert count(lambda e: dp.build_table(env37, e), ep) == n_g * T
+    assert env37.prices_changes and count(env37.step, state, jnp.int32(3)) == 3 * per
+    off = surrogate.Surrogate(env.hand, surrogate.RewardConfig(w_wrench_change=0.0, change_falls=False),
+                              ik_config=ik.IKConfig(iterations=iters))
+    assert count(off.step, state, jnp.int32(3)) == 2 * per
+    assert count(lambda e: dp.build_table(env37, e), ep) == n_g * T * per
     full = scenario.make_episode()
-    assert count(lambda e: dp.build_table(env37, e), full) == n_g * scenario.N_WAYPOINTS == 288 * 16
+    assert count(lambda e: dp.build_table(env37, e), full) == n_g * scenario.N_WAYPOINTS * per == 288 * 16 * per
     # and one IK error per (grasp, waypoint) comes out
     table, _ = solved["nominal"]
     assert table.ik_error.shape == (n_g, T)

@@ -85,7 +85,7 @@ def _actions(rng, state, policy, p_optimal=0.6):
     sim = state.pipeline_state
     g, t = np.asarray(sim.grasp), np.minimum(np.asarray(sim.t), T - 1)
     optimal = policy[ep, g, t]
-    random = rng.integers(0, 16, size=ep.shape)
+    random = rng.integers(0, 17, size=ep.shape)
     return np.where(rng.random(ep.shape) < p_optimal, optimal, random).astype(np.int32)
 
 
@@ -189,13 +189,13 @@ def test_without_auto_reset_a_finished_state_is_absorbing(sur, episodes, tables,
 
 # ------------------------------------------------------------------------------------------ 4. brax API
 def test_brax_interface_sizes_and_backends(sur, episodes, table_env, table_fns):
-    """observation_size equals the observation's length (both backends), action_size = 16 = the grasp space's
+    """observation_size equals the observation's length (both backends), action_size = 17 = the grasp space's
     actions, and backend names the stepping method."""
     sur_env = GraspEnv(sur, episodes)
     state = table_fns["reset"](jax.random.PRNGKey(0))
     abstract = jax.eval_shape(sur_env.reset, jax.random.PRNGKey(0))  # traced only: no IK runs
     assert table_env.observation_size == state.obs.shape[-1] == abstract.obs.shape[-1] == sur_env.observation_size
-    assert table_env.action_size == sur_env.action_size == sur.space.n_actions == 16
+    assert table_env.action_size == sur_env.action_size == sur.space.n_actions == 17
     assert (table_env.backend, sur_env.backend) == ("table", "surrogate")
     assert table_env.n_episodes == 3 and table_env.n_steps == T
     assert state.obs.dtype == jnp.float32 and state.reward.shape == () and state.done.dtype == jnp.bool_
@@ -234,14 +234,14 @@ def test_bad_input_raises_naming_the_field(sur, episodes, tables):
         GraspEnv(sur, bad_start)
 
 
-@pytest.mark.parametrize("bad", [-1, 16, 1000])
+@pytest.mark.parametrize("bad", [-1, 17, 1000])
 def test_out_of_range_actions_raise_at_every_python_entry_point(sur, episodes, tables, table_env, bad):
-    """A concrete action outside [0, 16) raises a ValueError naming the value: the brax env, the table model,
+    """A concrete action outside [0, 17) raises a ValueError naming the value: the brax env, the table model,
     the surrogate step, the DP policies. Inside jit it is clipped (documented in gsp_jax.grasps)."""
     from gsp_jax import env as env_lib, policies
 
     state = table_env.reset_to(0)
-    msg = rf"action: {bad} is not in \[0, 16\)"
+    msg = rf"action: {bad} is not in \[0, 17\)"
     with pytest.raises(ValueError, match=msg):
         table_env.step(state, bad)
     model = env_lib.TableModel(jax.tree.map(lambda x: x[0], tables), sur.space)
@@ -255,6 +255,6 @@ def test_out_of_range_actions_raise_at_every_python_entry_point(sur, episodes, t
         policies.TablePolicy(jnp.full((288, T), bad, jnp.int32))
     # traced: clipped into range, the documented behaviour
     clipped = jax.jit(model.step)(state.pipeline_state, jnp.int32(bad))
-    expect = model.step(state.pipeline_state, min(max(bad, 0), 15))
+    expect = model.step(state.pipeline_state, min(max(bad, 0), sur.space.n_actions - 1))
     np.testing.assert_array_equal(clipped[0].grasp, expect[0].grasp)
     assert float(clipped[1]) == float(expect[1])

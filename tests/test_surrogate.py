@@ -2,7 +2,7 @@
 sanity on the nominal episode.
 
 Compiling the surrogate on CPU takes seconds per function, so every jitted function is built once per module
-(fixtures below) and reused with fixed shapes: single step, one vmapped step over a batch of 16, reset, the
+(fixtures below) and reused with fixed shapes: single step, one vmapped step over a batch of 17, reset, the
 realisation of a grasp at a waypoint and its next waypoint, score, and the wrench solve.
 """
 from __future__ import annotations
@@ -17,10 +17,10 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import tolerances as tol  # noqa: E402
-from gsp_jax import scenario, surrogate, wrench  # noqa: E402
+from gsp_jax import grasps, scenario, surrogate, wrench  # noqa: E402
 
 T = scenario.N_WAYPOINTS
-BATCH = 16  # = the number of actions, so one vmapped compile serves every batched test
+BATCH = 17  # = the number of actions, so one vmapped compile serves every batched test
 
 # per-link options in model order: thumb_d, index_d, index_m, middle_d, middle_m, ring_d
 THREE_TIPS = (1, 1, 0, 1, 0, 0)
@@ -96,22 +96,23 @@ def _stack_states(states):
 
 # (episode, grasp, waypoint t, action): different grasps, waypoints, both episodes, and every action once
 CASES = [
-    ("nominal", THREE_TIPS, 0, 1),
-    ("evalB", THREE_TIPS, 0, 15),
-    ("nominal", INDEX_ALONE, 0, 4),
-    ("evalB", HEAD_PINCH, 10, 0),
-    ("nominal", TIPS_UNDER, 15, 13),
-    ("evalB", TIPS_UNDER, 15, 2),
-    ("nominal", FOUR_TIPS, 3, 14),
-    ("evalB", POWER_WRAP, 12, 6),
-    ("nominal", HEAD_PINCH, 7, 3),
-    ("evalB", THREE_TIPS, 5, 5),
-    ("nominal", POWER_WRAP, 15, 7),
-    ("evalB", FOUR_TIPS, 15, 8),
-    ("nominal", THREE_TIPS, 12, 9),
-    ("evalB", INDEX_ALONE, 3, 10),
-    ("nominal", TIPS_UNDER, 9, 11),
-    ("evalB", HEAD_PINCH, 14, 12),
+    ("nominal", FOUR_TIPS, 6, 0),  # the null action
+    ("nominal", THREE_TIPS, 0, 2),
+    ("evalB", THREE_TIPS, 0, 16),
+    ("nominal", INDEX_ALONE, 0, 5),
+    ("evalB", HEAD_PINCH, 10, 1),
+    ("nominal", TIPS_UNDER, 15, 14),
+    ("evalB", TIPS_UNDER, 15, 3),
+    ("nominal", FOUR_TIPS, 3, 15),
+    ("evalB", POWER_WRAP, 12, 7),
+    ("nominal", HEAD_PINCH, 7, 4),
+    ("evalB", THREE_TIPS, 5, 6),
+    ("nominal", POWER_WRAP, 15, 8),
+    ("evalB", FOUR_TIPS, 15, 9),
+    ("nominal", THREE_TIPS, 12, 10),
+    ("evalB", INDEX_ALONE, 3, 11),
+    ("nominal", TIPS_UNDER, 9, 12),
+    ("evalB", HEAD_PINCH, 14, 13),
 ]
 
 
@@ -129,8 +130,8 @@ def batch(env, fns, episodes):
 
 # ------------------------------------------------------------------------------------------ independent grasp algebra
 def _np_action_table(n_options):
-    """(link, option) of each action: link by link, option by option."""
-    return [(link, opt) for link, n in enumerate(n_options) for opt in range(n)]
+    """(link, option) of each action: None for the null action 0, then link by link, option by option."""
+    return [None] + [(link, opt) for link, n in enumerate(n_options) for opt in range(n)]
 
 
 def _np_decode(g, n_options):
@@ -206,12 +207,16 @@ def test_step_transition_grasp_time_pose(env, batch):
     for i, (ename, opts, t, a) in enumerate(CASES):
         g = _encode(env, opts)
         assert _np_decode(g, n_opts) == list(opts)
-        link, opt = table[a]
         new = list(opts)
-        new[link] = opt
+        if table[a] is None:  # the null action keeps the grasp, and is not redundant
+            redundant = False
+        else:
+            link, opt = table[a]
+            new[link] = opt
+            redundant = opts[link] == opt
         assert int(out.grasp[i]) == _np_encode(new, n_opts), (i, env.space.action_label(a))
-        assert float(out.terms.redundant[i]) == float(opts[link] == opt)
-        assert bool(red_apply[i]) == (opts[link] == opt)
+        assert float(out.terms.redundant[i]) == float(redundant)
+        assert bool(red_apply[i]) == redundant
         assert int(out.t[i]) == t + 1
         tn = min(t + 1, T - 1)
         wp = np.asarray(states.episode.waypoints[i])
@@ -223,24 +228,32 @@ def test_step_transition_grasp_time_pose(env, batch):
 
 
 def test_redundant_flag_for_every_action_from_one_grasp(env, fns, episodes):
-    """All 16 actions from one grasp: the redundant term is 1 exactly for the actions that re-set the current
-    option of their link (one per link), and only those leave the grasp unchanged."""
+    """All 17 actions from one grasp: the redundant term is 1 exactly for the actions that re-set the current
+    option of their link (one per link); only those and the null action leave the grasp unchanged, and the null
+    action's reward is theirs without the penalty."""
     ep = episodes["nominal"]
     g = _encode(env, HEAD_PINCH)
     s = _state_at(env, fns, ep, g, 2)
     states = _stack_states([s] * BATCH)
     out, reward, _ = fns["vstep"](states, jnp.arange(BATCH, dtype=jnp.int32))
     table = _np_action_table(env.space.n_options)
-    expected = np.array([HEAD_PINCH[link] == opt for link, opt in table], np.float32)
+    expected = np.array([False] + [HEAD_PINCH[link] == opt for link, opt in table[1:]], np.float32)
     np.testing.assert_array_equal(np.asarray(out.terms.redundant), expected)
-    np.testing.assert_array_equal(np.asarray(out.grasp) == g, expected.astype(bool))
+    keeps = expected.astype(bool)
+    keeps[grasps.NULL] = True
+    np.testing.assert_array_equal(np.asarray(out.grasp) == g, keeps)
     assert expected.sum() == env.space.n_links
-    # the redundant actions all keep the same grasp, so their other terms coincide
-    red_idx = np.flatnonzero(expected)
+    # the redundant actions and the null action all keep the same grasp, so their other terms coincide
+    red_idx = np.flatnonzero(keeps)
     terms = out.terms
     for name in ("wrench_move", "ik_next", "wrench_hold"):
         vals = np.asarray(getattr(terms, name))[red_idx]
         np.testing.assert_allclose(vals, vals[0], rtol=1e-5, atol=1e-6, err_msg=name)
+    np.testing.assert_array_equal(np.asarray(terms.wrench_change)[red_idx], 0.0)  # nothing moves
+    cfg = env.reward_config
+    if not bool(terms.fall[0]) and not bool(terms.collision[0]):
+        red = np.asarray(reward)[np.flatnonzero(expected)]
+        np.testing.assert_allclose(red, float(reward[grasps.NULL]) - cfg.w_redundant, rtol=1e-5, atol=1e-6)
 
 
 def test_reward_is_weighted_sum_capped_or_r_min(batch):
@@ -252,8 +265,10 @@ def test_reward_is_weighted_sum_capped_or_r_min(batch):
         + cfg.w_wrench_hold * terms.wrench_hold
         + cfg.w_wrench_ext * terms.wrench_ext
         + cfg.w_redundant * terms.redundant
+        + cfg.w_wrench_change * terms.wrench_change
     )
-    fall = np.any(terms.unmet > cfg.fall_unmet, axis=-1)
+    counted = terms.unmet if cfg.change_falls else terms.unmet[:, :3]
+    fall = np.any(counted > cfg.fall_unmet, axis=-1)
     np.testing.assert_array_equal(terms.fall, fall)
     failed = terms.collision | terms.fall
     expected = np.where(failed, cfg.r_min, -np.minimum(cost, cfg.max_step_cost))
@@ -339,12 +354,13 @@ def test_score_terms_against_direct_wrench_solves(env, fns, episodes):
 
 
 def test_full_episode_without_failure_is_done_after_exactly_16_steps(env, fns, episodes):
-    """Keep the start grasp (redundant thumb->1) through waypoint 8, move the middle tip under the tool
-    (middle->3) at waypoint 9 -- the three tips alone fall from waypoint 12 on -- and keep that grasp to the end.
-    No step fails, done is False for 15 steps and True on the 16th; the finished state is absorbing."""
+    """Add the ring tip at waypoint 0, keep the grasp (null action) through waypoint 8, move the middle tip under
+    the tool (middle->3) at waypoint 9 -- thumb, index and ring tips carry the tool meanwhile -- and keep that grasp
+    to the end. No step fails, done is False for 15 steps and True on the 16th; the finished state is absorbing."""
     ep = episodes["nominal"]
     cfg = env.reward_config
-    actions = [1] * 9 + [11] + [1] * 6
+    sp = env.space
+    actions = [sp.action("ring_distal", 1)] + [grasps.NULL] * 8 + [sp.action("middle_distal", 3)] + [grasps.NULL] * 6
     s = fns["reset"](ep)
     for k, a in enumerate(actions):
         s, r, d = fns["step"](s, jnp.int32(a))
@@ -356,7 +372,7 @@ def test_full_episode_without_failure_is_done_after_exactly_16_steps(env, fns, e
             assert float(s.terms.wrench_ext) == 0.0
         else:
             assert float(s.terms.wrench_ext) > 0.0
-    assert int(s.grasp) == _encode(env, TIPS_UNDER)
+    assert int(s.grasp) == _encode(env, (1, 1, 0, 3, 0, 1))
     assert int(s.t) == T
     # absorbing: every action returns reward 0, done, and the state unchanged (leaf by leaf, exactly)
     for a in (0, 1, 11, 15):
@@ -370,7 +386,7 @@ def test_failure_ends_episode_and_is_absorbing(env, fns, episodes):
     cfg = env.reward_config
     s0 = fns["reset"](ep)
     # middle->off from the three tips leaves thumb + index tips: the tool falls at once
-    s1, r1, d1 = fns["step"](s0, jnp.int32(8))
+    s1, r1, d1 = fns["step"](s0, jnp.int32(env.space.action("middle_distal", 0)))
     assert int(s1.grasp) == _encode(env, (1, 1, 0, 0, 0, 0))
     assert bool(s1.terms.fall) and bool(d1) and bool(s1.done)
     assert float(r1) == cfg.r_min
@@ -379,6 +395,39 @@ def test_failure_ends_episode_and_is_absorbing(env, fns, episodes):
         s2, r2, d2 = fns["step"](s1, jnp.int32(a))
         assert float(r2) == 0.0 and bool(d2)
         jax.tree.map(lambda x, y: np.testing.assert_array_equal(np.asarray(x), np.asarray(y)), s2, s1)
+
+
+def test_change_term_is_the_shared_grasps_moving_wrench(env, fns, episodes):
+    """(f): a slide of the middle tip from the three tips (T1 I1 M1 -> M2) leaves thumb and index tips to carry
+    the tool meanwhile; its change term is their moving-wrench error, computed independently from the shared
+    grasp's own contacts, and they cannot carry it: the step falls although the new grasp itself holds. Adding the
+    ring tip (T1 I1 M1 stay) prices the three tips' moving wrench; the null action prices nothing."""
+    ep, cfg, sp = episodes["nominal"], env.reward_config, env.space
+    assert cfg.change_falls and env.prices_changes
+    s0 = fns["reset"](ep)
+    cases = {"slide": sp.action("middle_distal", 2), "add": sp.action("ring_distal", 1), "null": grasps.NULL}
+    for name, a in cases.items():
+        s1, r1, _ = fns["step"](s0, jnp.int32(a))
+        shared = int(sp.shared(s0.grasp, a))
+        _, _, shared_terms = _terms_at(env, fns, ep, tuple(np.asarray(sp.decode(shared)).tolist()))
+        _, _, new_terms = _terms_at(env, fns, ep, tuple(np.asarray(sp.decode(s1.grasp)).tolist()))
+        if name == "null":
+            assert float(s1.terms.wrench_change) == 0.0 and float(s1.terms.unmet[3]) == 0.0
+            continue
+        np.testing.assert_allclose(float(s1.terms.wrench_change), float(shared_terms.wrench_move), rtol=1e-4)
+        np.testing.assert_allclose(float(s1.terms.unmet[3]), float(shared_terms.unmet[0]), rtol=1e-4, atol=1e-6)
+        if name == "slide":
+            assert shared == _encode(env, (1, 1, 0, 0, 0, 0))
+            assert not bool(new_terms.fall)  # T1 I1 M2 itself holds ...
+            assert float(s1.terms.unmet[3]) > cfg.fall_unmet + 0.1  # ... but not T1 I1 alone while M moves
+            assert bool(s1.terms.fall) and float(r1) == cfg.r_min
+        else:
+            assert shared == int(s0.grasp) and not bool(s1.terms.fall)
+    # switched off, the slide is scored by its new grasp alone
+    off = surrogate.Surrogate(hand=env.hand, reward=surrogate.RewardConfig(w_wrench_change=0.0, change_falls=False))
+    assert not off.prices_changes
+    s1, _, _ = jax.jit(off.step)(s0, jnp.int32(cases["slide"]))
+    assert not bool(s1.terms.fall) and float(s1.terms.wrench_change) == 0.0
 
 
 # ------------------------------------------------------------------------------------------ physical sanity

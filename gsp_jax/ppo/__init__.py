@@ -1,4 +1,4 @@
-"""PPO for the grasp-sequence MDP (categorical over the 16 actions), on flax/optax over a brax-style env.
+"""PPO for the grasp-sequence MDP (categorical over the 17 actions), on flax/optax over a brax-style env.
 
 networks.py  actor and critic MLPs, observation normaliser, categorical distribution
 losses.py    GAE and the clipped PPO loss

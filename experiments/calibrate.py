@@ -1,0 +1,219 @@
+"""`python -m experiments calibrate [--sets train,val] [--random 16] [--backend c] [--write]`: the surrogate's reward
+calibrated against the physics check, on the training and validation episodes only (never the evaluation set).
+
+1. Every candidate `RewardConfig` of a grid (the wrench solves' friction scale, the fall threshold, the grasp-change
+   term on or off) scores every episode's DP table. The IK is shared by all candidates (it does not depend on
+   the reward), the wrench solves by all candidates of one friction scale.
+2. A pool of grasp sequences per episode: each candidate's DP optimal and DP baseline (the nominal episode's
+   optimal sequence), `--random` random sequences feasible under the candidates' tables in turn (holding the grasp
+   with probability 0, 0.6 or 0.9), and the scripted references of `physics` (four tips, the alternating changes,
+   add-and-slide, one tip). Duplicates are simulated once.
+3. The pool through the physics check (`--backend c`: C MuJoCo on the CPU, the same controller as MJX), open loop.
+   Outcomes are cached in results/calibrate/physics_<backend>.json, so an interrupted run resumes.
+4. Per candidate: the Spearman rank correlation between each sequence's surrogate return and its simulated
+   -angle error (180 deg when the tool fell), pooled; the share of surrogate-feasible sequences that hold; DP
+   optimal's falls. The candidate with the highest correlation wins (ties: more feasible sequences that hold).
+
+Prints the sweep as a table; writes results/calibrate/sweep.json, and with --write the winner into
+gsp_jax/calibration.py, where `RewardConfig` reads its defaults."""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import itertools
+import json
+import pathlib
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from experiments.physics import scripted_sequences
+from experiments.physics_correlation import spearman
+from experiments.common import results_dir, table
+from gsp_jax import dp, grasps, physics, policies, scenario, surrogate
+
+GRID = dict(  # the candidates: every combination. (A first sweep on the nominal episode: fall thresholds of 0.1
+    # and below, or mu x0.6, leave no sequence feasible, not even the four tips that hold in physics -- the wrench
+    # solve's force penalty leaves a residual -- so the grid spans 0.15..0.4.)
+    friction_scale=(1.0, 0.8),
+    fall_unmet=(0.15, 0.2, 0.25, 0.3, 0.4),
+    change=((0.0, False), (1.0, True), (5.0, True)),  # (w_wrench_change, change_falls): off / on / on, weighted 5
+)
+HOLDS = (0.0, 0.6, 0.9)
+CALIBRATION_PY = pathlib.Path(__file__).resolve().parents[1] / "gsp_jax" / "calibration.py"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--sets", default="train,val", help="comma-separated episode sets (never eval)")
+    p.add_argument("--random", type=int, default=16, help="random feasible sequences per episode")
+    p.add_argument("--backend", default="c", choices=physics.BACKENDS)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--chunk", type=int, default=512, help="most sequences per physics batch")
+    p.add_argument("--write", action="store_true", help="write the winner into gsp_jax/calibration.py")
+
+
+def candidates() -> list[surrogate.RewardConfig]:
+    base = surrogate.RewardConfig()
+    return [dataclasses.replace(base, friction_scale=fs, fall_unmet=fu, w_wrench_change=w, change_falls=cf)
+            for fs, fu, (w, cf) in itertools.product(GRID["friction_scale"], GRID["fall_unmet"], GRID["change"])]
+
+
+def label(cfg: surrogate.RewardConfig) -> str:
+    change = f"w {cfg.w_wrench_change:g}" if cfg.change_falls or cfg.w_wrench_change else "off"
+    return f"mu x{cfg.friction_scale:g}, fall {cfg.fall_unmet:g}, change {change}"
+
+
+def candidate_tables(configs, episodes: scenario.Episode) -> list[dp.Table]:
+    """Every candidate's tables (leaves (E, ...)): IK once, wrench solves once per friction scale."""
+    base = surrogate.Surrogate(reward=configs[0])
+    contacts = jax.jit(jax.vmap(lambda ep: dp.realise_all(base, ep)))(episodes)
+    terms = {}
+    for fs in sorted({c.friction_scale for c in configs}):
+        env = surrogate.Surrogate(hand=base.hand, reward=dataclasses.replace(configs[0], friction_scale=fs))
+        terms[fs] = jax.jit(jax.vmap(lambda ep, c: dp.grasp_terms(env, ep, c)))(episodes, contacts)
+    out = []
+    for cfg in configs:
+        env = surrogate.Surrogate(hand=base.hand, reward=cfg)
+        out.append(jax.jit(jax.vmap(lambda ep, t, c: dp.table_from_terms(env, ep, t, c)))(
+            episodes, terms[cfg.friction_scale], contacts))
+    return out
+
+
+def main(args: argparse.Namespace) -> None:
+    sets = [s.strip() for s in args.sets.split(",") if s.strip()]
+    if any(s.startswith("eval") or s == "all" for s in sets):
+        raise SystemExit(f"--sets: calibration never uses the evaluation episodes, got {args.sets!r}")
+    episodes = {}
+    for s in sets:
+        episodes.update(scenario.episode_set(s))
+    names, batch = list(episodes), scenario.stack(list(episodes.values()))
+    configs = candidates()
+    t0 = time.perf_counter()
+    print(f"calibrate: {len(configs)} candidate rewards x {len(names)} episodes ({'+'.join(sets)}) ...", flush=True)
+    tables = candidate_tables(configs, batch)
+    nominal = scenario.make_episode()
+    nominal_tables = candidate_tables(configs, scenario.stack([nominal]))
+    print(f"  tables: {time.perf_counter() - t0:.0f} s", flush=True)
+
+    # ---- the pool of sequences, per episode
+    backup = jax.jit(jax.vmap(dp.backup))
+    n_t = scenario.N_WAYPOINTS
+    pool: list[list[tuple[str, tuple]]] = [[] for _ in names]
+
+    def add(e, kind, actions):
+        key = tuple(int(a) for a in actions)
+        if key not in {k for _, k in pool[e]}:
+            pool[e].append((kind, key))
+
+    env0 = surrogate.Surrogate()
+    for name, seq in scripted_sequences(env0.space).items():
+        for e in range(len(names)):
+            add(e, name, seq)
+    for e in range(len(names)):
+        add(e, "four-tips", np.full(n_t, env0.space.action("ring_distal", 1)))
+        one = np.full(n_t, grasps.NULL)
+        one[0], one[1] = env0.space.action("middle_distal", 0), env0.space.action("thumb_distal", 0)
+        add(e, "one-tip", one)
+    for i, tab in enumerate(tables):
+        opt = np.asarray(backup(tab, batch.start_grasp).actions)
+        nom = jax.tree.map(lambda x: x[0], nominal_tables[i])
+        base_seq = np.asarray(dp.backup(nom, nominal.start_grasp).actions)
+        for e in range(len(names)):
+            add(e, "dp-opt", opt[e])
+            add(e, "dp-base", base_seq)
+    key = jax.random.PRNGKey(args.seed)
+    sample = jax.jit(jax.vmap(dp.random_sequence, (0, 0, 0, None, None)), static_argnums=())
+    for r in range(args.random):
+        tab = tables[r % len(tables)]
+        keys = jax.random.split(jax.random.fold_in(key, r), len(names))
+        seqs = np.asarray(sample(tab, batch.start_grasp, keys, configs[0].r_min, HOLDS[r % len(HOLDS)]))
+        for e in range(len(names)):
+            add(e, "random", seqs[e])
+
+    # ---- physics, cached per (episode, sequence)
+    out = results_dir("calibrate")
+    cache_path = out / f"physics_{args.backend}.json"
+    cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
+    ckey = lambda e, seq: f"{names[e]}|{','.join(map(str, seq))}"  # noqa: E731
+    todo = [(e, seq) for e in range(len(names)) for _, seq in pool[e] if ckey(e, seq) not in cache]
+    n_pool = sum(len(p) for p in pool)
+    print(f"  pool: {n_pool} distinct (episode, sequence) pairs, {len(todo)} to simulate ({args.backend})", flush=True)
+    phys = physics.Physics(env0)
+    n_chunks = max(1, -(-len(todo) // args.chunk))
+    chunk = -(-len(todo) // n_chunks) if todo else 0  # equal chunks: one MJX compile
+    for i in range(0, len(todo), max(chunk, 1)):
+        part = todo[i:i + chunk]
+        padded = part + [part[0]] * (chunk - len(part))  # the last chunk padded to the same shape
+        eps = scenario.stack([episodes[names[e]] for e, _ in padded])
+        acts = jnp.asarray([seq for _, seq in padded], jnp.int32)
+        res = phys.simulate_batch(policies.SequencePolicy(acts), eps, 0, backend=args.backend)
+        for j, (e, seq) in enumerate(part):
+            cache[ckey(e, seq)] = [float(res.angle_error[j]), bool(res.fell[j])]
+        tmp = cache_path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(cache))
+        tmp.replace(cache_path)
+        print(f"  simulated {min(i + chunk, len(todo))}/{len(todo)}, {time.perf_counter() - t0:.0f} s", flush=True)
+
+    flat = [(e, kind, seq) for e in range(len(names)) for kind, seq in pool[e]]
+    angle = np.array([cache[ckey(e, seq)][0] for e, _, seq in flat])
+    fell = np.array([cache[ckey(e, seq)][1] for e, _, seq in flat])
+    ep_idx = np.array([e for e, _, _ in flat])
+    acts = jnp.asarray([seq for _, _, seq in flat], jnp.int32)
+
+    # ---- every candidate scores the whole pool
+    score = jax.jit(jax.vmap(dp.sequence_return, (0, 0, 0)))
+    rows, results = [], []
+    for cfg, tab in zip(configs, tables):
+        per_seq = jax.tree.map(lambda x: x[ep_idx], tab)
+        ret = np.asarray(score(per_seq, batch.start_grasp[ep_idx], acts))
+        feasible = ret > cfg.r_min + 1e-3 * abs(cfg.r_min)
+        opt = np.asarray(backup(tab, batch.start_grasp).actions)
+        opt_idx = [next(i for i, (e2, _, s) in enumerate(flat) if e2 == e and s == tuple(opt[e].tolist()))
+                   for e in range(len(names))]
+        rho = spearman(ret, -angle)
+        held_feasible = float(np.mean(~fell[feasible])) if feasible.any() else float("nan")
+        res = dict(config=dataclasses.asdict(cfg), label=label(cfg), spearman=rho, feasible=int(feasible.sum()),
+                   feasible_held=held_feasible, dp_opt_falls=int(fell[opt_idx].sum()),
+                   dp_opt_angle=float(angle[opt_idx].mean()))
+        results.append(res)
+        rows.append([label(cfg), rho, int(feasible.sum()), held_feasible, int(fell[opt_idx].sum()),
+                     float(angle[opt_idx].mean())])
+    best = max(range(len(results)), key=lambda i: (np.nan_to_num(results[i]["spearman"], nan=-1.0),
+                                                   np.nan_to_num(results[i]["feasible_held"], nan=0.0)))
+    summary = dict(sets=sets, episodes=names, sequences=len(flat), physics_falls=int(fell.sum()),
+                   backend=args.backend, chosen=results[best], sweep=results,
+                   kinds={k: int(sum(1 for _, kk, _ in flat if kk == k)) for k in sorted({k for _, k, _ in flat})},
+                   wall_s=time.perf_counter() - t0)
+    (out / "sweep.json").write_text(json.dumps(summary, indent=1))
+    print(f"\n{len(flat)} sequences on {len(names)} episodes ({'+'.join(sets)}), {int(fell.sum())} fell in physics "
+          f"({args.backend}); {time.perf_counter() - t0:.0f} s")
+    print(table(["candidate reward", "rho", "feasible", "of them held", f"DP opt falls /{len(names)}",
+                 "DP opt angle"], rows, ".3f"))
+    print(f"\nchosen: {results[best]['label']} (rho {results[best]['spearman']:.3f})")
+    if args.write:
+        write_calibration(results[best], summary)
+        print(f"wrote {CALIBRATION_PY}")
+
+
+def write_calibration(res: dict, summary: dict) -> None:
+    cfg = res["config"]
+    keys = ("friction_scale", "fall_unmet", "w_wrench_change", "change_falls")
+    body = ",\n".join(f"    {k}={cfg[k]!r}" for k in keys)
+    CALIBRATION_PY.write_text(f'''"""The reward's calibrated defaults, read by `surrogate.RewardConfig`. Written by `python -m experiments calibrate
+--write` ({datetime.date.today().isoformat()}); rerun it rather than editing by hand."""
+
+CALIBRATED = dict(
+{body},
+)
+MEASURED = dict(  # on the calibration episodes, against the physics check
+    sets={"+".join(summary["sets"])!r},
+    backend={summary["backend"]!r},
+    sequences={summary["sequences"]},
+    spearman={res["spearman"]:.3f},  # rank correlation of surrogate return and -simulated angle error, pooled
+    feasible_held={res["feasible_held"]:.3f},  # share of the surrogate-feasible sequences that held
+    dp_opt_falls={res["dp_opt_falls"]},  # of {len(summary["episodes"])} episodes
+)
+''')

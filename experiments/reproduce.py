@@ -42,6 +42,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--policy-dir", default=None, help="PPO policy (default: results/train/dp/seed0, else the shipped one)")
     p.add_argument("--train", action="store_true",
                    help="train the PPO policy first (full preset, seed 0) even if a trained or shipped one exists")
+    p.add_argument("--fig4a-backend", default=None, choices=["table", "surrogate"],
+                   help="override the preset's Fig. 4a backend (table: the episodes' DP tables, exact on the discrete "
+                        "states the policies visit, e.g. the full preset's 27 episodes on a CPU)")
     p.add_argument("--backend", default="mjx", choices=["mjx", "c"],
                    help="Fig. 4b's physics engine: mjx (one XLA batch) or c (C MuJoCo, the same controller)")
     p.add_argument("--skip", nargs="*", default=[], choices=["fig4a", "table1", "fig4b"], help="stages to leave out")
@@ -79,10 +82,11 @@ def main(args: argparse.Namespace) -> None:
     widest = None if None in (p["fig4a_episodes"], p["fig4b_episodes"]) else max(p["fig4a_episodes"], p["fig4b_episodes"], 1)
     everything = evaluation.context("eval", widest, args.policy_dir)  # tables once; the stages take subsets
     if "fig4a" not in args.skip:
-        print(f"[1/3] Fig. 4a ({p['backend']} backend)", flush=True)
+        backend_4a = getattr(args, "fig4a_backend", None) or p["backend"]
+        print(f"[1/3] Fig. 4a ({backend_4a} backend)", flush=True)
         ctx = everything.take(p["fig4a_episodes"])
-        res = fig4a.run(ctx, p["backend"], results_dir("fig4a"))
-        if p["backend"] == "surrogate":  # cross-check: the tables give the same returns
+        res = fig4a.run(ctx, backend_4a, results_dir("fig4a"))
+        if backend_4a == "surrogate":  # cross-check: the tables give the same returns
             res["table_vs_surrogate_max_abs"] = {
                 n: float(np.max(np.abs(fig4a.returns(ctx, n, "table") - np.asarray(res["returns"][n]))))
                 for n in evaluation.POLICIES

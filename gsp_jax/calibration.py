@@ -1,10 +1,20 @@
 """The reward's calibrated defaults, read by `surrogate.RewardConfig`. Written by `python -m experiments calibrate
---write`; rerun it rather than editing by hand. (Not yet calibrated: the paper's values.)"""
+--write` (2026-11-23); rerun it rather than editing by hand."""
 
 CALIBRATED = dict(
     friction_scale=1.0,
-    fall_unmet=0.3,
+    fall_unmet=0.25,
     w_wrench_change=1.0,
     change_falls=True,
 )
-MEASURED = dict()
+MEASURED = dict(  # on the calibration episodes, against the physics check
+    sets='train+val',
+    backend='c',
+    sequences=591,
+    spearman=0.434,  # rank correlation of surrogate return and -simulated angle error, pooled
+    feasible_held=0.341,  # share of the surrogate-feasible sequences that held
+    dp_opt_falls=10,  # of 20 episodes
+    dp_opt_changes=3.90,  # mean grasp changes per episode of the DP-optimal plans
+    best_spearman=0.461,  # the sweep's highest correlation (another candidate), and its
+    best_spearman_se=0.022,  # bootstrap SE; the winner falls least under DP optimal
+)

@@ -216,12 +216,14 @@ def main(args: argparse.Namespace) -> None:
 
 
 def choose_and_write(summary: dict, write: bool) -> dict:
-    """Print the sweep, pick the winner (fewest DP-optimal falls, then correlation) and, with `write`, write it."""
+    """Print the sweep, pick the winner (fewest DP-optimal falls, then correlation; a candidate under which no
+    sequence is feasible has no correlation and no meaningful optimum, and comes last) and, with `write`, write it."""
     results, n_e = summary["sweep"], len(summary["episodes"])
     print(table(["candidate reward", "rho", "feasible", "of them held", f"DP opt falls /{n_e}", "DP opt angle",
                  "DP opt changes"], summary["rows"], ".3f"))
     rho = np.nan_to_num(np.array([r["spearman"] for r in results]), nan=-1.0)
-    best = min(range(len(results)), key=lambda i: (results[i]["dp_opt_falls"], -rho[i]))
+    finite = np.isfinite([np.nan if r["spearman"] is None else r["spearman"] for r in results])
+    best = min(range(len(results)), key=lambda i: (not finite[i], results[i]["dp_opt_falls"], -rho[i]))
     summary["chosen"] = results[best]
     print(f"\nhighest rho: {summary['best_spearman_label']} ({summary['best_spearman']:.3f} +- "
           f"{summary['best_spearman_se']:.3f}, bootstrap over episodes)")

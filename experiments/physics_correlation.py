@@ -57,7 +57,7 @@ def main(args: argparse.Namespace) -> None:
     phys = physics.Physics(env)
     flat_eps = jax.tree.map(lambda x: jnp.repeat(x, k, axis=0), batch)
     flat_act = actions.reshape(n_e * k, -1)
-    print(f"surrogate vs physics: {n_e} episodes x {k} sequences = {n_e * k} MJX episodes on "
+    print(f"surrogate vs physics: {n_e} episodes x {k} sequences = {n_e * k} physics episodes ({args.backend}) with JAX on "
           f"{jax.devices()[0].platform}, {args.chunk} per batch ...", flush=True)
     t0 = time.perf_counter()
     angle, fell = [], []

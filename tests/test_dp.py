@@ -24,7 +24,7 @@ from gsp_jax import dp, grasps, ik, scenario, surrogate  # noqa: E402
 
 T = 5  # waypoints of the reduced episodes
 N_BATCH = 20  # batch of every vmapped surrogate call (one compile each)
-EVALB = "mass1.5m0_comy+2cm"
+EVALB = "mass1.5m0_comy+1cm"
 TOL = dict(rtol=1e-5, atol=1e-5)  # float32 sums of a few rewards of magnitude <= 200 (the same rewards summed)
 # two computations of the table (batched vs unbatched IK and wrench solves): tests/tolerances.py
 

@@ -37,7 +37,7 @@ def episodes():
         [
             scenario.make_episode().head(T),
             scenario.make_episode(shift_mm=6, torque=-1.0).head(T),
-            scenario.eval_set_b()["mass1.5m0_comy+2cm"].head(T),
+            scenario.eval_set_b()["mass1.5m0_comy+1cm"].head(T),
         ]
     )
 

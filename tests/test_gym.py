@@ -36,7 +36,7 @@ def episodes_json(tmp_path_factory):
     eps = {
         "nominal": scenario.make_episode().head(T),
         "shift+6": scenario.make_episode(shift_mm=6, torque=-1.0).head(T),
-        "mass1.5": scenario.eval_set_b()["mass1.5m0_comy+2cm"].head(T),
+        "mass1.5": scenario.eval_set_b()["mass1.5m0_comy+1cm"].head(T),
     }
     path = tmp_path_factory.mktemp("episodes") / "episodes.json"
     scenario.save(path, eps)

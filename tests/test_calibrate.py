@@ -1,0 +1,59 @@
+"""Tests of experiments/calibrate.py: the candidate tables (IK shared by all candidates, wrench solves by each
+friction scale) equal `dp.build_table` under each candidate's own surrogate; the winner is the fewest DP-optimal
+falls, then the highest correlation; the evaluation episodes are refused."""
+from __future__ import annotations
+
+import argparse
+import os
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import dataclasses  # noqa: E402
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+import tolerances as tol  # noqa: E402
+from experiments import calibrate  # noqa: E402
+from gsp_jax import dp, scenario, surrogate  # noqa: E402
+
+
+def test_candidate_tables_equal_each_candidates_own_table():
+    """Two candidates that differ in every calibrated field (friction scale, fall threshold, change term) on a
+    3-waypoint episode: the shared-IK tables equal `dp.build_table` of a surrogate built with that config."""
+    base = surrogate.RewardConfig()
+    configs = [dataclasses.replace(base, friction_scale=1.0, fall_unmet=0.3, w_wrench_change=0.0, change_falls=False),
+               dataclasses.replace(base, friction_scale=0.8, fall_unmet=0.2, w_wrench_change=5.0, change_falls=True)]
+    ep = scenario.eval_set_b()["mass1.5m0_comy+1cm"].head(3)
+    tables = calibrate.candidate_tables(configs, scenario.stack([ep]))
+    for cfg, tab in zip(configs, tables):
+        own = jax.jit(lambda e: dp.build_table(surrogate.Surrogate(reward=cfg), e))(ep)
+        np.testing.assert_array_equal(np.asarray(tab.next_grasp[0]), np.asarray(own.next_grasp))
+        tol.assert_close_with_rare_ties(np.asarray(tab.reward[0]).ravel(), np.asarray(own.reward).ravel(),
+                                        tol.REWARD_ATOL, f"reward {calibrate.label(cfg)}")
+    # the candidates do differ: the change term and the stricter threshold fail more transitions
+    r0, r1 = (np.asarray(t.reward[0]) for t in tables)
+    assert (r1 == base.r_min).sum() > (r0 == base.r_min).sum()
+
+
+def _sweep(rows):
+    results = [dict(label=f"c{i}", spearman=rho, feasible=10, feasible_held=0.5, dp_opt_falls=falls,
+                    dp_opt_angle=90.0, dp_opt_changes=2.0, config=dataclasses.asdict(surrogate.RewardConfig()))
+               for i, (rho, falls) in enumerate(rows)]
+    return dict(sweep=results, episodes=["a", "b"], sets=["train"], backend="c", sequences=40,
+                best_spearman=max(r for r, _ in rows if r == r), best_spearman_se=0.02, best_spearman_label="c0",
+                rows=[[r["label"], r["spearman"], 10, 0.5, r["dp_opt_falls"], 90.0, 2.0] for r in results])
+
+
+def test_winner_is_fewest_dp_optimal_falls_then_highest_rho(capsys):
+    # a candidate with no feasible sequence (no correlation) never wins, however few its DP plans' falls
+    assert calibrate.choose_and_write(_sweep([(0.5, 2), (0.4, 1), (0.45, 1), (float("nan"), 0)]), False)["label"] == "c2"
+    assert calibrate.choose_and_write(_sweep([(0.5, 2), (0.4, 3)]), False)["label"] == "c0"
+    assert "chosen" in capsys.readouterr().out
+
+
+def test_evaluation_episodes_are_refused():
+    args = argparse.Namespace(from_sweep=None, sets="train,eval", random=1, backend="c", seed=0, chunk=8, write=False)
+    with pytest.raises(SystemExit, match="never uses the evaluation episodes"):
+        calibrate.main(args)

@@ -168,7 +168,7 @@ def random_sequence(table: Table, start_grasp: jax.Array, key: jax.Array, r_min:
         ok = ok | ~jnp.any(ok)
         stay = jax.random.bernoulli(keys[t, 0], hold) & ok[NULL]
         logits = jnp.where(ok, 0.0, -jnp.inf)
-        drawn = jax.random.categorical(keys[t, 1], logits).astype(jnp.int32)
+        drawn = jax.random.categorical(keys[t, 1], logits)
         return jnp.where(stay, NULL, drawn).astype(jnp.int32)
 
     actions, _, _, _ = _replay(table, jnp.asarray(start_grasp, jnp.int32), choose)

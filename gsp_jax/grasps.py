@@ -83,30 +83,28 @@ class GraspSpace:
         self.check_actions(action, field)
         return jnp.clip(jnp.asarray(action, jnp.int32), 0, self.n_actions - 1)
 
+    def _parts(self, grasp: jax.Array, action: jax.Array):
+        """(grasp, null?, option set, place value and current option of the action's link); broadcast, actions
+        clipped into [0, n_actions) (traced: no check possible)."""
+        grasp = jnp.asarray(grasp, jnp.int32)
+        action = jnp.clip(jnp.asarray(action, jnp.int32), 0, self.n_actions - 1)
+        link = jnp.maximum(jnp.asarray(self.action_link)[action], 0)
+        place = jnp.asarray(self.radix)[link]
+        current = (grasp // place) % jnp.asarray(self.n_options, jnp.int32)[link]
+        return grasp, action == NULL, jnp.asarray(self.action_option)[action], place, current
+
     def apply(self, grasp: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array]:
         """(next grasp, redundant?) after `action` from `grasp`; both broadcast. The null action keeps the grasp
         and is not redundant. Actions outside [0, n_actions) are clipped (see the module docstring)."""
-        grasp = jnp.asarray(grasp, jnp.int32)
-        action = jnp.clip(jnp.asarray(action, jnp.int32), 0, self.n_actions - 1)  # traced: no check possible
-        null = action == NULL
-        link = jnp.maximum(jnp.asarray(self.action_link)[action], 0)
-        opt = jnp.asarray(self.action_option)[action]
-        place = jnp.asarray(self.radix)[link]
-        current = (grasp // place) % jnp.asarray(self.n_options, jnp.int32)[link]
-        nxt = jnp.where(null, grasp, grasp + (opt - current) * place)
-        return nxt, ~null & (opt == current)
+        grasp, null, opt, place, current = self._parts(grasp, action)
+        return jnp.where(null, grasp, grasp + (opt - current) * place), ~null & (opt == current)
 
     def shared(self, grasp: jax.Array, action: jax.Array) -> jax.Array:
         """The grasp that holds the tool while `action` is executed from `grasp` (broadcast): `grasp` with the
         link the action moves released (the contact controller unloads it, moves it, then loads it again). The
         null action and a redundant one move nothing: `grasp` itself."""
-        grasp = jnp.asarray(grasp, jnp.int32)
-        nxt, _ = self.apply(grasp, action)
-        action = jnp.clip(jnp.asarray(action, jnp.int32), 0, self.n_actions - 1)
-        link = jnp.maximum(jnp.asarray(self.action_link)[action], 0)
-        place = jnp.asarray(self.radix)[link]
-        current = (grasp // place) % jnp.asarray(self.n_options, jnp.int32)[link]
-        return jnp.where(nxt == grasp, grasp, grasp - current * place)
+        grasp, null, opt, place, current = self._parts(grasp, action)
+        return jnp.where(~null & (opt != current), grasp - current * place, grasp)
 
     def label(self, grasp: int) -> str:
         """Readable grasp, one token per link: e.g. 'T1 I1 . M2 . .' (letter = finger, digit = option)."""

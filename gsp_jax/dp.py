@@ -92,7 +92,7 @@ def table_from_terms(env: Surrogate, episode: Episode, plain: RewardTerms, conta
         change_error, change_unmet = plain.wrench_move[shared], plain.unmet[shared][..., 0]
     else:
         change_error = change_unmet = jnp.zeros((), jnp.float32)
-    terms = env.finish(terms, is_redundant[..., None], changed, change_error, change_unmet)
+    terms = env.finish(terms, is_redundant[..., None], changed, change_error, change_unmet, ts[None, None, :])
     terminal = terms.collision | terms.fall | (ts == n_t - 1)[None, None, :]
     return Table(reward=terms.reward, next_grasp=next_grasp, terminal=terminal, ik_error=contacts.ik.error, q=contacts.ik.q)
 

@@ -15,7 +15,8 @@ sets one contact link to one option), then scores the new grasp g' with the pape
   (f) wrench_change when the grasp changes: wrench error of the *shared* grasp (g without the link that moves,
                    `GraspSpace.shared`; the contact controller unloads that link, moves it and loads it again)
                    realised at the current pose, against the same moving wrench as (a): the links that stay
-                   must carry the tool through the change. 0 for the null action.
+                   must carry the tool through the change. 0 for the null action, and 0 at waypoint 0, where
+                   the tool still rests on its start support (`supported_steps`).
 
 reward = -(weighted sum), or R_MIN when either IK collides (tool, table, self) or any wrench term leaves more
 than `fall_unmet` of its wrench unmet (the tool would fall; (f) counts when `change_falls`); R_MIN ends the
@@ -51,6 +52,8 @@ class RewardConfig:
     w_redundant: float = 0.05  # (e)
     w_wrench_change: float = CALIBRATED["w_wrench_change"]  # (f)
     change_falls: bool = CALIBRATED["change_falls"]  # (f) leaving more than fall_unmet unmet drops the tool (R_MIN)
+    supported_steps: int = 1  # (f) is 0 for decisions at waypoints t < this: the tool still rests on its start
+    # support (the physics' pedestals stay for the first segment), so no shared grasp has to carry it through a change
     friction_scale: float = CALIBRATED["friction_scale"]  # the wrench solves' friction coefficient, times the tool's
     ik_scale: float = 0.01  # [m]: an IK error of 1 cm costs w_ik
     wrench_scale: float = (M0 * 9.81) ** 2  # [N^2]: wrench errors are divided by (m0 g)^2
@@ -66,6 +69,8 @@ class RewardConfig:
         for name in ("ik_scale", "wrench_scale", "contact_tol", "friction_scale", "fall_unmet", "max_step_cost"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"RewardConfig.{name}: must be > 0, got {getattr(self, name)}")
+        if not (isinstance(self.supported_steps, int) and self.supported_steps >= 0):
+            raise ValueError(f"RewardConfig.supported_steps: must be an int >= 0, got {self.supported_steps!r}")
         if not self.r_min < 0:
             raise ValueError(f"RewardConfig.r_min: must be < 0, got {self.r_min}")
 
@@ -196,13 +201,14 @@ class Surrogate:
             fall=jnp.array(False),
             reward=jnp.zeros(()),
         )
-        return self.finish(terms, redundant, changed, change_error, change_unmet)
+        return self.finish(terms, redundant, changed, change_error, change_unmet, t)
 
-    def finish(self, terms: RewardTerms, redundant, changed, change_error, change_unmet) -> RewardTerms:
-        """`terms` with the previous grasp's part set -- the redundant flag, and when `changed` the change
-        term (f) (normalised error, unmet fraction) -- and the fall flag and reward recomputed. Broadcasts."""
+    def finish(self, terms: RewardTerms, redundant, changed, change_error, change_unmet, t) -> RewardTerms:
+        """`terms` with the previous grasp's part set -- the redundant flag, and when `changed` at a waypoint `t`
+        past the start support (`supported_steps`) the change term (f) (normalised error, unmet fraction) -- and
+        the fall flag and reward recomputed. Broadcasts."""
         cfg = self.reward_config
-        changed = jnp.asarray(changed, bool)
+        changed = jnp.asarray(changed, bool) & (jnp.asarray(t) >= cfg.supported_steps)
         shape = terms.wrench_move.shape
         change_error = jnp.broadcast_to(jnp.where(changed, change_error, 0.0), shape)
         change_unmet = jnp.broadcast_to(jnp.where(changed, change_unmet, 0.0), shape)

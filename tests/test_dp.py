@@ -191,6 +191,21 @@ def test_table_matches_surrogate_step(solved, episodes, env, fns):
     assert np.any(out.terms.unmet[:, 3] > env.reward_config.fall_unmet)
 
 
+def test_no_change_is_priced_on_the_start_support(solved, env):
+    """At waypoint 0 the tool rests on its start support: a change there is rewarded as its new grasp kept by the
+    null action (plus the redundant flag), while later some changes fail that their new grasps survive."""
+    table, _ = solved["nominal"]
+    n_g, n_a, _ = table.reward.shape
+    cfg = env.reward_config
+    redundant = (table.next_grasp == np.arange(n_g)[:, None]) & (np.arange(n_a) != grasps.NULL)
+    kept = table.reward[table.next_grasp, grasps.NULL, :]  # (G, A, T)
+    r0 = table.reward[..., 0]
+    alive = kept[..., 0] > cfg.r_min
+    want = np.where(alive, kept[..., 0] - cfg.w_redundant * redundant, cfg.r_min)
+    np.testing.assert_allclose(r0, want, atol=1e-6)
+    assert np.any((table.reward[..., 1:] == cfg.r_min) & (kept[..., 1:] > cfg.r_min))
+
+
 # ------------------------------------------------------------------------------------------ 3. rollout
 def test_optimal_sequence_value_equals_surrogate_rollout(solved, episodes, env, fns):
     """Replaying the DP's optimal actions in the surrogate, from `env.reset` of the episode (with its start grasp

@@ -59,6 +59,7 @@ def fns(env):
 
     return dict(
         reset=jax.jit(env.reset),
+        discrete=jax.jit(env.discrete_state),
         step=jax.jit(env.step),
         vstep=jax.jit(jax.vmap(env.step)),
         contacts=jax.jit(contacts),
@@ -401,16 +402,17 @@ def test_change_term_is_the_shared_grasps_moving_wrench(env, fns, episodes):
     """(f): a slide of the middle tip from the three tips (T1 I1 M1 -> M2) leaves thumb and index tips to carry
     the tool meanwhile; its change term is their moving-wrench error, computed independently from the shared
     grasp's own contacts, and they cannot carry it: the step falls although the new grasp itself holds. Adding the
-    ring tip (T1 I1 M1 stay) prices the three tips' moving wrench; the null action prices nothing."""
+    ring tip (T1 I1 M1 stay) prices the three tips' moving wrench; the null action prices nothing. At waypoint 0
+    the tool still rests on its start support: no change is priced there, and the slide holds."""
     ep, cfg, sp = episodes["nominal"], env.reward_config, env.space
-    assert cfg.change_falls and env.prices_changes
-    s0 = fns["reset"](ep)
+    assert cfg.change_falls and env.prices_changes and cfg.supported_steps == 1
+    s0 = fns["discrete"](ep, ep.start_grasp, jnp.int32(1))
     cases = {"slide": sp.action("middle_distal", 2), "add": sp.action("ring_distal", 1), "null": grasps.NULL}
     for name, a in cases.items():
         s1, r1, _ = fns["step"](s0, jnp.int32(a))
         shared = int(sp.shared(s0.grasp, a))
-        _, _, shared_terms = _terms_at(env, fns, ep, tuple(np.asarray(sp.decode(shared)).tolist()))
-        _, _, new_terms = _terms_at(env, fns, ep, tuple(np.asarray(sp.decode(s1.grasp)).tolist()))
+        _, _, shared_terms = _terms_at(env, fns, ep, tuple(np.asarray(sp.decode(shared)).tolist()), t=1)
+        _, _, new_terms = _terms_at(env, fns, ep, tuple(np.asarray(sp.decode(s1.grasp)).tolist()), t=1)
         if name == "null":
             assert float(s1.terms.wrench_change) == 0.0 and float(s1.terms.unmet[3]) == 0.0
             continue
@@ -423,6 +425,9 @@ def test_change_term_is_the_shared_grasps_moving_wrench(env, fns, episodes):
             assert bool(s1.terms.fall) and float(r1) == cfg.r_min
         else:
             assert shared == int(s0.grasp) and not bool(s1.terms.fall)
+    # on the start support (waypoint 0) the slide is scored by its new grasp alone
+    s1, r1, _ = fns["step"](fns["reset"](ep), jnp.int32(cases["slide"]))
+    assert float(s1.terms.wrench_change) == 0.0 and float(s1.terms.unmet[3]) == 0.0 and not bool(s1.terms.fall)
     # switched off, the slide is scored by its new grasp alone
     off = surrogate.Surrogate(hand=env.hand, reward=surrogate.RewardConfig(w_wrench_change=0.0, change_falls=False))
     assert not off.prices_changes

@@ -205,14 +205,14 @@ def main(args: argparse.Namespace) -> None:
     se = bootstrap_se(rets[top], angle, ep_idx, args.seed)
     summary = dict(sets=sets, episodes=names, sequences=len(flat), physics_falls=int(fell.sum()),
                    best_spearman=float(rho_all[top]), best_spearman_se=se, best_spearman_label=results[top]["label"],
-                   backend=args.backend, chosen=results[best], sweep=results,
+                   backend=args.backend, chosen=None, sweep=results,
                    kinds={k: int(sum(1 for _, kk, _ in flat if kk == k)) for k in sorted({k for _, k, _ in flat})},
                    wall_s=time.perf_counter() - t0)
     summary["rows"] = rows
-    (out / "sweep.json").write_text(json.dumps(summary, indent=1))
     print(f"\n{len(flat)} sequences on {len(names)} episodes ({'+'.join(sets)}), {int(fell.sum())} fell in physics "
           f"({args.backend}); {time.perf_counter() - t0:.0f} s")
-    choose_and_write(summary, args.write)
+    choose_and_write(summary, args.write)  # sets summary["chosen"]
+    (out / "sweep.json").write_text(json.dumps(summary, indent=1))
 
 
 def choose_and_write(summary: dict, write: bool) -> dict:

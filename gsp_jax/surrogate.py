@@ -55,6 +55,7 @@ class RewardConfig:
     supported_steps: int = 1  # (f) is 0 for decisions at waypoints t < this: the tool still rests on its start
     # support (the physics' pedestals stay for the first segment), so no shared grasp has to carry it through a change
     friction_scale: float = CALIBRATED["friction_scale"]  # the wrench solves' friction coefficient, times the tool's
+    grip: float = CALIBRATED.get("grip", 0.0)  # [N] every realised contact presses with at least this (`wrench.solve`)
     ik_scale: float = 0.01  # [m]: an IK error of 1 cm costs w_ik
     wrench_scale: float = (M0 * 9.81) ** 2  # [N^2]: wrench errors are divided by (m0 g)^2
     contact_tol: float = 0.005  # [m]: a link within this of its contact point carries force
@@ -69,6 +70,8 @@ class RewardConfig:
         for name in ("ik_scale", "wrench_scale", "contact_tol", "friction_scale", "fall_unmet", "max_step_cost"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"RewardConfig.{name}: must be > 0, got {getattr(self, name)}")
+        if not self.grip >= 0:
+            raise ValueError(f"RewardConfig.grip: must be >= 0 [N], got {self.grip}")
         if not (isinstance(self.supported_steps, int) and self.supported_steps >= 0):
             raise ValueError(f"RewardConfig.supported_steps: must be an int >= 0, got {self.supported_steps!r}")
         if not self.r_min < 0:
@@ -162,7 +165,8 @@ class Surrogate:
         """Wrench solve for `required` (6,) = (force, torque about the CoM) that the contacts must supply."""
         com = tool_pos + kinematics.quat_to_mat(tool_quat) @ episode.com
         mu = episode.friction * self.reward_config.friction_scale
-        return wrench.solve(contacts.points, contacts.normals, contacts.realised, mu, required, com, self.wrench_config)
+        return wrench.solve(contacts.points, contacts.normals, contacts.realised, mu, required, com, self.wrench_config,
+                            grip=self.reward_config.grip)
 
     def score(
         self, episode: Episode, t: jax.Array, tool_pos, tool_quat, now: Contacts, nxt: Contacts, redundant,

@@ -83,6 +83,7 @@ def solve(
     cfg: WrenchConfig = WrenchConfig(),
     init: jax.Array | None = None,
     prefer: jax.Array | None = None,
+    grip: float = 0.0,
 ) -> WrenchResult:
     """Best contact forces for one problem.
 
@@ -91,19 +92,25 @@ def solve(
     `init` (K, 3): forces to start from (a warm start, e.g. the previous control tick's; default zero).
     `prefer` (K, 3): forces the penalty pulls towards instead of zero, rho |f - prefer|^2 (e.g. a grip along the
     normals: the solution then squeezes as far as the cones and the wrench allow; `error` keeps rho |f|^2).
+    `grip` [N] >= 0: every active contact must press with at least this force along its normal (a hand that
+    squeezes, as the physics' contact controller does): forces are f_k = grip n_k + g_k with g_k in the cone, an
+    inner approximation of {f_n >= grip, |f_t| <= mu f_n}; `error` penalises rho |g|^2, `forces` are the total f,
+    and `unmet` stays relative to `wrench`. A grasp whose contacts cannot all press at once without turning the
+    tool (say two opposed side contacts at different x with nothing to balance them) then leaves the wrench unmet.
     Differentiable (fixed iterations in a `lax.scan`); `vmap` it over problems. Matmuls run in full float32.
     """
     with jax.default_matmul_precision("highest"):
-        return _solve(points, normals, active, mu, wrench, center, cfg, init, prefer)
+        return _solve(points, normals, active, mu, wrench, center, cfg, init, prefer, grip)
 
 
-def _solve(points, normals, active, mu, wrench, center, cfg, init=None, prefer=None) -> WrenchResult:
+def _solve(points, normals, active, mu, wrench, center, cfg, init=None, prefer=None, grip=0.0) -> WrenchResult:
     dtype = points.dtype
     wrench, center, mu = (jnp.asarray(x, dtype) for x in (wrench, center, mu))  # one dtype (x64 mode mixes them)
     k = points.shape[0]
     scale = jnp.asarray([1.0, 1.0, 1.0] + [1.0 / cfg.torque_length] * 3, dtype)
     a = scale[:, None] * grasp_matrix(points, center) * jnp.repeat(active.astype(dtype), 3)[None]  # (6, 3K)
-    b = scale * wrench
+    base = (jnp.asarray(grip, dtype) * normals * active.astype(dtype)[:, None]).reshape(-1)  # (3K,) the grip
+    b = scale * wrench - a @ base
     rho = cfg.force_penalty
     lip = jnp.linalg.eigvalsh(a @ a.T)[-1] + rho
     kappa_sqrt = jnp.sqrt(lip / rho)
@@ -124,10 +131,10 @@ def _solve(points, normals, active, mu, wrench, center, cfg, init=None, prefer=N
     (x, _), _ = jax.lax.scan(iteration, (x0, x0), None, length=cfg.iterations)
     res_scaled = a @ x - b
     return WrenchResult(
-        forces=x.reshape(k, 3),
+        forces=(x + base).reshape(k, 3),
         residual=res_scaled / scale,
         error=jnp.sum(res_scaled**2) + rho * jnp.sum(x**2),
-        unmet=jnp.sqrt(jnp.sum(res_scaled**2)) / jnp.sqrt(jnp.sum(b**2) + 1e-12),
+        unmet=jnp.sqrt(jnp.sum(res_scaled**2)) / jnp.sqrt(jnp.sum((scale * wrench) ** 2) + 1e-12),
     )
 
 

@@ -20,11 +20,13 @@ from gsp_jax import dp, scenario, surrogate  # noqa: E402
 
 
 def test_candidate_tables_equal_each_candidates_own_table():
-    """Two candidates that differ in every calibrated field (friction scale, fall threshold, change term) on a
-    3-waypoint episode: the shared-IK tables equal `dp.build_table` of a surrogate built with that config."""
+    """Two candidates that differ in every calibrated field (friction scale, grip, fall threshold, change term) on
+    a 3-waypoint episode: the shared-IK tables equal `dp.build_table` of a surrogate built with that config."""
     base = surrogate.RewardConfig()
-    configs = [dataclasses.replace(base, friction_scale=1.0, fall_unmet=0.3, w_wrench_change=0.0, change_falls=False),
-               dataclasses.replace(base, friction_scale=0.8, fall_unmet=0.2, w_wrench_change=5.0, change_falls=True)]
+    configs = [dataclasses.replace(base, friction_scale=1.0, grip=0.0, fall_unmet=0.3, w_wrench_change=0.0,
+                                   change_falls=False),
+               dataclasses.replace(base, friction_scale=0.8, grip=2.0, fall_unmet=0.2, w_wrench_change=5.0,
+                                   change_falls=True)]
     ep = scenario.eval_set_b()["mass1.5m0_comy+1cm"].head(3)
     tables = calibrate.candidate_tables(configs, scenario.stack([ep]))
     for cfg, tab in zip(configs, tables):

@@ -174,7 +174,7 @@ def test_full_depth_lookahead_is_dp_optimal_from_every_start_grasp(sur):
 def test_lookahead_never_earns_less_than_its_base_policy_from_any_state(sur, solved, network, base_name, depth):
     """Cost improvement of rollout (deterministic model): from every discrete state (grasp, waypoint) of the
     evaluation episodes, running L1 (and L2) over a base policy earns at least what the base policy earns (and
-    never more than DP optimal); it strictly improves at many states."""
+    never more than DP optimal); it strictly improves at many of the states where the base is not optimal."""
     eps, tables, sols = solved
     base = policies.SequencePolicy(sols.actions[0]) if base_name == "dp-baseline" else network
     n_g, n_t = sur.space.n_grasps, eps.waypoints.shape[1]
@@ -191,10 +191,14 @@ def test_lookahead_never_earns_less_than_its_base_policy_from_any_state(sur, sol
     base_ret, l1_ret = jax.jit(jax.vmap(per_state, (0, 0, None, None)))(eps, tables, g.ravel(), t.ravel())
     base_ret, l1_ret = np.asarray(base_ret), np.asarray(l1_ret)
     assert np.all(l1_ret >= base_ret - 1e-4), f"L{depth} below its base at {np.sum(l1_ret < base_ret - 1e-4)} states"
-    assert np.mean(l1_ret > base_ret + 1e-3) > 0.1  # and it does improve, at many states
     # never above the DP optimum of the state
     dp_value = np.asarray(sols.value[:, :, :n_t]).reshape(len(base_ret), -1)
     assert np.all(l1_ret <= dp_value + 1e-4)
+    # and it does improve, at many of the states where there is room
+    room = dp_value > base_ret + 1e-3
+    improved = np.mean(l1_ret[room] > base_ret[room] + 1e-3)
+    print(f"L{depth} over {base_name}: improves {improved:.2f} of {room.sum()} improvable states")
+    assert room.sum() > 100 and improved > 0.25
 
 
 def test_vmapped_search_equals_looped_search(sur, solved, network):

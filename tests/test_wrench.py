@@ -289,6 +289,34 @@ def test_solve_with_a_preferred_grip_and_a_warm_start_matches_conic_reference(sc
         np.testing.assert_allclose(forces, f_ref, atol=0.05 * max(np.abs(f_ref).max(), 0.1))
 
 
+@pytest.mark.parametrize("i", range(3))
+def test_solve_with_a_minimum_grip_matches_the_shifted_conic_reference(scipy_problems, i):
+    """`grip`: forces f_k = grip n_k + g_k, g_k in the cone. The error equals the NNLS optimum of the shifted
+    problem min |S(G g - (w - G f0))|^2 + rho |g|^2 (f0 = grip n on the active contacts); the reported forces are
+    f0 + g, every active one pressing with at least `grip`; `unmet` is relative to w. grip = 0 is the plain solve,
+    bit for bit."""
+    prob = scipy_problems[i]
+    p, n, a, mu, w, c = _as_f64(prob)
+    grip = 2.0
+    f0 = grip * n * a[:, None]
+    shifted = w - _grasp_matrix_np(p, c) @ f0.ravel()
+    lo, _ = _polyhedral_optimum(p, n, a, mu, shifted, c, outer=True)
+    hi, g_ref = _polyhedral_optimum(p, n, a, mu, shifted, c, outer=False)
+    cfg = wrench.WrenchConfig(iterations=1500)
+    res = wrench.solve(*_as_jax(prob), cfg, grip=grip)
+    err = float(res.error)
+    assert lo * (1 - 2e-3) - 1e-6 <= err <= hi * (1 + 2e-3) + 1e-6, (err, lo, hi)
+    forces = np.asarray(res.forces, np.float64)
+    np.testing.assert_allclose(forces, f0 + g_ref, atol=0.05 * max(np.abs(g_ref).max(), 0.1))
+    assert np.all(np.sum(forces[a] * n[a], -1) >= grip * (1 - 1e-4))
+    assert np.all(forces[~a] == 0.0)
+    r = _grasp_matrix_np(p, c) @ forces.ravel() - w
+    np.testing.assert_allclose(np.asarray(res.residual, np.float64), r, atol=1e-4 * max(np.abs(w).max(), 1.0))
+    np.testing.assert_allclose(float(res.unmet), np.linalg.norm(S @ r) / np.linalg.norm(S @ w), rtol=1e-3)
+    plain, zero = wrench.solve(*_as_jax(prob)), wrench.solve(*_as_jax(prob), grip=0.0)
+    jax.tree.map(lambda x, y: np.testing.assert_array_equal(np.asarray(x), np.asarray(y)), plain, zero)
+
+
 def test_solve_batch_accuracy_against_conic_reference():
     """A wider sweep, vmapped: 48 random 5-contact problems (some contacts inactive, mu 0.3 .. 1.2).
 

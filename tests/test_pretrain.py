@@ -164,7 +164,7 @@ def test_behaviour_cloning_fits_the_dp_dataset(dataset):
     """pretrain() on the nominal DP data set: exact DP-action accuracy > 95% (greedy actions from the logits,
     counted here) and the critic's value RMSE [reward units] below a tenth of the values' spread (a constant
     predictor's RMSE is the spread); the history's last metrics agree with these."""
-    cfg = pretrain.BCConfig(epochs=150, batch_size=128, learning_rate=1e-3, reward_scale=0.1)
+    cfg = pretrain.BCConfig(epochs=300, batch_size=128, learning_rate=1e-3, reward_scale=0.1)
     networks = nets.make_networks(dataset.obs.shape[1], 17, nets.NetworkConfig(hidden=(64, 64, 64)))
     params, history = pretrain.pretrain(networks, dataset, cfg, jax.random.PRNGKey(0), progress=False)
     logits = np.asarray(networks.logits(params, dataset.obs))

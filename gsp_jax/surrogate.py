@@ -55,7 +55,7 @@ class RewardConfig:
     supported_steps: int = 1  # (f) is 0 for decisions at waypoints t < this: the tool still rests on its start
     # support (the physics' pedestals stay for the first segment), so no shared grasp has to carry it through a change
     friction_scale: float = CALIBRATED["friction_scale"]  # the wrench solves' friction coefficient, times the tool's
-    grip: float = CALIBRATED.get("grip", 0.0)  # [N] every realised contact presses with at least this (`wrench.solve`)
+    grip: float = CALIBRATED["grip"]  # [N] every realised contact presses with at least this (`wrench.solve`)
     ik_scale: float = 0.01  # [m]: an IK error of 1 cm costs w_ik
     wrench_scale: float = (M0 * 9.81) ** 2  # [N^2]: wrench errors are divided by (m0 g)^2
     contact_tol: float = 0.005  # [m]: a link within this of its contact point carries force

@@ -94,9 +94,10 @@ def solve(
     normals: the solution then squeezes as far as the cones and the wrench allow; `error` keeps rho |f|^2).
     `grip` [N] >= 0: every active contact must press with at least this force along its normal (a hand that
     squeezes, as the physics' contact controller does): forces are f_k = grip n_k + g_k with g_k in the cone, an
-    inner approximation of {f_n >= grip, |f_t| <= mu f_n}; `error` penalises rho |g|^2, `forces` are the total f,
-    and `unmet` stays relative to `wrench`. A grasp whose contacts cannot all press at once without turning the
-    tool (say two opposed side contacts at different x with nothing to balance them) then leaves the wrench unmet.
+    inner approximation of {f_n >= grip, |f_t| <= mu f_n}; `error` penalises rho |g|^2 (`prefer` then pulls g),
+    `forces` and `init` are total forces f, and `unmet` stays relative to `wrench`. A grasp whose contacts cannot
+    all press at once without turning the tool (say two opposed side contacts at different x with nothing to
+    balance them) then leaves the wrench unmet.
     Differentiable (fixed iterations in a `lax.scan`); `vmap` it over problems. Matmuls run in full float32.
     """
     with jax.default_matmul_precision("highest"):
@@ -127,7 +128,7 @@ def _solve(points, normals, active, mu, wrench, center, cfg, init=None, prefer=N
         return (project(y - grad / lip), x), None
 
     target = 0.0 if prefer is None else jnp.asarray(prefer, dtype).reshape(-1) * jnp.repeat(mask[:, 0], 3)
-    x0 = jnp.zeros(3 * k, dtype) if init is None else project(jnp.asarray(init, dtype).reshape(-1))
+    x0 = jnp.zeros(3 * k, dtype) if init is None else project(jnp.asarray(init, dtype).reshape(-1) - base)
     (x, _), _ = jax.lax.scan(iteration, (x0, x0), None, length=cfg.iterations)
     res_scaled = a @ x - b
     return WrenchResult(

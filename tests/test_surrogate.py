@@ -483,7 +483,7 @@ def test_lone_index_tip_falls(env, fns, episodes):
 def test_three_tips_drop_and_four_tips_hold_at_waypoint_0(env, fns, episodes):
     """The start grasp's three tips are realised but cannot carry the tool once its support drops (in physics they
     fall on 25 of the 27 evaluation episodes); with the ring tip added they can. Margins are several float32
-    solver tolerances wide (unmet 0.21 and 0.05 against the threshold 0.15)."""
+    solver tolerances wide (unmet 1.53 and 0.16 against the threshold 0.25)."""
     cfg = env.reward_config
     now, nxt, terms = _terms_at(env, fns, episodes["nominal"], THREE_TIPS)
     assert float(now.ik.error) < 2e-3 and float(nxt.ik.error) < 2e-3 and not bool(terms.collision)

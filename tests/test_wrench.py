@@ -313,6 +313,10 @@ def test_solve_with_a_minimum_grip_matches_the_shifted_conic_reference(scipy_pro
     r = _grasp_matrix_np(p, c) @ forces.ravel() - w
     np.testing.assert_allclose(np.asarray(res.residual, np.float64), r, atol=1e-4 * max(np.abs(w).max(), 1.0))
     np.testing.assert_allclose(float(res.unmet), np.linalg.norm(S @ r) / np.linalg.norm(S @ w), rtol=1e-3)
+    # a warm start from the returned (total) forces stays at the optimum
+    warm = wrench.solve(*_as_jax(prob), cfg, res.forces, grip=grip)
+    np.testing.assert_allclose(np.asarray(warm.forces), np.asarray(res.forces),
+                               atol=1e-3 * max(np.abs(forces).max(), 1.0))
     plain, zero = wrench.solve(*_as_jax(prob)), wrench.solve(*_as_jax(prob), grip=0.0)
     jax.tree.map(lambda x, y: np.testing.assert_array_equal(np.asarray(x), np.asarray(y)), plain, zero)
 

@@ -26,7 +26,7 @@ HEIGHT_SHIFTS_MM = (-6, -4, -2, 2, 4, 6, 8)
 MASS_FACTORS = (0.5, 1.0, 1.5, 2.0)
 COM_Y_OFFSETS_CM = (-2, -1, 0, 1, 2)
 VALIDATION_SHIFTS_MM = (-5, -3, -1, 1, 3, 5, 7)
-VALIDATION_MASS_FACTORS = (0.75, 1.75)
+VALIDATION_MASS_FACTORS = (0.5, 0.75, 1.75, 2.0)
 VALIDATION_COM_Y_CM = (-1.5, 1.5)
 # Reach of the hand in the table frame: every waypoint must lie in this box [m].
 WORKSPACE_LO = (-0.05, -0.05, 0.005)
@@ -133,7 +133,8 @@ def eval_set_b() -> dict[str, Episode]:
 def validation_set() -> dict[str, Episode]:
     """Validation set (ours; the paper does not list one) for PPO's early stop, disjoint from training and
     evaluation: the odd height shifts with set A's torque convention (positive shifts -1 N m), and mass
-    0.75 / 1.75 m0 crossed with CoM y-offset -1.5 / +1.5 cm -- unseen variations of both evaluation kinds."""
+    0.5 / 0.75 / 1.75 / 2 m0 crossed with CoM y-offset -1.5 / +1.5 cm -- unseen variations of both evaluation kinds
+    (15 episodes; the CoM offsets are not evaluation set B's, so the lightest and heaviest tools are in both)."""
     eps = {}
     for s in VALIDATION_SHIFTS_MM:
         tau = TORQUE0 if s < 0 else -TORQUE0

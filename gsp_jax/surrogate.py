@@ -55,7 +55,9 @@ class RewardConfig:
     supported_steps: int = 1  # (f) is 0 for decisions at waypoints t < this: the tool still rests on its start
     # support (the physics' pedestals stay for the first segment), so no shared grasp has to carry it through a change
     friction_scale: float = CALIBRATED["friction_scale"]  # the wrench solves' friction coefficient, times the tool's
-    grip: float = CALIBRATED["grip"]  # [N] every realised contact presses with at least this (`wrench.solve`)
+    grip: float = CALIBRATED["grip"]  # [N] every realised contact presses with at least this (`wrench.solve`) ...
+    grip_scales_with_mass: bool = CALIBRATED["grip_scales_with_mass"]  # ... times m / m0 (`grip_of`): the wrench
+    # problem then stays positively homogeneous in the mass, so a lighter tool is never harder to hold
     ik_scale: float = 0.01  # [m]: an IK error of 1 cm costs w_ik
     wrench_scale: float = (M0 * 9.81) ** 2  # [N^2]: wrench errors are divided by (m0 g)^2
     contact_tol: float = 0.005  # [m]: a link within this of its contact point carries force
@@ -72,6 +74,8 @@ class RewardConfig:
                 raise ValueError(f"RewardConfig.{name}: must be > 0, got {getattr(self, name)}")
         if not self.grip >= 0:
             raise ValueError(f"RewardConfig.grip: must be >= 0 [N], got {self.grip}")
+        if not isinstance(self.grip_scales_with_mass, bool):
+            raise ValueError(f"RewardConfig.grip_scales_with_mass: must be a bool, got {self.grip_scales_with_mass!r}")
         if not (isinstance(self.supported_steps, int) and self.supported_steps >= 0):
             raise ValueError(f"RewardConfig.supported_steps: must be an int >= 0, got {self.supported_steps!r}")
         if not self.r_min < 0:
@@ -166,7 +170,13 @@ class Surrogate:
         com = tool_pos + kinematics.quat_to_mat(tool_quat) @ episode.com
         mu = episode.friction * self.reward_config.friction_scale
         return wrench.solve(contacts.points, contacts.normals, contacts.realised, mu, required, com, self.wrench_config,
-                            grip=self.reward_config.grip)
+                            grip=self.grip_of(episode))
+
+    def grip_of(self, episode: Episode) -> jax.Array:
+        """() [N] the grip of `episode`'s wrench solves: `RewardConfig.grip`, times m / m0 if it scales with mass."""
+        cfg = self.reward_config
+        scale = episode.mass / M0 if cfg.grip_scales_with_mass else jnp.ones((), jnp.float32)
+        return jnp.asarray(cfg.grip, jnp.float32) * scale
 
     def score(
         self, episode: Episode, t: jax.Array, tool_pos, tool_quat, now: Contacts, nxt: Contacts, redundant,

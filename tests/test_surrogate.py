@@ -526,3 +526,34 @@ def test_doubling_mass_increases_wrench_hold(env, fns, episodes):
     np.testing.assert_allclose(float(t2.wrench_hold), 4.0 * float(t1.wrench_hold), rtol=1e-4)
     np.testing.assert_allclose(float(t2.wrench_move), 4.0 * float(t1.wrench_move), rtol=1e-4)
     np.testing.assert_allclose(np.asarray(t2.unmet), np.asarray(t1.unmet), atol=1e-5)
+
+
+def test_grip_in_proportion_to_the_mass_keeps_the_reward_homogeneous(env, fns, episodes):
+    """With `grip_scales_with_mass` one surrogate scores a tool of half and of twice the mass as the previous test's
+    hand-scaled grips do: the wrench errors scale with m^2 and the unmet fractions stay. A fixed grip instead makes
+    the lighter tool harder to hold (a larger unmet fraction), which the physics does not show."""
+    g, t = jnp.int32(_encode(env, FOUR_TIPS)), jnp.int32(4)
+    scaled = surrogate.Surrogate(hand=env.hand, reward=dataclasses.replace(env.reward_config, grip=4.0,
+                                                                           grip_scales_with_mass=True))
+    fixed = surrogate.Surrogate(hand=env.hand, reward=dataclasses.replace(env.reward_config, grip=4.0,
+                                                                          grip_scales_with_mass=False))
+
+    def terms(sur, factor):
+        ep = scenario.make_episode(mass_factor=factor)
+        now, nxt = fns["contacts"](ep, g, t)
+        return jax.jit(sur.score)(ep, t, ep.waypoints[t], ep.quats[t], now, nxt, jnp.array(False))
+
+    ref = terms(scaled, 1.0)
+    assert float(ref.wrench_hold) > 0.0 and float(jnp.max(ref.unmet[:3])) > 1e-3
+    for factor in (0.5, 2.0):
+        sc = terms(scaled, factor)
+        np.testing.assert_allclose(float(sc.wrench_hold), factor**2 * float(ref.wrench_hold), rtol=1e-4)
+        np.testing.assert_allclose(float(sc.wrench_move), factor**2 * float(ref.wrench_move), rtol=1e-4)
+        np.testing.assert_allclose(np.asarray(sc.unmet), np.asarray(ref.unmet), atol=1e-5)
+    light, heavy = terms(fixed, 0.5), terms(fixed, 2.0)
+    # measured unmet (hold): 0.278 at 0.5 m0, 0.163 at m0, 0.105 at 2 m0 -- the light tool would fall (fall 0.25)
+    assert float(light.unmet[1]) > float(ref.unmet[1]) + 0.05 and float(ref.unmet[1]) > float(heavy.unmet[1]) + 0.03
+    np.testing.assert_allclose(float(scaled.grip_of(scenario.make_episode(mass_factor=0.5))), 2.0, rtol=1e-6)
+    np.testing.assert_allclose(float(fixed.grip_of(scenario.make_episode(mass_factor=0.5))), 4.0, rtol=1e-6)
+    with pytest.raises(ValueError, match="RewardConfig.grip_scales_with_mass"):
+        surrogate.RewardConfig(grip_scales_with_mass=1)

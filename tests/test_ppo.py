@@ -332,6 +332,25 @@ def test_ppo_learns_the_probe_optimum(probe, trainer, uninterrupted):
     assert _differing_leaves(trainer.init(jax.random.PRNGKey(SEED)).params, result.state.params)
 
 
+def test_target_kl_stops_the_iterations_remaining_steps(probe, trainer):
+    """With target_kl tiny the first minibatch step (KL 0: the rollout's own policy, up to float32 last bits ~1e-14)
+    is applied and every later one (KL of a step at lr 3e-3, far above 1e-6) is skipped; with None all epochs x
+    minibatches steps are. The learning rate is the schedule's at the iteration's first step."""
+    key = jax.random.PRNGKey(SEED)
+    for target, steps in ((1e-6, 1), (None, CONFIG.epochs * CONFIG.minibatches)):
+        cfg = dataclasses.replace(CONFIG, target_kl=target)
+        tr = ppo.Trainer(probe["env"], trainer.networks, cfg, eval_envs={"val": probe["eval_env"]})
+        ts0 = tr.init(key)
+        ts1, metrics = tr.iteration(ts0)
+        assert int(metrics["sgd_steps"]) == steps, (target, metrics)
+        assert _differing_leaves(ts0.params, ts1.params)
+        np.testing.assert_allclose(float(metrics["learning_rate"]), CONFIG.learning_rate, rtol=1e-6)
+        if target is not None:
+            assert float(metrics["approx_kl"]) > target  # the skipped minibatches' KL, measured and not acted on
+    with pytest.raises(ValueError, match=r"PPOConfig\.target_kl\b"):
+        ppo.PPOConfig(target_kl=0.0)
+
+
 # ------------------------------------------------------------------------------------------ 5. checkpoints
 def _assert_same_run(resumed: ppo.TrainResult, full: ppo.TrainResult):
     assert int(resumed.state.iteration) == int(full.state.iteration) == CONFIG.max_iterations

@@ -327,12 +327,13 @@ def test_score_terms_against_direct_wrench_solves(env, fns, episodes):
         tn = min(t + 1, T - 1)
         acc = (wp[tn] - 2 * wp[t] + wp[max(t - 1, 0)]) / dt**2
         com_local = np.asarray(ep.com, np.float64)  # identity orientation in these episodes
+        grip = cfg.grip * (m / scenario.M0 if cfg.grip_scales_with_mass else 1.0)  # [N]
         assert np.allclose(np.asarray(ep.quats), [1, 0, 0, 0])
 
         def err(c, required, pos):
             res = fns["solve"](
                 c.points, c.normals, c.realised, ep.friction, jnp.asarray(required, jnp.float32),
-                jnp.asarray(pos + com_local, jnp.float32), grip=cfg.grip,
+                jnp.asarray(pos + com_local, jnp.float32), grip=grip,
             )
             return float(res.error) / cfg.wrench_scale, float(res.unmet)
 
@@ -506,7 +507,7 @@ def test_ring_finger_reduces_gravity_wrench_error(env, fns, episodes):
     # the wrapper solves the problem it is given (cross-check with wrench.solve directly)
     direct = fns["solve"](now4.points, now4.normals, now4.realised, ep.friction,
                           jnp.concatenate([-ep.mass * env.gravity, jnp.zeros(3, jnp.float32)]),
-                          ep.waypoints[0] + ep.com, grip=env.reward_config.grip)
+                          ep.waypoints[0] + ep.com, grip=env.grip_of(ep))
     np.testing.assert_allclose(float(e4.error), float(direct.error), rtol=1e-5)
 
 
@@ -516,8 +517,8 @@ def test_doubling_mass_increases_wrench_hold(env, fns, episodes):
     fractions unchanged."""
     ep1 = episodes["nominal"]
     ep2 = scenario.make_episode(mass_factor=2.0)
-    double = surrogate.Surrogate(hand=env.hand, reward=dataclasses.replace(env.reward_config,
-                                                                           grip=2.0 * env.reward_config.grip))
+    double = surrogate.Surrogate(hand=env.hand, reward=dataclasses.replace(  # by hand: a fixed grip, doubled
+        env.reward_config, grip=2.0 * env.reward_config.grip, grip_scales_with_mass=False))
     _, nxt1, t1 = _terms_at(env, fns, ep1, THREE_TIPS)
     now2, nxt2 = fns["contacts"](ep2, jnp.int32(_encode(env, THREE_TIPS)), jnp.int32(0))
     t2 = jax.jit(double.score)(ep2, jnp.int32(0), ep2.waypoints[0], ep2.quats[0], now2, nxt2, jnp.array(False))

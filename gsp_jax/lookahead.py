@@ -71,16 +71,20 @@ def rollout(model, policy, state: State, horizon: int | None = None, value: Valu
     return ret, final
 
 
-def search(model, state: State, base, depth: int = 1, horizon: int | None = None, value: Value | None = None) -> Plan:
+def search(model, state: State, base, depth: int = 1, horizon: int | None = None, value: Value | None = None,
+           inner=None) -> Plan:
     """Algorithm 2 from one state: the best first action of the depth-`depth` tree with rollouts of `base`
-    (see the module docstring). Shapes for one state; `jax.vmap` over states / episodes / base parameters."""
+    (see the module docstring). Shapes for one state; `jax.vmap` over states / episodes / base parameters.
+    `inner`: the model below the root (default `model`), e.g. the episode's `env.TableModel`: every state below
+    the root is a discrete (grasp, waypoint) state, so only the root's A transitions need `model`."""
     if depth < 1:
         raise ValueError(f"depth: the lookahead depth l must be >= 1, got {depth}")
     if horizon is not None and horizon < 0:
         raise ValueError(f"horizon: the rollout length m must be >= 0 or None (to the episode's end), got {horizon}")
     space: GraspSpace = model.space
     n_a = space.n_actions
-    leaves, path_reward = _expand(model, state, depth, n_a)  # leaves: (A^l, ...) states; path_reward (A^l,)
+    inner = model if inner is None else inner
+    leaves, path_reward = _expand(model, state, depth, n_a, inner)  # leaves: (A^l, ...); path_reward (A^l,)
 
     # One rollout per distinct grasp among the live leaves (all at waypoint t + l); the paths that ended early
     # (frozen at an earlier waypoint) share one extra key and are scored 0 beyond their rewards.
@@ -89,7 +93,7 @@ def search(model, state: State, base, depth: int = 1, horizon: int | None = None
     _, first, inverse = jnp.unique(key, size=_ball_size(space, depth) + 1, fill_value=n_g, return_index=True,
                                    return_inverse=True)
     reps = jax.tree.map(lambda x: x[first], leaves)
-    rep_value, _ = jax.vmap(lambda s: rollout(model, base, s, horizon, value))(reps)
+    rep_value, _ = jax.vmap(lambda s: rollout(inner, base, s, horizon, value))(reps)
     leaf_value = jnp.where(leaves.done, 0.0, rep_value[inverse.reshape(-1)])
 
     scores = (path_reward + leaf_value).reshape(n_a, -1)  # (A, A^(l-1))
@@ -100,13 +104,14 @@ def search(model, state: State, base, depth: int = 1, horizon: int | None = None
     return Plan(action=action, q=q, path=path, value=q[action])
 
 
-def _expand(model, state: State, depth: int, n_a: int):
-    """Every action path of length `depth` from `state`: the leaf states (A^depth leading) and path rewards."""
+def _expand(model, state: State, depth: int, n_a: int, inner):
+    """Every action path of length `depth` from `state`: the leaf states (A^depth leading) and path rewards. The
+    first step in `model`, the deeper ones in `inner`."""
     actions = jnp.arange(n_a, dtype=jnp.int32)
     children, rewards, _ = jax.vmap(model.step, (None, 0))(state, actions)
     if depth == 1:
         return children, rewards
-    leaves, sub = jax.vmap(lambda s: _expand(model, s, depth - 1, n_a))(children)  # (A, A^(d-1), ...)
+    leaves, sub = jax.vmap(lambda s: _expand(inner, s, depth - 1, n_a, inner))(children)  # (A, A^(d-1), ...)
     flat = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), leaves)
     return flat, (rewards[:, None] + sub).reshape(-1)
 
@@ -136,17 +141,21 @@ def _ball_size(space: GraspSpace, depth: int) -> int:
 class Lookahead:
     """The lookahead policy Ll (L1, L2 of the paper): `act(state)` = `search(model, state, base, depth, horizon,
     value).action`. A pytree: the base policy's parameters (and a table model's arrays) are traced, the rest is
-    static. `value` is an optional value estimate at the rollouts' cut-off (e.g. `NetworkPolicy.value`)."""
+    static. `value` is an optional value estimate at the rollouts' cut-off (e.g. `NetworkPolicy.value`).
+    `inner` (optional): the model below the root, e.g. `TableModel` of the episode's table built once when the
+    episode is revealed (`cached`): the tree's interior and the rollouts become lookups, and only the root's A
+    transitions run the continuous `model`."""
 
     base: Any
     model: Any
     depth: int = struct.field(pytree_node=False, default=1)
     horizon: int | None = struct.field(pytree_node=False, default=None)
     value: Any = None  # a pytree with `value(state)` (e.g. a NetworkPolicy), or None
+    inner: Any = None  # the model below the root (None: `model`)
 
     def plan(self, state: State) -> Plan:
         value = None if self.value is None else self.value.value
-        return search(self.model, state, self.base, self.depth, self.horizon, value)
+        return search(self.model, state, self.base, self.depth, self.horizon, value, self.inner)
 
     def act(self, state: State) -> jax.Array:
         return self.plan(state).action

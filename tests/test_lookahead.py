@@ -89,6 +89,29 @@ def test_search_on_the_surrogate_matches_a_recursive_search_from_a_continuous_st
     assert float(plan.value) == pytest.approx(ref.max(), abs=tol.REWARD_ATOL)
 
 
+def test_cached_successors_give_the_surrogates_plan(sur, solved, network):
+    """The search with the tree's interior and rollouts on the episode's table (`inner`) against the search that
+    steps the surrogate everywhere, from an off-waypoint continuous state (depth 2, one rollout step and the
+    critic): the same Q-values (within the float32 reward tolerance) and plan. Below the root every state is a
+    discrete (grasp, waypoint) state, where the table is exact; only the root's 17 steps need the surrogate."""
+    eps, tables, sols = solved
+    ep, table = _pick(eps, 3), _pick(tables, 3)
+    depth, horizon = 2, 1
+    state = sur.discrete_state(ep, sols.grasps[3, 1], 1)
+    state = state.replace(tool_pos=state.tool_pos + jnp.array([0.002, -0.003, 0.001]),
+                          tool_vel=jnp.array([0.01, 0.0, 0.02, 0.1, 0.0, 0.0]))
+    value = network.value
+    full = jax.jit(lambda s: lookahead.search(sur, s, network, depth, horizon, value))(state)
+    cached = jax.jit(lambda s, m: lookahead.search(sur, s, network, depth, horizon, value, inner=m))(
+        state, TableModel(table, sur.space))
+    tol.assert_close_with_rare_ties(np.asarray(cached.q), np.asarray(full.q), tol.REWARD_ATOL, "q")
+    q = np.sort(np.asarray(full.q))
+    assert q[-1] - q[-2] > 2 * tol.REWARD_ATOL and q[0] == sur.reward_config.r_min  # measured: -4.849 vs -4.899
+    assert int(cached.action) == int(full.action)  # a clear best action: both plans take it
+    policy = policies.Lookahead(network, sur, depth, horizon, network, inner=TableModel(table, sur.space))
+    assert int(jax.jit(policy.act)(state)) == int(cached.action)
+
+
 def test_search_with_truncated_rollouts_and_a_critic_matches_a_recursive_search(sur, solved, network):
     """m = 1 rollout steps plus the critic's value at the cut-off, on a DP table; and the best path's score."""
     eps, tables, sols = solved

@@ -110,9 +110,16 @@ def context(set_name: str = "eval", n_episodes: int | None = None, policy_dir=No
     return Context(sur, set_name, list(episodes), batch, tables, solutions, nominal_actions(sur), rl, source)
 
 
-def make(ctx: Context, name: str, model=None):
-    """(policy, policy_axis) of one of `POLICIES` for the context's episode batch. Lookahead runs its tree and
-    rollouts in `model` (default: the surrogate itself, what an online planner has for an unseen episode)."""
+def add_lookahead_argument(p) -> None:
+    p.add_argument("--lookahead", default="cached", choices=["cached", "continuous"],
+                   help="L1/L2 below the root: the episode's table (exact, default) or the surrogate")
+
+
+def make(ctx: Context, name: str, model=None, cached: bool = True):
+    """(policy, policy_axis) of one of `POLICIES` for the context's episode batch. Lookahead steps its root in
+    `model` (default: the surrogate itself, which acts from any continuous state) and, with `cached`, runs the
+    tree's interior and its rollouts as lookups in each episode's table (`inner`; exact, as every state below the
+    root is discrete; policy_axis is then a `Lookahead` of in_axes, 0 for the tables); without, all in `model`."""
     if name == "dp-base":
         return policies.SequencePolicy(ctx.nominal_actions), None
     if name == "dp-opt":
@@ -120,5 +127,10 @@ def make(ctx: Context, name: str, model=None):
     if name == "rl":
         return ctx.rl, None
     if name in LOOKAHEAD_DEPTH:
-        return policies.Lookahead(ctx.rl, model or ctx.surrogate, depth=LOOKAHEAD_DEPTH[name]), None
+        depth = LOOKAHEAD_DEPTH[name]
+        if not cached:
+            return policies.Lookahead(ctx.rl, model or ctx.surrogate, depth=depth), None
+        inner = env_lib.TableModel(ctx.tables, ctx.surrogate.space)
+        return (policies.Lookahead(ctx.rl, model or ctx.surrogate, depth=depth, inner=inner),
+                policies.Lookahead(None, None, depth=depth, inner=0))
     raise ValueError(f"policy: expected one of {POLICIES}, got {name!r}")

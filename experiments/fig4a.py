@@ -31,11 +31,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--episodes", type=int, default=None, help="only N episodes, spread over the set")
     p.add_argument("--backend", default=None, choices=["table", "surrogate"], help="default: surrogate on a GPU, else table")
     p.add_argument("--policy-dir", default=None, help="PPO policy (default: results/train/dp/seed0, else the shipped one)")
+    evaluation.add_lookahead_argument(p)
 
 
-def returns(ctx: evaluation.Context, name: str, backend: str) -> np.ndarray:
+def returns(ctx: evaluation.Context, name: str, backend: str, cached: bool = True) -> np.ndarray:
     """Return of policy `name` on every episode of the context (N,), stepping `backend`."""
-    policy, axis = evaluation.make(ctx, name)
+    policy, axis = evaluation.make(ctx, name, cached=cached)
     space = ctx.surrogate.space
 
     def one(ep, table, pol):
@@ -47,11 +48,11 @@ def returns(ctx: evaluation.Context, name: str, backend: str) -> np.ndarray:
     return np.asarray(jax.jit(jax.vmap(one, (0, 0, axis)))(ctx.batch, ctx.tables, policy))
 
 
-def run(ctx: evaluation.Context, backend: str, out) -> dict:
+def run(ctx: evaluation.Context, backend: str, out, cached: bool = True) -> dict:
     rets, wall = {}, {}
     for name in evaluation.POLICIES:
         t0 = time.perf_counter()
-        rets[name] = returns(ctx, name, backend)
+        rets[name] = returns(ctx, name, backend, cached)
         wall[name] = time.perf_counter() - t0
         print(f"  {name:8s} mean return {rets[name].mean():9.3f}   ({wall[name]:.1f} s incl. compile, {backend})", flush=True)
     gap = float(np.max(np.abs(rets["dp-opt"] - np.asarray(ctx.solutions.ret))))
@@ -104,6 +105,6 @@ def main(args: argparse.Namespace) -> None:
     ctx = evaluation.context(args.set, args.episodes, args.policy_dir)
     print(f"Fig. 4a: {len(ctx.names)} episodes of '{args.set}', backend {backend}, RL policy {ctx.rl_source}", flush=True)
     out = results_dir("fig4a")
-    result = run(ctx, backend, out)
+    result = run(ctx, backend, out, cached=args.lookahead == "cached")
     print(f"wrote {out / 'returns.json'}, {out / 'fig4a.png'}")
     print_result(result)

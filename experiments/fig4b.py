@@ -29,11 +29,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--policy-dir", default=None)
     p.add_argument("--fresh", action="store_true", help="ignore saved per-policy results")
     p.add_argument("--backend", default="mjx", choices=physics.BACKENDS, help="mjx (one XLA batch) or c (C MuJoCo)")
+    evaluation.add_lookahead_argument(p)
 
 
-def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str = "mjx") -> dict:
+def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str = "mjx", cached: bool = True) -> dict:
     phys = physics.Physics(ctx.surrogate)
-    stamp = f"{evaluation.fingerprint(ctx)}-{backend}"
+    stamp = f"{evaluation.fingerprint(ctx)}-{backend}" + ("" if cached else "-continuous")
     results = {}
     for name in names:
         path = out / f"{name}.json"
@@ -43,7 +44,7 @@ def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str =
                 results[name] = saved
                 print(f"  {name:8s} (saved) mean angle error {saved['mean_deg']:.1f} deg", flush=True)
                 continue
-        policy, axis = evaluation.make(ctx, name)
+        policy, axis = evaluation.make(ctx, name, cached=cached)
         t0 = time.perf_counter()
         res = jax.block_until_ready(phys.simulate_batch(policy, ctx.batch, axis, backend=backend))
         wall = time.perf_counter() - t0
@@ -78,6 +79,6 @@ def main(args: argparse.Namespace) -> None:
     print(f"Fig. 4b: {len(ctx.names)} episodes of '{args.set}' in {args.backend} (JAX on {jax.default_backend()}), "
           f"RL policy {ctx.rl_source}", flush=True)
     out = results_dir("fig4b")
-    results = run(ctx, args.policies, out, args.fresh, args.backend)
+    results = run(ctx, args.policies, out, args.fresh, args.backend, cached=args.lookahead == "cached")
     print(f"wrote {out}/<policy>.json, {out / 'fig4b.png'}")
     print_result(results)

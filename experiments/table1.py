@@ -3,8 +3,9 @@ time per unseen episode.
 
 For each policy, the time to plan and run one unseen episode through the surrogate from its start, as an online
 planner would: DP baseline and RL act per step (a sequence lookup, one network call) and step the surrogate;
-L1 and L2 run their search trees and rollouts in the surrogate at every step; DP optimal first builds the
-episode's whole table and backs it up, then runs its policy the same way. Compilation (once per program, reused for every
+L1 and L2 first build the episode's table (`--lookahead cached`, the default), then at every step search from
+the surrogate's state with the tree's interior and rollouts as lookups in it (`continuous`: all in the
+surrogate); DP optimal first builds the episode's whole table and backs it up, then runs its policy the same way. Compilation (once per program, reused for every
 later episode of the same length) is shown apart from the warm time (fastest of `--repeats` calls). With
 `--batch N`, also the time per episode when N unseen episodes are planned in one vmapped call. Writes
 results/table1/<platform>.json; prints the table, beside the paper's, last.
@@ -21,6 +22,7 @@ import jax
 from experiments import evaluation
 from experiments.common import results_dir, table
 from gsp_jax import dp, lookahead, policies
+from gsp_jax.env import TableModel
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -28,17 +30,25 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch", type=int, default=0, help="also time N episodes planned in one vmapped call (0: skip)")
     p.add_argument("--repeats", type=int, default=None, help="warm calls per measurement (default 3 on a GPU, 1 on CPU)")
     p.add_argument("--policy-dir", default=None)
+    evaluation.add_lookahead_argument(p)
 
 
-def planner(ctx: evaluation.Context, name: str):
-    """episode -> (return, actions taken) for policy `name`, planned online on the surrogate."""
+def planner(ctx: evaluation.Context, name: str, cached: bool = True):
+    """episode -> return for policy `name`, planned online on the surrogate. With `cached`, L1 and L2 first
+    build the unseen episode's table (as DP optimal does) and search below the root by lookups in it."""
     sur = ctx.surrogate
     if name == "dp-opt":  # solve the unseen episode's whole table, then run its policy like the others
         def plan(ep):
             _, sol = dp.solve(sur, ep)
             return lookahead.rollout(sur, policies.TablePolicy(sol.policy), sur.reset(ep))[0]
         return plan
-    policy, _ = evaluation.make(ctx, name)
+    if cached and name in evaluation.LOOKAHEAD_DEPTH:
+        def plan(ep):
+            inner = TableModel(dp.build_table(sur, ep), sur.space)
+            policy = policies.Lookahead(ctx.rl, sur, depth=evaluation.LOOKAHEAD_DEPTH[name], inner=inner)
+            return lookahead.rollout(sur, policy, sur.reset(ep))[0]
+        return plan
+    policy, _ = evaluation.make(ctx, name, cached=False)
     return lambda ep: lookahead.rollout(sur, policy, sur.reset(ep))[0]
 
 
@@ -56,12 +66,12 @@ def measure(fn, arg, repeats: int) -> tuple[float, float]:
     return compile_s, min(warm)
 
 
-def run(ctx: evaluation.Context, batch: int, repeats: int, out) -> dict:
+def run(ctx: evaluation.Context, batch: int, repeats: int, out, cached: bool = True) -> dict:
     t_start = time.perf_counter()
     one = jax.tree.map(lambda x: x[0], ctx.batch)
     rows = {}
     for name in evaluation.POLICIES:
-        fn = planner(ctx, name)
+        fn = planner(ctx, name, cached)
         compile_s, warm = measure(fn, one, repeats)
         row = dict(warm_s=warm, compile_s=compile_s)
         if batch:
@@ -74,6 +84,7 @@ def run(ctx: evaluation.Context, batch: int, repeats: int, out) -> dict:
               (f"   batch of {row['batch']}: {row['batch_per_episode_s']:.4f} s per episode" if batch else ""), flush=True)
     device = jax.devices()[0]
     result = dict(platform=device.platform, device=str(device.device_kind), episode=ctx.names[0], repeats=repeats,
+                  lookahead="cached" if cached else "continuous",
                   policies=rows, paper=evaluation.PAPER, wall_s=time.perf_counter() - t_start)
     if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
         result["note"] = "JAX's persistent compilation cache was on (JAX_COMPILATION_CACHE_DIR): compile times may be cache hits"
@@ -97,5 +108,5 @@ def main(args: argparse.Namespace) -> None:
     repeats = args.repeats or (3 if jax.default_backend() == "gpu" else 1)
     ctx = evaluation.context(args.set, 1 if not args.batch else args.batch, args.policy_dir)
     print(f"Table 1 on {jax.devices()[0].device_kind}: episode {ctx.names[0]} ...", flush=True)
-    result = run(ctx, args.batch, repeats, results_dir("table1"))
+    result = run(ctx, args.batch, repeats, results_dir("table1"), cached=args.lookahead == "cached")
     print_result(result)

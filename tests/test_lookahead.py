@@ -112,6 +112,32 @@ def test_cached_successors_give_the_surrogates_plan(sur, solved, network):
     assert int(jax.jit(policy.act)(state)) == int(cached.action)
 
 
+def test_experiments_cached_lookahead_is_one_policy_per_episode_table(sur, solved, network):
+    """`evaluation.make` (Fig. 4a/4b): the cached L1 carries every episode's table with in_axes 0 (hashable, as the
+    physics runner keys its programs by them), and vmapped over the episodes it acts as a per-episode Lookahead
+    whose interior is that episode's table."""
+    from experiments import evaluation
+
+    eps, tables, sols = solved
+    ctx = evaluation.Context(sur, "test", [f"e{i}" for i in range(4)], eps, tables, sols, sols.actions[0], network, "x")
+    policy, axis = evaluation.make(ctx, "L1")
+    assert hash(axis) == hash(policies.Lookahead(None, None, depth=1, inner=0))
+    states = jax.vmap(lambda e, g: sur.discrete_state(e, g, 2))(eps, sols.grasps[:, 2])
+    plans = jax.jit(jax.vmap(lambda pol, s: pol.plan(s), in_axes=(axis, 0)))(policy, states)
+    clear = 0
+    for i in range(4):
+        own = policies.Lookahead(network, sur, depth=1, inner=TableModel(_pick(tables, i), sur.space))
+        ref = jax.jit(own.plan)(_pick(states, i))
+        tol.assert_close_with_rare_ties(np.asarray(plans.q[i]), np.asarray(ref.q), tol.REWARD_ATOL, f"q {i}")
+        q = np.sort(np.asarray(ref.q))
+        if q[-1] - q[-2] > 2 * tol.REWARD_ATOL:  # batched and single float32 steps may order exact ties apart
+            assert int(plans.action[i]) == int(ref.action)
+            clear += 1
+    assert clear >= 1  # measured: all 4 have a clear best action
+    plain, none_axis = evaluation.make(ctx, "L1", cached=False)
+    assert none_axis is None and plain.inner is None
+
+
 def test_search_with_truncated_rollouts_and_a_critic_matches_a_recursive_search(sur, solved, network):
     """m = 1 rollout steps plus the critic's value at the cut-off, on a DP table; and the best path's score."""
     eps, tables, sols = solved

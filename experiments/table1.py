@@ -5,10 +5,10 @@ For each policy, the time to plan and run one unseen episode through the surroga
 planner would: DP baseline and RL act per step (a sequence lookup, one network call) and step the surrogate;
 L1 and L2 first build the episode's table (`--lookahead cached`, the default), then at every step search from
 the surrogate's state with the tree's interior and rollouts as lookups in it (`continuous`: all in the
-surrogate); DP optimal first builds the episode's whole table and backs it up, then runs its policy the same way. Compilation (once per program, reused for every
-later episode of the same length) is shown apart from the warm time (fastest of `--repeats` calls). With
-`--batch N`, also the time per episode when N unseen episodes are planned in one vmapped call. Writes
-results/table1/<platform>.json; prints the table, beside the paper's, last.
+surrogate); DP optimal first builds the episode's whole table and backs it up, then runs its policy the same
+way. Compilation (once per program, reused for every later episode of the same length) is shown apart from the
+warm time (fastest of `--repeats` calls). With `--batch N`, also the time per episode when N unseen episodes are
+planned in one vmapped call. Writes results/table1/<platform>.json; prints the table, beside the paper's, last.
 """
 from __future__ import annotations
 
@@ -42,13 +42,12 @@ def planner(ctx: evaluation.Context, name: str, cached: bool = True):
             _, sol = dp.solve(sur, ep)
             return lookahead.rollout(sur, policies.TablePolicy(sol.policy), sur.reset(ep))[0]
         return plan
-    if cached and name in evaluation.LOOKAHEAD_DEPTH:
+    policy, _ = evaluation.make(ctx, name, cached=False)
+    if cached and name in evaluation.LOOKAHEAD_DEPTH:  # the unseen episode's table is built inside the timed call
         def plan(ep):
             inner = TableModel(dp.build_table(sur, ep), sur.space)
-            policy = policies.Lookahead(ctx.rl, sur, depth=evaluation.LOOKAHEAD_DEPTH[name], inner=inner)
-            return lookahead.rollout(sur, policy, sur.reset(ep))[0]
+            return lookahead.rollout(sur, policy.replace(inner=inner), sur.reset(ep))[0]
         return plan
-    policy, _ = evaluation.make(ctx, name, cached=False)
     return lambda ep: lookahead.rollout(sur, policy, sur.reset(ep))[0]
 
 

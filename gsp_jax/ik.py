@@ -60,6 +60,7 @@ from gsp_jax.hand import HandModel
 @dataclasses.dataclass(frozen=True)
 class IKConfig:
     iterations: int = 60  # fixed Gauss-Newton iterations
+    unroll: int = 1  # iterations per loop trip (`lax.scan`'s unroll): the same result, fewer loop trips on a GPU
     extra_starts: tuple = ((0.0, 0.0, -0.3, -0.4), (0.0, 0.3, -0.6, -0.4))  # more start configurations: per-finger
     # joint offsets (abd, mcp, pip, dip) from the model's start, the same for every finger; the solve runs from each
     # and keeps the lowest cost without the pull towards the start, so the result stays a function of (grasp, pose);
@@ -254,7 +255,7 @@ def _solve(hand, active, targets, tool_pos, tool_mat, cfg) -> IKResult:
 
     def run(q0):
         init = (q0, *res_jac(q0), jnp.asarray(cfg.damping0, dtype))
-        (q, r, _, _), _ = jax.lax.scan(iteration, init, None, length=cfg.iterations)
+        (q, r, _, _), _ = jax.lax.scan(iteration, init, None, length=cfg.iterations, unroll=cfg.unroll)
         return q, jnp.sum(r[: -hand.n_joints] ** 2)  # the cost without the pull towards the start (its last rows)
 
     starts = jnp.asarray(start_configurations(hand, cfg), dtype)

@@ -191,18 +191,22 @@ class Surrogate:
         t_next = jnp.minimum(t + 1, last)
         zero3 = jnp.zeros(3, jnp.float32)
         move_wrench = self.move_wrench(episode, t)
-        move = self.wrench_error(now, episode, tool_pos, tool_quat, move_wrench)
         pos_n, quat_n = wp[t_next], episode.quats[t_next]
-        hold = self.wrench_error(nxt, episode, pos_n, quat_n, jnp.concatenate([-m * self.gravity, zero3]))
-        ext = self.wrench_error(
-            nxt, episode, pos_n, quat_n, jnp.concatenate([-m * self.gravity, zero3]) - episode.w_ext
-        )
+        hold_wrench = jnp.concatenate([-m * self.gravity, zero3])
+        # the three (four) wrench solves are independent: one vmapped solve runs them in lock step (the step's
+        # depth is one solve's iterations, not three)
+        problems = [(now, tool_pos, tool_quat, move_wrench), (nxt, pos_n, quat_n, hold_wrench),
+                    (nxt, pos_n, quat_n, hold_wrench - episode.w_ext)]
+        if during is not None:
+            problems.append((during, tool_pos, tool_quat, move_wrench))
+        stacked = jax.tree.map(lambda *xs: jnp.stack(xs), *problems)
+        solved = jax.vmap(lambda c, p, q, w: self.wrench_error(c, episode, p, q, w))(*stacked)
+        move, hold, ext = (jax.tree.map(lambda x, i=i: x[i], solved) for i in range(3))
         is_last = t >= last
         if during is None:
             change_error = change_unmet = jnp.zeros((), jnp.float32)
         else:
-            change = self.wrench_error(during, episode, tool_pos, tool_quat, move_wrench)
-            change_error, change_unmet = change.error / cfg.wrench_scale, change.unmet
+            change_error, change_unmet = solved.error[3] / cfg.wrench_scale, solved.unmet[3]
         terms = RewardTerms(
             wrench_move=move.error / cfg.wrench_scale,
             ik_next=nxt.ik.error / cfg.ik_scale,
@@ -286,11 +290,13 @@ class Surrogate:
         new_grasp, redundant = self.space.apply(state.grasp, action)
         t_next = jnp.minimum(state.t + 1, ep.n_steps - 1)
         pos_n, quat_n = ep.waypoints[t_next], ep.quats[t_next]
-        now = self.realise(new_grasp, state.tool_pos, state.tool_quat)
-        nxt = self.realise(new_grasp, pos_n, quat_n)
-        during = None
-        if self.prices_changes:
-            during = self.realise(self.space.shared(state.grasp, action), state.tool_pos, state.tool_quat)
+        # the two (three) IK solves are independent: one vmapped solve runs them in lock step
+        grasp_in = [new_grasp, new_grasp] + ([self.space.shared(state.grasp, action)] if self.prices_changes else [])
+        pos_in = [state.tool_pos, pos_n, state.tool_pos][: len(grasp_in)]
+        quat_in = [state.tool_quat, quat_n, state.tool_quat][: len(grasp_in)]
+        realised = jax.vmap(self.realise)(jnp.stack(grasp_in), jnp.stack(pos_in), jnp.stack(quat_in))
+        now, nxt, *rest = (jax.tree.map(lambda x, i=i: x[i], realised) for i in range(len(grasp_in)))
+        during = rest[0] if rest else None
         changed = new_grasp != state.grasp
         terms = self.score(ep, state.t, state.tool_pos, state.tool_quat, now, nxt, redundant, during, changed)
         done = terms.collision | terms.fall | (state.t + 1 >= ep.n_steps)

@@ -29,6 +29,7 @@ from flax import struct
 @dataclasses.dataclass(frozen=True)
 class WrenchConfig:
     iterations: int = 150  # fixed accelerated projected-gradient iterations
+    unroll: int = 1  # iterations per loop trip (`lax.scan`'s unroll): the same result, fewer loop trips on a GPU
     force_penalty: float = 0.01  # rho, weight of sum |f_k|^2 against the squared wrench residual
     torque_length: float = 0.05  # L [m]: a torque of 1 N m weighs like a force of 1/L N
 
@@ -129,7 +130,7 @@ def _solve(points, normals, active, mu, wrench, center, cfg, init=None, prefer=N
 
     target = 0.0 if prefer is None else jnp.asarray(prefer, dtype).reshape(-1) * jnp.repeat(mask[:, 0], 3)
     x0 = jnp.zeros(3 * k, dtype) if init is None else project(jnp.asarray(init, dtype).reshape(-1) - base)
-    (x, _), _ = jax.lax.scan(iteration, (x0, x0), None, length=cfg.iterations)
+    (x, _), _ = jax.lax.scan(iteration, (x0, x0), None, length=cfg.iterations, unroll=cfg.unroll)
     res_scaled = a @ x - b
     return WrenchResult(
         forces=(x + base).reshape(k, 3),

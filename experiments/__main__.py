@@ -22,6 +22,7 @@ COMMANDS = {  # command -> (module, one-line help)
     "fig4a": ("experiments.fig4a", "Fig. 4a: surrogate returns relative to DP optimal, 95% CI, RM-ANOVA"),
     "fig4b": ("experiments.fig4b", "Fig. 4b: the same policies closed loop in MJX, angle error under the torque"),
     "table1": ("experiments.table1", "Table 1: online wall-clock time per unseen episode, beside the paper's"),
+    "bench-latency": ("experiments.bench_latency", "per-decision latency of each planner, one episode at a time"),
     "ik-spikes": ("experiments.ik_spikes", "IK local minima: spikes between converged neighbours, with and without extra starts"),
     "precision": ("experiments.precision", "float32 reward spread across CPUs, 1-ulp inputs and float64 (test tolerances)"),
     "reproduce": ("experiments.reproduce", "everything above in sequence, one Markdown report (--quick on CPU)"),

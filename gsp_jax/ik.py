@@ -96,9 +96,11 @@ def box_sdf(points: jax.Array, tool_pos: jax.Array, tool_mat: jax.Array, hand: H
     Exact outside the tool. Inside, it is minus the deepest penetration into any single box: exact wherever
     that box's nearest face is on the tool's surface, and otherwise (near where boxes meet) a shallower bound.
     The wrench model overlaps its boxes so that no point of the tool is shallow in every box."""
-    local = (points - tool_pos) @ tool_mat  # (N, 3) in the tool frame
+    local = kinematics.small_einsum("nj,ji->ni", points - tool_pos, tool_mat)  # (N, 3) in the tool frame
     dt = points.dtype
-    rel = jnp.einsum("nbj,bji->nbi", local[:, None, :] - hand.tool_box_pos[None].astype(dt), hand.tool_box_mat.astype(dt))
+    rel = kinematics.small_einsum(
+        "nbj,bji->nbi", local[:, None, :] - hand.tool_box_pos[None].astype(dt), hand.tool_box_mat.astype(dt)
+    )
     d = jnp.abs(rel) - hand.tool_box_half.astype(dt)  # (N, NB, 3)
     outside = jnp.sqrt(jnp.sum(jnp.maximum(d, 0.0) ** 2, -1) + 1e-12)
     inside = jnp.minimum(jnp.max(d, -1), 0.0)
@@ -125,7 +127,7 @@ def segment_closest(p0, p1, q0, q1):
 
 def _self_closest(hand: HandModel, pos, mat, dtype):
     """Closest points (P, 3), (P, 3) of the self-collision capsule pairs' axes, in the world frame."""
-    ends = pos[hand.capsule_body][:, None] + jnp.einsum(
+    ends = pos[hand.capsule_body][:, None] + kinematics.small_einsum(
         "cij,cej->cei", mat[hand.capsule_body], hand.capsule_ends.astype(dtype)
     )  # (C, 2, 3)
     i, k = hand.self_pairs[:, 0], hand.self_pairs[:, 1]
@@ -195,12 +197,14 @@ def residuals_and_jacobian(hand: HandModel, cfg: IKConfig, q, active, targets, t
     # contact links: distance of the tool point to the link's segment, minus the radius
     j_axis_pt = kinematics.point_jacobian(hand, axes, anchors, hand.link_body, geo.link_axis_pt)  # (L, 3, J)
     r_link = geo.link_gap * active
-    j_link = -jnp.einsum("li,lij->lj", geo.link_offset / geo.link_dist[:, None], j_axis_pt) * active[:, None]
+    unit_offset = geo.link_offset / geo.link_dist[:, None]
+    j_link = -kinematics.small_einsum("li,lij->lj", unit_offset, j_axis_pt) * active[:, None]
     # spheres against tool and table
     jc = kinematics.point_jacobian(hand, axes, anchors, hand.sphere_body, geo.spheres)  # (S, 3, J)
     sphere_active = jnp.where(hand.sphere_link >= 0, active[jnp.maximum(hand.sphere_link, 0)], False)
     margin = jnp.where(sphere_active, -cfg.contact_slack, cfg.clearance)
-    r_tool, j_tool = _hinge(cfg.w_collision, margin, geo.tool_gap, jnp.einsum("ni,nij->nj", geo.tool_grad, jc))
+    j_gap = kinematics.small_einsum("ni,nij->nj", geo.tool_grad, jc)
+    r_tool, j_tool = _hinge(cfg.w_collision, margin, geo.tool_gap, j_gap)
     r_table, j_table = _hinge(cfg.w_collision, cfg.table_margin, geo.table_gap, jc[:, 2, :])
     # capsule pairs: the distance's gradient moves the two closest points with their bodies (envelope theorem)
     i, k = hand.self_pairs[:, 0], hand.self_pairs[:, 1]
@@ -208,7 +212,7 @@ def residuals_and_jacobian(hand: HandModel, cfg: IKConfig, q, active, targets, t
     j_pk = kinematics.point_jacobian(hand, axes, anchors, hand.capsule_body[k], geo.self_pk)
     unit = (geo.self_pi - geo.self_pk) / geo.self_dist[:, None]
     r_self, j_self = _hinge(
-        cfg.w_collision, cfg.self_margin, geo.self_gap, jnp.einsum("pi,pij->pj", unit, j_pi - j_pk)
+        cfg.w_collision, cfg.self_margin, geo.self_gap, kinematics.small_einsum("pi,pij->pj", unit, j_pi - j_pk)
     )
     n = hand.n_joints
     r_reg = cfg.w_regular * (q - hand.q_start.astype(q.dtype))

@@ -25,12 +25,6 @@ def quat_to_mat(q: jax.Array) -> jax.Array:
     )
 
 
-def _axis_angle(axis: np.ndarray, angle: jax.Array) -> jax.Array:
-    """Rotation about a constant unit axis (3,) by `angle` (Rodrigues)."""
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + jnp.sin(angle) * k + (1 - jnp.cos(angle)) * (k @ k)
-
-
 def body_poses(hand: HandModel, q: jax.Array) -> tuple[jax.Array, jax.Array]:
     """World poses of the hand's bodies: positions (B, 3) and rotation matrices (B, 3, 3)."""
     pos, mat, _, _ = chain(hand, q)
@@ -38,27 +32,101 @@ def body_poses(hand: HandModel, q: jax.Array) -> tuple[jax.Array, jax.Array]:
 
 
 def chain(hand: HandModel, q: jax.Array):
-    """Body poses (B, 3), (B, 3, 3) plus every joint's world axis (J, 3) and anchor (J, 3)."""
+    """Body poses (B, 3), (B, 3, 3) plus every joint's world axis (J, 3) and anchor (J, 3).
+
+    The tree is walked level by level (all bodies at one depth at once: for this hand, one body per finger), with
+    3x3 products written elementwise, so a pose costs a few fused kernels per level rather than a few matmuls
+    per body (the IK evaluates it every iteration; on a GPU each kernel is a launch)."""
     dtype = q.dtype
-    rel_mat = hand.body_mat
-    pos, mat = [], []
-    axes, anchors = [None] * hand.n_joints, [None] * hand.n_joints
-    for b, parent in enumerate(hand.body_parent):  # static tree: unrolled at trace time
-        if parent < 0:
-            p, r = jnp.asarray(hand.body_pos[b], dtype), jnp.asarray(rel_mat[b], dtype)
+    q_ext = jnp.concatenate([q, jnp.zeros(1, dtype)])  # index J: the angle of a body without a joint (identity)
+    pos_l, mat_l, axis_l, anchor_l, order = [], [], [], [], []
+    prev = None
+    for bodies, parent_slot in _levels(hand):
+        bp = jnp.asarray(hand.body_pos[bodies], dtype)
+        rel = jnp.asarray(hand.body_mat[bodies], dtype)
+        if prev is None:
+            p, r = bp, rel
         else:
-            p = pos[parent] + mat[parent] @ hand.body_pos[b].astype(dtype)
-            r = mat[parent] @ rel_mat[b].astype(dtype)
-        j = hand.body_joint[b]
-        if j >= 0:
-            anchor = hand.joint_pos[j].astype(dtype)
-            p_anchor = p + r @ anchor
-            axes[j], anchors[j] = r @ hand.joint_axis[j].astype(dtype), p_anchor
-            r = r @ _axis_angle(hand.joint_axis[j], q[j]).astype(dtype)
-            p = p_anchor - r @ anchor
-        pos.append(p)
-        mat.append(r)
-    return jnp.stack(pos), jnp.stack(mat), jnp.stack(axes), jnp.stack(anchors)
+            pp, pr = prev[0][parent_slot], prev[1][parent_slot]
+            p = pp + _matvec(pr, bp)
+            r = _matmul(pr, rel)
+        j = hand.body_joint[bodies]
+        has = j >= 0
+        anchor = jnp.asarray(np.where(has[:, None], hand.joint_pos[np.maximum(j, 0)], 0.0), dtype)
+        axis = np.where(has[:, None], hand.joint_axis[np.maximum(j, 0)], 0.0)
+        p_anchor = p + _matvec(r, anchor)
+        axis_w = _matvec(r, jnp.asarray(axis, dtype))
+        k = np.zeros((len(bodies), 3, 3))
+        k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
+        k = k - np.swapaxes(k, 1, 2)  # (n, 3, 3) cross-product matrices of the axes (0 without a joint)
+        angle = q_ext[np.where(has, j, hand.n_joints)][:, None, None]
+        rot = np.eye(3) + jnp.sin(angle) * k + (1 - jnp.cos(angle)) * (k @ k)  # Rodrigues, per body
+        r = _matmul(r, rot.astype(dtype))
+        p = p_anchor - _matvec(r, anchor)
+        pos_l.append(p), mat_l.append(r), axis_l.append(axis_w), anchor_l.append(p_anchor), order.append(bodies)
+        prev = (p, r)
+    order = np.concatenate(order)
+    slot = np.argsort(order)  # body b sits at row slot[b] of the level-stacked arrays
+    pos, mat = jnp.concatenate(pos_l)[slot], jnp.concatenate(mat_l)[slot]
+    body_of_joint = np.argsort(np.where(hand.body_joint >= 0, hand.body_joint, np.iinfo(np.int64).max))[: hand.n_joints]
+    axes, anchors = jnp.concatenate(axis_l)[slot[body_of_joint]], jnp.concatenate(anchor_l)[slot[body_of_joint]]
+    return pos, mat, axes, anchors
+
+
+def _levels(hand: HandModel) -> list[tuple[np.ndarray, np.ndarray | None]]:
+    """The kinematic tree by depth: per level, its bodies (n,) and each one's parent's row in the level above."""
+    parent = np.asarray(hand.body_parent)
+    depth = np.zeros(len(parent), int)
+    for b, pa in enumerate(parent):
+        if pa >= b:
+            raise ValueError(f"hand.body_parent[{b}]: {pa}; a parent must come before its children")
+        depth[b] = 0 if pa < 0 else depth[pa] + 1
+    levels, above = [], None
+    for d in range(depth.max() + 1):
+        bodies = np.flatnonzero(depth == d)
+        slot = None if above is None else np.searchsorted(above, parent[bodies])
+        levels.append((bodies, slot))
+        above = bodies
+    return levels
+
+
+def _matvec(a: jax.Array, v: jax.Array) -> jax.Array:
+    """(..., 3, 3) @ (..., 3)."""
+    return small_einsum("...ij,...j->...i", a, v)
+
+
+def _matmul(a: jax.Array, b: jax.Array) -> jax.Array:
+    """(..., 3, 3) @ (..., 3, 3)."""
+    return small_einsum("...ij,...jk->...ik", a, b)
+
+
+def small_einsum(spec: str, a: jax.Array, b: jax.Array) -> jax.Array:
+    """`jnp.einsum(spec, a, b)` for the IK's tiny contractions (3-vectors, 3x3 matrices, point Jacobians). On a
+    GPU it is written as a broadcast product and a sum, which XLA fuses with its neighbours (a tiny matmul is a
+    kernel launch of its own, and the IK runs hundreds of them per iteration); the CPU keeps the matmul (there
+    the broadcast form measured slower). Two operands; a leading "..." must be on both and the output."""
+    return jax.lax.platform_dependent(a, b, cpu=lambda a, b: jnp.einsum(spec, a, b),
+                                      default=lambda a, b: _broadcast_einsum(spec, a, b))
+
+
+def _broadcast_einsum(spec: str, a: jax.Array, b: jax.Array) -> jax.Array:
+    ins, out = spec.replace("...", "").split("->")
+    sa, sb = ins.split(",")
+    letters = list(dict.fromkeys(sa + sb))
+    lead = jnp.broadcast_shapes(a.shape[: a.ndim - len(sa)], b.shape[: b.ndim - len(sb)])
+    n_lead = len(lead)
+
+    def expand(x, sub):
+        x = jnp.broadcast_to(x, lead + x.shape[x.ndim - len(sub):])
+        present = [c for c in letters if c in sub]
+        x = jnp.moveaxis(x, [n_lead + sub.index(c) for c in present], range(n_lead, n_lead + len(present)))
+        shape = list(lead) + [x.shape[n_lead + present.index(c)] if c in sub else 1 for c in letters]
+        return x.reshape(shape)
+
+    prod = expand(a, sa) * expand(b, sb)
+    kept = [c for c in letters if c in out]
+    r = jnp.sum(prod, axis=tuple(n_lead + i for i, c in enumerate(letters) if c not in out))
+    return jnp.moveaxis(r, [n_lead + kept.index(c) for c in out], range(n_lead, n_lead + len(out)))
 
 
 def point_jacobian(hand: HandModel, axes: jax.Array, anchors: jax.Array, body: np.ndarray, points: jax.Array):
@@ -70,7 +138,7 @@ def point_jacobian(hand: HandModel, axes: jax.Array, anchors: jax.Array, body: n
 
 def points_on_bodies(pos: jax.Array, mat: jax.Array, body: np.ndarray, local: np.ndarray) -> jax.Array:
     """World positions (N, 3) of points given in their bodies' frames, from body poses (B, 3), (B, 3, 3)."""
-    return pos[body] + jnp.einsum("nij,nj->ni", mat[body], local.astype(pos.dtype))
+    return pos[body] + _matvec(mat[body], jnp.asarray(local, pos.dtype))
 
 
 def local_points(hand: HandModel, q: jax.Array, body: np.ndarray, local: np.ndarray) -> jax.Array:
@@ -82,7 +150,7 @@ def local_points(hand: HandModel, q: jax.Array, body: np.ndarray, local: np.ndar
 def segments_on_links(hand: HandModel, pos: jax.Array, mat: jax.Array) -> tuple[jax.Array, jax.Array]:
     """World centres (L, 3) and unit directions (L, 3) of the contact links' segments, from body poses."""
     centre = points_on_bodies(pos, mat, hand.link_body, hand.link_site)
-    return centre, jnp.einsum("lij,lj->li", mat[hand.link_body], hand.link_axis.astype(pos.dtype))
+    return centre, _matvec(mat[hand.link_body], jnp.asarray(hand.link_axis, pos.dtype))
 
 
 def closest_on_segments(hand: HandModel, centre: jax.Array, axis: jax.Array, points: jax.Array) -> jax.Array:

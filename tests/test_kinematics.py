@@ -261,3 +261,43 @@ def test_scene_loads_in_mjx_and_agrees_with_mujoco(hand):
     body_ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, n) for n in hand.body_names]
     pos, _ = kinematics.body_poses(hand, jnp.asarray(q))
     np.testing.assert_allclose(np.asarray(dx.xpos)[body_ids], np.asarray(pos), atol=1e-5)
+
+
+@pytest.mark.parametrize("spec, shape_a, shape_b", [
+    ("...ij,...j->...i", (5, 3, 3), (5, 3)),
+    ("...ij,...jk->...ik", (4, 3, 3), (4, 3, 3)),
+    ("...ij,...j->...i", (3, 3), (9, 3)),  # leading axes on one operand only
+    ("nj,ji->ni", (7, 3), (3, 3)),
+    ("nbj,bji->nbi", (7, 2, 3), (2, 3, 3)),
+    ("cij,cej->cei", (8, 3, 3), (8, 2, 3)),
+    ("li,lij->lj", (6, 3), (6, 3, 16)),
+])
+def test_small_einsum_both_forms_match_numpy(spec, shape_a, shape_b):
+    """The IK's tiny contractions: the CPU's einsum and the GPU's broadcast-and-sum form against numpy in float64."""
+    rng = np.random.default_rng(7)
+    a, b = rng.normal(size=shape_a).astype(np.float32), rng.normal(size=shape_b).astype(np.float32)
+    ref = np.einsum(spec, a.astype(np.float64), b.astype(np.float64))
+    for got in (kinematics.small_einsum(spec, a, b), kinematics._broadcast_einsum(spec, a, b)):
+        assert got.shape == ref.shape
+        np.testing.assert_allclose(np.asarray(got), ref, atol=2e-6 * max(1.0, np.abs(ref).max()))
+
+
+def test_gpu_form_of_the_contractions_gives_the_same_fk_and_ik(hand, qs, monkeypatch):
+    """`small_einsum` lowers to a broadcast product on a GPU: forced here on the CPU, the chain (against the CPU form
+    and so against MuJoCo) and the IK's residuals and Jacobian agree to float32 rounding."""
+    from gsp_jax import grasps, ik
+
+    space = grasps.space_of(hand)
+    tool_pos, tool_mat = jnp.array([0.0, 0.0, 0.05]), jnp.eye(3)
+    active, targets, _ = ik.grasp_targets(hand, space.decode(jnp.int32(5)), tool_pos, tool_mat)
+
+    def outputs(q):
+        return kinematics.chain(hand, q), ik.residuals_and_jacobian(hand, ik.IKConfig(), q, active, targets, tool_pos,
+                                                                     tool_mat)
+
+    q = jnp.asarray(qs, jnp.float32)
+    cpu = jax.jit(jax.vmap(outputs))(q)
+    monkeypatch.setattr(kinematics, "small_einsum", kinematics._broadcast_einsum)
+    gpu = jax.jit(jax.vmap(outputs))(q)
+    for a, b in zip(jax.tree.leaves(cpu), jax.tree.leaves(gpu)):
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), atol=1e-5, rtol=1e-5)

@@ -280,3 +280,21 @@ def test_shared_rollouts_cover_every_leaf(sur):
     within l link changes (options per link 3, 3, 2, 4, 2, 2)."""
     assert lookahead._ball_size(sur.space, 1) == 1 + 10
     assert lookahead._ball_size(sur.space, 2) == 1 + 10 + 40
+
+
+def test_bench_latency_times_the_planners_own_decisions(sur, solved, network):
+    """`bench-latency` times one decision at a time on the planner's own episode: DP optimal earns each episode's
+    DP optimum, and the cached L1 earns what its jitted rollout earns; every step of every episode is a decision."""
+    from experiments import bench_latency, evaluation
+
+    eps, tables, sols = solved
+    one = jax.tree.map(lambda x: x[:1], (eps, tables, sols))
+    ctx = evaluation.Context(sur, "test", ["e0"], *one, sols.actions[0], network, "x")
+    result = bench_latency.run(ctx, ["dp-opt", "L1"], cached=True)
+    opt, l1 = result["policies"]["dp-opt"], result["policies"]["L1"]
+    np.testing.assert_allclose(opt["returns"], np.asarray(sols.ret[:1]), atol=tol.REWARD_ATOL * 6)
+    own = policies.Lookahead(network, sur, depth=1, inner=TableModel(_pick(tables, 0), sur.space))
+    ret, _ = jax.jit(lambda e: lookahead.rollout(sur, own, sur.reset(e)))(_pick(eps, 0))
+    np.testing.assert_allclose(l1["returns"][0], float(ret), atol=tol.REWARD_ATOL * 6)
+    assert opt["decisions"] == int(np.sum(sols.alive[0])) and l1["decisions"] <= 6
+    assert 0 < opt["decision_median_s"] <= opt["decision_p99_s"] and opt["setup_median_s"] > 0

@@ -1,0 +1,116 @@
+"""`python -m experiments bench-latency [--episodes N] [--lookahead cached|continuous]`: how long each planner takes
+per decision, one unseen episode at a time, as an online controller calls it.
+
+An online planner meets one episode at a time. When the episode is revealed it may prepare (*setup*: DP optimal
+solves the episode's table; L1/L2 with `--lookahead cached` build it, as the root's successors are looked up in
+it), then it is asked for one action per waypoint from the surrogate's current, continuous state (*decision*: the
+policy's `act`). Both are timed one call at a time, warm (each program is compiled and run once before), on the
+planner's own rollouts of N evaluation episodes (default 7 x 16 = 112 decisions); the surrogate step that carries
+the episode on is timed apart. Per episode, setup + its decisions + its surrogate steps is what `table1` times as
+one jitted call (here with a dispatch per call: a little more). Writes results/bench_latency/<platform>.json and
+prints median and p99 latencies beside the paper's per-episode times last.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import jax
+import numpy as np
+
+from experiments import evaluation
+from experiments.common import results_dir, table
+from gsp_jax import dp, policies
+from gsp_jax.env import TableModel
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--episodes", type=int, default=7, help="evaluation episodes (each gives up to 16 decisions)")
+    p.add_argument("--policies", nargs="+", default=list(evaluation.POLICIES), choices=evaluation.POLICIES)
+    p.add_argument("--policy-dir", default=None)
+    evaluation.add_lookahead_argument(p)
+
+
+def _timed(fn, *args):
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(fn(*args))
+    return out, time.perf_counter() - t0
+
+
+def run(ctx: evaluation.Context, names: list[str], cached: bool) -> dict:
+    sur = ctx.surrogate
+    step = jax.jit(sur.step)
+    act = jax.jit(lambda policy, state: policy.act(state))
+    build = jax.jit(lambda ep: dp.build_table(sur, ep))
+    backup = jax.jit(dp.backup)
+    episodes = [jax.tree.map(lambda x, i=i: x[i], ctx.batch) for i in range(len(ctx.names))]
+
+    # setup per episode, shared by the planners that need it: the table (cached L1/L2, DP optimal) and its backup
+    jax.block_until_ready(backup(build(episodes[0]), episodes[0].start_grasp))  # compile both
+    tables, t_build, t_backup = [], [], []
+    needs_table = "dp-opt" in names or (cached and any(n in evaluation.LOOKAHEAD_DEPTH for n in names))
+    for i, ep in enumerate(episodes if needs_table else []):
+        tab, tb = _timed(build, ep)
+        sol, tk = _timed(backup, tab, ep.start_grasp)
+        tables.append((tab, sol))
+        t_build.append(tb), t_backup.append(tk)
+        print(f"  setup, episode {i}: table {tb:.3f} s, backup {tk * 1e3:.2f} ms", flush=True)
+
+    rows = {}
+    for name in names:
+        base, _ = evaluation.make(ctx, name, cached=False)  # dp-base, rl, continuous lookahead: episode-independent
+
+        def policy_for(i):
+            if name == "dp-opt":
+                return policies.TablePolicy(tables[i][1].policy)
+            if cached and name in evaluation.LOOKAHEAD_DEPTH:
+                return base.replace(inner=TableModel(tables[i][0], sur.space))
+            return base
+
+        setup = ([b + k for b, k in zip(t_build, t_backup)] if name == "dp-opt" else
+                 list(t_build) if cached and name in evaluation.LOOKAHEAD_DEPTH else [0.0] * len(episodes))
+        warm = sur.reset(episodes[0])
+        jax.block_until_ready(step(warm, act(policy_for(0), warm)))  # compile
+        decide, stepping, per_episode, returns = [], [], [], []
+        for i, ep in enumerate(episodes):
+            policy, state, spent, ret = policy_for(i), sur.reset(ep), setup[i], 0.0
+            for _ in range(ep.n_steps):
+                action, t_act = _timed(act, policy, state)
+                (state, reward, done), t_step = _timed(step, state, action)
+                decide.append(t_act), stepping.append(t_step)
+                spent, ret = spent + t_act + t_step, ret + float(reward)
+                if bool(done):
+                    break
+            per_episode.append(spent), returns.append(ret)
+        d = np.asarray(decide)
+        rows[name] = dict(decisions=len(d), decision_median_s=float(np.median(d)), decision_p99_s=float(np.percentile(d, 99)),
+                          setup_median_s=float(np.median(setup)), step_median_s=float(np.median(stepping)),
+                          episode_median_s=float(np.median(per_episode)), returns=returns)
+        print(f"  {name:8s} decision median {rows[name]['decision_median_s'] * 1e3:8.2f} ms, p99 "
+              f"{rows[name]['decision_p99_s'] * 1e3:8.2f} ms ({len(d)} decisions), setup {rows[name]['setup_median_s']:.3f} s",
+              flush=True)
+    device = jax.devices()[0]
+    return dict(platform=device.platform, device=str(device.device_kind), episodes=ctx.names,
+                lookahead="cached" if cached else "continuous", policies=rows, paper=evaluation.PAPER)
+
+
+def print_result(result: dict) -> None:
+    headers = ["planner", "setup / episode [s]", "decision median [ms]", "decision p99 [ms]", "surrogate step [ms]",
+               "episode [s]", "paper, episode [s]"]
+    rows = [[name, f"{r['setup_median_s']:.3f}", f"{r['decision_median_s'] * 1e3:.2f}", f"{r['decision_p99_s'] * 1e3:.2f}",
+             f"{r['step_median_s'] * 1e3:.2f}", f"{r['episode_median_s']:.3f}", evaluation.PAPER["table1_s"][name]]
+            for name, r in result["policies"].items()]
+    print(f"Per-decision latency, one episode at a time ({result['device']}, lookahead {result['lookahead']}, "
+          f"{len(result['episodes'])} episodes; medians; paper: {evaluation.PAPER['table1_machine']})")
+    print(table(headers, rows, ".2f"))
+
+
+def main(args: argparse.Namespace) -> None:
+    ctx = evaluation.context("eval", args.episodes, args.policy_dir)
+    print(f"bench-latency on {jax.devices()[0].device_kind}: {len(ctx.names)} episodes ...", flush=True)
+    result = run(ctx, args.policies, cached=args.lookahead == "cached")
+    out = results_dir("bench_latency") / f"{result['platform']}.json"
+    out.write_text(json.dumps(result, indent=1))
+    print(f"wrote {out}\n")
+    print_result(result)

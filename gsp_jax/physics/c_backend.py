@@ -45,14 +45,25 @@ def _compiled(phys, policy_axis):
     return phys._jitted[key]
 
 
+def _pedestal_drop(config, time: float) -> float:
+    """`Scene.pedestal_drop` in numpy float32 (the same value, without a JAX dispatch per tick)."""
+    f = np.float32
+    return float(-np.minimum(f(config.pedestal_speed) * np.maximum(f(time - config.segment), f(0.0)), f(-AWAY)))
+
+
 def simulate(phys, policy, episodes: Episode, policy_axis: int | None = None, progress: bool = False):
     """`Physics.simulate_batch(..., backend="c")`: a `runner.Result` of numpy arrays, batch axis first."""
     start, decide, tick, check, episode_fields = _compiled(phys, policy_axis)
     scene, c = phys.scene, phys.config
     N, T, n = int(np.shape(episodes.mass)[0]), episodes.n_steps, phys.n_segment
     K = phys.n_ticks(T)
+    cpu = jax.devices("cpu")[0]
+    on_cpu = lambda tree: jax.device_put(tree, cpu)  # noqa: E731  (the per-tick program follows its inputs there)
+    on_default = lambda tree: jax.device_put(tree, jax.devices()[0])  # noqa: E731
+    episodes_cpu = on_cpu(episodes)
     fields = jax.device_get(episode_fields(episodes))
     qpos0, cs = start(episodes)
+    cs = on_cpu(cs)
     qpos0 = np.asarray(qpos0, np.float64)
     models, datas = [], []
     field_list = [jax.tree.map(lambda x: x[e], fields) for e in range(N)]
@@ -90,16 +101,17 @@ def simulate(phys, policy, episodes: Episode, policy_axis: int | None = None, pr
         qpos_trace[:, j] = np.where((fell & (new_fall | (fall_tick < j)))[:, None], prev, now)
 
     for k in segments:
-        action, grasp, cs = decide(policy, cs, state, grasp, episodes, k)
+        action, grasp, cs = decide(policy, on_default(cs), state, grasp, episodes, k)
+        cs = on_cpu(cs)
         actions.append(np.asarray(action))
         grasps.append(np.asarray(grasp))
         for i in range(n):
             j = k * n + i
-            drop = float(scene.pedestal_drop(j * c.tick))
+            drop = _pedestal_drop(c, j * c.tick)
             if drop > AWAY:  # sinking (afterwards they stay away)
                 for e in range(N):
                     scene.c_pedestals(models[e], field_list[e], drop)
-            status, ctrl, ext, cs = tick(cs, state, episodes, j)
+            status, ctrl, ext, cs = tick(cs, state, episodes_cpu, j)
             if j > 0:
                 record(j - 1, status, state[0])
             ctrl, ext = np.asarray(ctrl, np.float64), np.asarray(ext, np.float64)
@@ -110,7 +122,7 @@ def simulate(phys, policy, episodes: Episode, policy_axis: int | None = None, pr
                 for _ in range(c.control_every):
                     mujoco.mj_step(models[e], d)
             state = raw()
-    record(K - 1, check(state, episodes, K - 1), state[0])
+    record(K - 1, check(state, episodes_cpu, K - 1), state[0])
     actions, grasps = np.stack(actions, 1)[:, :T], np.stack(grasps, 1)[:, :T]
     res = phys.result(jnp.asarray(actions), jnp.asarray(grasps), jnp.asarray(angle), jnp.asarray(perr),
                       jnp.asarray(qpos_trace), jnp.asarray(fell), jnp.asarray(fall_tick), T)

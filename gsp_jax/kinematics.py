@@ -35,8 +35,8 @@ def chain(hand: HandModel, q: jax.Array):
     """Body poses (B, 3), (B, 3, 3) plus every joint's world axis (J, 3) and anchor (J, 3).
 
     The tree is walked level by level (all bodies at one depth at once: for this hand, one body per finger), with
-    3x3 products written elementwise, so a pose costs a few fused kernels per level rather than a few matmuls
-    per body (the IK evaluates it every iteration; on a GPU each kernel is a launch)."""
+    the 3x3 products as `small_einsum`s, so on a GPU a pose costs a few fused kernels per level rather than a few
+    matmuls per body (the IK evaluates it every iteration, and each kernel is a launch)."""
     dtype = q.dtype
     q_ext = jnp.concatenate([q, jnp.zeros(1, dtype)])  # index J: the angle of a body without a joint (identity)
     pos_l, mat_l, axis_l, anchor_l, order = [], [], [], [], []
@@ -104,12 +104,14 @@ def small_einsum(spec: str, a: jax.Array, b: jax.Array) -> jax.Array:
     """`jnp.einsum(spec, a, b)` for the IK's tiny contractions (3-vectors, 3x3 matrices, point Jacobians). On a
     GPU it is written as a broadcast product and a sum, which XLA fuses with its neighbours (a tiny matmul is a
     kernel launch of its own, and the IK runs hundreds of them per iteration); the CPU keeps the matmul (there
-    the broadcast form measured slower). Two operands; a leading "..." must be on both and the output."""
+    the broadcast form measured slower). Two operands; "..." stands for leading axes that broadcast as in numpy.
+    Both forms agree to float32 rounding (tests/test_kinematics.py)."""
     return jax.lax.platform_dependent(a, b, cpu=lambda a, b: jnp.einsum(spec, a, b),
                                       default=lambda a, b: _broadcast_einsum(spec, a, b))
 
 
 def _broadcast_einsum(spec: str, a: jax.Array, b: jax.Array) -> jax.Array:
+    """`small_einsum`'s GPU form: both operands broadcast to the union of their axes, multiplied, summed."""
     ins, out = spec.replace("...", "").split("->")
     sa, sb = ins.split(",")
     letters = list(dict.fromkeys(sa + sb))

@@ -14,13 +14,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 
 import jax
 import numpy as np
 
 from experiments import evaluation
-from experiments.common import results_dir, table
+from experiments.common import results_dir, table, timed
 from gsp_jax import dp, policies
 from gsp_jax.env import TableModel
 
@@ -30,12 +29,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--policies", nargs="+", default=list(evaluation.POLICIES), choices=evaluation.POLICIES)
     p.add_argument("--policy-dir", default=None)
     evaluation.add_lookahead_argument(p)
-
-
-def _timed(fn, *args):
-    t0 = time.perf_counter()
-    out = jax.block_until_ready(fn(*args))
-    return out, time.perf_counter() - t0
 
 
 def run(ctx: evaluation.Context, names: list[str], cached: bool) -> dict:
@@ -51,8 +44,8 @@ def run(ctx: evaluation.Context, names: list[str], cached: bool) -> dict:
     tables, t_build, t_backup = [], [], []
     needs_table = "dp-opt" in names or (cached and any(n in evaluation.LOOKAHEAD_DEPTH for n in names))
     for i, ep in enumerate(episodes if needs_table else []):
-        tab, tb = _timed(build, ep)
-        sol, tk = _timed(backup, tab, ep.start_grasp)
+        tab, tb = timed(build, ep)
+        sol, tk = timed(backup, tab, ep.start_grasp)
         tables.append((tab, sol))
         t_build.append(tb), t_backup.append(tk)
         print(f"  setup, episode {i}: table {tb:.3f} s, backup {tk * 1e3:.2f} ms", flush=True)
@@ -76,8 +69,8 @@ def run(ctx: evaluation.Context, names: list[str], cached: bool) -> dict:
         for i, ep in enumerate(episodes):
             policy, state, spent, ret = policy_for(i), sur.reset(ep), setup[i], 0.0
             for _ in range(ep.n_steps):
-                action, t_act = _timed(act, policy, state)
-                (state, reward, done), t_step = _timed(step, state, action)
+                action, t_act = timed(act, policy, state)
+                (state, reward, done), t_step = timed(step, state, action)
                 decide.append(t_act), stepping.append(t_step)
                 spent, ret = spent + t_act + t_step, ret + float(reward)
                 if bool(done):

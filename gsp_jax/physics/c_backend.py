@@ -45,12 +45,6 @@ def _compiled(phys, policy_axis):
     return phys._jitted[key]
 
 
-def _pedestal_drop(config, time: float) -> float:
-    """`Scene.pedestal_drop` in numpy float32 (the same value, without a JAX dispatch per tick)."""
-    f = np.float32
-    return float(-np.minimum(f(config.pedestal_speed) * np.maximum(f(time - config.segment), f(0.0)), f(-AWAY)))
-
-
 def simulate(phys, policy, episodes: Episode, policy_axis: int | None = None, progress: bool = False):
     """`Physics.simulate_batch(..., backend="c")`: a `runner.Result` of numpy arrays, batch axis first."""
     start, decide, tick, check, episode_fields = _compiled(phys, policy_axis)
@@ -107,7 +101,7 @@ def simulate(phys, policy, episodes: Episode, policy_axis: int | None = None, pr
         grasps.append(np.asarray(grasp))
         for i in range(n):
             j = k * n + i
-            drop = _pedestal_drop(c, j * c.tick)
+            drop = float(scene.pedestal_drop(j * c.tick, xp=np))
             if drop > AWAY:  # sinking (afterwards they stay away)
                 for e in range(N):
                     scene.c_pedestals(models[e], field_list[e], drop)

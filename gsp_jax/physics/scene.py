@@ -157,11 +157,12 @@ class Scene:
         return EpisodeFields(mass=episode.mass, inertia=episode.inertia, com=episode.com,
                              friction=jnp.asarray(episode.friction, jnp.float32), pedestal_pos=jnp.stack(ped))
 
-    def pedestal_drop(self, time) -> jax.Array:
+    def pedestal_drop(self, time, xp=jnp) -> jax.Array:
         """How far [m] (<= 0) the pedestals have sunk at `time`: in place for the first segment, then sinking at
-        `pedestal_speed`, so the fingers take the tool's weight over a few tens of milliseconds."""
-        c = self.config
-        return -jnp.minimum(c.pedestal_speed * jnp.maximum(time - c.segment, 0.0), -AWAY)
+        `pedestal_speed`, so the fingers take the tool's weight over a few tens of milliseconds. float32; `xp` is
+        jax.numpy (traceable) or numpy (the same value without a JAX dispatch: the C backend asks every tick)."""
+        c, f32 = self.config, xp.float32
+        return -xp.minimum(f32(c.pedestal_speed) * xp.maximum(f32(time - c.segment), f32(0.0)), f32(-AWAY))
 
     @staticmethod
     def pedestal_positions(fields: EpisodeFields, drop):

@@ -5,8 +5,10 @@ For each policy, the time to plan and run one unseen episode through the surroga
 planner would: DP baseline and RL act per step (a sequence lookup, one network call) and step the surrogate;
 L1 and L2 first build the episode's table (`--lookahead cached`, the default), then at every step search from
 the surrogate's state with the tree's interior and rollouts as lookups in it (`continuous`: all in the
-surrogate); DP optimal first builds the episode's whole table and backs it up, then runs its policy the same
-way. Compilation (once per program, reused for every later episode of the same length) is shown apart from the
+surrogate); DP optimal first builds the episode's whole table and backs it up, then runs its policy in that
+table: from its start the surrogate visits only the table's discrete states, so the table steps the episode
+exactly as the surrogate would (`tests/test_env.py` checks the two step for step) and the surrogate's 16 steps would
+recompute what the table holds. Compilation (once per program, reused for every later episode of the same length) is shown apart from the
 warm time (fastest of `--repeats` calls). With `--batch N`, also the time per episode when N unseen episodes are
 planned in one vmapped call. Writes results/table1/<platform>.json; prints the table, beside the paper's, last.
 """
@@ -37,10 +39,11 @@ def planner(ctx: evaluation.Context, name: str, cached: bool = True):
     """episode -> return for policy `name`, planned online on the surrogate. With `cached`, L1 and L2 first
     build the unseen episode's table (as DP optimal does) and search below the root by lookups in it."""
     sur = ctx.surrogate
-    if name == "dp-opt":  # solve the unseen episode's whole table, then run its policy like the others
+    if name == "dp-opt":  # solve the unseen episode's whole table, then run its policy in that table
         def plan(ep):
-            _, sol = dp.solve(sur, ep)
-            return lookahead.rollout(sur, policies.TablePolicy(sol.policy), sur.reset(ep))[0]
+            table, sol = dp.solve(sur, ep)
+            model = TableModel(table, sur.space)  # from its start the surrogate only visits the table's states
+            return lookahead.rollout(model, policies.TablePolicy(sol.policy), model.reset(ep))[0]
         return plan
     policy, _ = evaluation.make(ctx, name, cached=False)
     if cached and name in evaluation.LOOKAHEAD_DEPTH:  # the unseen episode's table is built inside the timed call

@@ -298,3 +298,16 @@ def test_bench_latency_times_the_planners_own_decisions(sur, solved, network):
     np.testing.assert_allclose(l1["returns"][0], float(ret), atol=tol.REWARD_ATOL * 6)
     assert opt["decisions"] == int(np.sum(sols.alive[0])) and l1["decisions"] <= 6
     assert 0 < opt["decision_median_s"] <= opt["decision_p99_s"] and opt["setup_median_s"] > 0
+
+
+def test_table1_dp_optimal_earns_its_dp_optimum_by_replaying_its_own_table(sur, solved, network):
+    """`table1`'s DP optimal solves the unseen episode inside the timed call and runs its policy in that table
+    (from its start the surrogate visits only the table's states: `test_env` checks the two step for step): the
+    episode earns exactly the DP optimum of the episode."""
+    from experiments import evaluation, table1
+
+    eps, tables, sols = solved
+    one = jax.tree.map(lambda x: x[:1], (eps, tables, sols))
+    ctx = evaluation.Context(sur, "test", ["e0"], *one, sols.actions[0], network, "x")
+    ret = jax.jit(table1.planner(ctx, "dp-opt"))(_pick(eps, 0))
+    np.testing.assert_allclose(float(ret), float(sols.ret[0]), atol=tol.REWARD_ATOL * 6)

@@ -9,6 +9,7 @@ problems, so it is not trustworthy as a reference at 1e-3).
 from __future__ import annotations
 
 import functools
+import itertools
 import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
@@ -24,6 +25,8 @@ from scipy.optimize import nnls  # noqa: E402
 from gsp_jax import wrench  # noqa: E402
 
 CFG = wrench.WrenchConfig()
+# both methods run to convergence: Newton at its default, projected gradient with 10x its old default iterations
+CONVERGED = (CFG, wrench.WrenchConfig(method="apg", iterations=1500))
 L, RHO = CFG.torque_length, CFG.force_penalty
 S = np.diag([1.0, 1.0, 1.0, 1.0 / L, 1.0 / L, 1.0 / L])
 S2 = np.diag(S) ** 2
@@ -217,6 +220,38 @@ def test_project_cone_batched_with_broadcast_mu_matches_single():
     np.testing.assert_allclose(out, ref, rtol=1e-6, atol=1e-6)
 
 
+@settings(max_examples=100, deadline=None)
+@given(cone_case())
+def test_cone_jacobian_matches_finite_differences_of_the_projection(case):
+    """The Newton solve's closed-form Jacobian of the projection equals central differences of `project_cone` in
+    float64 (away from the two kinks, the cone's and its polar's boundary, where the projection is not
+    differentiable)."""
+    f, n, mu, _ = case
+    f64, n64, mu64 = f.astype(np.float64), n.astype(np.float64), float(mu)
+    n64 /= np.linalg.norm(n64)  # unit in float64 (float32's unit normal is off by ~1e-8)
+    fn = f64 @ n64
+    ft = np.linalg.norm(f64 - fn * n64)
+    scale = np.linalg.norm(f64)
+    assume(abs(ft - mu64 * fn) > 1e-2 * scale and abs(mu64 * ft + fn) > 1e-2 * scale and ft > 1e-2 * scale)
+    with jax.enable_x64(True):
+        jac = np.asarray(wrench.cone_jacobian(jnp.asarray(f64), jnp.asarray(n64), jnp.asarray(mu64)))
+        eps = 1e-6 * scale
+        fd = np.stack([
+            (np.asarray(wrench.project_cone(jnp.asarray(f64 + eps * e), jnp.asarray(n64), mu64))
+             - np.asarray(wrench.project_cone(jnp.asarray(f64 - eps * e), jnp.asarray(n64), mu64))) / (2 * eps)
+            for e in np.eye(3)
+        ], axis=1)
+    np.testing.assert_allclose(jac, fd, atol=1e-6)
+    np.testing.assert_allclose(jac, jac.T, atol=1e-12)  # symmetric (a projection onto a convex set)
+    assert np.all(np.linalg.eigvalsh(jac) >= -1e-9) and np.all(np.linalg.eigvalsh(jac) <= 1 + 1e-9)
+
+
+def test_solve_rejects_an_unknown_method():
+    p, n, a, mu, w, c = _random_problem(np.random.default_rng(1), 3)
+    with pytest.raises(ValueError, match="WrenchConfig.method.*'lbfgs'"):
+        wrench.solve(*_as_jax((p, n, a, mu, w, c)), wrench.WrenchConfig(method="lbfgs"))
+
+
 # ------------------------------------------------------------------------------------------ grasp_matrix
 @pytest.mark.parametrize("k", [1, 2, 5])
 def test_grasp_matrix_gives_net_force_and_torque(k):
@@ -276,9 +311,10 @@ def test_solve_with_a_preferred_grip_and_a_warm_start_matches_conic_reference(sc
     prefer = 8.0 * n
     lo, _ = _polyhedral_optimum(p, n, a, mu, w, c, outer=True, prefer=prefer)
     hi, f_ref = _polyhedral_optimum(p, n, a, mu, w, c, outer=False, prefer=prefer)
-    cfg = wrench.WrenchConfig(iterations=1500)
     jp = jnp.asarray(prefer, jnp.float32)
-    for init in (None, jnp.asarray(np.random.default_rng(i).normal(size=p.shape) * 5.0, jnp.float32)):
+    for cfg, init in itertools.product(
+        CONVERGED, (None, jnp.asarray(np.random.default_rng(i).normal(size=p.shape) * 5.0, jnp.float32))
+    ):
         res = wrench.solve(*_as_jax(prob), cfg, init, jp)
         forces = np.asarray(res.forces, np.float64)
         r = _grasp_matrix_np(p, c) @ forces.ravel() - w
@@ -302,7 +338,12 @@ def test_solve_with_a_minimum_grip_matches_the_shifted_conic_reference(scipy_pro
     shifted = w - _grasp_matrix_np(p, c) @ f0.ravel()
     lo, _ = _polyhedral_optimum(p, n, a, mu, shifted, c, outer=True)
     hi, g_ref = _polyhedral_optimum(p, n, a, mu, shifted, c, outer=False)
-    cfg = wrench.WrenchConfig(iterations=1500)
+    for cfg in CONVERGED:
+        _check_minimum_grip(prob, cfg, grip, f0, lo, hi, g_ref)
+
+
+def _check_minimum_grip(prob, cfg, grip, f0, lo, hi, g_ref):
+    p, n, a, mu, w, c = _as_f64(prob)
     res = wrench.solve(*_as_jax(prob), cfg, grip=grip)
     err = float(res.error)
     assert lo * (1 - 2e-3) - 1e-6 <= err <= hi * (1 + 2e-3) + 1e-6, (err, lo, hi)
@@ -317,21 +358,22 @@ def test_solve_with_a_minimum_grip_matches_the_shifted_conic_reference(scipy_pro
     warm = wrench.solve(*_as_jax(prob), cfg, res.forces, grip=grip)
     np.testing.assert_allclose(np.asarray(warm.forces), np.asarray(res.forces),
                                atol=1e-3 * max(np.abs(forces).max(), 1.0))
-    plain, zero = wrench.solve(*_as_jax(prob)), wrench.solve(*_as_jax(prob), grip=0.0)
+    plain, zero = wrench.solve(*_as_jax(prob), cfg), wrench.solve(*_as_jax(prob), cfg, grip=0.0)
     jax.tree.map(lambda x, y: np.testing.assert_array_equal(np.asarray(x), np.asarray(y)), plain, zero)
 
 
 def test_solve_batch_accuracy_against_conic_reference():
     """A wider sweep, vmapped: 48 random 5-contact problems (some contacts inactive, mu 0.3 .. 1.2).
 
-    With the default 150 iterations the objective gap stays below 1e-4 of the problem's own scale |S w|^2 (it
-    can exceed 1e-3 *relative* on problems whose optimum is tiny, see the report); with more iterations the
-    solve converges to the exact optimum at 1e-3 relative."""
+    The default Newton solve reaches the exact optimum at 1e-3 relative. Projected gradient with 150 iterations
+    (the default before Newton) keeps the objective gap below 1e-4 of the problem's own scale |S w|^2 (it can
+    exceed 1e-3 *relative* on problems whose optimum is tiny); with 600 it reaches 1e-3 relative too."""
     rng = np.random.default_rng(99)
     probs = [_random_problem(rng, 5) for _ in range(48)]
     batch = [jnp.asarray(np.stack(x)) for x in zip(*probs)]
-    e150 = np.asarray(_vsolver(CFG)(*batch).error, np.float64)
-    e600 = np.asarray(_vsolver(wrench.WrenchConfig(iterations=600))(*batch).error, np.float64)
+    e_newton = np.asarray(_vsolver(CFG)(*batch).error, np.float64)
+    e150 = np.asarray(_vsolver(wrench.WrenchConfig(method="apg", iterations=150))(*batch).error, np.float64)
+    e600 = np.asarray(_vsolver(wrench.WrenchConfig(method="apg", iterations=600))(*batch).error, np.float64)
     for j, prob in enumerate(probs):
         p, n, a, mu, w, c = _as_f64(prob)
         lo, _ = _polyhedral_optimum(p, n, a, mu, w, c, outer=True, m=256)
@@ -339,6 +381,7 @@ def test_solve_batch_accuracy_against_conic_reference():
         sw2 = np.sum((S @ w) ** 2)
         assert lo - 1e-4 * sw2 <= e150[j] <= hi + 1e-4 * sw2, (j, e150[j], lo, hi, sw2)
         assert lo * (1 - 1e-3) <= e600[j] <= hi * (1 + 1e-3), (j, e600[j], lo, hi)
+        assert lo * (1 - 1e-3) <= e_newton[j] <= hi * (1 + 1e-3), (j, e_newton[j], lo, hi)
 
 
 def test_solve_unmet_residual_and_inactive_contacts():
@@ -408,8 +451,12 @@ def test_grad_of_wrench_error_matches_finite_differences(grad_problems, i):
 def test_grad_of_converged_error_matches_envelope_theorem(grad_problems):
     """At the optimum the constraints do not depend on w or on the points, so dE*/dw = -2 S^2 r and
     dE*/dp_k = f_k x (2 r_tau / L^2) (r = G f - w): an analytic reference for the unrolled gradient (with
-    iterations enough to converge the derivative of the unrolled map too)."""
-    cfg = wrench.WrenchConfig(iterations=600)
+    iterations enough to converge the derivative of the unrolled map too), for both methods."""
+    for cfg in CONVERGED:
+        _check_envelope(grad_problems, cfg)
+
+
+def _check_envelope(grad_problems, cfg):
 
     def err(p, n, a, mu, w, c):
         return wrench.solve(p, n, a, mu, w, c, cfg).error

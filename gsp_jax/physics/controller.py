@@ -136,7 +136,7 @@ class Controller:
         self.is_tip = np.array([n.endswith("distal") for n in hand.link_names])  # (L,) the finger's parking link
         radius = hand.link_radius[:, None, None]
         self.targets_tool = (hand.option_pos - radius * hand.option_normal).astype(np.float32)  # (L, K, 3)
-        self.wrench_config = wrench.WrenchConfig(iterations=config.force_iterations)
+        self.wrench_config = wrench.WrenchConfig(method="apg", iterations=config.force_iterations)
 
     # ----------------------------------------------------------------------------------------- geometry
     def _frame(self, obs: Observation):

@@ -147,9 +147,14 @@ def _solve(points, normals, active, mu, wrench, center, cfg, init=None, prefer=N
     target = 0.0 if prefer is None else jnp.asarray(prefer, dtype).reshape(-1) * jnp.repeat(mask[:, 0], 3)
     x0 = jnp.zeros(3 * k, dtype) if init is None else project(jnp.asarray(init, dtype).reshape(-1) - base)
     (x, _), _ = jax.lax.scan(iteration, (x0, x0), None, length=cfg.iterations, unroll=cfg.unroll)
+    return _result(a, b, x, base, scale, wrench, rho)
+
+
+def _result(a, b, x, base, scale, wrench, rho) -> WrenchResult:
+    """The result of forces x (3K,) beyond the grip `base` (3K,), for the scaled problem (a (6, 3K), b (6,))."""
     res_scaled = a @ x - b
     return WrenchResult(
-        forces=(x + base).reshape(k, 3),
+        forces=(x + base).reshape(-1, 3),
         residual=res_scaled / scale,
         error=jnp.sum(res_scaled**2) + rho * jnp.sum(x**2),
         unmet=jnp.sqrt(jnp.sum(res_scaled**2)) / jnp.sqrt(jnp.sum((scale * wrench) ** 2) + 1e-12),
@@ -228,13 +233,7 @@ def _solve_newton(points, normals, active, mu, wrench, center, cfg, init=None, p
     x0 = primal(y0)
     (y, x, _), _ = jax.lax.scan(iteration, (y0, x0, dual(y0, x0)[0]), None, length=cfg.newton_iterations,
                                 unroll=cfg.unroll)
-    res_scaled = a @ x - b
-    return WrenchResult(
-        forces=(x + base).reshape(k, 3),
-        residual=res_scaled / scale,
-        error=jnp.sum(res_scaled**2) + rho * jnp.sum(x**2),
-        unmet=jnp.sqrt(jnp.sum(res_scaled**2)) / jnp.sqrt(jnp.sum((scale * wrench) ** 2) + 1e-12),
-    )
+    return _result(a, b, x, base, scale, wrench, rho)
 
 
 def least_friction(points, normals, wrench, center, facets: int = 64, tol: float = 1e-4,

@@ -5,7 +5,8 @@ For each policy, the time to plan and run one unseen episode through the surroga
 planner would: DP baseline and RL act per step (a sequence lookup, one network call) and step the surrogate;
 L1 and L2 first build the episode's table (`--lookahead cached`, the default), then at every step search from
 the surrogate's state with the tree's interior and rollouts as lookups in it (`continuous`: all in the
-surrogate); DP optimal first builds the episode's whole table and backs it up, then runs its policy in that
+surrogate), and move the episode on to the searched root child of the chosen action (the search has already
+stepped the surrogate with every action: `lookahead.rollout_planned`); DP optimal first builds the episode's whole table and backs it up, then runs its policy in that
 table: from its start the surrogate visits only the table's discrete states, so the table steps the episode
 exactly as the surrogate would (`tests/test_env.py` checks the two step for step) and the surrogate's 16 steps would
 recompute what the table holds. Compilation (once per program, reused for every later episode of the same length) is shown apart from the
@@ -46,10 +47,12 @@ def planner(ctx: evaluation.Context, name: str, cached: bool = True):
             return lookahead.rollout(model, policies.TablePolicy(sol.policy), model.reset(ep))[0]
         return plan
     policy, _ = evaluation.make(ctx, name, cached=False)
-    if cached and name in evaluation.LOOKAHEAD_DEPTH:  # the unseen episode's table is built inside the timed call
-        def plan(ep):
-            inner = TableModel(dp.build_table(sur, ep), sur.space)
-            return lookahead.rollout(sur, policy.replace(inner=inner), sur.reset(ep))[0]
+    if name in evaluation.LOOKAHEAD_DEPTH:  # each decision's search has stepped every action: the episode moves on
+        def plan(ep):                       # to its child (`rollout_planned`) instead of stepping the surrogate again
+            if cached:  # the unseen episode's table is built inside the timed call
+                return lookahead.rollout_planned(policy.replace(inner=TableModel(dp.build_table(sur, ep), sur.space)),
+                                                 sur.reset(ep))[0]
+            return lookahead.rollout_planned(policy, sur.reset(ep))[0]
         return plan
     return lambda ep: lookahead.rollout(sur, policy, sur.reset(ep))[0]
 

@@ -3,6 +3,7 @@
     plan = lookahead.search(model, state, base, depth=2)            # Plan: action, q (A,), best path
     policy = lookahead.Lookahead(base, model, depth=1)              # act(state), like every other policy
     ret, final = lookahead.rollout(model, base, state)               # the base policy to the episode's end
+    ret, final = lookahead.rollout_planned(policy, state)             # policy's episode, stepped by its own search
 
 From `state` the search expands the complete tree of depth l over the A actions: every action path
 (a_1 .. a_l) is scored by the sum of its l rewards plus its leaf's rollout value, the return of the base policy
@@ -48,6 +49,8 @@ class Plan:
     q: jax.Array  # (A,) best path score under each first action
     path: jax.Array  # (l,) int32, the best action path (path[0] = action)
     value: jax.Array  # () q[action], the search's estimate of the return from `state`
+    child: State  # the root's child under `action`: model.step(state, action)'s state, computed by the search
+    reward: jax.Array  # () that step's reward
 
 
 def rollout(model, policy, state: State, horizon: int | None = None, value: Value | None = None):
@@ -71,6 +74,27 @@ def rollout(model, policy, state: State, horizon: int | None = None, value: Valu
     return ret, final
 
 
+def rollout_planned(policy: "Lookahead", state: State, horizon: int | None = None):
+    """`rollout(policy.model, policy, state, horizon)` without stepping `policy.model` again: each decision's
+    search has already computed `model.step(state, action)` for every action at its root, so the episode moves on
+    to the plan's `child` and earns its `reward`. The same transitions (the child comes from the root's vmapped
+    step, so in float32 its last bits can differ from a single step's); one model step per decision fewer.
+    Returns (sum of rewards, final state)."""
+    steps = state.episode.waypoints.shape[-2] if horizon is None else horizon
+
+    def cond(carry):
+        i, s, _ = carry
+        return (i < steps) & ~s.done
+
+    def body(carry):
+        i, s, ret = carry
+        plan = policy.plan(s)
+        return i + 1, plan.child, ret + plan.reward
+
+    _, final, ret = jax.lax.while_loop(cond, body, (jnp.int32(0), state, jnp.zeros((), jnp.float32)))
+    return ret, final
+
+
 def search(model, state: State, base, depth: int = 1, horizon: int | None = None, value: Value | None = None,
            inner=None) -> Plan:
     """Algorithm 2 from one state: the best first action of the depth-`depth` tree with rollouts of `base`
@@ -84,7 +108,7 @@ def search(model, state: State, base, depth: int = 1, horizon: int | None = None
     space: GraspSpace = model.space
     n_a = space.n_actions
     inner = model if inner is None else inner
-    leaves, path_reward = _expand(model, state, depth, n_a, inner)  # leaves: (A^l, ...); path_reward (A^l,)
+    (children, child_reward), (leaves, path_reward) = _expand(model, state, depth, n_a, inner)  # (A, ...), (A^l, ...)
 
     # One rollout per distinct grasp among the live leaves (all at waypoint t + l); the paths that ended early
     # (frozen at an earlier waypoint) share one extra key and are scored 0 beyond their rewards.
@@ -101,19 +125,20 @@ def search(model, state: State, base, depth: int = 1, horizon: int | None = None
     best = jnp.argmax(scores.reshape(-1)).astype(jnp.int32)
     path = jnp.stack([(best // n_a ** (depth - 1 - k)) % n_a for k in range(depth)]).astype(jnp.int32)
     action = path[0]
-    return Plan(action=action, q=q, path=path, value=q[action])
+    child = jax.tree.map(lambda x: x[action], children)
+    return Plan(action=action, q=q, path=path, value=q[action], child=child, reward=child_reward[action])
 
 
 def _expand(model, state: State, depth: int, n_a: int, inner):
-    """Every action path of length `depth` from `state`: the leaf states (A^depth leading) and path rewards. The
-    first step in `model`, the deeper ones in `inner`."""
+    """Every action path of length `depth` from `state`: (children (A leading), their rewards (A,)) and (the leaf
+    states (A^depth leading), path rewards (A^depth,)). The first step in `model`, the deeper ones in `inner`."""
     actions = jnp.arange(n_a, dtype=jnp.int32)
     children, rewards, _ = jax.vmap(model.step, (None, 0))(state, actions)
     if depth == 1:
-        return children, rewards
-    leaves, sub = jax.vmap(lambda s: _expand(inner, s, depth - 1, n_a, inner))(children)  # (A, A^(d-1), ...)
+        return (children, rewards), (children, rewards)
+    _, (leaves, sub) = jax.vmap(lambda s: _expand(inner, s, depth - 1, n_a, inner))(children)  # (A, A^(d-1), ...)
     flat = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), leaves)
-    return flat, (rewards[:, None] + sub).reshape(-1)
+    return (children, rewards), (flat, (rewards[:, None] + sub).reshape(-1))
 
 
 _BALL_CACHE: dict = {}

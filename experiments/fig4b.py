@@ -5,13 +5,17 @@ on the simulated state (L1 and L2 search the surrogate from it), the contact con
 after the last waypoint the episode's torque is applied; the score is the mean tool angle error under it, 180 deg
 when the tool fell or touched the table. All episodes of a policy run in one batch. Each policy's result is saved
 as soon as it is done (results/fig4b/<policy>.json) and reused when the command runs again with the same episodes,
-policy parameters and library sources (`--fresh` to redo), so an interrupted run loses at most one policy. Writes fig4b.png; prints the table last.
+policy parameters and library sources (`--fresh` to redo), so an interrupted run loses only the policies in flight.
+In C MuJoCo the policies run side by side in threads (`--jobs`, default all): MuJoCo steps and XLA compiles and runs
+without Python's lock, so one policy's physics overlaps another's compilation. Writes fig4b.png; prints the table
+last.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import numpy as np
@@ -29,34 +33,52 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--policy-dir", default=None)
     p.add_argument("--fresh", action="store_true", help="ignore saved per-policy results")
     p.add_argument("--backend", default="mjx", choices=physics.BACKENDS, help="mjx (one XLA batch) or c (C MuJoCo)")
+    p.add_argument("--jobs", type=int, default=None,
+                   help="policies run side by side (threads); default: all of them in C MuJoCo, 1 in MJX")
     evaluation.add_lookahead_argument(p)
 
 
-def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str = "mjx", cached: bool = True) -> dict:
+def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str = "mjx", cached: bool = True,
+        jobs: int | None = None) -> dict:
+    """Fig. 4b's result per policy (saved results reused); `jobs` policies at a time (default as `--jobs`)."""
     phys = physics.Physics(ctx.surrogate)
     stamp = f"{evaluation.fingerprint(ctx)}-{backend}" + ("" if cached else "-continuous")
-    results = {}
+    jobs = (len(names) if backend == "c" else 1) if jobs is None else jobs
+    if jobs < 1:
+        raise ValueError(f"jobs must be >= 1, got {jobs}")
+    results, todo = {}, []
     for name in names:
         path = out / f"{name}.json"
-        if path.exists() and not fresh:
-            saved = json.loads(path.read_text())
-            if saved.get("fingerprint") == stamp:
-                results[name] = saved
-                print(f"  {name:8s} (saved) mean angle error {saved['mean_deg']:.1f} deg", flush=True)
-                continue
+        saved = json.loads(path.read_text()) if path.exists() and not fresh else {}
+        if saved.get("fingerprint") == stamp:
+            results[name] = saved
+            print(f"  {name:8s} (saved) mean angle error {saved['mean_deg']:.1f} deg", flush=True)
+        else:
+            todo.append(name)
+
+    def simulate(name):
         policy, axis = evaluation.make(ctx, name, cached=cached)
         t0 = time.perf_counter()
         res = jax.block_until_ready(phys.simulate_batch(policy, ctx.batch, axis, backend=backend))
         wall = time.perf_counter() - t0
         mean, ci = stats.mean_ci(res.angle_error)
         rows = result_rows(ctx.names, res)
-        results[name] = dict(policy=name, episodes=ctx.names, rl_policy=ctx.rl_source, mean_deg=mean, ci95_deg=ci,
-                             falls=int(np.sum(res.fell)), held=[r for r in rows if not r["fell"]], per_episode=rows,
-                             wall_s_incl_compile=wall, platform=jax.default_backend(), backend=backend,
-                             fingerprint=stamp)
-        path.write_text(json.dumps(results[name], indent=1))
-        print(f"  {name:8s} mean angle error {mean:.1f} deg (+-{ci:.1f}), {results[name]['falls']}/{len(ctx.names)} "
+        result = dict(policy=name, episodes=ctx.names, rl_policy=ctx.rl_source, mean_deg=mean, ci95_deg=ci,
+                      falls=int(np.sum(res.fell)), held=[r for r in rows if not r["fell"]], per_episode=rows,
+                      wall_s_incl_compile=wall, jobs=jobs, platform=jax.default_backend(), backend=backend,
+                      fingerprint=stamp)
+        (out / f"{name}.json").write_text(json.dumps(result, indent=1))
+        print(f"  {name:8s} mean angle error {mean:.1f} deg (+-{ci:.1f}), {result['falls']}/{len(ctx.names)} "
               f"fell ({wall:.0f} s incl. compile)", flush=True)
+        return result
+
+    t0 = time.perf_counter()
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
+        done = dict(zip(todo, pool.map(simulate, todo)))
+    if todo:
+        print(f"  {len(todo)} policies in {time.perf_counter() - t0:.0f} s ({jobs} at a time, compile included)",
+              flush=True)
+    results = {name: results.get(name) or done[name] for name in names}
     plot(results, len(ctx.names), out / "fig4b.png")
     return results
 
@@ -79,6 +101,6 @@ def main(args: argparse.Namespace) -> None:
     print(f"Fig. 4b: {len(ctx.names)} episodes of '{args.set}' in {args.backend} (JAX on {jax.default_backend()}), "
           f"RL policy {ctx.rl_source}", flush=True)
     out = results_dir("fig4b")
-    results = run(ctx, args.policies, out, args.fresh, args.backend, cached=args.lookahead == "cached")
+    results = run(ctx, args.policies, out, args.fresh, args.backend, cached=args.lookahead == "cached", jobs=args.jobs)
     print(f"wrote {out}/<policy>.json, {out / 'fig4b.png'}")
     print_result(results)

@@ -10,6 +10,8 @@ episode.
 """
 from __future__ import annotations
 
+import threading
+
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -18,18 +20,17 @@ import numpy as np
 from gsp_jax.physics.scene import AWAY
 from gsp_jax.scenario import Episode
 
+_LOCK = threading.Lock()  # policies may run side by side in threads (`experiments fig4b --jobs`)
+
 
 def _compiled(phys, policy_axis):
-    key = ("c", policy_axis)
-    if key not in phys._jitted:
+    """(start, decide, tick, check, episode_fields), jitted once per `Physics`: only `decide` depends on how the
+    policy is batched, so every policy shares the others' compiled programs."""
+    if "c" not in phys._jitted:
         scene = phys.scene
 
         def observe(raw):
             return jax.vmap(scene.observe)(*raw)
-
-        def decide(policy, cs, raw, grasp, episodes, k):
-            return jax.vmap(phys.decide, in_axes=(policy_axis, 0, 0, 0, 0, None))(policy, cs, observe(raw), grasp,
-                                                                                  episodes, k)
 
         def tick(cs, raw, episodes, j):
             obs = observe(raw)
@@ -40,9 +41,35 @@ def _compiled(phys, policy_axis):
         def check(raw, episodes, j):
             return jax.vmap(phys.check, in_axes=(0, 0, None))(observe(raw), episodes, j)
 
-        phys._jitted[key] = (jax.jit(jax.vmap(phys.start)), jax.jit(decide), jax.jit(tick), jax.jit(check),
-                             jax.jit(jax.vmap(scene.episode_fields)))
-    return phys._jitted[key]
+        phys._jitted["c"] = tuple(map(_compiled_once, (jax.jit(jax.vmap(phys.start)), jax.jit(tick), jax.jit(check),
+                                                       jax.jit(jax.vmap(scene.episode_fields)))))
+    key = ("c-decide", policy_axis)
+    if key not in phys._jitted:
+        observe = lambda raw: jax.vmap(phys.scene.observe)(*raw)  # noqa: E731
+
+        def decide(policy, cs, raw, grasp, episodes, k):
+            return jax.vmap(phys.decide, in_axes=(policy_axis, 0, 0, 0, 0, None))(policy, cs, observe(raw), grasp,
+                                                                                  episodes, k)
+
+        phys._jitted[key] = jax.jit(decide)
+    start, tick, check, episode_fields = phys._jitted["c"]
+    return start, phys._jitted[key], tick, check, episode_fields
+
+
+def _compiled_once(fn):
+    """`fn` (jitted) whose first call runs in one thread at a time: policies simulated side by side in threads
+    wait for its one compilation instead of each compiling it."""
+    lock, warm = threading.Lock(), []
+
+    def call(*args):
+        if not warm:
+            with lock:
+                out = jax.block_until_ready(fn(*args))
+                warm.append(True)
+            return out
+        return fn(*args)
+
+    return call
 
 
 def simulate(phys, policy, episodes: Episode, policy_axis: int | None = None, progress: bool = False):
@@ -103,8 +130,9 @@ def simulate(phys, policy, episodes: Episode, policy_axis: int | None = None, pr
             j = k * n + i
             drop = float(scene.pedestal_drop(j * c.tick, xp=np))
             if drop > AWAY:  # sinking (afterwards they stay away)
-                for e in range(N):
-                    scene.c_pedestals(models[e], field_list[e], drop)
+                pedestals = scene.pedestal_positions(fields, drop)  # (N, P, 3)
+                for e in np.flatnonzero(~fell):
+                    models[e].geom_pos[scene.pedestal_geoms] = pedestals[e]
             status, ctrl, ext, cs = tick(cs, state, episodes_cpu, j)
             if j > 0:
                 record(j - 1, status, state[0])

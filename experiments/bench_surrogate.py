@@ -72,7 +72,7 @@ def main(args: argparse.Namespace) -> None:
     print(f"wrote {out}")
     print()
     print(table(
-        ["mode", "steps", "wall [s]", "steps/s", "288x16x16 table [s]"],
+        ["mode", "steps", "wall [s]", "steps/s", f"{n_g}x{n_a}x{ep.n_steps} table by steps [s]"],
         [
             ["vmapped (one call)", n_pairs, t_b, f"{rate_b:,.0f}", f"{t_b * ep.n_steps:.2f}"],
             ["one at a time (Gym loop)", len(idx), t_loop, f"{rate_l:,.1f}", f"{n_pairs * ep.n_steps / rate_l:.1f} (extrapolated)"],

@@ -43,9 +43,9 @@ def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str =
     """Fig. 4b's result per policy (saved results reused); `jobs` policies at a time (default as `--jobs`)."""
     phys = physics.Physics(ctx.surrogate)
     stamp = f"{evaluation.fingerprint(ctx)}-{backend}" + ("" if cached else "-continuous")
-    jobs = (len(names) if backend == "c" else 1) if jobs is None else jobs
+    jobs = (max(1, len(names)) if backend == "c" else 1) if jobs is None else jobs
     if jobs < 1:
-        raise ValueError(f"jobs must be >= 1, got {jobs}")
+        raise ValueError(f"jobs (--jobs) must be >= 1, got {jobs}")
     results, todo = {}, []
     for name in names:
         path = out / f"{name}.json"

@@ -57,18 +57,7 @@ def rollout(model, policy, state: State, horizon: int | None = None, value: Valu
     """Run `policy` from `state` for `horizon` steps (None: until the episode ends) in `model`; return
     (sum of rewards [+ value(final) if the episode has not ended], final state). A `lax.while_loop`: under
     `vmap` it stops when every rollout of the batch has ended."""
-    steps = state.episode.waypoints.shape[-2] if horizon is None else horizon
-
-    def cond(carry):
-        i, s, _ = carry
-        return (i < steps) & ~s.done
-
-    def body(carry):
-        i, s, ret = carry
-        s, reward, _ = model.step(s, policy.act(s))
-        return i + 1, s, ret + reward
-
-    _, final, ret = jax.lax.while_loop(cond, body, (jnp.int32(0), state, jnp.zeros((), jnp.float32)))
+    ret, final = _run(lambda s: model.step(s, policy.act(s))[:2], state, horizon)
     if value is not None:
         ret = ret + jnp.where(final.done, 0.0, value(final))
     return ret, final
@@ -80,6 +69,17 @@ def rollout_planned(policy: "Lookahead", state: State, horizon: int | None = Non
     to the plan's `child` and earns its `reward`. The same transitions (the child comes from the root's vmapped
     step, so in float32 its last bits can differ from a single step's); one model step per decision fewer.
     Returns (sum of rewards, final state)."""
+
+    def transition(s):
+        plan = policy.plan(s)
+        return plan.child, plan.reward
+
+    return _run(transition, state, horizon)
+
+
+def _run(transition, state: State, horizon: int | None):
+    """(sum of rewards, final state) of `transition(s) -> (next state, reward)` from `state` for `horizon` steps
+    (None: the episode's length) or until the episode ends."""
     steps = state.episode.waypoints.shape[-2] if horizon is None else horizon
 
     def cond(carry):
@@ -88,8 +88,8 @@ def rollout_planned(policy: "Lookahead", state: State, horizon: int | None = Non
 
     def body(carry):
         i, s, ret = carry
-        plan = policy.plan(s)
-        return i + 1, plan.child, ret + plan.reward
+        s, reward = transition(s)
+        return i + 1, s, ret + reward
 
     _, final, ret = jax.lax.while_loop(cond, body, (jnp.int32(0), state, jnp.zeros((), jnp.float32)))
     return ret, final

@@ -1,0 +1,35 @@
+"""`python -m experiments`'s set-up before JAX starts: XLA's GPU autotuner is off for every command but training's,
+and a level the user set in XLA_FLAGS wins."""
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from experiments import __main__ as cli
+
+LEVEL = "--xla_gpu_autotune_level"
+
+
+@pytest.mark.parametrize("command", ["fig4b", "table1", "physics", "reproduce", None])
+def test_evaluation_commands_pick_gpu_kernels_by_heuristics(monkeypatch, command):
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_max_isa=SSE4_2")
+    cli.deterministic_gpu_kernels(command)
+    assert os.environ["XLA_FLAGS"].split() == ["--xla_cpu_max_isa=SSE4_2", f"{LEVEL}=0"]
+
+
+@pytest.mark.parametrize("command", cli.AUTOTUNED)
+def test_training_keeps_the_autotuner(monkeypatch, command):
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    cli.deterministic_gpu_kernels(command)
+    assert LEVEL not in os.environ.get("XLA_FLAGS", "")
+
+
+def test_a_level_the_user_set_wins(monkeypatch):
+    monkeypatch.setenv("XLA_FLAGS", f"{LEVEL}=4")
+    cli.deterministic_gpu_kernels("fig4b")
+    assert os.environ["XLA_FLAGS"] == f"{LEVEL}=4"
+
+
+def test_every_autotuned_command_exists():
+    assert set(cli.AUTOTUNED) <= set(cli.COMMANDS)

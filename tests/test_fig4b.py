@@ -1,0 +1,51 @@
+"""Fig. 4b's runner (`experiments.fig4b.run`): policies run side by side in threads give what they give one at a
+time (C MuJoCo; the threads share one `Physics` and its compiled programs)."""
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+
+from experiments import evaluation, fig4b  # noqa: E402
+from gsp_jax import policies, scenario  # noqa: E402
+from gsp_jax.env import observation_size  # noqa: E402
+from gsp_jax.ppo import networks as nets  # noqa: E402
+
+T = 3
+
+
+def _context(sur) -> evaluation.Context:
+    """Two short evaluation episodes; DP baseline = a fixed sequence (no DP here), RL = a random-weight network."""
+    a, b = scenario.eval_set_a(), scenario.eval_set_b()
+    episodes = {"shift+4mm_-1Nm": a["shift+4mm_-1Nm"].head(T), "mass0.5m0_comy-2cm": b["mass0.5m0_comy-2cm"].head(T)}
+    networks = nets.make_networks(observation_size(sur.space, T, sur.hand.n_joints), sur.n_actions,
+                                  nets.NetworkConfig(hidden=(32, 32)))
+    rl = policies.NetworkPolicy(networks.init(jax.random.PRNGKey(5)), networks, sur.space)
+    sequence = jnp.array([3, 0, 5], jnp.int32)  # a grasp change, the null action, another change
+    return evaluation.Context(sur, "test", list(episodes), scenario.stack(list(episodes.values())), None, None,
+                              sequence, rl, "random weights")
+
+
+def test_policies_side_by_side_give_what_they_give_one_at_a_time(sur, tmp_path):
+    ctx = _context(sur)
+    names = ["dp-base", "rl"]
+    runs = {}
+    for jobs in (1, 2):
+        out = tmp_path / f"jobs{jobs}"
+        out.mkdir()
+        runs[jobs] = fig4b.run(ctx, names, out, fresh=True, backend="c", jobs=jobs)
+        assert sorted(p.name for p in out.glob("*.json")) == ["dp-base.json", "rl.json"]  # each policy saved
+    for name in names:
+        one, side = runs[1][name], runs[2][name]
+        assert one["jobs"] == 1 and side["jobs"] == 2
+        assert one["per_episode"] == side["per_episode"], name  # grasps, falls, errors: bit for bit
+        assert one["falls"] == side["falls"]
+    for i, row in enumerate(runs[1]["dp-base"]["per_episode"]):  # the sequence reached the physics
+        grasp, expected = ctx.batch.start_grasp[i], []
+        for action in ctx.nominal_actions:
+            grasp = sur.space.apply(grasp, action)[0]
+            expected.append(int(grasp))
+        assert row["grasps"] == expected

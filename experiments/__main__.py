@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import sys
 
 COMMANDS = {  # command -> (module, one-line help)
     "surrogate": ("experiments.surrogate_demo", "reward terms of a few meaningful grasps on one episode"),
@@ -59,8 +60,6 @@ def deterministic_gpu_kernels(command: str | None) -> None:
 
 
 def main(argv: list[str] | None = None) -> None:
-    import sys
-
     words = sys.argv[1:] if argv is None else argv
     deterministic_gpu_kernels(next((w for w in words if not w.startswith("-")), None))
     use_compilation_cache()

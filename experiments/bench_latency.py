@@ -8,8 +8,8 @@ policy's `act`). Both are timed one call at a time, warm (each program is compil
 planner's own rollouts of N evaluation episodes (default 7 x 16 = 112 decisions); the surrogate step that carries
 the episode on is timed apart. Per episode, setup + its decisions + its surrogate steps is what a controller pays
 that steps the surrogate after each decision; `table1` times one jitted call (no dispatch per call), in which L1 and
-L2 move on to their searches' own root children (`lookahead.rollout_planned`) instead of stepping again. Writes results/bench_latency/<platform>.json and
-prints median and p99 latencies beside the paper's per-episode times last.
+L2 move on to their searches' own root children (`lookahead.rollout_planned`) instead of stepping again. Writes
+results/bench_latency/<platform>.json and prints median and p99 latencies beside the paper's per-episode times last.
 """
 from __future__ import annotations
 

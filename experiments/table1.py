@@ -6,8 +6,8 @@ planner would: DP baseline and RL act per step (a sequence lookup, one network c
 L1 and L2 first build the episode's table (`--lookahead cached`, the default), then at every step search from
 the surrogate's state with the tree's interior and rollouts as lookups in it (`continuous`: all in the
 surrogate), and move the episode on to the searched root child of the chosen action (the search has already
-stepped the surrogate with every action: `lookahead.rollout_planned`); DP optimal first builds the episode's whole table and backs it up, then runs its policy in that
-table: from its start the surrogate visits only the table's discrete states, so the table steps the episode
+stepped the surrogate with every action: `lookahead.rollout_planned`); DP optimal first builds the episode's whole
+table and backs it up, then runs its policy in that table: from its start the surrogate visits only the table's discrete states, so the table steps the episode
 exactly as the surrogate would (`tests/test_env.py` checks the two step for step) and the surrogate's 16 steps would
 recompute what the table holds. Compilation (once per program, reused for every later episode of the same length) is shown apart from the
 warm time (fastest of `--repeats` calls). With `--batch N`, also the time per episode when N unseen episodes are
@@ -49,10 +49,9 @@ def planner(ctx: evaluation.Context, name: str, cached: bool = True):
     policy, _ = evaluation.make(ctx, name, cached=False)
     if name in evaluation.LOOKAHEAD_DEPTH:  # each decision's search has stepped every action: the episode moves on
         def plan(ep):                       # to its child (`rollout_planned`) instead of stepping the surrogate again
-            if cached:  # the unseen episode's table is built inside the timed call
-                return lookahead.rollout_planned(policy.replace(inner=TableModel(dp.build_table(sur, ep), sur.space)),
-                                                 sur.reset(ep))[0]
-            return lookahead.rollout_planned(policy, sur.reset(ep))[0]
+            # cached: the unseen episode's table is built inside the timed call
+            searcher = policy.replace(inner=TableModel(dp.build_table(sur, ep), sur.space)) if cached else policy
+            return lookahead.rollout_planned(searcher, sur.reset(ep))[0]
         return plan
     return lambda ep: lookahead.rollout(sur, policy, sur.reset(ep))[0]
 

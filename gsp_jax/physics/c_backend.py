@@ -25,35 +25,38 @@ _LOCK = threading.Lock()  # policies may run side by side in threads (`experimen
 
 def _compiled(phys, policy_axis):
     """(start, decide, tick, check, episode_fields), jitted once per `Physics`: only `decide` depends on how the
-    policy is batched, so every policy shares the others' compiled programs."""
-    if "c" not in phys._jitted:
-        scene = phys.scene
+    policy is batched, so every policy shares the others' compiled programs. Threads (policies run side by side)
+    take turns here, so they share one set."""
+    scene = phys.scene
 
-        def observe(raw):
-            return jax.vmap(scene.observe)(*raw)
+    def observe(raw):
+        return jax.vmap(scene.observe)(*raw)
 
-        def tick(cs, raw, episodes, j):
-            obs = observe(raw)
-            status = jax.vmap(phys.check, in_axes=(0, 0, None))(obs, episodes, j - 1)
-            ctrl, ext, cs = jax.vmap(phys.tick, in_axes=(0, 0, 0, None))(cs, obs, episodes, j)
-            return status, ctrl, ext, cs
+    with _LOCK:
+        if "c" not in phys._jitted:
 
-        def check(raw, episodes, j):
-            return jax.vmap(phys.check, in_axes=(0, 0, None))(observe(raw), episodes, j)
+            def tick(cs, raw, episodes, j):
+                obs = observe(raw)
+                status = jax.vmap(phys.check, in_axes=(0, 0, None))(obs, episodes, j - 1)
+                ctrl, ext, cs = jax.vmap(phys.tick, in_axes=(0, 0, 0, None))(cs, obs, episodes, j)
+                return status, ctrl, ext, cs
 
-        phys._jitted["c"] = tuple(map(_compiled_once, (jax.jit(jax.vmap(phys.start)), jax.jit(tick), jax.jit(check),
-                                                       jax.jit(jax.vmap(scene.episode_fields)))))
-    key = ("c-decide", policy_axis)
-    if key not in phys._jitted:
-        observe = lambda raw: jax.vmap(phys.scene.observe)(*raw)  # noqa: E731
+            def check(raw, episodes, j):
+                return jax.vmap(phys.check, in_axes=(0, 0, None))(observe(raw), episodes, j)
 
-        def decide(policy, cs, raw, grasp, episodes, k):
-            return jax.vmap(phys.decide, in_axes=(policy_axis, 0, 0, 0, 0, None))(policy, cs, observe(raw), grasp,
-                                                                                  episodes, k)
+            shared = (jax.jit(jax.vmap(phys.start)), jax.jit(tick), jax.jit(check),
+                      jax.jit(jax.vmap(scene.episode_fields)))
+            phys._jitted["c"] = tuple(map(_compiled_once, shared))
+        key = ("c-decide", policy_axis)
+        if key not in phys._jitted:
 
-        phys._jitted[key] = jax.jit(decide)
-    start, tick, check, episode_fields = phys._jitted["c"]
-    return start, phys._jitted[key], tick, check, episode_fields
+            def decide(policy, cs, raw, grasp, episodes, k):
+                return jax.vmap(phys.decide, in_axes=(policy_axis, 0, 0, 0, 0, None))(policy, cs, observe(raw), grasp,
+                                                                                      episodes, k)
+
+            phys._jitted[key] = jax.jit(decide)
+        start, tick, check, episode_fields = phys._jitted["c"]
+        return start, phys._jitted[key], tick, check, episode_fields
 
 
 def _compiled_once(fn):
@@ -130,9 +133,8 @@ def simulate(phys, policy, episodes: Episode, policy_axis: int | None = None, pr
             j = k * n + i
             drop = float(scene.pedestal_drop(j * c.tick, xp=np))
             if drop > AWAY:  # sinking (afterwards they stay away)
-                pedestals = scene.pedestal_positions(fields, drop)  # (N, P, 3)
                 for e in np.flatnonzero(~fell):
-                    models[e].geom_pos[scene.pedestal_geoms] = pedestals[e]
+                    scene.c_pedestals(models[e], field_list[e], drop)
             status, ctrl, ext, cs = tick(cs, state, episodes_cpu, j)
             if j > 0:
                 record(j - 1, status, state[0])

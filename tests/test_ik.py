@@ -231,6 +231,51 @@ def test_box_sdf_inside_the_seam_between_handle_and_head(hand):
     assert d == pytest.approx(-hand.tool_box_half[0, 2], abs=1e-4)
 
 
+def _box_sdf_float64(hand, p_tool):
+    """box_sdf's definition in numpy float64 (tool frame): min over boxes of outside distance + inside depth
+    (the outside distance regularised as sqrt(|.|^2 + 1e-12), as there: differentiable on the surface)."""
+    best = np.full(len(p_tool), np.inf)
+    for c, m, half in zip(hand.tool_box_pos, hand.tool_box_mat, hand.tool_box_half):
+        d = np.abs((p_tool - c) @ m) - half
+        outside = np.sqrt(np.sum(np.maximum(d, 0.0) ** 2, -1) + 1e-12)
+        best = np.minimum(best, outside + np.minimum(d.max(-1), 0.0))
+    return best
+
+
+def test_box_sdf_gradient_matches_central_differences_and_autodiff(hand):
+    """The closed-form gradient of `box_sdf_and_grad` against float64 central differences of the distance (an
+    independent numpy implementation) and against autodiff of the float32 distance, at points around and inside
+    the tool in a random pose; points within 10 um of a kink (equidistant faces or boxes, where the gradient is not
+    unique) are left out: there the one-sided slopes differ from the central one by O(1)."""
+    rng = np.random.default_rng(8)
+    quat = rng.normal(size=4)
+    mat = np.zeros(9)
+    mujoco.mju_quat2Mat(mat, quat / np.linalg.norm(quat))
+    mat, tool_pos = mat.reshape(3, 3), np.array([0.02, 0.01, 0.06])
+    lo = np.min(hand.tool_box_pos - hand.tool_box_half, 0) - 0.01
+    hi = np.max(hand.tool_box_pos + hand.tool_box_half, 0) + 0.01
+    p_tool = rng.uniform(lo, hi, size=(600, 3))
+    def slopes(h, one_sided=False):
+        lo_ = 0.0 if one_sided else h
+        return np.stack([(_box_sdf_float64(hand, p_tool + h * e) - _box_sdf_float64(hand, p_tool - lo_ * e)) / (h + lo_)
+                         for e in np.eye(3)], -1)
+
+    fd_local = slopes(1e-7)  # float64: truncation ~(h / distance to an edge)^2, rounding ~1e-10
+    # away from kinks the distance is smooth on a 10 um stencil: the one-sided slopes agree with the central ones
+    one_sided, central = slopes(1e-5, one_sided=True), slopes(1e-5)
+    smooth = np.all(np.abs(one_sided - central) < 0.05, -1)
+    assert smooth.sum() > 500 and np.any(_inside_any(hand, p_tool[smooth]))
+    world = jnp.asarray(tool_pos + p_tool @ mat.T, jnp.float32)
+    tp, tm = jnp.asarray(tool_pos, jnp.float32), jnp.asarray(mat, jnp.float32)
+    dist, grad = ik.box_sdf_and_grad(world, tp, tm, hand)
+    auto = jax.vmap(jax.grad(lambda x: ik.box_sdf(x[None], tp, tm, hand)[0]))(world)
+    np.testing.assert_allclose(np.asarray(dist)[smooth], _box_sdf_float64(hand, p_tool[smooth]), atol=2e-6)
+    np.testing.assert_allclose(np.asarray(grad)[smooth], (fd_local @ mat.T)[smooth], atol=1e-4)
+    np.testing.assert_allclose(np.asarray(grad)[smooth], np.asarray(auto)[smooth], atol=1e-5)
+    clear = smooth & (np.abs(np.asarray(dist)) > 1e-3)  # beyond the regularisation's reach: a distance's gradient
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(grad)[clear], axis=-1), 1.0, atol=1e-5)
+
+
 # ---------------------------------------------------------------------------- (b) reachable targets are reached
 
 
@@ -287,6 +332,38 @@ def reachable(hand, mjmodel, solve_batch):
     active, targets, qref = _reachable_single_link_problems(hand, mjmodel, 48, seed=2024)
     out = solve_batch(active, targets, np.tile(np.asarray(FAR), (len(active), 1)))
     return active, targets, qref, out
+
+
+def test_damped_step_solves_the_normal_equations_like_float64_lapack(hand, space, nominal_waypoints, random_q):
+    """Both forms of the Levenberg-Marquardt step (LAPACK's Cholesky on a CPU; the unrolled `_cholesky_solve` a
+    GPU runs, called here directly) on the IK's own normal equations at random configurations, for the damping's
+    whole range: backward error at float32 rounding (Cholesky is backward stable, whatever the conditioning), and
+    the step within float32 rounding times the condition number of numpy's float64 solve."""
+    rng = np.random.default_rng(13)
+    qs = random_q(hand, rng, 6)
+    opts = np.asarray(space.decode(rng.integers(0, space.n_grasps, size=6)))
+    tp = jnp.asarray(nominal_waypoints[5], jnp.float32)
+
+    def normal(q, options):
+        active, targets, _ = ik.grasp_targets(hand, options, tp, I3)
+        return ik._normal_equations(*ik.residuals_and_jacobian(hand, CFG, q, active, targets, tp, I3)[::-1])
+
+    jtj, jtr = jax.vmap(normal)(jnp.asarray(qs), jnp.asarray(opts))
+    for lam in (1e-9, 1e-4, 1e-1):
+        eye = jnp.eye(hand.n_joints, dtype=jnp.float32)
+        steps = {"lapack": jax.vmap(ik._damped_step, (0, 0, None))(jtj, jtr, jnp.float32(lam)),
+                 "unrolled": jax.vmap(ik._cholesky_solve)(jtj + lam * eye, -jtr)}
+        a = np.asarray(jtj, np.float64) + lam * np.eye(hand.n_joints)
+        b = -np.asarray(jtr, np.float64)
+        want = np.linalg.solve(a, b[..., None])[..., 0]
+        cond = np.linalg.cond(a)
+        for name, x in steps.items():
+            x = np.asarray(x, np.float64)
+            backward = np.linalg.norm(np.einsum("nij,nj->ni", a, x) - b, axis=-1) / (
+                np.linalg.norm(a, axis=(1, 2)) * np.linalg.norm(x, axis=-1) + np.linalg.norm(b, axis=-1))
+            assert np.all(backward < 1e-5), (name, lam, backward)
+            forward = np.linalg.norm(x - want, axis=-1) / np.linalg.norm(want, axis=-1)
+            assert np.all(forward < 1e-5 * cond + 1e-6), (name, lam, forward, cond)
 
 
 def test_reachable_problems_cover_every_link(hand, reachable):

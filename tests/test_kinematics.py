@@ -204,6 +204,29 @@ def test_point_jacobian_matches_jacfwd(hand, qs, point_setup):
         assert np.max(np.abs(auto)) > 0.05  # non-trivial Jacobians
 
 
+def test_direction_jacobian_is_the_direction_times_the_point_jacobian(hand, qs, point_setup):
+    """The wrench-twist form (`direction_jacobian`) against the point Jacobian contracted with the direction
+    and against autodiff of dirs . points, with the directions held fixed."""
+    body, local = point_setup
+    dirs = jnp.asarray(np.random.default_rng(4).normal(size=(len(body), 3)), jnp.float32)
+
+    @jax.jit
+    def three(q):
+        _, _, axes, anchors = kinematics.chain(hand, q)
+        pts = kinematics.local_points(hand, q, body, local)
+        rows = kinematics.direction_jacobian(hand, kinematics.joint_twists(axes, anchors), body, pts, dirs)
+        via_points = jnp.einsum("ni,nij->nj", dirs, kinematics.point_jacobian(hand, axes, anchors, body, pts))
+        auto = jax.jacfwd(lambda q: jnp.sum(dirs * kinematics.local_points(hand, q, body, local), -1))(q)
+        return rows, via_points, auto
+
+    for q in qs[:8]:
+        rows, via_points, auto = three(jnp.asarray(q))
+        assert rows.shape == (len(body), hand.n_joints)
+        np.testing.assert_allclose(rows, via_points, atol=1e-5)
+        np.testing.assert_allclose(rows, auto, atol=1e-5)
+        assert np.max(np.abs(auto)) > 0.05
+
+
 def test_point_jacobian_matches_mujoco_mj_jac(hand, mjmodel, qs, mj_states, point_setup):
     body, local = point_setup
     ids = [_body_id(mjmodel, n) for n in hand.body_names]

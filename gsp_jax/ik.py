@@ -102,7 +102,8 @@ def box_sdf(points: jax.Array, tool_pos: jax.Array, tool_mat: jax.Array, hand: H
 def box_sdf_and_grad(points: jax.Array, tool_pos: jax.Array, tool_mat: jax.Array, hand: HandModel):
     """`box_sdf` (N,) and its gradient (N, 3) with respect to the world points, the latter in closed form (the
     IK evaluates it for every sphere every iteration; autodiff of the distance costs several times the distance).
-    Where the gradient is not unique (a point equidistant from two boxes or two faces) it takes one of them."""
+    Where it is not unique it takes one box's (a point equidistant from two boxes) and, inside, the sum of the
+    tied faces' normals (a point exactly equidistant from two faces of a box)."""
     local = kinematics.small_einsum("nj,ji->ni", points - tool_pos, tool_mat)  # (N, 3) in the tool frame
     dt = points.dtype
     box_mat = jnp.asarray(hand.tool_box_mat, dt)  # (NB, 3, 3) box frames in the tool frame

@@ -2,16 +2,17 @@
 time per unseen episode.
 
 For each policy, the time to plan and run one unseen episode through the surrogate from its start, as an online
-planner would: DP baseline and RL act per step (a sequence lookup, one network call) and step the surrogate;
-L1 and L2 first build the episode's table (`--lookahead cached`, the default), then at every step search from
-the surrogate's state with the tree's interior and rollouts as lookups in it (`continuous`: all in the
-surrogate), and move the episode on to the searched root child of the chosen action (the search has already
-stepped the surrogate with every action: `lookahead.rollout_planned`); DP optimal first builds the episode's whole
-table and backs it up, then runs its policy in that table: from its start the surrogate visits only the table's discrete states, so the table steps the episode
-exactly as the surrogate would (`tests/test_env.py` checks the two step for step) and the surrogate's 16 steps would
-recompute what the table holds. Compilation (once per program, reused for every later episode of the same length) is shown apart from the
-warm time (fastest of `--repeats` calls). With `--batch N`, also the time per episode when N unseen episodes are
-planned in one vmapped call. Writes results/table1/<platform>.json; prints the table, beside the paper's, last.
+planner would: DP baseline and RL act per step (a sequence lookup, one network call) and step the surrogate; L1 and
+L2 first build the episode's table (`--lookahead cached`, the default), then at every step search from the
+surrogate's state with the tree's interior and rollouts as lookups in it (`continuous`: all in the surrogate), and
+move the episode on to the searched root child of the chosen action (the search has already stepped the surrogate
+with every action: `lookahead.rollout_planned`); DP optimal first builds the episode's whole table and backs it up,
+then runs its policy in that table: from its start the surrogate visits only the table's discrete states, so the
+table steps the episode exactly as the surrogate would (`tests/test_env.py` checks the two step for step) and the
+surrogate's 16 steps would recompute what the table holds. Compilation (once per program, reused for every later
+episode of the same length) is shown apart from the warm time (fastest of `--repeats` calls). With `--batch N`, also
+the time per episode when N unseen episodes are planned in one vmapped call. Writes results/table1/<platform>.json;
+prints the table, beside the paper's, last.
 """
 from __future__ import annotations
 

@@ -223,7 +223,8 @@ def residuals_and_jacobian(hand: HandModel, cfg: IKConfig, q, active, targets, t
     rows = kinematics.direction_jacobian(
         hand,
         kinematics.joint_twists(axes, anchors),
-        np.concatenate([hand.link_body, hand.sphere_body, hand.sphere_body, hand.capsule_body[i], hand.capsule_body[k]]),
+        np.concatenate([hand.link_body, hand.sphere_body, hand.sphere_body, hand.capsule_body[i],
+                        hand.capsule_body[k]]),
         jnp.concatenate([geo.link_axis_pt, geo.spheres, geo.spheres, geo.self_pi, geo.self_pk]),
         jnp.concatenate([unit_offset, geo.tool_grad, up, unit, -unit]),
     ) * jnp.concatenate([-active.astype(q.dtype), s_tool, s_table, s_self, s_self])[:, None]

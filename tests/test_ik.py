@@ -335,9 +335,10 @@ def reachable(hand, mjmodel, solve_batch):
 
 
 def test_damped_step_solves_the_normal_equations_like_float64_lapack(hand, space, nominal_waypoints, random_q):
-    """Both forms of the Levenberg-Marquardt step (LAPACK's Cholesky on a CPU; the unrolled `_cholesky_solve` a
+    """Both forms of the Levenberg-Marquardt step (LAPACK's Cholesky on a CPU; the unrolled `_gauss_jordan_solve` a
     GPU runs, called here directly) on the IK's own normal equations at random configurations, for the damping's
-    whole range: backward error at float32 rounding (Cholesky is backward stable, whatever the conditioning), and
+    whole range: backward error at float32 rounding (Cholesky is backward stable whatever the conditioning; Gauss-Jordan
+    is not in general, so this checks it on the IK's matrices), and
     the step within float32 rounding times the condition number of numpy's float64 solve."""
     rng = np.random.default_rng(13)
     qs = random_q(hand, rng, 6)
@@ -352,7 +353,7 @@ def test_damped_step_solves_the_normal_equations_like_float64_lapack(hand, space
     for lam in (1e-9, 1e-4, 1e-1):
         eye = jnp.eye(hand.n_joints, dtype=jnp.float32)
         steps = {"lapack": jax.vmap(ik._damped_step, (0, 0, None))(jtj, jtr, jnp.float32(lam)),
-                 "unrolled": jax.vmap(ik._cholesky_solve)(jtj + lam * eye, -jtr)}
+                 "unrolled": jax.vmap(ik._gauss_jordan_solve)(jtj + lam * eye, -jtr)}
         a = np.asarray(jtj, np.float64) + lam * np.eye(hand.n_joints)
         b = -np.asarray(jtr, np.float64)
         want = np.linalg.solve(a, b[..., None])[..., 0]

@@ -1,8 +1,11 @@
-"""`python -m experiments table1 [--set eval] [--batch N] [--repeats K]`: the paper's Table 1, online wall-clock
-time per unseen episode.
+"""`python -m experiments table1 [--set eval] [--batch N] [--repeats K] [--policies NAME ...]`: the paper's Table 1,
+online wall-clock time per unseen episode.
 
 For each policy, the time to plan and run one unseen episode through the surrogate from its start, as an online
-planner would: DP baseline and RL act per step (a sequence lookup, one network call) and step the surrogate; L1 and
+planner would: DP baseline and RL act per step (a sequence lookup, one network call) and run the surrogate's step
+for each decision, either stepping after each or, as the decisions fix every grasp the episode visits, all T
+transitions afterwards in one vmapped batch (`policies.rollout_batched`; both forms are timed, side by side, and
+the warm time is the form `default_batched` picks: batched for DP baseline, and for RL on a GPU); L1 and
 L2 first build the episode's table (`--lookahead cached`, the default), then at every step search from the
 surrogate's state with the tree's interior and rollouts as lookups in it (`continuous`: all in the surrogate), and
 move the episode on to the searched root child of the chosen action (the search has already stepped the surrogate
@@ -34,13 +37,32 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch", type=int, default=0, help="also time N episodes planned in one vmapped call (0: skip)")
     p.add_argument("--repeats", type=int, default=None, help="warm calls per measurement (default 3 on a GPU, 1 on CPU)")
     p.add_argument("--policy-dir", default=None)
+    p.add_argument("--policies", nargs="+", default=list(evaluation.POLICIES), choices=evaluation.POLICIES,
+                   metavar="NAME", help=f"which rows to time (default: all of {', '.join(evaluation.POLICIES)})")
     evaluation.add_lookahead_argument(p)
 
 
-def planner(ctx: evaluation.Context, name: str, cached: bool = True):
+BATCHED = ("dp-base", "rl")  # the policies whose episode can also run as one batch of transitions
+
+
+def default_batched(name: str) -> bool:
+    """Whether `planner` batches policy `name`'s transitions by default: DP baseline always, RL on a GPU."""
+    return name == "dp-base" or (name == "rl" and jax.default_backend() == "gpu")
+
+
+def planner(ctx: evaluation.Context, name: str, cached: bool = True, batched: bool | None = None):
     """episode -> return for policy `name`, planned online on the surrogate. With `cached`, L1 and L2 first
-    build the unseen episode's table (as DP optimal does) and search below the root by lookups in it."""
+    build the unseen episode's table (as DP optimal does) and search below the root by lookups in it. With
+    `batched`, DP baseline and RL run their decisions first and then all the episode's transitions as one vmapped
+    batch (`policies.rollout_batched`), instead of stepping the surrogate after each decision: on a GPU a step's
+    cost is its chain of dependent solves, not its arithmetic, so T steps in one batch cost about one. DP
+    baseline's open-loop sequence needs no more work batched; RL's decisions each realise their state first (one
+    IK a step more, a chain of T IKs left on the critical path), which a CPU, where a batch costs what its problems
+    cost, pays in full. Default
+    (`default_batched`): batched for DP baseline, and for RL on a GPU."""
     sur = ctx.surrogate
+    if batched is None:
+        batched = default_batched(name)
     if name == "dp-opt":  # solve the unseen episode's whole table, then run its policy in that table
         def plan(ep):
             table, sol = dp.solve(sur, ep)
@@ -54,6 +76,8 @@ def planner(ctx: evaluation.Context, name: str, cached: bool = True):
             searcher = policy.replace(inner=TableModel(dp.build_table(sur, ep), sur.space)) if cached else policy
             return lookahead.rollout_planned(searcher, sur.reset(ep))[0]
         return plan
+    if batched and name in BATCHED:
+        return lambda ep: policies.rollout_batched(sur, policy, ep)[0]
     return lambda ep: lookahead.rollout(sur, policy, sur.reset(ep))[0]
 
 
@@ -71,14 +95,20 @@ def measure(fn, arg, repeats: int) -> tuple[float, float]:
     return compile_s, min(warm)
 
 
-def run(ctx: evaluation.Context, batch: int, repeats: int, out, cached: bool = True) -> dict:
+def run(ctx: evaluation.Context, batch: int, repeats: int, out, cached: bool = True,
+        names=evaluation.POLICIES) -> dict:
     t_start = time.perf_counter()
     one = jax.tree.map(lambda x: x[0], ctx.batch)
     rows = {}
-    for name in evaluation.POLICIES:
-        fn = planner(ctx, name, cached)
+    for name in names:
+        batched = default_batched(name)
+        fn = planner(ctx, name, cached, batched)
         compile_s, warm = measure(fn, one, repeats)
         row = dict(warm_s=warm, compile_s=compile_s)
+        if name in BATCHED:  # both forms, side by side; warm_s is the platform's default
+            other = measure(planner(ctx, name, cached, not batched), one, repeats)[1]
+            row |= dict(rollout="batched" if batched else "stepped", batched_warm_s=warm if batched else other,
+                        stepped_warm_s=other if batched else warm)
         if batch:
             n = min(batch, len(ctx.names))
             many = jax.tree.map(lambda x: x[:n], ctx.batch)
@@ -86,6 +116,8 @@ def run(ctx: evaluation.Context, batch: int, repeats: int, out, cached: bool = T
             row |= dict(batch=n, batch_warm_s=w_b, batch_compile_s=c_b, batch_per_episode_s=w_b / n)
         rows[name] = row
         print(f"  {name:8s} warm {warm:9.4f} s   compile {compile_s:7.1f} s" +
+              (f"   (stepped {row['stepped_warm_s']:.4f} s, batched steps {row['batched_warm_s']:.4f} s)"
+               if name in BATCHED else "") +
               (f"   batch of {row['batch']}: {row['batch_per_episode_s']:.4f} s per episode" if batch else ""), flush=True)
     device = jax.devices()[0]
     result = dict(platform=device.platform, device=str(device.device_kind), episode=ctx.names[0], repeats=repeats,
@@ -99,11 +131,12 @@ def run(ctx: evaluation.Context, batch: int, repeats: int, out, cached: bool = T
 
 def print_result(result: dict) -> None:
     batched = any("batch" in r for r in result["policies"].values())
-    headers = ["policy", "paper [s]", f"ours warm [s] ({result['platform']})", "compile [s]"]
+    headers = ["policy", "paper [s]", f"ours warm [s] ({result['platform']})", "stepped / batched steps [s]", "compile [s]"]
     headers += ["per episode, batched [s]"] if batched else []
     rows = []
     for name, r in result["policies"].items():
-        row = [name, evaluation.PAPER["table1_s"][name], f"{r['warm_s']:.4f}", f"{r['compile_s']:.1f}"]
+        forms = f"{r['stepped_warm_s']:.4f} / {r['batched_warm_s']:.4f}" if "rollout" in r else "-"
+        row = [name, evaluation.PAPER["table1_s"][name], f"{r['warm_s']:.4f}", forms, f"{r['compile_s']:.1f}"]
         rows.append(row + ([f"{r['batch_per_episode_s']:.4f} (of {r['batch']})"] if batched else []))
     print(f"Table 1: online wall-clock per unseen episode ({result['device']}; paper: {evaluation.PAPER['table1_machine']})")
     print(table(headers, rows, ".2f"))
@@ -113,5 +146,6 @@ def main(args: argparse.Namespace) -> None:
     repeats = args.repeats or (3 if jax.default_backend() == "gpu" else 1)
     ctx = evaluation.context(args.set, 1 if not args.batch else args.batch, args.policy_dir)
     print(f"Table 1 on {jax.devices()[0].device_kind}: episode {ctx.names[0]} ...", flush=True)
-    result = run(ctx, args.batch, repeats, results_dir("table1"), cached=args.lookahead == "cached")
+    result = run(ctx, args.batch, repeats, results_dir("table1"), cached=args.lookahead == "cached",
+                 names=tuple(n for n in evaluation.POLICIES if n in args.policies))
     print_result(result)

@@ -21,9 +21,10 @@ from gsp_jax.grasps import GraspSpace, default_space
 from gsp_jax.lookahead import Lookahead  # re-exported: the Ll policies
 from gsp_jax.ppo import networks as nets
 from gsp_jax.ppo.train import PPOConfig
-from gsp_jax.surrogate import State
+from gsp_jax.scenario import Episode
+from gsp_jax.surrogate import State, Surrogate
 
-__all__ = ["Lookahead", "NetworkPolicy", "SequencePolicy", "TablePolicy", "rollout"]
+__all__ = ["Lookahead", "NetworkPolicy", "SequencePolicy", "TablePolicy", "rollout", "rollout_batched"]
 
 
 @struct.dataclass
@@ -88,3 +89,34 @@ def rollout(env, policy, episode) -> tuple[jax.Array, State]:
 
     final, rewards = jax.lax.scan(step, env.reset(episode), None, length=episode.n_steps)
     return jnp.sum(rewards), final
+
+
+def rollout_batched(sur: Surrogate, policy, episode: Episode) -> tuple[jax.Array, State]:
+    """`lookahead.rollout(sur, policy, sur.reset(episode))` with the transitions off the chain of decisions. From its
+    start an episode visits only discrete states (grasp, t), and a step's next grasp follows from its action alone
+    (`GraspSpace.apply`), so the grasps a policy visits are known before any reward is: all T transitions (their IK
+    and wrench solves) then run as one vmapped batch (`Surrogate.transition`), and the return sums the rewards up to
+    the first step that ends the episode. An open-loop `SequencePolicy` (DP baseline) needs nothing more; a
+    closed-loop policy first walks its chain of decisions, realising only each state it acts on (one IK a step: on
+    a CPU, where a batch costs what its problems cost, one IK a step more than stepping; realising all n_grasps x T
+    states in one batch instead was measured slower on an H100, as that batch costs about 16 single IKs there).
+    For policies that act on a state's grasp, waypoint, joint angles and episode, not on the last step's `terms`
+    (a discrete state's are zeros); a `Lookahead` would search from each state, but `lookahead.rollout_planned` reuses
+    its search's steps instead. Returns (return, final state); the same episode as stepping, to float32 rounding
+    (the batch's solves round in the last bits like a vmap's)."""
+    n_t = episode.n_steps
+    ts = jnp.arange(n_t, dtype=jnp.int32)
+    start = jnp.asarray(episode.start_grasp, jnp.int32)
+    if isinstance(policy, SequencePolicy):
+        actions = policy.actions[jnp.minimum(ts, policy.actions.shape[0] - 1)]
+        _, grasps = jax.lax.scan(lambda g, a: (sur.space.apply(g, a)[0], g), start, actions)
+    else:
+        def decide(g, t):
+            a = policy.act(sur.discrete_state(episode, g, t))
+            return sur.space.apply(g, a)[0], (g, a)
+
+        _, (grasps, actions) = jax.lax.scan(decide, start, ts)
+    moved, rewards, ends = jax.vmap(sur.transition, (None, 0, 0, 0))(episode, grasps, ts, actions)
+    alive = jnp.cumsum(ends) - ends == 0  # no earlier step ended the episode
+    final = jax.tree.map(lambda x: x[jnp.argmax(ends)], moved)  # the first step that ends it (the last one does)
+    return jnp.sum(jnp.where(alive, rewards, 0.0)), final

@@ -286,24 +286,39 @@ class Surrogate:
         """One decision. A finished state is absorbing (reward 0, done). A concrete action outside
         [0, n_actions) raises ValueError; a traced one is clipped into range (`grasps`)."""
         self.space.check_actions(action)
-        ep = state.episode
-        new_grasp, redundant = self.space.apply(state.grasp, action)
-        t_next = jnp.minimum(state.t + 1, ep.n_steps - 1)
+        moved = self._move(state.episode, state.grasp, state.t, state.tool_pos, state.tool_quat, action)
+        out = jax.tree.map(lambda old, new: jnp.where(state.done, old, new), state, moved)
+        reward = jnp.where(state.done, 0.0, moved.terms.reward)
+        return out, reward, out.done
+
+    def transition(self, episode: Episode, grasp: jax.Array, t: jax.Array, action: jax.Array):
+        """`step(discrete_state(episode, grasp, t), action)` without realising the state it starts from (a step reads
+        only the state's grasp, waypoint and tool pose, not its joint angles): (next state, reward, done). `vmap` it
+        over the steps of a sequence whose grasps are known in advance (`policies.rollout_batched`)."""
+        self.space.check_actions(action)
+        t = jnp.asarray(t, jnp.int32)
+        moved = self._move(episode, jnp.asarray(grasp, jnp.int32), t, episode.waypoints[t], episode.quats[t], action)
+        return moved, moved.terms.reward, moved.done
+
+    def _move(self, ep: Episode, grasp, t, tool_pos, tool_quat, action) -> State:
+        """The state after `action` from grasp `grasp` at waypoint `t` with the tool at (tool_pos, tool_quat)."""
+        new_grasp, redundant = self.space.apply(grasp, action)
+        t_next = jnp.minimum(t + 1, ep.n_steps - 1)
         pos_n, quat_n = ep.waypoints[t_next], ep.quats[t_next]
         # the two (three) IK solves are independent: one vmapped solve runs them in lock step
-        grasp_in = [new_grasp, new_grasp] + ([self.space.shared(state.grasp, action)] if self.prices_changes else [])
-        pos_in = [state.tool_pos, pos_n, state.tool_pos][: len(grasp_in)]
-        quat_in = [state.tool_quat, quat_n, state.tool_quat][: len(grasp_in)]
+        grasp_in = [new_grasp, new_grasp] + ([self.space.shared(grasp, action)] if self.prices_changes else [])
+        pos_in = [tool_pos, pos_n, tool_pos][: len(grasp_in)]
+        quat_in = [tool_quat, quat_n, tool_quat][: len(grasp_in)]
         realised = jax.vmap(self.realise)(jnp.stack(grasp_in), jnp.stack(pos_in), jnp.stack(quat_in))
         now, nxt, *rest = (jax.tree.map(lambda x, i=i: x[i], realised) for i in range(len(grasp_in)))
         during = rest[0] if rest else None
-        changed = new_grasp != state.grasp
-        terms = self.score(ep, state.t, state.tool_pos, state.tool_quat, now, nxt, redundant, during, changed)
-        done = terms.collision | terms.fall | (state.t + 1 >= ep.n_steps)
-        vel = jnp.concatenate([(pos_n - state.tool_pos) / ep.dt, jnp.zeros(3, jnp.float32)])
-        moved = State(
+        changed = new_grasp != grasp
+        terms = self.score(ep, t, tool_pos, tool_quat, now, nxt, redundant, during, changed)
+        done = terms.collision | terms.fall | (t + 1 >= ep.n_steps)
+        vel = jnp.concatenate([(pos_n - tool_pos) / ep.dt, jnp.zeros(3, jnp.float32)])
+        return State(
             grasp=new_grasp,
-            t=state.t + 1,
+            t=t + 1,
             q=nxt.ik.q,
             tool_pos=pos_n,
             tool_quat=quat_n,
@@ -312,6 +327,3 @@ class Surrogate:
             done=done,
             terms=terms,
         )
-        out = jax.tree.map(lambda old, new: jnp.where(state.done, old, new), state, moved)
-        reward = jnp.where(state.done, 0.0, terms.reward)
-        return out, reward, out.done

@@ -60,3 +60,53 @@ def test_network_policy_acts_the_same_in_the_surrogate_and_the_table_env(env, so
     greedy = jax.jit(lambda p: ppo.greedy_returns(table_env, networks, p))(params)
     np.testing.assert_allclose(np.asarray(ret), np.asarray(greedy), rtol=0, atol=tol.RETURN_ATOL)
     np.testing.assert_allclose(np.asarray(ret), np.asarray(sols.ret), rtol=0, atol=tol.RETURN_ATOL)
+
+
+def _early_end(table, start_grasp, first_action):
+    """(T,) actions: `first_action`, then from the grasp it leads to the first action whose transition at waypoint 1
+    fails (collision or fall), then null actions: an episode that ends before its last step."""
+    g1 = int(table.next_grasp[start_grasp, first_action])
+    fails = np.flatnonzero(np.asarray(table.terminal[g1, :, 1]))
+    assert len(fails), "no failing action at waypoint 1 to end the episode early"
+    return np.array([first_action, fails[0]] + [0] * (table.reward.shape[2] - 2), np.int32)
+
+
+@pytest.mark.parametrize("kind", ["dp-base", "ends-early", "dp-opt", "network"])
+def test_batched_rollout_runs_the_episode_that_stepping_runs(env, solved, kind):
+    """`rollout_batched` (the chain of decisions, then every transition in one vmapped batch) against stepping the
+    surrogate one decision at a time: the same actions, rewards to REWARD_ATOL, return, final grasp, waypoint, joint
+    angles (Q_ATOL) and end. Open loop (DP baseline on the other episode; a sequence that fails at its second step)
+    and closed loop (the DP policy over (grasp, t); a network acting on the continuous observation, compared only
+    because its best logit leads the runner-up by more than twice what the joint angles' tolerance can move it)."""
+    from gsp_jax.env import observation, observation_size
+    from gsp_jax.ppo import networks as nets
+
+    eps, tables, sols = solved
+    ep, table = jax.tree.map(lambda x: x[1], (eps, tables))
+    if kind == "network":
+        networks = nets.make_networks(observation_size(env.space, ep.n_steps, env.hand.n_joints), env.n_actions,
+                                      nets.NetworkConfig(hidden=(32, 32)))
+        # an initialisation whose greedy episode runs all four steps (most fall at the first) with clear margins
+        policy = policies.NetworkPolicy(networks.init(jax.random.PRNGKey(19)), networks, env.space)
+    else:
+        policy = {"dp-base": policies.SequencePolicy(sols.actions[0]), "dp-opt": policies.TablePolicy(sols.policy[1]),
+                  "ends-early": policies.SequencePolicy(_early_end(table, int(ep.start_grasp), int(sols.actions[1][0])))}[kind]
+    step, act = jax.jit(env.step), jax.jit(lambda p, s: p.act(s))
+    s, ret, n = jax.jit(env.reset)(ep), 0.0, 0
+    while not bool(s.done):
+        if kind == "network":  # the greedy action must not hinge on last bits: its lead over the runner-up exceeds
+            # what moving every observation component by Q_ATOL (the joint angles' tolerance) can take from it
+            obs = observation(env.space, s)
+            logits = np.asarray(networks.logits(policy.params, obs))
+            first, second = np.argsort(logits)[::-1][:2]
+            jac = np.asarray(jax.jacfwd(lambda o: networks.logits(policy.params, o))(obs))
+            reach = 2 * np.abs(jac[first] - jac[second]).sum() * tol.Q_ATOL
+            assert logits[first] - logits[second] > reach, f"decision {n}: margin {logits[first] - logits[second]:.2e}"
+        s, r, _ = step(s, act(policy, s))
+        ret, n = ret + float(r), n + 1
+    assert n == (2 if kind == "ends-early" else ep.n_steps)
+    batched, final = jax.jit(lambda p, e: policies.rollout_batched(env, p, e))(policy, ep)
+    np.testing.assert_allclose(float(batched), ret, rtol=0, atol=tol.REWARD_ATOL * n)
+    for f in ("grasp", "t", "done"):
+        np.testing.assert_array_equal(np.asarray(getattr(final, f)), np.asarray(getattr(s, f)), err_msg=f)
+    np.testing.assert_allclose(np.asarray(final.q), np.asarray(s.q), rtol=0, atol=tol.Q_ATOL)

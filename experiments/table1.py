@@ -1,5 +1,5 @@
-"""`python -m experiments table1 [--set eval] [--batch N] [--repeats K] [--policies NAME ...]`: the paper's Table 1,
-online wall-clock time per unseen episode.
+"""`python -m experiments table1 [--set eval] [--batch N] [--repeats K] [--policies NAME ...] [--ik-unroll K]`: the
+paper's Table 1, online wall-clock time per unseen episode.
 
 For each policy, the time to plan and run one unseen episode through the surrogate from its start, as an online
 planner would: DP baseline and RL act per step (a sequence lookup, one network call) and run the surrogate's step
@@ -14,12 +14,14 @@ then runs its policy in that table: from its start the surrogate visits only the
 table steps the episode exactly as the surrogate would (`tests/test_env.py` checks the two step for step) and the
 surrogate's 16 steps would recompute what the table holds. Compilation (once per program, reused for every later
 episode of the same length) is shown apart from the warm time (fastest of `--repeats` calls). With `--batch N`, also
-the time per episode when N unseen episodes are planned in one vmapped call. Writes results/table1/<platform>.json;
-prints the table, beside the paper's, last.
+the time per episode when N unseen episodes are planned in one vmapped call. On a GPU the surrogate's IK runs
+`GPU_IK_UNROLL` iterations per loop trip (the same result; `--ik-unroll 1` for the plain loop). Writes
+results/table1/<platform>.json; prints the table, beside the paper's, last.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import time
@@ -30,6 +32,17 @@ from experiments import evaluation
 from experiments.common import results_dir, table
 from gsp_jax import dp, lookahead, policies
 from gsp_jax.env import TableModel
+from gsp_jax.surrogate import Surrogate
+
+GPU_IK_UNROLL = 3  # IK iterations per loop trip on a GPU (`IKConfig.unroll`): each trip of XLA's loop costs a sync on
+# the device; measured on an H100 (one process): a batched RL episode 53.4 / 47.7 / 46.9 / 47.8 ms at 1 / 3 / 6 / 12,
+# compiling in 12 / 19 / 25 / 36 s; the same episodes (27 evaluation episodes: equal grasps, returns)
+
+
+def _at_least_one(text: str) -> int:
+    if not text.isdigit() or int(text) < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
+    return int(text)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -37,6 +50,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch", type=int, default=0, help="also time N episodes planned in one vmapped call (0: skip)")
     p.add_argument("--repeats", type=int, default=None, help="warm calls per measurement (default 3 on a GPU, 1 on CPU)")
     p.add_argument("--policy-dir", default=None)
+    p.add_argument("--ik-unroll", type=_at_least_one, default=None, help="IK iterations per loop trip (`IKConfig.unroll`; the "
+                   f"same result): default {GPU_IK_UNROLL} on a GPU, 1 on a CPU (where it only lengthens compiles)")
     p.add_argument("--policies", nargs="+", default=list(evaluation.POLICIES), choices=evaluation.POLICIES,
                    metavar="NAME", help=f"which rows to time (default: all of {', '.join(evaluation.POLICIES)})")
     evaluation.add_lookahead_argument(p)
@@ -121,6 +136,7 @@ def run(ctx: evaluation.Context, batch: int, repeats: int, out, cached: bool = T
               (f"   batch of {row['batch']}: {row['batch_per_episode_s']:.4f} s per episode" if batch else ""), flush=True)
     device = jax.devices()[0]
     result = dict(platform=device.platform, device=str(device.device_kind), episode=ctx.names[0], repeats=repeats,
+                  ik_unroll=ctx.surrogate.ik_config.unroll,
                   lookahead="cached" if cached else "continuous",
                   policies=rows, paper=evaluation.PAPER, wall_s=time.perf_counter() - t_start)
     if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
@@ -138,13 +154,28 @@ def print_result(result: dict) -> None:
         forms = f"{r['stepped_warm_s']:.4f} / {r['batched_warm_s']:.4f}" if "rollout" in r else "-"
         row = [name, evaluation.PAPER["table1_s"][name], f"{r['warm_s']:.4f}", forms, f"{r['compile_s']:.1f}"]
         rows.append(row + ([f"{r['batch_per_episode_s']:.4f} (of {r['batch']})"] if batched else []))
-    print(f"Table 1: online wall-clock per unseen episode ({result['device']}; paper: {evaluation.PAPER['table1_machine']})")
+    unroll = f"; IK unrolled {result['ik_unroll']}" if result.get("ik_unroll", 1) != 1 else ""
+    print(f"Table 1: online wall-clock per unseen episode ({result['device']}{unroll}; "
+          f"paper: {evaluation.PAPER['table1_machine']})")
     print(table(headers, rows, ".2f"))
+
+
+def with_ik_unroll(ctx: evaluation.Context, unroll: int | None) -> evaluation.Context:
+    """The context with its surrogate's IK loop unrolled `unroll` iterations per trip (None: the platform's default,
+    `GPU_IK_UNROLL` on a GPU, else as it is). Every planner built from the context then uses it."""
+    if unroll is None:
+        unroll = GPU_IK_UNROLL if jax.default_backend() == "gpu" else ctx.surrogate.ik_config.unroll
+    if unroll < 1:
+        raise ValueError(f"ik_unroll: expected an integer >= 1, got {unroll}")
+    sur = ctx.surrogate
+    ik_config = dataclasses.replace(sur.ik_config, unroll=unroll)
+    return dataclasses.replace(ctx, surrogate=Surrogate(sur.hand, sur.reward_config, ik_config, sur.wrench_config))
 
 
 def main(args: argparse.Namespace) -> None:
     repeats = args.repeats or (3 if jax.default_backend() == "gpu" else 1)
-    ctx = evaluation.context(args.set, 1 if not args.batch else args.batch, args.policy_dir)
+    ctx = with_ik_unroll(evaluation.context(args.set, 1 if not args.batch else args.batch, args.policy_dir),
+                         args.ik_unroll)
     print(f"Table 1 on {jax.devices()[0].device_kind}: episode {ctx.names[0]} ...", flush=True)
     result = run(ctx, args.batch, repeats, results_dir("table1"), cached=args.lookahead == "cached",
                  names=tuple(n for n in evaluation.POLICIES if n in args.policies))

@@ -33,3 +33,16 @@ def test_a_level_the_user_set_wins(monkeypatch):
 
 def test_every_autotuned_command_exists():
     assert set(cli.AUTOTUNED) <= set(cli.COMMANDS)
+
+
+@pytest.mark.parametrize("value", ["0", "-2", "three"])
+def test_table1_rejects_an_ik_unroll_below_one_by_name(monkeypatch, capsys, value):
+    """`table1 --ik-unroll` takes the IK's iterations per loop trip: anything but an integer >= 1 stops at the
+    command line with the option and the value named, before any work starts."""
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    monkeypatch.setenv("GSP_JAX_CACHE", "off")
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["table1", "--ik-unroll", value])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert "--ik-unroll" in err and repr(value) in err, err

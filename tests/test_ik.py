@@ -645,3 +645,23 @@ def test_extra_starts_are_validated(hand):
     np.testing.assert_array_equal(ik.start_configurations(hand, SINGLE), hand.q_start[None])
     with pytest.raises(ValueError, match="extra_starts"):
         ik.start_configurations(hand, ik.IKConfig(extra_starts=((0.0, 0.1, 0.2),)))
+
+
+@pytest.mark.parametrize("unroll", [3, 7])
+def test_unrolled_loop_solves_the_same_problems(hand, all_grasps, nominal_waypoints, unroll):
+    """`IKConfig.unroll` (iterations per loop trip; `table1` unrolls on a GPU) leaves the solve as it is: 16 grasps
+    spread over the 288 at the nominal mid waypoint, unrolled 3 (a divisor of the 60 iterations) and 7 (not: a
+    remainder trip), against the plain loop's solutions, to the tolerances of converged IK (joint angles Q_ATOL,
+    link errors IK_ATOL)."""
+    opts, plain = all_grasps
+    pick = np.linspace(0, len(opts) - 1, BATCH).astype(int)
+    tool_pos = jnp.asarray(nominal_waypoints[8])
+    cfg = dataclasses.replace(CFG, unroll=unroll)
+
+    def f(o):
+        active, targets, _ = ik.grasp_targets(hand, o, tool_pos, I3)
+        return ik.solve(hand, active, targets, tool_pos, I3, cfg)
+
+    out = jax.tree.map(np.asarray, jax.jit(jax.vmap(f), compiler_options=FAST)(jnp.asarray(opts[pick])))
+    np.testing.assert_allclose(out.q, plain.q[pick], rtol=0, atol=tol.Q_ATOL)
+    np.testing.assert_allclose(out.link_error, plain.link_error[pick], rtol=0, atol=tol.IK_ATOL)

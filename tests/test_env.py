@@ -237,7 +237,7 @@ def test_bad_input_raises_naming_the_field(sur, episodes, tables):
 @pytest.mark.parametrize("bad", [-1, 17, 1000])
 def test_out_of_range_actions_raise_at_every_python_entry_point(sur, episodes, tables, table_env, bad):
     """A concrete action outside [0, 17) raises a ValueError naming the value: the brax env, the table model,
-    the surrogate step, the DP policies. Inside jit it is clipped (documented in gsp_jax.grasps)."""
+    the surrogate step and transition, the DP policies. Inside jit it is clipped (documented in gsp_jax.grasps)."""
     from gsp_jax import env as env_lib, policies
 
     state = table_env.reset_to(0)
@@ -249,6 +249,8 @@ def test_out_of_range_actions_raise_at_every_python_entry_point(sur, episodes, t
         model.step(state.pipeline_state, np.int32(bad))
     with pytest.raises(ValueError, match=msg):
         sur.step(state.pipeline_state, bad)
+    with pytest.raises(ValueError, match=msg):
+        sur.transition(state.pipeline_state.episode, state.pipeline_state.grasp, 0, bad)
     with pytest.raises(ValueError, match=rf"SequencePolicy\.actions: {bad} "):
         policies.SequencePolicy(jnp.asarray([0, bad, 2], jnp.int32))
     with pytest.raises(ValueError, match=rf"TablePolicy\.table: {bad} "):

@@ -1,11 +1,12 @@
-"""`python -m experiments table1 [--set eval] [--batch N] [--repeats K] [--policies NAME ...] [--ik-unroll K]`: the
+"""`python -m experiments table1 [--set eval] [--batch N] [--repeats K] [--policies NAME ...] [--ik-unroll K] [--ahead K]`: the
 paper's Table 1, online wall-clock time per unseen episode.
 
 For each policy, the time to plan and run one unseen episode through the surrogate from its start, as an online
 planner would: DP baseline and RL act per step (a sequence lookup, one network call) and run the surrogate's step
 for each decision, either stepping after each or, as the decisions fix every grasp the episode visits, all T
 transitions afterwards in one vmapped batch (`policies.rollout_batched`; both forms are timed, side by side, and
-the warm time is the form `default_batched` picks: batched for DP baseline, and for RL on a GPU); L1 and
+the warm time is the form `default_batched` picks: batched for DP baseline, and for RL on a GPU, where RL's chain of
+decisions realises the states of `GPU_AHEAD` decisions in one batch: `--ahead`); L1 and
 L2 first build the episode's table (`--lookahead cached`, the default), then at every step search from the
 surrogate's state with the tree's interior and rollouts as lookups in it (`continuous`: all in the surrogate), and
 move the episode on to the searched root child of the chosen action (the search has already stepped the surrogate
@@ -37,6 +38,9 @@ from gsp_jax.surrogate import Surrogate
 GPU_IK_UNROLL = 3  # IK iterations per loop trip on a GPU (`IKConfig.unroll`): each trip of XLA's loop costs a sync on
 # the device; measured on an H100 (one process): a batched RL episode 53.4 / 47.7 / 46.9 / 47.8 ms at 1 / 3 / 6 / 12,
 # compiling in 12 / 19 / 25 / 36 s; the same episodes (27 evaluation episodes: equal grasps, returns)
+GPU_AHEAD = 4  # RL's decisions per batch of realised states on a GPU (`policies.rollout_batched`'s `ahead`): measured on
+# an H100 (one process, IK unrolled 3): a batched RL episode 48.3 / 27.5 / 26.7 / 23.7 / 37.3 / 35.7 ms at 1 .. 6 (its
+# batches hold 1 / 12 / 63 / 196 / 420 / 696 states), all with the episodes stepping runs (27 evaluation episodes)
 
 
 def _at_least_one(text: str) -> int:
@@ -52,6 +56,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--policy-dir", default=None)
     p.add_argument("--ik-unroll", type=_at_least_one, default=None, help="IK iterations per loop trip (`IKConfig.unroll`; the "
                    f"same result): default {GPU_IK_UNROLL} on a GPU, 1 on a CPU (where it only lengthens compiles)")
+    p.add_argument("--ahead", type=_at_least_one, default=None, help="batched RL: decisions per batch of realised states "
+                   f"(`policies.rollout_batched`; the same episode): default {GPU_AHEAD} on a GPU, 1 on a CPU (which pays for "
+                   "every state)")
     p.add_argument("--policies", nargs="+", default=list(evaluation.POLICIES), choices=evaluation.POLICIES,
                    metavar="NAME", help=f"which rows to time (default: all of {', '.join(evaluation.POLICIES)})")
     evaluation.add_lookahead_argument(p)
@@ -65,7 +72,13 @@ def default_batched(name: str) -> bool:
     return name == "dp-base" or (name == "rl" and jax.default_backend() == "gpu")
 
 
-def planner(ctx: evaluation.Context, name: str, cached: bool = True, batched: bool | None = None):
+def default_ahead() -> int:
+    """Batched RL's decisions per batch of realised states: `GPU_AHEAD` on a GPU, 1 on a CPU."""
+    return GPU_AHEAD if jax.default_backend() == "gpu" else 1
+
+
+def planner(ctx: evaluation.Context, name: str, cached: bool = True, batched: bool | None = None,
+            ahead: int | None = None):
     """episode -> return for policy `name`, planned online on the surrogate. With `cached`, L1 and L2 first
     build the unseen episode's table (as DP optimal does) and search below the root by lookups in it. With
     `batched`, DP baseline and RL run their decisions first and then all the episode's transitions as one vmapped
@@ -73,8 +86,9 @@ def planner(ctx: evaluation.Context, name: str, cached: bool = True, batched: bo
     cost is its chain of dependent solves, not its arithmetic, so T steps in one batch cost about one. DP
     baseline's open-loop sequence needs no more work batched; RL's decisions each realise their state first (one
     IK a step more, a chain of T IKs left on the critical path), which a CPU, where a batch costs what its problems
-    cost, pays in full. Default
-    (`default_batched`): batched for DP baseline, and for RL on a GPU."""
+    cost, pays in full; `ahead` (default `default_ahead`) realises the states of that many decisions in one batch,
+    shortening the chain to T / ahead batched IKs. Default (`default_batched`): batched for DP baseline, and for RL
+    on a GPU."""
     sur = ctx.surrogate
     if batched is None:
         batched = default_batched(name)
@@ -92,7 +106,8 @@ def planner(ctx: evaluation.Context, name: str, cached: bool = True, batched: bo
             return lookahead.rollout_planned(searcher, sur.reset(ep))[0]
         return plan
     if batched and name in BATCHED:
-        return lambda ep: policies.rollout_batched(sur, policy, ep)[0]
+        ahead = default_ahead() if ahead is None else ahead
+        return lambda ep: policies.rollout_batched(sur, policy, ep, ahead)[0]
     return lambda ep: lookahead.rollout(sur, policy, sur.reset(ep))[0]
 
 
@@ -111,17 +126,18 @@ def measure(fn, arg, repeats: int) -> tuple[float, float]:
 
 
 def run(ctx: evaluation.Context, batch: int, repeats: int, out, cached: bool = True,
-        names=evaluation.POLICIES) -> dict:
+        names=evaluation.POLICIES, ahead: int | None = None) -> dict:
+    ahead = default_ahead() if ahead is None else ahead
     t_start = time.perf_counter()
     one = jax.tree.map(lambda x: x[0], ctx.batch)
     rows = {}
     for name in names:
         batched = default_batched(name)
-        fn = planner(ctx, name, cached, batched)
+        fn = planner(ctx, name, cached, batched, ahead)
         compile_s, warm = measure(fn, one, repeats)
         row = dict(warm_s=warm, compile_s=compile_s)
         if name in BATCHED:  # both forms, side by side; warm_s is the platform's default
-            other = measure(planner(ctx, name, cached, not batched), one, repeats)[1]
+            other = measure(planner(ctx, name, cached, not batched, ahead), one, repeats)[1]
             row |= dict(rollout="batched" if batched else "stepped", batched_warm_s=warm if batched else other,
                         stepped_warm_s=other if batched else warm)
         if batch:
@@ -136,7 +152,7 @@ def run(ctx: evaluation.Context, batch: int, repeats: int, out, cached: bool = T
               (f"   batch of {row['batch']}: {row['batch_per_episode_s']:.4f} s per episode" if batch else ""), flush=True)
     device = jax.devices()[0]
     result = dict(platform=device.platform, device=str(device.device_kind), episode=ctx.names[0], repeats=repeats,
-                  ik_unroll=ctx.surrogate.ik_config.unroll,
+                  ik_unroll=ctx.surrogate.ik_config.unroll, ahead=ahead,
                   lookahead="cached" if cached else "continuous",
                   policies=rows, paper=evaluation.PAPER, wall_s=time.perf_counter() - t_start)
     if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
@@ -155,6 +171,7 @@ def print_result(result: dict) -> None:
         row = [name, evaluation.PAPER["table1_s"][name], f"{r['warm_s']:.4f}", forms, f"{r['compile_s']:.1f}"]
         rows.append(row + ([f"{r['batch_per_episode_s']:.4f} (of {r['batch']})"] if batched else []))
     unroll = f"; IK unrolled {result['ik_unroll']}" if result.get("ik_unroll", 1) != 1 else ""
+    unroll += f"; RL realises {result['ahead']} decisions' states a batch" if result.get("ahead", 1) != 1 else ""
     print(f"Table 1: online wall-clock per unseen episode ({result['device']}{unroll}; "
           f"paper: {evaluation.PAPER['table1_machine']})")
     print(table(headers, rows, ".2f"))
@@ -178,5 +195,5 @@ def main(args: argparse.Namespace) -> None:
                          args.ik_unroll)
     print(f"Table 1 on {jax.devices()[0].device_kind}: episode {ctx.names[0]} ...", flush=True)
     result = run(ctx, args.batch, repeats, results_dir("table1"), cached=args.lookahead == "cached",
-                 names=tuple(n for n in evaluation.POLICIES if n in args.policies))
+                 names=tuple(n for n in evaluation.POLICIES if n in args.policies), ahead=args.ahead)
     print_result(result)

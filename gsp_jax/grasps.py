@@ -106,6 +106,37 @@ class GraspSpace:
         grasp, null, opt, place, current = self._parts(grasp, action)
         return jnp.where(~null & (opt != current), grasp - current * place, grasp)
 
+    @functools.cached_property
+    def _changes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every grasp index read as a change: per link, how many options on (mod its count) it moves that link
+        (0: kept). (order, rank, count): the changes in order of how many links they move (stable), each change's
+        position in that order, and how many move at most k links (k = 0..L)."""
+        shifts = (np.arange(self.n_grasps)[:, None] // self.radix) % np.asarray(self.n_options)
+        moved = (shifts != 0).sum(axis=1)
+        order = np.argsort(moved, kind="stable").astype(np.int32)
+        rank = np.empty_like(order)
+        rank[order] = np.arange(self.n_grasps, dtype=np.int32)
+        count = np.array([(moved <= k).sum() for k in range(self.n_links + 1)], np.int32)
+        return order, rank, count
+
+    def n_within(self, n_changes: int) -> int:
+        """How many grasps differ from a given one in at most `n_changes` links (1, 11, 51, 133, ... for the
+        paper's counts): every grasp `n_changes` actions can reach, as each action sets one link."""
+        return int(self._changes[2][min(n_changes, self.n_links)])
+
+    def within(self, grasp: jax.Array, n_changes: int) -> jax.Array:
+        """(n_within(n_changes),) int32: the grasps that differ from `grasp` (scalar) in at most `n_changes` links,
+        in a fixed order by how many (`grasp` itself first), so the first n_within(k) are those within k changes."""
+        order = self._changes[0][: self.n_within(n_changes)]
+        n = np.asarray(self.n_options, np.int32)
+        return self.encode((self.decode(grasp) + self.decode(jnp.asarray(order))) % n)
+
+    def rank_within(self, grasp: jax.Array, other: jax.Array) -> jax.Array:
+        """Position of `other` in `within(grasp, k)` for any k at least the number of links they differ in."""
+        n = np.asarray(self.n_options, np.int32)
+        change = self.encode((self.decode(other) - self.decode(grasp)) % n)
+        return jnp.asarray(self._changes[1])[change]
+
     def label(self, grasp: int) -> str:
         """Readable grasp, one token per link: e.g. 'T1 I1 . M2 . .' (letter = finger, digit = option)."""
         opts = np.asarray(self.decode(grasp))

@@ -91,31 +91,49 @@ def rollout(env, policy, episode) -> tuple[jax.Array, State]:
     return jnp.sum(rewards), final
 
 
-def rollout_batched(sur: Surrogate, policy, episode: Episode) -> tuple[jax.Array, State]:
+def rollout_batched(sur: Surrogate, policy, episode: Episode, ahead: int = 1) -> tuple[jax.Array, State]:
     """`lookahead.rollout(sur, policy, sur.reset(episode))` with the transitions off the chain of decisions. From its
     start an episode visits only discrete states (grasp, t), and a step's next grasp follows from its action alone
     (`GraspSpace.apply`), so the grasps a policy visits are known before any reward is: all T transitions (their IK
     and wrench solves) then run as one vmapped batch (`Surrogate.transition`), and the return sums the rewards up to
-    the first step that ends the episode. An open-loop `SequencePolicy` (DP baseline) needs nothing more; a
-    closed-loop policy first walks its chain of decisions, realising only each state it acts on (one IK a step: on
-    a CPU, where a batch costs what its problems cost, one IK a step more than stepping; realising all n_grasps x T
-    states in one batch instead was measured slower on an H100, as that batch costs about 16 single IKs there).
+    the first step that ends the episode. An open-loop `SequencePolicy` (DP baseline) needs nothing more. A
+    closed-loop policy first walks its chain of decisions, which needs each state it acts on realised (an IK):
+    `ahead` = k realises, in one batch, every state its next k decisions can reach -- the grasps within j link
+    changes of the current one at waypoint t + j, j < k (1, 11, 51, 133 ... states: `GraspSpace.within`) -- so the
+    chain is ceil(T / k) batched IKs long instead of T single ones. A GPU runs a small batch in about the time of
+    one problem (k = 3: 63 states per batch); a CPU pays for every state (keep k = 1 there: one IK a step more than
+    stepping). Realising all n_grasps x T states in one batch was measured slower on an H100 (about 16 single IKs).
     For policies that act on a state's grasp, waypoint, joint angles and episode, not on the last step's `terms`
     (a discrete state's are zeros); a `Lookahead` would search from each state, but `lookahead.rollout_planned` reuses
     its search's steps instead. Returns (return, final state); the same episode as stepping, to float32 rounding
     (the batch's solves round in the last bits like a vmap's)."""
+    if not isinstance(ahead, (int, np.integer)) or ahead < 1:
+        raise ValueError(f"ahead: expected an integer >= 1, got {ahead!r}")
     n_t = episode.n_steps
     ts = jnp.arange(n_t, dtype=jnp.int32)
     start = jnp.asarray(episode.start_grasp, jnp.int32)
+    space = sur.space
     if isinstance(policy, SequencePolicy):
         actions = policy.actions[jnp.minimum(ts, policy.actions.shape[0] - 1)]
-        _, grasps = jax.lax.scan(lambda g, a: (sur.space.apply(g, a)[0], g), start, actions)
+        _, grasps = jax.lax.scan(lambda g, a: (space.apply(g, a)[0], g), start, actions)
     else:
-        def decide(g, t):
-            a = policy.act(sur.discrete_state(episode, g, t))
-            return sur.space.apply(g, a)[0], (g, a)
+        sizes = [space.n_within(j) for j in range(ahead)]
+        offsets = np.cumsum([0] + sizes[:-1])
+        lag = jnp.asarray(np.repeat(np.arange(ahead, dtype=np.int32), sizes))  # (B,) waypoint offset of each state
 
-        _, (grasps, actions) = jax.lax.scan(decide, start, ts)
+        def decide(g, t0):  # `ahead` decisions from grasp g at waypoint t0, on one batch of realised states
+            reach = jnp.concatenate([space.within(g, j) for j in range(ahead)])
+            states = jax.vmap(sur.discrete_state, (None, 0, 0))(episode, reach, jnp.minimum(t0 + lag, n_t - 1))
+            h, visited, acts = g, [], []
+            for j in range(ahead):
+                at = offsets[j] + space.rank_within(g, h)
+                a = policy.act(jax.tree.map(lambda x, at=at: x[at], states))
+                visited, acts, h = visited + [h], acts + [a], space.apply(h, a)[0]
+            return h, (jnp.stack(visited), jnp.stack(acts))
+
+        n_blocks = -(-n_t // ahead)
+        _, (grasps, actions) = jax.lax.scan(decide, start, jnp.arange(n_blocks, dtype=jnp.int32) * ahead)
+        grasps, actions = grasps.reshape(-1)[:n_t], actions.reshape(-1)[:n_t]
     moved, rewards, ends = jax.vmap(sur.transition, (None, 0, 0, 0))(episode, grasps, ts, actions)
     alive = jnp.cumsum(ends) - ends == 0  # no earlier step ended the episode
     final = jax.tree.map(lambda x: x[jnp.argmax(ends)], moved)  # the first step that ends it (the last one does)

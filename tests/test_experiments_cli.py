@@ -35,14 +35,16 @@ def test_every_autotuned_command_exists():
     assert set(cli.AUTOTUNED) <= set(cli.COMMANDS)
 
 
+@pytest.mark.parametrize("option", ["--ik-unroll", "--ahead"])
 @pytest.mark.parametrize("value", ["0", "-2", "three"])
-def test_table1_rejects_an_ik_unroll_below_one_by_name(monkeypatch, capsys, value):
-    """`table1 --ik-unroll` takes the IK's iterations per loop trip: anything but an integer >= 1 stops at the
-    command line with the option and the value named, before any work starts."""
+def test_table1_rejects_a_count_below_one_by_name(monkeypatch, capsys, option, value):
+    """`table1 --ik-unroll` (the IK's iterations per loop trip) and `--ahead` (batched RL's decisions per batch of
+    realised states): anything but an integer >= 1 stops at the command line with the option and the value named,
+    before any work starts."""
     monkeypatch.delenv("XLA_FLAGS", raising=False)
     monkeypatch.setenv("GSP_JAX_CACHE", "off")
     with pytest.raises(SystemExit) as exit_:
-        cli.main(["table1", "--ik-unroll", value])
+        cli.main(["table1", option, value])
     assert exit_.value.code == 2
     err = capsys.readouterr().err
-    assert "--ik-unroll" in err and repr(value) in err, err
+    assert option in err and repr(value) in err, err

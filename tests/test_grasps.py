@@ -114,6 +114,24 @@ def test_apply_scalar(space):
     assert int(nxt3) == int(nxt) and not bool(red3)
 
 
+def test_within_k_changes_is_what_k_actions_reach(space, all_options):
+    """`within(g, k)` against brute force: exactly the grasps that differ from g in at most k links, each once,
+    ordered by how many (g first), its prefixes the smaller balls; that is every grasp k actions can reach from g
+    (breadth-first over all 17 actions); `rank_within` gives each one's position."""
+    assert [space.n_within(k) for k in range(8)] == [1, 11, 51, 133, 224, 276, 288, 288]
+    for g in (0, 137, 287):
+        differ = (all_options != all_options[g]).sum(axis=1)
+        reach = {g}
+        for k in range(4):
+            w = np.asarray(space.within(g, k))
+            assert len(w) == len(set(w.tolist())) == space.n_within(k)
+            assert set(w.tolist()) == set(np.flatnonzero(differ <= k).tolist()) == reach, (g, k)
+            assert np.all(np.diff(differ[w]) >= 0) and w[0] == g
+            np.testing.assert_array_equal(np.asarray(space.rank_within(g, w)), np.arange(len(w)))
+            nxt, _ = space.apply(np.array(sorted(reach))[:, None], np.arange(space.n_actions))
+            reach = set(np.asarray(nxt).ravel().tolist())
+
+
 def test_action_by_link_name(space):
     """`action(link, option)` is the action whose link and option those are, and bad names or options raise."""
     for a in range(1, space.n_actions):

@@ -71,13 +71,16 @@ def _early_end(table, start_grasp, first_action):
     return np.array([first_action, fails[0]] + [0] * (table.reward.shape[2] - 2), np.int32)
 
 
-@pytest.mark.parametrize("kind", ["dp-base", "ends-early", "dp-opt", "network"])
-def test_batched_rollout_runs_the_episode_that_stepping_runs(env, solved, kind):
+@pytest.mark.parametrize("kind,ahead", [("dp-base", 1), ("ends-early", 1), ("dp-opt", 1), ("dp-opt", 3), ("network", 1),
+                                        ("network", 3)])
+def test_batched_rollout_runs_the_episode_that_stepping_runs(env, solved, kind, ahead):
     """`rollout_batched` (the chain of decisions, then every transition in one vmapped batch) against stepping the
     surrogate one decision at a time: the same actions, rewards to REWARD_ATOL, return, final grasp, waypoint, joint
     angles (Q_ATOL) and end. Open loop (DP baseline on the other episode; a sequence that fails at its second step)
     and closed loop (the DP policy over (grasp, t); a network acting on the continuous observation, compared only
-    because its best logit leads the runner-up by more than twice what the joint angles' tolerance can move it)."""
+    because its best logit leads the runner-up by more than twice what the joint angles' tolerance can move it); the
+    closed-loop ones also with `ahead` = 3, each batch realising every state three decisions can reach (4 steps: a
+    whole block, then a part of one)."""
     from gsp_jax.env import observation, observation_size
     from gsp_jax.ppo import networks as nets
 
@@ -105,7 +108,7 @@ def test_batched_rollout_runs_the_episode_that_stepping_runs(env, solved, kind):
         s, r, _ = step(s, act(policy, s))
         ret, n = ret + float(r), n + 1
     assert n == (2 if kind == "ends-early" else ep.n_steps)
-    batched, final = jax.jit(lambda p, e: policies.rollout_batched(env, p, e))(policy, ep)
+    batched, final = jax.jit(lambda p, e: policies.rollout_batched(env, p, e, ahead))(policy, ep)
     np.testing.assert_allclose(float(batched), ret, rtol=0, atol=tol.REWARD_ATOL * n)
     for f in ("grasp", "t", "done"):
         np.testing.assert_array_equal(np.asarray(getattr(final, f)), np.asarray(getattr(s, f)), err_msg=f)

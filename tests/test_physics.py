@@ -216,3 +216,68 @@ def test_pedestal_drop_in_numpy_is_the_jax_value():
     ours = [float(phys.scene.pedestal_drop(j * phys.config.tick, xp=np)) for j in ticks]
     theirs = [float(phys.scene.pedestal_drop(j * phys.config.tick)) for j in ticks]
     assert ours == theirs and min(ours) < 0.0 and max(ours) == 0.0
+
+
+def test_c_engine_steps_each_episode_as_its_own_model(phys):
+    """`c_backend.Engine` (a `mujoco.batch.Batch` with the episodes' fields expanded per simulation) steps every
+    episode bit for bit as `mj_step` on that episode's own model (`Scene.c_model`, pedestals set per tick) does,
+    under the same motor commands and external wrench; on one thread and on two."""
+    from gsp_jax.physics import c_backend
+
+    eps = scenario.stack([scenario.make_episode(mass_factor=2.0, com_y_cm=1.0),
+                          scenario.make_episode(shift_mm=-6, friction=0.5, mass_factor=0.5)])
+    fields = jax.device_get(jax.vmap(phys.scene.episode_fields)(eps))
+    qpos0 = np.asarray(jax.vmap(phys.start)(eps)[0], np.float64)
+    rng = np.random.default_rng(0)
+    lo, hi = phys.scene.model.actuator_ctrlrange.T
+    ctrl = rng.uniform(0.3 * lo, 0.3 * hi, (40, 2, phys.model.nu))
+    ext = rng.normal(0.0, 0.2, (40, 2, 6))
+    traces = []
+    for cores in (1, 2):
+        eng = c_backend.Engine(phys.scene, fields, qpos0, cores)
+        trace = []
+        for j in range(40):
+            eng.set_pedestals(-0.001 * j)
+            eng.step(np.arange(2), ctrl[j], ext[j], 1)
+            trace.append(eng.observe().copy())
+        traces.append(np.stack(trace))
+    np.testing.assert_array_equal(traces[0], traces[1])
+    for e in range(2):
+        m = phys.scene.c_model(jax.tree.map(lambda x: x[e], fields))
+        d = mujoco.MjData(m)
+        d.qpos[:] = qpos0[e]
+        mujoco.mj_forward(m, d)
+        for j in range(40):
+            phys.scene.c_pedestals(m, jax.tree.map(lambda x: x[e], fields), -0.001 * j)
+            d.ctrl[:], d.xfrc_applied[phys.scene.tool_body] = ctrl[j, e], ext[j, e]
+            mujoco.mj_step(m, d)
+            ref = np.concatenate([d.qpos, d.qvel, d.qfrc_bias]).astype(np.float32)
+            np.testing.assert_array_equal(traces[0][j, e], ref)
+
+
+def test_c_lockstep_of_several_policies_is_each_policy_alone(phys, batch, runs):
+    """`simulate_many` in C MuJoCo runs two policies' episodes in one lockstep: each policy's result is the one it
+    gets alone (`simulate_batch`), the same on 1 core and on 2 (MuJoCo's batched stepping is deterministic at any
+    thread count; the controller is one program per batch size)."""
+    episodes, policy, _ = batch
+    keep = policies.SequencePolicy(jnp.full((5, T), phys.space.action("index_distal", 1), jnp.int32))
+    both = [jax.device_get(phys.simulate_many([(policy, 0), (keep, 0)], episodes, backend="c", cores=c))
+            for c in (1, 2)]
+    for a, b in zip(*both):
+        np.testing.assert_array_equal(a.qpos, b.qpos)
+    alone = runs["c"]
+    res = both[0][0]
+    np.testing.assert_array_equal(res.grasps, alone.grasps)
+    np.testing.assert_array_equal(res.fell, alone.fell)
+    a = phys.scene.tool_qpos
+    held = ~alone.fell
+    np.testing.assert_allclose(res.qpos[held, :, a:a + 3], alone.qpos[held, :, a:a + 3], atol=1e-3)
+    np.testing.assert_allclose(res.angle[held], alone.angle[held], atol=2.0)
+    assert not np.array_equal(both[0][1].grasps, res.grasps)  # the second group ran its own policy
+
+
+def test_c_backend_rejects_bad_cores_by_name(phys, batch):
+    episodes, policy, _ = batch
+    for bad in (0, -2, 1.5):
+        with pytest.raises(ValueError, match="cores"):
+            phys.simulate_batch(policy, episodes, policy_axis=0, backend="c", cores=bad)

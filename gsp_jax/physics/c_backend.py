@@ -1,153 +1,235 @@
 """The C MuJoCo backend of the runner: the same controller, decisions and outcome as the MJX runner
-(`runner.Physics.simulate`), with the physics stepped by `mujoco.mj_step` on the CPU. It is the reference every
-MJX figure can be checked against, and for small batches the faster engine (C MuJoCo steps this scene ~20x faster
-per core than MJX on an H100: ../shared/ENVIRONMENT.md).
+(`runner.Physics.simulate`), with the physics stepped by C MuJoCo on every CPU core. It is the reference every MJX
+figure can be checked against, and for this scene the faster engine (C MuJoCo steps it ~10x faster per core than
+MJX on an H100: ../shared/ENVIRONMENT.md).
 
-The episodes of a batch advance in lockstep: at each control tick one jitted, vmapped JAX call reads every
-episode's state and returns every episode's motor commands (and the status of the tick before), then each
-episode's C model steps `control_every` times. So the per-tick JAX dispatch is paid once per batch, not per
-episode.
+One lockstep runs every episode of every policy given (Fig. 4b's 5 policies x 27 episodes are one batch of 135):
+
+  at each segment start   each policy decides for its own episodes (one jitted call per policy);
+  at each control tick    one jitted JAX call reads every episode's state and returns every episode's motor
+                          commands (and the status of the tick before); then `mujoco.batch.Batch` steps every
+                          episode `control_every` times on a thread pool over `cores` cores (MuJoCo's own batched
+                          stepping: bit-identical to a loop of `mj_step` per episode, at any thread count).
+
+A tick's JAX call takes four flat arrays (controller states, observations, episodes, tick index) and returns two:
+a call with the controller's pytrees as arguments cost ~150 us of dispatch (21 leaves), more than the physics of
+27 episodes on two cores. Episodes that fell are frozen (no longer stepped).
 """
 from __future__ import annotations
 
-import threading
+import os
 
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from jax.flatten_util import ravel_pytree
+from mujoco import batch as mj_batch
 
-from gsp_jax.physics.scene import AWAY
 from gsp_jax.scenario import Episode
 
-_LOCK = threading.Lock()  # policies may run side by side in threads (`experiments fig4b --jobs`)
+
+def available_cores() -> int:
+    """CPU cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
 
 
-def _compiled(phys, policy_axis):
-    """(start, decide, tick, check, episode_fields), jitted once per `Physics`: only `decide` depends on how the
-    policy is batched, so every policy shares the others' compiled programs. Threads (policies run side by side)
-    take turns here, so they share one set."""
-    scene = phys.scene
+class _Flat:
+    """Ravel / unravel one episode's pytree (a batch: leading axis) to one float32 vector, inside or outside jit."""
 
-    def observe(raw):
-        return jax.vmap(scene.observe)(*raw)
+    def __init__(self, one):
+        flat, self._unravel = ravel_pytree(jax.tree.map(lambda x: np.asarray(x, np.float32), one))
+        self._dtypes = jax.tree.map(lambda x: np.asarray(x).dtype, one)
+        self.size = flat.shape[0]
 
-    with _LOCK:
-        if "c" not in phys._jitted:
+    def ravel(self, tree) -> jax.Array:
+        return jax.vmap(lambda t: ravel_pytree(jax.tree.map(lambda x: x.astype(jnp.float32), t))[0])(tree)
 
-            def tick(cs, raw, episodes, j):
-                obs = observe(raw)
-                status = jax.vmap(phys.check, in_axes=(0, 0, None))(obs, episodes, j - 1)
-                ctrl, ext, cs = jax.vmap(phys.tick, in_axes=(0, 0, 0, None))(cs, obs, episodes, j)
-                return status, ctrl, ext, cs
-
-            def check(raw, episodes, j):
-                return jax.vmap(phys.check, in_axes=(0, 0, None))(observe(raw), episodes, j)
-
-            shared = (jax.jit(jax.vmap(phys.start)), jax.jit(tick), jax.jit(check),
-                      jax.jit(jax.vmap(scene.episode_fields)))
-            phys._jitted["c"] = tuple(map(_compiled_once, shared))
-        key = ("c-decide", policy_axis)
-        if key not in phys._jitted:
-
-            def decide(policy, cs, raw, grasp, episodes, k):
-                return jax.vmap(phys.decide, in_axes=(policy_axis, 0, 0, 0, 0, None))(policy, cs, observe(raw), grasp,
-                                                                                      episodes, k)
-
-            phys._jitted[key] = jax.jit(decide)
-        start, tick, check, episode_fields = phys._jitted["c"]
-        return start, phys._jitted[key], tick, check, episode_fields
+    def unravel(self, flat: jax.Array):
+        tree = jax.vmap(self._unravel)(flat)
+        return jax.tree.map(lambda x, d: jnp.round(x).astype(d) if jnp.issubdtype(d, jnp.integer)
+                            else (x > 0.5 if d == jnp.bool_ else x.astype(d)), tree, self._dtypes)
 
 
-def _compiled_once(fn):
-    """`fn` (jitted) whose first call runs in one thread at a time: policies simulated side by side in threads
-    wait for its one compilation instead of each compiling it."""
-    lock, warm = threading.Lock(), []
+class _Programs:
+    """The jitted programs of one `Physics` (built once, shared by every call): start, per-tick control, the final
+    check, and a decision per way a policy is batched."""
 
-    def call(*args):
-        if not warm:
-            with lock:
-                out = jax.block_until_ready(fn(*args))
-                warm.append(True)
-            return out
-        return fn(*args)
+    def __init__(self, phys, one_episode: Episode):
+        self.phys, scene = phys, phys.scene
+        m = phys.model
+        self.nq, self.nv, self.nu = m.nq, m.nv, m.nu
+        zeros = lambda tree: jax.tree.map(lambda x: np.zeros(x.shape, x.dtype), tree)  # noqa: E731
+        self.cs = _Flat(zeros(jax.eval_shape(phys.start, one_episode)[1]))  # its layout only: nothing runs
+        self.ep = _Flat(zeros(one_episode))
+        nq, nv = self.nq, self.nv
 
-    return call
+        def observe(obs_flat):
+            return jax.vmap(scene.observe)(obs_flat[:, :nq], obs_flat[:, nq:nq + nv], obs_flat[:, nq + nv:])
+
+        def start(episodes):
+            qpos, cs = jax.vmap(phys.start)(episodes)
+            return qpos, self.cs.ravel(cs)
+
+        def tick(cs_flat, obs_flat, ep_flat, j):
+            """(next controller states, [ctrl (nu) | external wrench (6) | angle, position error, fell of tick j-1])"""
+            episodes, obs = self.ep.unravel(ep_flat), observe(obs_flat)
+            angle, perr, fell = jax.vmap(phys.check, in_axes=(0, 0, None))(obs, episodes, j - 1)
+            ctrl, ext, cs = jax.vmap(phys.tick, in_axes=(0, 0, 0, None))(self.cs.unravel(cs_flat), obs, episodes, j)
+            status = jnp.stack([angle, perr, fell.astype(jnp.float32)], -1)
+            return self.cs.ravel(cs), jnp.concatenate([ctrl, ext, status], -1)
+
+        def check(obs_flat, ep_flat, j):
+            return jnp.stack(jax.vmap(phys.check, in_axes=(0, 0, None))(observe(obs_flat), self.ep.unravel(ep_flat), j),
+                             -1)
+
+        self.observe = observe
+        self.start = jax.jit(start)
+        self.tick = jax.jit(tick)
+        self.check = jax.jit(check)
+        self.fields = jax.jit(jax.vmap(scene.episode_fields))
+        self.ravel_episodes = jax.jit(self.ep.ravel)
+        self._decide = {}
+
+    def decide(self, policy_axis):
+        if policy_axis not in self._decide:
+            phys = self.phys
+
+            def decide(policy, cs_flat, obs_flat, grasp, episodes, k):
+                action, grasp, cs = jax.vmap(phys.decide, in_axes=(policy_axis, 0, 0, 0, 0, None))(
+                    policy, self.cs.unravel(cs_flat), self.observe(obs_flat), grasp, episodes, k)
+                return action, grasp, self.cs.ravel(cs)
+
+            self._decide[policy_axis] = jax.jit(decide)
+        return self._decide[policy_axis]
 
 
-def simulate(phys, policy, episodes: Episode, policy_axis: int | None = None, progress: bool = False):
-    """`Physics.simulate_batch(..., backend="c")`: a `runner.Result` of numpy arrays, batch axis first."""
-    start, decide, tick, check, episode_fields = _compiled(phys, policy_axis)
-    scene, c = phys.scene, phys.config
+def programs(phys, episodes: Episode) -> _Programs:
+    """The C backend's jitted programs of `phys` (made on first use)."""
+    if "c" not in phys._jitted:
+        phys._jitted["c"] = _Programs(phys, jax.tree.map(lambda x: np.asarray(x)[0], episodes))
+    return phys._jitted["c"]
+
+
+class Engine:
+    """The episodes of one lockstep in C MuJoCo: a `mujoco.batch.Batch` of the physics model with the per-episode
+    fields (tool mass, inertia, CoM, finger-tool friction, pedestals) expanded per simulation."""
+
+    def __init__(self, scene, fields, qpos0: np.ndarray, cores: int):
+        n = qpos0.shape[0]
+        self.scene, self.n = scene, n
+        self.batch = b = mj_batch.Batch(scene.model, nsim=n, nthread=max(1, min(cores, n)))
+        body, pairs = scene.tool_body, scene.finger_tool_pairs
+        b.expand("body_mass")[:, body] = fields.mass
+        b.expand("body_inertia")[:, body] = fields.inertia
+        b.expand("body_ipos")[:, body] = fields.com
+        b.expand("pair_friction")[:, pairs, :2] = np.asarray(fields.friction)[:, None, None]
+        self._geom_pos = b.expand("geom_pos")
+        self._pedestals = np.asarray(fields.pedestal_pos, np.float64)  # (n, P, 3) at drop 0
+        self.set_pedestals(0.0)
+        self.qpos, self.qvel, self.ctrl, self.xfrc = b.qpos, b.qvel, b.ctrl, b.xfrc_applied
+        self.qpos[:] = qpos0
+        b.forward()
+        self.bias = b.bind("qfrc_bias")
+        nq, nv = scene.model.nq, scene.model.nv
+        self.obs = np.zeros((n, nq + 2 * nv), np.float32)
+        self._cut = (nq, nq + nv)
+
+    def set_pedestals(self, drop: float) -> None:
+        """The pedestals of every episode `drop` (<= 0) metres below their start."""
+        self._geom_pos[:, self.scene.pedestal_geoms] = self._pedestals + np.array([0.0, 0.0, drop])
+
+    def observe(self) -> np.ndarray:
+        """(n, nq + 2 nv) float32: qpos, qvel and qfrc_bias of every episode."""
+        a, b = self._cut
+        self.obs[:, :a], self.obs[:, a:b], self.obs[:, b:] = self.qpos, self.qvel, self.bias
+        return self.obs
+
+    def step(self, ids: np.ndarray, ctrl: np.ndarray, external: np.ndarray, nstep: int) -> None:
+        """Episodes `ids` advance `nstep` physics steps under motor commands ctrl (n, nu) and the tool's external
+        wrench (n, 6); the others stay as they are."""
+        self.ctrl[ids] = ctrl[ids]
+        self.xfrc[ids, self.scene.tool_body] = external[ids]
+        self.batch.step(ids=ids, nstep=nstep)
+
+
+def simulate(phys, groups, episodes: Episode, cores: int | None = None, progress: bool = False):
+    """`Physics.simulate_many(..., backend="c")`: every (policy, policy_axis) of `groups` on every episode of
+    `episodes` (leading axis) in one lockstep; a list of `runner.Result`s of numpy arrays, one per group."""
+    c, scene = phys.config, phys.scene
     N, T, n = int(np.shape(episodes.mass)[0]), episodes.n_steps, phys.n_segment
+    G = len(groups)
     K = phys.n_ticks(T)
+    cores = available_cores() if cores is None else cores
+    pr = programs(phys, episodes)
     cpu = jax.devices("cpu")[0]
-    on_cpu = lambda tree: jax.device_put(tree, cpu)  # noqa: E731  (the per-tick program follows its inputs there)
-    on_default = lambda tree: jax.device_put(tree, jax.devices()[0])  # noqa: E731
-    episodes_cpu = on_cpu(episodes)
-    fields = jax.device_get(episode_fields(episodes))
-    qpos0, cs = start(episodes)
-    cs = on_cpu(cs)
-    qpos0 = np.asarray(qpos0, np.float64)
-    models, datas = [], []
-    field_list = [jax.tree.map(lambda x: x[e], fields) for e in range(N)]
-    for e in range(N):
-        m = scene.c_model(field_list[e])
-        d = mujoco.MjData(m)
-        d.qpos[:] = qpos0[e]
-        mujoco.mj_forward(m, d)
-        models.append(m)
-        datas.append(d)
-
-    def raw():
-        return tuple(np.stack([getattr(d, f) for d in datas]).astype(np.float32) for f in ("qpos", "qvel", "qfrc_bias"))
-
-    grasp = jnp.asarray(episodes.start_grasp, jnp.int32)
-    fell = np.zeros(N, bool)
-    fall_tick = np.full(N, -1, np.int32)
-    angle, perr = np.zeros((N, K), np.float32), np.zeros((N, K), np.float32)
-    qpos_trace = np.zeros((N, K, phys.model.nq), np.float32)
-    actions, grasps = [], []
-    state = raw()
-    segments = range(T + phys.n_hold)
-    if progress:
-        from tqdm.auto import tqdm
-
-        segments = tqdm(segments, desc="C MuJoCo segments", leave=False)
+    default = jax.devices()[0]
+    # every group runs on every episode: the lockstep's batch is the groups' episodes one after another
+    ep_flat = jax.device_put(pr.ravel_episodes(episodes), cpu)
+    ep_flat = jnp.tile(ep_flat, (G, 1))
+    qpos0, cs = pr.start(episodes)
+    qpos0 = np.tile(np.asarray(qpos0, np.float64), (G, 1))
+    cs = jax.device_put(jnp.tile(cs, (G, 1)), cpu)
+    fields = jax.tree.map(lambda x: np.tile(np.asarray(x), (G,) + (1,) * (np.ndim(x) - 1)),
+                          jax.device_get(pr.fields(episodes)))
+    eng = Engine(scene, fields, qpos0, cores)
+    M = G * N
+    grasp = np.tile(np.asarray(episodes.start_grasp, np.int32), G)
+    fell = np.zeros(M, bool)
+    fall_tick = np.full(M, -1, np.int32)
+    angle, perr = np.zeros((M, K), np.float32), np.zeros((M, K), np.float32)
+    qpos_trace = np.zeros((M, K, phys.model.nq), np.float32)
+    actions = np.zeros((M, T), np.int32)
+    grasps = np.zeros((M, T), np.int32)
+    nu = phys.model.nu
+    sl = [slice(g * N, (g + 1) * N) for g in range(G)]
+    decides = [pr.decide(axis) for _, axis in groups]
 
     def record(j, status, now):
-        a, p, f = (np.asarray(x) for x in status)
+        a, p, f = status[:, 0], status[:, 1], status[:, 2] > 0.5
         new_fall = f & ~fell
         fall_tick[new_fall] = j
         fell[:] |= f
         angle[:, j], perr[:, j] = a, p
         prev = qpos_trace[:, j - 1] if j > 0 else qpos0.astype(np.float32)
-        qpos_trace[:, j] = np.where((fell & (new_fall | (fall_tick < j)))[:, None], prev, now)
+        qpos_trace[:, j] = np.where(fell[:, None], prev, now)  # a fallen tool's trace stays where it fell
 
+    segments = range(T + phys.n_hold)
+    if progress:
+        from tqdm.auto import tqdm
+
+        segments = tqdm(segments, desc="C MuJoCo segments", leave=False)
+    obs = eng.observe()
     for k in segments:
-        action, grasp, cs = decide(policy, on_default(cs), state, grasp, episodes, k)
-        cs = on_cpu(cs)
-        actions.append(np.asarray(action))
-        grasps.append(np.asarray(grasp))
+        parts = []  # each policy decides for its episodes (in the hold: no decision, the segment's set-up only)
+        for g, (policy, _) in enumerate(groups):
+            act, gr, cs_g = decides[g](policy, jax.device_put(cs[sl[g]], default), obs[sl[g]], grasp[sl[g]],
+                                       episodes, k)
+            if k < T:
+                actions[sl[g], k], grasps[sl[g], k] = np.asarray(act), np.asarray(gr)
+            grasp[sl[g]] = np.asarray(gr)
+            parts.append(jax.device_put(cs_g, cpu))
+        cs = jnp.concatenate(parts) if G > 1 else parts[0]
         for i in range(n):
             j = k * n + i
-            drop = float(scene.pedestal_drop(j * c.tick, xp=np))
-            if drop > AWAY:  # sinking (afterwards they stay away)
-                for e in np.flatnonzero(~fell):
-                    scene.c_pedestals(models[e], field_list[e], drop)
-            status, ctrl, ext, cs = tick(cs, state, episodes_cpu, j)
+            eng.set_pedestals(float(scene.pedestal_drop(j * c.tick, xp=np)))
+            cs, out = pr.tick(cs, obs, ep_flat, j)
+            out = np.asarray(out)
             if j > 0:
-                record(j - 1, status, state[0])
-            ctrl, ext = np.asarray(ctrl, np.float64), np.asarray(ext, np.float64)
-            for e in np.flatnonzero(~fell):
-                d = datas[e]
-                d.ctrl[:] = ctrl[e]
-                d.xfrc_applied[scene.tool_body] = ext[e]
-                for _ in range(c.control_every):
-                    mujoco.mj_step(models[e], d)
-            state = raw()
-    record(K - 1, check(state, episodes_cpu, K - 1), state[0])
-    actions, grasps = np.stack(actions, 1)[:, :T], np.stack(grasps, 1)[:, :T]
-    res = phys.result(jnp.asarray(actions), jnp.asarray(grasps), jnp.asarray(angle), jnp.asarray(perr),
-                      jnp.asarray(qpos_trace), jnp.asarray(fell), jnp.asarray(fall_tick), T)
-    return jax.device_get(res)
+                record(j - 1, out[:, nu + 6:], obs[:, :phys.model.nq])
+            alive = np.flatnonzero(~fell)
+            if alive.size:
+                eng.step(alive, out[:, :nu], out[:, nu:nu + 6], c.control_every)
+            obs = eng.observe()
+    record(K - 1, np.asarray(pr.check(obs, ep_flat, K - 1)), obs[:, :phys.model.nq])
+    results = []
+    for g in range(G):
+        s = sl[g]
+        res = phys.result(jnp.asarray(actions[s]), jnp.asarray(grasps[s]), jnp.asarray(angle[s]),
+                          jnp.asarray(perr[s]), jnp.asarray(qpos_trace[s]), jnp.asarray(fell[s]),
+                          jnp.asarray(fall_tick[s]), T)
+        results.append(jax.device_get(res))
+    return results

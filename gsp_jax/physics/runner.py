@@ -191,22 +191,34 @@ class Physics:
         return self._run(policy, episode, None, batched=False)
 
     def simulate_batch(self, policy, episodes: Episode, policy_axis: int | None = None, backend: str = "mjx",
-                       progress: bool = False) -> Result:
+                       progress: bool = False, cores: int | None = None) -> Result:
         """Every episode of a batch (leading axis) with `policy`; with policy_axis=0 the policy pytree carries the
         same batch axis (e.g. one `SequencePolicy` per episode). backend "mjx": one XLA kernel, `simulate`'s loop
-        with its per-tick step vmapped inside the scans (jitted once per structure); "c": C MuJoCo
-        (`c_backend.simulate`), the same controller."""
+        with its per-tick step vmapped inside the scans (jitted once per structure); "c": C MuJoCo on `cores` CPU
+        cores (default all; `c_backend.simulate`), the same controller."""
+        return self.simulate_many([(policy, policy_axis)], episodes, backend, progress, cores)[0]
+
+    def simulate_many(self, policies, episodes: Episode, backend: str = "mjx", progress: bool = False,
+                      cores: int | None = None) -> list[Result]:
+        """Several policies on the same episodes: `policies` is a list of (policy, policy_axis) pairs (axis as in
+        `simulate_batch`); one `Result` per pair. In C MuJoCo every policy's episodes run in one lockstep (one
+        controller call per tick for all of them, every core stepping); in MJX one batch per policy."""
         check_episodes(episodes, self.config)
+        if backend not in BACKENDS:
+            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+        if cores is not None and not (isinstance(cores, int) and cores >= 1):
+            raise ValueError(f"cores must be an int >= 1, got {cores!r}")
         if backend == "c":
             from gsp_jax.physics import c_backend
 
-            return c_backend.simulate(self, policy, episodes, policy_axis, progress=progress)
-        if backend != "mjx":
-            raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-        key = policy_axis
-        if key not in self._jitted:
-            self._jitted[key] = jax.jit(lambda policy, episodes: self._run(policy, episodes, policy_axis, True))
-        return self._jitted[key](policy, episodes)
+            return c_backend.simulate(self, list(policies), episodes, cores=cores, progress=progress)
+        out = []
+        for policy, policy_axis in policies:
+            key = policy_axis
+            if key not in self._jitted:
+                self._jitted[key] = jax.jit(lambda policy, episodes, a=policy_axis: self._run(policy, episodes, a, True))
+            out.append(self._jitted[key](policy, episodes))
+        return out
 
 
 def check_episodes(episodes: Episode, config: PhysicsConfig) -> None:

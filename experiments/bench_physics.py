@@ -1,44 +1,78 @@
-"""`python -m experiments bench-physics`: the cost of the physics check, one policy's batch of episodes (default
-the 27 evaluation episodes with the four-tip grasp), stepped by MJX (one XLA batch) and by C MuJoCo (lockstep, one
-JAX controller call per tick for the whole batch), measured side by side in one run: the first call (compile
-included, what a user waits for) and a second, warm call; with the falls of each, so a faster setting that
-changes the outcome shows. `--variant NAME:key=value,...` adds `PhysicsConfig` variants (e.g.
-`ctrl2:control_every=2`); `--waypoints 4` shortens the episodes for a quick run on a CPU."""
+"""`python -m experiments bench-physics`: the cost of the physics check against the engine's own speed, measured
+side by side in one run, on one policy's batch of episodes (default the 27 evaluation episodes, four tips):
+
+  engine alone   `mujoco.mj_step` on the same scene and the same states, one core: every state the runner stepped
+                 (recorded from a one-core run) is loaded into an `MjData` and stepped once; only `mj_step` is
+                 timed. This is the engine's limit: steps / s of one core.
+  runner         `Physics.simulate_batch(..., backend="c")`: controller, decisions and physics, on 1, 2 and all
+                 cores; the first call (a fresh `Physics`: compile included) and a warm one.
+
+The runner's share of the engine's limit is its steps / s over (engine steps / s x cores). `--backends mjx c`
+adds the MJX runner (one XLA batch); `--variant NAME:key=value,...` adds `PhysicsConfig` variants (their falls
+show whether a cheaper setting changes the outcome); `--waypoints 4` shortens the episodes for a quick run.
+Writes JSON (`engine_steps_per_s_one_core`, and per row `runner_steps_per_s`, `cores`); prints a table last.
+"""
 from __future__ import annotations
 
 import argparse
 import dataclasses
 import json
+import time
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 
 from experiments.common import results_dir, table, timed
 from gsp_jax import physics, policies, scenario, surrogate
+from gsp_jax.physics import c_backend
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", default="eval")
     p.add_argument("--waypoints", type=int, default=scenario.N_WAYPOINTS, help="episode length (shorter: quicker)")
     p.add_argument("--variant", action="append", default=[], help="NAME:key=value,... a PhysicsConfig variant")
-    p.add_argument("--backends", nargs="+", default=list(physics.BACKENDS), choices=physics.BACKENDS)
+    p.add_argument("--backends", nargs="+", default=["c"], choices=physics.BACKENDS)
+    p.add_argument("--cores", nargs="+", type=int, default=None,
+                   help="core counts for the C runner (default: 1, 2 and all)")
+    p.add_argument("--workers", type=int, default=None, help="C runner chunks side by side (default: one a core)")
     p.add_argument("--out", default=None)
 
 
 def _variants(specs) -> list[tuple[str, physics.PhysicsConfig]]:
     out = [("default", physics.PhysicsConfig())]
+    fields = {f.name for f in dataclasses.fields(physics.PhysicsConfig)}
     for spec in specs:
         name, _, body = spec.partition(":")
         kw = {}
         for item in filter(None, body.split(",")):
             key, _, value = item.partition("=")
-            field = {f.name: f for f in dataclasses.fields(physics.PhysicsConfig)}.get(key)
-            if field is None:
+            if key not in fields:
                 raise ValueError(f"--variant {spec!r}: PhysicsConfig has no field {key!r}")
             kw[key] = type(getattr(physics.PhysicsConfig(), key))(value)
         out.append((name, physics.PhysicsConfig(**kw)))
     return out
+
+
+def engine_alone(phys: physics.Physics, episodes, log) -> tuple[float, int]:
+    """(steps / s of `mj_step` on one core, steps) over the recorded states `log` (`c_backend.Engine.log`)."""
+    fields = jax.device_get(jax.vmap(phys.scene.episode_fields)(episodes))
+    models = [phys.scene.c_model(jax.tree.map(lambda x: x[e], fields)) for e in range(int(episodes.mass.shape[0]))]
+    datas = [mujoco.MjData(m) for m in models]
+    spec, every = mujoco.mjtState.mjSTATE_INTEGRATION, phys.config.control_every
+    busy, steps = 0.0, 0
+    for ids, states, pedestals in log:
+        for e, state, ped in zip(ids, states, pedestals):
+            m, d = models[e], datas[e]
+            m.geom_pos[phys.scene.pedestal_geoms] = ped
+            mujoco.mj_setState(m, d, state, spec)
+            t0 = time.perf_counter()
+            for _ in range(every):
+                mujoco.mj_step(m, d)
+            busy += time.perf_counter() - t0
+            steps += every
+    return steps / busy, steps
 
 
 def main(args: argparse.Namespace) -> None:
@@ -48,23 +82,49 @@ def main(args: argparse.Namespace) -> None:
     batch = scenario.stack(eps)
     ring = env.space.action("ring_distal", 1)
     policy = policies.SequencePolicy(jnp.full(args.waypoints, ring, jnp.int32))
-    print(f"device: {device.platform} ({device.device_kind}); {len(eps)} episodes of '{args.set}', four tips", flush=True)
-    rows = []
+    all_cores = c_backend.available_cores()
+    core_counts = args.cores or sorted({1, min(2, all_cores), all_cores})
+    for c in core_counts:
+        if c < 1:
+            raise SystemExit(f"bench-physics: --cores must be >= 1, got {c}")
+    print(f"device: {device.platform} ({device.device_kind}); {all_cores} CPU cores; {len(eps)} episodes of "
+          f"'{args.set}', four tips", flush=True)
+    rows, engine = [], {}
     for name, config in _variants(args.variant):
+        # the engine alone on the states of a one-core run (recorded once per variant)
+        log = []
         phys = physics.Physics(env, config)
-        steps = phys.n_ticks(args.waypoints) * config.control_every
+        c_backend.simulate(phys, [(policy, None)], batch, cores=1, workers=1, engine_log=log)
+        engine[name], steps = engine_alone(phys, batch, log)
+        print(f"{name}: engine alone {engine[name]:,.0f} steps/s on one core ({steps:,} steps)", flush=True)
         for backend in args.backends:
-            run = lambda: jax.block_until_ready(phys.simulate_batch(policy, batch, backend=backend))  # noqa: E731
-            res, first = timed(run)
-            _, warm = timed(run)
-            rows.append([name, backend, len(eps), first, warm, len(eps) / warm, steps * len(eps) / warm,
-                         int(np.sum(res.fell))])
-            print(f"{name} {backend}: first call {first:.1f} s, warm {warm:.1f} s, {rows[-1][-1]} fell", flush=True)
-    head = ["variant", "backend", "episodes", "first call [s]", "warm [s]", "episodes/s", "steps/s", "fell"]
-    out = dict(device=f"{device.platform} ({device.device_kind})", waypoints=args.waypoints,
-               rows=[dict(zip(head, r)) for r in rows])
+            for cores in (core_counts if backend == "c" else [None]):
+                phys = physics.Physics(env, config)  # fresh: the first call compiles
+                run = lambda: jax.block_until_ready(phys.simulate_batch(  # noqa: E731
+                    policy, batch, backend=backend, **({} if cores is None else dict(cores=cores))))
+                if backend == "c" and args.workers:
+                    run = lambda: phys.simulate_many([(policy, None)], batch, backend="c", cores=cores,  # noqa: E731
+                                                     workers=args.workers)[0]
+                res, first = timed(run)
+                _, warm = timed(run)
+                rate = steps / warm
+                share = rate / (engine[name] * cores) if cores else float("nan")
+                rows.append([name, backend, cores or "-", len(eps), first, warm, steps / warm, share,
+                             warm / (steps / engine[name]), int(np.sum(res.fell))])
+                print(f"{name} {backend} cores {cores}: first call {first:.2f} s, warm {warm:.2f} s "
+                      f"({rate:,.0f} steps/s), {rows[-1][-1]} fell", flush=True)
+    head = ["variant", "backend", "cores", "episodes", "first call [s]", "warm [s]", "runner steps/s",
+            "share of engine limit", "warm / engine one core", "fell"]
+    keys = ["variant", "backend", "cores", "episodes", "first_call_s", "warm_s", "runner_steps_per_s",
+            "share_of_engine_limit", "warm_over_engine_one_core", "fell"]
+    out = dict(device=f"{device.platform} ({device.device_kind})", cpu_cores=all_cores, waypoints=args.waypoints,
+               steps=steps, engine_steps_per_s_one_core=engine["default"],
+               engine_steps_per_s_one_core_by_variant=engine, engine_one_core_s=steps / engine["default"],
+               rows=[dict(zip(keys, r)) for r in rows])
     path = args.out or results_dir("bench") / f"physics_{device.platform}.json"
     with open(path, "w") as f:
         json.dump(out, f, indent=1)
     print(f"wrote {path}\n")
+    print(f"engine alone (mj_step, one core, the same states): {engine['default']:,.0f} steps/s, "
+          f"{steps / engine['default']:.2f} s for the batch's {steps:,} steps")
     print(table(head, rows, ".2f"))

@@ -18,6 +18,7 @@ a call with the controller's pytrees as arguments cost ~150 us of dispatch (21 l
 from __future__ import annotations
 
 import os
+from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import jax.numpy as jnp
@@ -118,9 +119,9 @@ class Engine:
     """The episodes of one lockstep in C MuJoCo: a `mujoco.batch.Batch` of the physics model with the per-episode
     fields (tool mass, inertia, CoM, finger-tool friction, pedestals) expanded per simulation."""
 
-    def __init__(self, scene, fields, qpos0: np.ndarray, cores: int):
+    def __init__(self, scene, fields, qpos0: np.ndarray, cores: int, log: list | None = None):
         n = qpos0.shape[0]
-        self.scene, self.n = scene, n
+        self.scene, self.n, self.log = scene, n, log
         self.batch = b = mj_batch.Batch(scene.model, nsim=n, nthread=max(1, min(cores, n)))
         body, pairs = scene.tool_body, scene.finger_tool_pairs
         b.expand("body_mass")[:, body] = fields.mass
@@ -153,83 +154,106 @@ class Engine:
         wrench (n, 6); the others stay as they are."""
         self.ctrl[ids] = ctrl[ids]
         self.xfrc[ids, self.scene.tool_body] = external[ids]
+        if self.log is not None:  # (episodes, their mjSTATE_INTEGRATION rows, pedestal positions) before the step
+            self.log.append((ids.copy(), self.batch.state[ids].copy(), self._geom_pos[ids][:, self.scene.pedestal_geoms]))
         self.batch.step(ids=ids, nstep=nstep)
 
 
-def simulate(phys, groups, episodes: Episode, cores: int | None = None, progress: bool = False):
+def simulate(phys, groups, episodes: Episode, cores: int | None = None, progress: bool = False,
+             workers: int | None = None, engine_log: list | None = None):
     """`Physics.simulate_many(..., backend="c")`: every (policy, policy_axis) of `groups` on every episode of
-    `episodes` (leading axis) in one lockstep; a list of `runner.Result`s of numpy arrays, one per group."""
+    `episodes` (leading axis) in one lockstep; a list of `runner.Result`s of numpy arrays, one per group.
+
+    Between two decisions the lockstep's episodes run as `workers` chunks side by side (threads: XLA and MuJoCo
+    both run without Python's lock), each with its own controller call per tick and its own `Engine` on
+    cores / workers threads, so one chunk's physics overlaps another's controller. Default: one chunk per core,
+    at least 4 episodes each. `engine_log` (a list, one worker only): every step's states are appended to it
+    (`Engine.log`; `experiments bench-physics` replays them to time the engine alone)."""
     c, scene = phys.config, phys.scene
     N, T, n = int(np.shape(episodes.mass)[0]), episodes.n_steps, phys.n_segment
     G = len(groups)
-    K = phys.n_ticks(T)
+    M, K, nq, nu = G * N, phys.n_ticks(T), phys.model.nq, phys.model.nu
     cores = available_cores() if cores is None else cores
+    workers = max(1, min(cores, M // 4)) if workers is None else max(1, min(workers, M))
     pr = programs(phys, episodes)
-    cpu = jax.devices("cpu")[0]
-    default = jax.devices()[0]
+    cpu, default = jax.devices("cpu")[0], jax.devices()[0]
     # every group runs on every episode: the lockstep's batch is the groups' episodes one after another
-    ep_flat = jax.device_put(pr.ravel_episodes(episodes), cpu)
-    ep_flat = jnp.tile(ep_flat, (G, 1))
+    ep_flat = jnp.tile(jax.device_put(pr.ravel_episodes(episodes), cpu), (G, 1))
     qpos0, cs = pr.start(episodes)
     qpos0 = np.tile(np.asarray(qpos0, np.float64), (G, 1))
     cs = jax.device_put(jnp.tile(cs, (G, 1)), cpu)
     fields = jax.tree.map(lambda x: np.tile(np.asarray(x), (G,) + (1,) * (np.ndim(x) - 1)),
                           jax.device_get(pr.fields(episodes)))
-    eng = Engine(scene, fields, qpos0, cores)
-    M = G * N
+    chunks = np.array_split(np.arange(M), workers)  # contiguous rows
+    if engine_log is not None and workers != 1:
+        raise ValueError(f"engine_log needs workers=1, got workers={workers}")
+    engines = [Engine(scene, jax.tree.map(lambda x: x[ids], fields), qpos0[ids], max(1, cores // workers), engine_log)
+               for ids in chunks]
+    ep_chunks = [ep_flat[ids[0]:ids[-1] + 1] for ids in chunks]
     grasp = np.tile(np.asarray(episodes.start_grasp, np.int32), G)
     fell = np.zeros(M, bool)
     fall_tick = np.full(M, -1, np.int32)
     angle, perr = np.zeros((M, K), np.float32), np.zeros((M, K), np.float32)
-    qpos_trace = np.zeros((M, K, phys.model.nq), np.float32)
-    actions = np.zeros((M, T), np.int32)
-    grasps = np.zeros((M, T), np.int32)
-    nu = phys.model.nu
-    sl = [slice(g * N, (g + 1) * N) for g in range(G)]
+    qpos_trace = np.zeros((M, K, nq), np.float32)
+    actions, grasps = np.zeros((M, T), np.int32), np.zeros((M, T), np.int32)
+    group_rows = [slice(g * N, (g + 1) * N) for g in range(G)]
     decides = [pr.decide(axis) for _, axis in groups]
 
-    def record(j, status, now):
+    def record(rows: slice, j, status, now):
         a, p, f = status[:, 0], status[:, 1], status[:, 2] > 0.5
-        new_fall = f & ~fell
-        fall_tick[new_fall] = j
-        fell[:] |= f
-        angle[:, j], perr[:, j] = a, p
-        prev = qpos_trace[:, j - 1] if j > 0 else qpos0.astype(np.float32)
-        qpos_trace[:, j] = np.where(fell[:, None], prev, now)  # a fallen tool's trace stays where it fell
+        new_fall = f & ~fell[rows]
+        fall_tick[rows][new_fall] = j
+        fell[rows] |= f
+        angle[rows, j], perr[rows, j] = a, p
+        prev = qpos_trace[rows, j - 1] if j > 0 else qpos0[rows].astype(np.float32)
+        qpos_trace[rows, j] = np.where(fell[rows, None], prev, now)  # a fallen tool's trace stays where it fell
+
+    def run_segment(w, k, cs_w):
+        """Chunk w's control ticks of segment k; its controller states after them."""
+        eng, ep_w, ids = engines[w], ep_chunks[w], chunks[w]
+        rows = slice(ids[0], ids[-1] + 1)
+        obs = eng.observe()
+        for i in range(n):
+            j = k * n + i
+            eng.set_pedestals(float(scene.pedestal_drop(j * c.tick, xp=np)))
+            cs_w, out = pr.tick(cs_w, obs, ep_w, j)
+            out = np.asarray(out)
+            if j > 0:
+                record(rows, j - 1, out[:, nu + 6:], obs[:, :nq])
+            alive = np.flatnonzero(~fell[rows])
+            if alive.size:
+                eng.step(alive, out[:, :nu], out[:, nu:nu + 6], c.control_every)
+            obs = eng.observe()
+        return cs_w
+
+    def observe_all():
+        return np.concatenate([e.observe() for e in engines])
 
     segments = range(T + phys.n_hold)
     if progress:
         from tqdm.auto import tqdm
 
         segments = tqdm(segments, desc="C MuJoCo segments", leave=False)
-    obs = eng.observe()
-    for k in segments:
-        parts = []  # each policy decides for its episodes (in the hold: no decision, the segment's set-up only)
-        for g, (policy, _) in enumerate(groups):
-            act, gr, cs_g = decides[g](policy, jax.device_put(cs[sl[g]], default), obs[sl[g]], grasp[sl[g]],
-                                       episodes, k)
-            if k < T:
-                actions[sl[g], k], grasps[sl[g], k] = np.asarray(act), np.asarray(gr)
-            grasp[sl[g]] = np.asarray(gr)
-            parts.append(jax.device_put(cs_g, cpu))
-        cs = jnp.concatenate(parts) if G > 1 else parts[0]
-        for i in range(n):
-            j = k * n + i
-            eng.set_pedestals(float(scene.pedestal_drop(j * c.tick, xp=np)))
-            cs, out = pr.tick(cs, obs, ep_flat, j)
-            out = np.asarray(out)
-            if j > 0:
-                record(j - 1, out[:, nu + 6:], obs[:, :phys.model.nq])
-            alive = np.flatnonzero(~fell)
-            if alive.size:
-                eng.step(alive, out[:, :nu], out[:, nu:nu + 6], c.control_every)
-            obs = eng.observe()
-    record(K - 1, np.asarray(pr.check(obs, ep_flat, K - 1)), obs[:, :phys.model.nq])
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        for k in segments:
+            obs, parts = observe_all(), []
+            for g, (policy, _) in enumerate(groups):  # each policy decides for its episodes (the hold: set-up only)
+                rows = group_rows[g]
+                act, gr, cs_g = decides[g](policy, jax.device_put(cs[rows], default), obs[rows], grasp[rows],
+                                           episodes, k)
+                if k < T:
+                    actions[rows, k], grasps[rows, k] = np.asarray(act), np.asarray(gr)
+                grasp[rows] = np.asarray(gr)
+                parts.append(jax.device_put(cs_g, cpu))
+            cs = jnp.concatenate(parts) if G > 1 else parts[0]
+            cs_chunks = [cs[ids[0]:ids[-1] + 1] for ids in chunks]
+            cs = jnp.concatenate(list(pool.map(run_segment, range(workers), [k] * workers, cs_chunks)))
+    obs = observe_all()
+    record(slice(0, M), K - 1, np.asarray(pr.check(obs, ep_flat, K - 1)), obs[:, :nq])
     results = []
-    for g in range(G):
-        s = sl[g]
-        res = phys.result(jnp.asarray(actions[s]), jnp.asarray(grasps[s]), jnp.asarray(angle[s]),
-                          jnp.asarray(perr[s]), jnp.asarray(qpos_trace[s]), jnp.asarray(fell[s]),
-                          jnp.asarray(fall_tick[s]), T)
+    for rows in group_rows:
+        res = phys.result(jnp.asarray(actions[rows]), jnp.asarray(grasps[rows]), jnp.asarray(angle[rows]),
+                          jnp.asarray(perr[rows]), jnp.asarray(qpos_trace[rows]), jnp.asarray(fell[rows]),
+                          jnp.asarray(fall_tick[rows]), T)
         results.append(jax.device_get(res))
     return results

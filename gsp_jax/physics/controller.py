@@ -119,6 +119,17 @@ def rotation_error(q_ref: jax.Array, q: jax.Array) -> jax.Array:
     return 2 * jnp.arctan2(n, e[0]) * v / n
 
 
+def _solve3(m: jax.Array, v: jax.Array) -> jax.Array:
+    """x (..., 3) with m x = v for 3x3 matrices m (..., 3, 3), by the adjugate (Cramer's rule): written out, so
+    XLA fuses it (a batched LAPACK solve, 2 of its 5 calls a tick, cost a quarter of the controller's tick on a
+    2-core CPU: 27 episodes 0.90 -> 0.66 ms)."""
+    c0 = jnp.cross(m[..., 1, :], m[..., 2, :])
+    c1 = jnp.cross(m[..., 2, :], m[..., 0, :])
+    c2 = jnp.cross(m[..., 0, :], m[..., 1, :])
+    det = jnp.sum(m[..., 0, :] * c0, -1, keepdims=True)
+    return (c0 * v[..., :1] + c1 * v[..., 1:2] + c2 * v[..., 2:]) / det
+
+
 def _smooth(u: jax.Array) -> jax.Array:
     return u * u * (3 - 2 * u)
 
@@ -296,7 +307,7 @@ class Controller:
             # barely moves in (a near-straight finger lowering its tip), and an arriving tip came too late
             if c.free_stiffness > 0:
                 jjt = jnp.einsum("lij,lkj->lik", jac, jac) + c.free_damping**2 * jnp.eye(3)
-                f_free = c.free_stiffness * jnp.linalg.solve(jjt, err[..., None])[..., 0]
+                f_free = c.free_stiffness * _solve3(jjt, err)
             else:
                 f_free = c.finger_kp * err
             f_track = jnp.where(held, c.finger_kp * (err_n + ratio * (err - err_n)), f_free)

@@ -199,19 +199,21 @@ class Physics:
         return self.simulate_many([(policy, policy_axis)], episodes, backend, progress, cores)[0]
 
     def simulate_many(self, policies, episodes: Episode, backend: str = "mjx", progress: bool = False,
-                      cores: int | None = None) -> list[Result]:
+                      cores: int | None = None, workers: int | None = None) -> list[Result]:
         """Several policies on the same episodes: `policies` is a list of (policy, policy_axis) pairs (axis as in
-        `simulate_batch`); one `Result` per pair. In C MuJoCo every policy's episodes run in one lockstep (one
-        controller call per tick for all of them, every core stepping); in MJX one batch per policy."""
+        `simulate_batch`); one `Result` per pair. In C MuJoCo every policy's episodes run in one lockstep on
+        `cores` cores, as `workers` chunks side by side (`c_backend.simulate`; defaults: all cores, one chunk per
+        core); in MJX one batch per policy."""
         check_episodes(episodes, self.config)
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
-        if cores is not None and not (isinstance(cores, int) and cores >= 1):
-            raise ValueError(f"cores must be an int >= 1, got {cores!r}")
+        for name, value in (("cores", cores), ("workers", workers)):
+            if value is not None and not (isinstance(value, int) and value >= 1):
+                raise ValueError(f"{name} must be an int >= 1, got {value!r}")
         if backend == "c":
             from gsp_jax.physics import c_backend
 
-            return c_backend.simulate(self, list(policies), episodes, cores=cores, progress=progress)
+            return c_backend.simulate(self, list(policies), episodes, cores=cores, progress=progress, workers=workers)
         out = []
         for policy, policy_axis in policies:
             key = policy_axis

@@ -36,7 +36,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backends", nargs="+", default=["c"], choices=physics.BACKENDS)
     p.add_argument("--cores", nargs="+", type=int, default=None,
                    help="core counts for the C runner (default: 1, 2 and all)")
-    p.add_argument("--workers", type=int, default=None, help="C runner chunks side by side (default: one a core)")
+    p.add_argument("--workers", nargs="+", type=int, default=[0],
+                   help="C runner chunks side by side (0: the default, one a core with >= 4 episodes each)")
+    p.add_argument("--copies", type=int, default=1, help="the set repeated this many times (5: Fig. 4b's 135)")
     p.add_argument("--out", default=None)
 
 
@@ -78,7 +80,9 @@ def engine_alone(phys: physics.Physics, episodes, log) -> tuple[float, int]:
 def main(args: argparse.Namespace) -> None:
     env = surrogate.Surrogate()
     device = jax.devices()[0]
-    eps = [e.head(args.waypoints) for e in scenario.episode_set(args.set).values()]
+    if args.copies < 1:
+        raise SystemExit(f"bench-physics: --copies must be >= 1, got {args.copies}")
+    eps = [e.head(args.waypoints) for e in scenario.episode_set(args.set).values()] * args.copies
     batch = scenario.stack(eps)
     ring = env.space.action("ring_distal", 1)
     policy = policies.SequencePolicy(jnp.full(args.waypoints, ring, jnp.int32))
@@ -98,24 +102,22 @@ def main(args: argparse.Namespace) -> None:
         engine[name], steps = engine_alone(phys, batch, log)
         print(f"{name}: engine alone {engine[name]:,.0f} steps/s on one core ({steps:,} steps)", flush=True)
         for backend in args.backends:
-            for cores in (core_counts if backend == "c" else [None]):
+            runs = [(c, w) for c in core_counts for w in args.workers] if backend == "c" else [(None, 0)]
+            for cores, workers in runs:
                 phys = physics.Physics(env, config)  # fresh: the first call compiles
-                run = lambda: jax.block_until_ready(phys.simulate_batch(  # noqa: E731
-                    policy, batch, backend=backend, **({} if cores is None else dict(cores=cores))))
-                if backend == "c" and args.workers:
-                    run = lambda: phys.simulate_many([(policy, None)], batch, backend="c", cores=cores,  # noqa: E731
-                                                     workers=args.workers)[0]
+                run = lambda: phys.simulate_many([(policy, None)], batch, backend=backend,  # noqa: E731
+                                                 **({} if cores is None else dict(cores=cores, workers=workers or None)))[0]
                 res, first = timed(run)
                 _, warm = timed(run)
                 rate = steps / warm
                 share = rate / (engine[name] * cores) if cores else float("nan")
-                rows.append([name, backend, cores or "-", len(eps), first, warm, steps / warm, share,
-                             warm / (steps / engine[name]), int(np.sum(res.fell))])
-                print(f"{name} {backend} cores {cores}: first call {first:.2f} s, warm {warm:.2f} s "
-                      f"({rate:,.0f} steps/s), {rows[-1][-1]} fell", flush=True)
-    head = ["variant", "backend", "cores", "episodes", "first call [s]", "warm [s]", "runner steps/s",
+                rows.append([name, backend, cores or "-", workers or "auto", len(eps), first, warm, steps / warm,
+                             share, warm / (steps / engine[name]), int(np.sum(res.fell))])
+                print(f"{name} {backend} cores {cores} workers {workers or 'auto'}: first call {first:.2f} s, warm "
+                      f"{warm:.2f} s ({rate:,.0f} steps/s), {rows[-1][-1]} fell", flush=True)
+    head = ["variant", "backend", "cores", "workers", "episodes", "first call [s]", "warm [s]", "runner steps/s",
             "share of engine limit", "warm / engine one core", "fell"]
-    keys = ["variant", "backend", "cores", "episodes", "first_call_s", "warm_s", "runner_steps_per_s",
+    keys = ["variant", "backend", "cores", "workers", "episodes", "first_call_s", "warm_s", "runner_steps_per_s",
             "share_of_engine_limit", "warm_over_engine_one_core", "fell"]
     out = dict(device=f"{device.platform} ({device.device_kind})", cpu_cores=all_cores, waypoints=args.waypoints,
                steps=steps, engine_steps_per_s_one_core=engine["default"],

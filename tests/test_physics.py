@@ -257,14 +257,18 @@ def test_c_engine_steps_each_episode_as_its_own_model(phys):
 
 def test_c_lockstep_of_several_policies_is_each_policy_alone(phys, batch, runs):
     """`simulate_many` in C MuJoCo runs two policies' episodes in one lockstep: each policy's result is the one it
-    gets alone (`simulate_batch`), the same on 1 core and on 2 (MuJoCo's batched stepping is deterministic at any
-    thread count; the controller is one program per batch size)."""
+    gets alone (`simulate_batch`); bit for bit the same on 1 core and on 2 (MuJoCo's batched stepping is
+    deterministic at any thread count), and, as two chunks side by side (two controller programs of another batch
+    size: float reassociation), within the tolerances of `test_batched_equals_single`."""
     episodes, policy, _ = batch
     keep = policies.SequencePolicy(jnp.full((5, T), phys.space.action("index_distal", 1), jnp.int32))
-    both = [jax.device_get(phys.simulate_many([(policy, 0), (keep, 0)], episodes, backend="c", cores=c))
-            for c in (1, 2)]
-    for a, b in zip(*both):
+    both = [jax.device_get(phys.simulate_many([(policy, 0), (keep, 0)], episodes, backend="c", cores=c, workers=w))
+            for c, w in ((1, 1), (2, 1), (2, 2))]
+    for a, b, chunked in zip(*both):
         np.testing.assert_array_equal(a.qpos, b.qpos)
+        np.testing.assert_array_equal(a.fell, chunked.fell)
+        np.testing.assert_array_equal(a.grasps, chunked.grasps)
+        np.testing.assert_allclose(a.angle[~a.fell], chunked.angle[~a.fell], atol=2.0)  # where held
     alone = runs["c"]
     res = both[0][0]
     np.testing.assert_array_equal(res.grasps, alone.grasps)

@@ -200,19 +200,17 @@ def simulate(phys, groups, episodes: Episode, cores: int | None = None, progress
     decides = [pr.decide(axis) for _, axis in groups]
 
     def record(rows: slice, j, status, now):
-        a, p, f = status[:, 0], status[:, 1], status[:, 2] > 0.5
-        new_fall = f & ~fell[rows]
-        fall_tick[rows][new_fall] = j
-        fell[rows] |= f
-        angle[rows, j], perr[rows, j] = a, p
-        prev = qpos_trace[rows, j - 1] if j > 0 else qpos0[rows].astype(np.float32)
-        qpos_trace[rows, j] = np.where(fell[rows, None], prev, now)  # a fallen tool's trace stays where it fell
+        """Tick j's status (angle, position error, fell) and configuration of the episodes `rows`."""
+        fell_now = status[:, 2] > 0.5
+        fall_tick[rows][fell_now & ~fell[rows]] = j
+        fell[rows] |= fell_now
+        angle[rows, j], perr[rows, j], qpos_trace[rows, j] = status[:, 0], status[:, 1], now
 
     def run_segment(w, k, cs_w):
         """Chunk w's control ticks of segment k; its controller states after them."""
         eng, ep_w, ids = engines[w], ep_chunks[w], chunks[w]
         rows = slice(ids[0], ids[-1] + 1)
-        obs = eng.observe()
+        obs, alive = eng.observe(), np.flatnonzero(~fell[rows])
         for i in range(n):
             j = k * n + i
             eng.set_pedestals(float(scene.pedestal_drop(j * c.tick, xp=np)))
@@ -220,7 +218,8 @@ def simulate(phys, groups, episodes: Episode, cores: int | None = None, progress
             out = np.asarray(out)
             if j > 0:
                 record(rows, j - 1, out[:, nu + 6:], obs[:, :nq])
-            alive = np.flatnonzero(~fell[rows])
+                if out[alive, -1].max(initial=0.0) > 0.5:  # a fall: that episode is no longer stepped
+                    alive = np.flatnonzero(~fell[rows])
             if alive.size:
                 eng.step(alive, out[:, :nu], out[:, nu:nu + 6], c.control_every)
             obs = eng.observe()
@@ -250,6 +249,8 @@ def simulate(phys, groups, episodes: Episode, cores: int | None = None, progress
             cs = jnp.concatenate(list(pool.map(run_segment, range(workers), [k] * workers, cs_chunks)))
     obs = observe_all()
     record(slice(0, M), K - 1, np.asarray(pr.check(obs, ep_flat, K - 1)), obs[:, :nq])
+    for e in np.flatnonzero(fell):  # a fallen tool's trace stays where it was before the tick it fell
+        qpos_trace[e, fall_tick[e]:] = qpos_trace[e, fall_tick[e] - 1] if fall_tick[e] > 0 else qpos0[e]
     results = []
     for rows in group_rows:
         res = phys.result(jnp.asarray(actions[rows]), jnp.asarray(grasps[rows]), jnp.asarray(angle[rows]),

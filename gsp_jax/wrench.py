@@ -291,3 +291,103 @@ def least_friction(points, normals, wrench, center, facets: int = 64, tol: float
         mid = 0.5 * (lo + hi)
         lo, hi = (lo, mid) if feasible(mid) else (mid, hi)
     return float(lo), float(hi / np.cos(np.pi / facets))
+
+
+@dataclasses.dataclass(frozen=True)
+class HoldMargin:
+    """Whether any contact forces can hold a wrench, friction cones and motor limits both respected
+    (`hold_margin`). `torque_ratio` is the least peak |joint torque| / limit over the forces that supply the wrench
+    in the cones: <= 1 means the motors can give it; inf where the cones alone cannot supply the wrench."""
+
+    torque_ratio_outer: float  # with each cone replaced by its circumscribing pyramid (a lower bound on the ratio)
+    torque_ratio_inner: float  # with the inscribed pyramid (an upper bound: these forces lie inside the cones)
+    forces: "object"  # (K, 3) forces attaining torque_ratio_inner (numpy), or None where none exist
+
+    @property
+    def impossible(self) -> bool:
+        """No forces in the cones supply the wrench within the motor limits (certain: the outer bound exceeds 1)."""
+        return self.torque_ratio_outer > 1.0
+
+    @property
+    def possible(self) -> bool:
+        """Forces inside the cones (certain: the inscribed pyramids) supply the wrench within the motor limits."""
+        return self.torque_ratio_inner <= 1.0
+
+
+def hold_margin(points, normals, mu, wrench, center, jacobians=None, torque_limit=None, bias=None,
+                facets: int = 16) -> HoldMargin:
+    """The least peak joint torque, relative to the motors' limits, with which point contacts hold a wrench: a
+    linear programme (scipy HiGHS) over forces f (K, 3) on the tool and a ratio s,
+
+        minimise s   subject to   G f = wrench,   f_k in the friction pyramid around n_k,
+                                  -s limit_j <= (sum_k J_k^T f_k + bias)_j <= s limit_j   for every joint j,
+
+    solved twice, with the `facets`-sided pyramids that circumscribe and that are inscribed in the Coulomb cones of
+    `mu`, which bracket the cone's answer. numpy/scipy, not jittable: the feasibility oracle of the physics check
+    (could *any* controller hold the tool here?), not a kernel.
+
+    points (K, 3), normals (K, 3) inward unit normals, mu > 0, wrench (6,) the net force [N] and torque [N m] about
+    `center` (3,) the contacts must supply. jacobians (K, 3, J): d(contact point)/d(joint angles) of the finger
+    link at each contact, so joint torques J^T f make the fingers press with f on the tool; torque_limit (J,) > 0
+    [N m]; bias (J,) torques the motors must give besides (the fingers' own gravity) [N m]. Without jacobians the
+    ratio is 0 wherever the cones alone supply the wrench.
+    """
+    import numpy as np
+    from scipy.optimize import linprog
+
+    points, normals = np.asarray(points, float).reshape(-1, 3), np.asarray(normals, float).reshape(-1, 3)
+    wrench, center = np.asarray(wrench, float).reshape(6), np.asarray(center, float).reshape(3)
+    k = len(points)
+    if k == 0 or len(normals) != k or not (np.all(np.isfinite(points)) and np.all(np.isfinite(normals))):
+        raise ValueError(f"hold_margin: points and normals must be finite (K, 3) arrays with K >= 1, got "
+                         f"{len(points)} points and {len(normals)} normals")
+    if not (np.isfinite(mu) and mu > 0):
+        raise ValueError(f"hold_margin: mu must be finite and > 0, got {mu!r}")
+    if not np.all(np.isfinite(wrench)):
+        raise ValueError(f"hold_margin: wrench must be finite, got {wrench}")
+    if not (isinstance(facets, int) and facets >= 3):
+        raise ValueError(f"hold_margin: facets must be an int >= 3, got {facets!r}")
+    if jacobians is not None:
+        jac = np.asarray(jacobians, float)
+        if jac.ndim != 3 or jac.shape[:2] != (k, 3):
+            raise ValueError(f"hold_margin: jacobians must be (K={k}, 3, J), got shape {jac.shape}")
+        limit = np.asarray(torque_limit, float).reshape(-1) if torque_limit is not None else None
+        if limit is None or limit.shape != (jac.shape[2],) or not np.all(limit > 0):
+            raise ValueError(f"hold_margin: torque_limit must be (J={jac.shape[2]},) and > 0, got {torque_limit!r}")
+        bias = np.zeros_like(limit) if bias is None else np.asarray(bias, float).reshape(-1)
+        if bias.shape != limit.shape or not np.all(np.isfinite(bias)):
+            raise ValueError(f"hold_margin: bias must be finite (J={len(limit)},), got {bias!r}")
+    g = grasp_matrix(points, center, xp=np)
+    angles = np.linspace(0.0, 2 * np.pi, facets, endpoint=False)
+    cone_rows = np.zeros((k, facets + 1, 3 * k))
+    for i, n in enumerate(normals / np.linalg.norm(normals, axis=1, keepdims=True)):
+        t1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        t1 /= np.linalg.norm(t1)
+        t2 = np.cross(n, t1)
+        cone_rows[i, :facets, 3 * i : 3 * i + 3] = np.cos(angles)[:, None] * t1 + np.sin(angles)[:, None] * t2
+        cone_rows[i, facets, 3 * i : 3 * i + 3] = -n
+    normal_rows = np.zeros_like(cone_rows)
+    for i, n in enumerate(normals / np.linalg.norm(normals, axis=1, keepdims=True)):
+        normal_rows[i, :facets, 3 * i : 3 * i + 3] = n
+    cone_rows, normal_rows = cone_rows.reshape(-1, 3 * k), normal_rows.reshape(-1, 3 * k)
+
+    def solve(mu_pyramid: float):
+        # variables [f (3K), s]; d . f - mu n . f <= 0 per facet (the pyramid circumscribing the cone of mu_pyramid)
+        a_ub = [np.hstack([cone_rows - mu_pyramid * normal_rows, np.zeros((len(cone_rows), 1))])]
+        b_ub = [np.zeros(len(cone_rows))]
+        if jacobians is not None:
+            jt = jac.transpose(2, 0, 1).reshape(len(limit), 3 * k)  # (J, 3K): joint torques of the forces
+            a_ub += [np.hstack([jt, -limit[:, None]]), np.hstack([-jt, -limit[:, None]])]
+            b_ub += [-bias, bias]
+        res = linprog(np.r_[np.zeros(3 * k), 1.0], A_ub=np.vstack(a_ub), b_ub=np.concatenate(b_ub),
+                      A_eq=np.hstack([g, np.zeros((6, 1))]), b_eq=wrench,
+                      bounds=[(None, None)] * (3 * k) + [(0.0, None)], method="highs")
+        if res.status == 2:
+            return float("inf"), None
+        if res.status != 0:
+            raise RuntimeError(f"hold_margin: the LP ended with status {res.status}: {res.message}")
+        return float(res.x[-1]), res.x[:-1].reshape(k, 3)
+
+    outer, _ = solve(mu)  # facets tangent to the cone: the pyramid contains it
+    inner, forces = solve(mu * np.cos(np.pi / facets))  # corners on the cone: the pyramid lies inside it
+    return HoldMargin(torque_ratio_outer=outer, torque_ratio_inner=inner, forces=forces)

@@ -537,3 +537,90 @@ def test_least_friction_zero_for_a_support_from_below_and_inf_for_one_side():
         wrench.least_friction(np.full((1, 3), np.nan), [[0.0, 0.0, 1.0]], np.zeros(6), np.zeros(3))
     with pytest.raises(ValueError, match="facets"):
         wrench.least_friction([[0.0, 0.0, -0.005]], [[0.0, 0.0, 1.0]], np.zeros(6), np.zeros(3), facets=2)
+
+
+# ---------------------------------------------------------------------------------------- hold_margin (the oracle)
+def _squeeze(w=0.03, weight=3.0):
+    """Two contacts at x = +-w pressing inwards along x, lifting `weight` newtons; each contact's 'joints' are its
+    three force components (J = identity blocks), so joint torques are the contact forces."""
+    points = np.array([[w, 0.0, 0.0], [-w, 0.0, 0.0]])
+    normals = np.array([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    jac = np.zeros((2, 3, 6))
+    jac[0, :, :3], jac[1, :, 3:] = np.eye(3), np.eye(3)
+    return points, normals, np.array([0.0, 0.0, weight, 0.0, 0.0, 0.0]), jac
+
+
+@pytest.mark.parametrize("mu", [0.3, 0.5, 1.0, 2.0])
+def test_hold_margin_of_a_squeeze_is_its_closed_form(mu):
+    """Each contact carries half the weight W by friction, so it must press with N >= W / (2 mu) (mu cos(pi/F) for
+    the inscribed pyramid: the lift direction is one of its facets' normals); the least peak 'torque' is then
+    max(N, W / 2), over the limit."""
+    points, normals, w6, jac = _squeeze()
+    limit, facets = 2.5, 16
+    m = wrench.hold_margin(points, normals, mu, w6, np.zeros(3), jac, np.full(6, limit), facets=facets)
+    w = w6[2]
+    np.testing.assert_allclose(m.torque_ratio_outer, max(w / (2 * mu), w / 2) / limit, rtol=1e-6)
+    inner_mu = mu * np.cos(np.pi / facets)
+    np.testing.assert_allclose(m.torque_ratio_inner, max(w / (2 * inner_mu), w / 2) / limit, rtol=1e-6)
+    assert m.possible == (m.torque_ratio_inner <= 1) and m.impossible == (m.torque_ratio_outer > 1)
+    free = wrench.hold_margin(points, normals, mu, w6, np.zeros(3))  # no motors: the cones decide alone
+    assert free.torque_ratio_outer == 0.0 and free.torque_ratio_inner == 0.0
+
+
+def test_hold_margin_one_sided_contacts_cannot_hold():
+    points = np.array([[0.03, 0.0, 0.0], [0.03, 0.02, 0.0]])
+    normals = np.array([[-1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    m = wrench.hold_margin(points, normals, 1.0, [0.0, 0.0, 3.0, 0.0, 0.0, 0.0], np.zeros(3))
+    assert m.torque_ratio_outer == np.inf and m.torque_ratio_inner == np.inf and m.forces is None and m.impossible
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_hold_margin_brackets_the_exact_cone_optimum(seed):
+    """Random three-contact grasps with random 'finger' Jacobians: the exact-cone problem, solved by an independent
+    method (scipy SLSQP on the second-order cones), lies between the outer and the inner pyramid's ratio, and the
+    inner solution's forces supply the wrench inside the exact cones at the ratio reported."""
+    from scipy.optimize import minimize
+
+    rng = np.random.default_rng(seed)
+    normals = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]) + rng.normal(0, 0.1, (3, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    points = -0.03 * normals + rng.normal(0, 0.005, (3, 3))
+    w6 = np.r_[rng.normal(0, 1.0, 2), 3.0, rng.normal(0, 0.02, 3)]
+    jac = rng.normal(0, 0.05, (3, 3, 8))
+    limit, bias, mu = rng.uniform(1.0, 3.0, 8), rng.normal(0, 0.05, 8), 0.8
+    m = wrench.hold_margin(points, normals, mu, w6, np.zeros(3), jac, limit, bias, facets=32)
+    assert np.isfinite(m.torque_ratio_inner) and m.torque_ratio_outer <= m.torque_ratio_inner + 1e-9
+    f = m.forces
+    np.testing.assert_allclose(wrench.grasp_matrix(points, np.zeros(3), xp=np) @ f.ravel(), w6, atol=1e-7)
+    fn = np.sum(f * normals, 1)
+    ft = np.linalg.norm(f - fn[:, None] * normals, axis=1)
+    assert np.all(ft <= mu * fn + 1e-7)
+    tau = np.einsum("kij,ki->j", jac, f) + bias
+    np.testing.assert_allclose(np.max(np.abs(tau) / limit), m.torque_ratio_inner, rtol=1e-6, atol=1e-9)
+    g = wrench.grasp_matrix(points, np.zeros(3), xp=np)
+    jt = jac.transpose(2, 0, 1).reshape(8, 9)
+    cons = [{"type": "eq", "fun": lambda x: g @ x[:9] - w6}]
+    for k in range(3):
+        n = normals[k]
+        cons.append({"type": "ineq", "fun": lambda x, k=k, n=n: mu * (x[3 * k:3 * k + 3] @ n)
+                     - np.linalg.norm(x[3 * k:3 * k + 3] - (x[3 * k:3 * k + 3] @ n) * n)})
+    cons += [{"type": "ineq", "fun": lambda x: x[9] * limit - (jt @ x[:9] + bias)},
+             {"type": "ineq", "fun": lambda x: x[9] * limit + (jt @ x[:9] + bias)}]
+    x0 = np.r_[f.ravel(), m.torque_ratio_inner]
+    ref = minimize(lambda x: x[9], x0, constraints=cons, method="SLSQP", options=dict(ftol=1e-12, maxiter=500))
+    assert ref.success, ref.message
+    assert m.torque_ratio_outer - 1e-6 <= ref.x[9] <= m.torque_ratio_inner + 1e-6
+
+
+def test_hold_margin_names_bad_inputs():
+    points, normals, w6, jac = _squeeze()
+    with pytest.raises(ValueError, match="mu"):
+        wrench.hold_margin(points, normals, 0.0, w6, np.zeros(3))
+    with pytest.raises(ValueError, match="wrench must"):
+        wrench.hold_margin(points, normals, 1.0, [np.nan] * 6, np.zeros(3))
+    with pytest.raises(ValueError, match="jacobians"):
+        wrench.hold_margin(points, normals, 1.0, w6, np.zeros(3), jac[:, :2], np.ones(6))
+    with pytest.raises(ValueError, match="torque_limit"):
+        wrench.hold_margin(points, normals, 1.0, w6, np.zeros(3), jac, -np.ones(6))
+    with pytest.raises(ValueError, match="points and normals"):
+        wrench.hold_margin(points[:1], normals, 1.0, w6, np.zeros(3))

@@ -72,22 +72,32 @@ def make_episode(
     com_y_cm: float = 0.0,
     friction: float = FRICTION0,
     start_grasp: int | None = None,
+    com_x_cm: float = 0.0,
+    lateral_mm: tuple[float, float] = (0.0, 0.0),
+    torque_axis: str = "z",
 ) -> Episode:
-    """The nominal lift with the paper's variations: start and end heights shifted, torque, mass, CoM y-offset."""
+    """The nominal lift with the paper's variations: start and end heights shifted, torque, mass, CoM y-offset;
+    and beyond them (the stress set): a CoM x-offset, a lateral end point (dx, dy) [mm] reached on the same
+    minimum-jerk profile as the height, the final torque about x, y or z (`torque_axis`)."""
+    if torque_axis not in ("x", "y", "z"):
+        raise EpisodeError(f"episode.torque_axis: {torque_axis!r} (must be 'x', 'y' or 'z')")
     from gsp_jax import grasps  # local: grasps reads the model file
 
     dz = shift_mm * 1e-3
     z = min_jerk(Z_START + dz, Z_END + dz)
-    waypoints = np.stack([np.zeros_like(z), np.zeros_like(z), z], -1)
+    x, y = (min_jerk(0.0, d * 1e-3) for d in lateral_mm)
+    waypoints = np.stack([x, y, z], -1)
+    w_ext = np.zeros(6)
+    w_ext[3 + "xyz".index(torque_axis)] = torque
     g0 = grasps.default_space().encode(START_OPTIONS) if start_grasp is None else start_grasp
     ep = Episode(
         waypoints=jnp.asarray(waypoints, jnp.float32),
         quats=jnp.tile(jnp.asarray([1.0, 0.0, 0.0, 0.0], jnp.float32), (N_WAYPOINTS, 1)),
         dt=jnp.asarray(DT, jnp.float32),
-        w_ext=jnp.asarray([0.0, 0.0, 0.0, 0.0, 0.0, torque], jnp.float32),
+        w_ext=jnp.asarray(w_ext, jnp.float32),
         mass=jnp.asarray(M0 * mass_factor, jnp.float32),
         inertia=jnp.asarray(np.asarray(INERTIA0) * mass_factor, jnp.float32),
-        com=jnp.asarray([0.0, com_y_cm * 1e-2, 0.0], jnp.float32),
+        com=jnp.asarray([com_x_cm * 1e-2, com_y_cm * 1e-2, 0.0], jnp.float32),
         friction=jnp.asarray(friction, jnp.float32),
         start_grasp=jnp.asarray(g0, jnp.int32),
     )
@@ -145,11 +155,46 @@ def validation_set() -> dict[str, Episode]:
     return eps
 
 
-SETS = {"nominal": nominal, "train": training_set, "val": validation_set, "evalA": eval_set_a, "evalB": eval_set_b}
+STRESS_SEED = 20261125  # the stress set's draws: fixed, so the set is the same everywhere
+STRESS_SIZE = 120
+
+
+def stress_set(n: int = STRESS_SIZE, seed: int = STRESS_SEED) -> dict[str, Episode]:
+    """The stress set (ours, beyond the paper): `n` unseen episodes spanning the envelope the planners must hold
+    in, fixed and seeded, never used for calibration or training. Per episode, stratified over the set (each range
+    cut into n strata, one draw per stratum, strata shuffled per parameter): mass 0.25-3 m0 (log-uniform), friction
+    0.3-2, final torque -2..+2 N m about x, y or z (in turn), CoM x and y offsets -2..+2 cm, start/end height shift
+    -6..+12 mm; the path vertical, lateral (end point up to 15 mm off along x or y) or diagonal (both), in turn."""
+    rng = np.random.default_rng(seed)
+
+    def strata(lo, hi):
+        return lo + (hi - lo) * (rng.permutation(n) + rng.uniform(size=n)) / n
+
+    log_mass = strata(np.log(0.25), np.log(3.0))
+    mu, torque, com_x, com_y = strata(0.3, 2.0), strata(-2.0, 2.0), strata(-2.0, 2.0), strata(-2.0, 2.0)
+    shift, lat = strata(-6.0, 12.0), strata(-15.0, 15.0)
+    eps = {}
+    for i in range(n):
+        path = ("vertical", "lateral-x", "lateral-y", "diagonal")[i % 4]
+        dx = lat[i] if path in ("lateral-x", "diagonal") else 0.0
+        dy = (lat[i] if path == "lateral-y" else -lat[i] if path == "diagonal" else 0.0)
+        axis = "xyz"[i % 3]
+        m = float(np.exp(log_mass[i]))
+        name = f"stress{i:03d}_{m:.2f}m0_mu{mu[i]:.2f}_{axis}{torque[i]:+.1f}Nm_{path}"
+        eps[name] = make_episode(shift_mm=round(float(shift[i]), 1), torque=round(float(torque[i]), 2), mass_factor=m,
+                                 com_y_cm=round(float(com_y[i]), 2), friction=round(float(mu[i]), 3),
+                                 com_x_cm=round(float(com_x[i]), 2), lateral_mm=(round(float(dx), 1), round(float(dy), 1)),
+                                 torque_axis=axis)
+    return eps
+
+
+SETS = {"nominal": nominal, "train": training_set, "val": validation_set, "evalA": eval_set_a, "evalB": eval_set_b,
+        "stress": stress_set}
 
 
 def episode_set(name: str) -> dict[str, Episode]:
-    """A named set: nominal, train, val, evalA, evalB, eval (A then B) or all (train then eval)."""
+    """A named set: nominal, train, val, evalA, evalB, eval (A then B), all (train then eval) or stress (the
+    envelope; never part of "all": not for calibration or training)."""
     if name == "eval":
         return {**eval_set_a(), **eval_set_b()}
     if name == "all":

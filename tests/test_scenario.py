@@ -289,3 +289,33 @@ def test_tool_bounds_enclose_the_boxes(hand):
 def test_validate_accepts_every_set_member():
     for name, ep in sc.episode_set("all").items():
         sc.validate(ep, name, n_grasps=288)
+
+
+def _leaves(ep):
+    return [getattr(ep, f) for f in ("waypoints", "quats", "dt", "w_ext", "mass", "inertia", "com", "friction",
+                                     "start_grasp")]
+
+
+def test_stress_set_spans_the_envelope_and_is_fixed():
+    """The stress set: >= 100 valid episodes, the same on every call (seeded), spanning mass 0.25-3 m0, friction
+    0.3-2, torques about x, y and z up to 2 N m, CoM offsets inside the tool, vertical, lateral and diagonal paths;
+    disjoint from every set used for training, calibration or evaluation."""
+    stress = sc.episode_set("stress")
+    again = sc.stress_set()
+    assert len(stress) >= 100 and list(stress) == list(again)
+    for a, b in zip(stress.values(), again.values()):
+        for x, y in zip(_leaves(a), _leaves(b)):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    m = np.array([float(e.mass) for e in stress.values()]) / sc.M0
+    mu = np.array([float(e.friction) for e in stress.values()])
+    w = np.stack([np.asarray(e.w_ext) for e in stress.values()])
+    end = np.stack([np.asarray(e.waypoints[-1]) for e in stress.values()])
+    assert m.min() < 0.3 and m.max() > 2.7 and mu.min() < 0.35 and mu.max() > 1.9
+    assert np.all(np.abs(w[:, :3]) == 0) and np.abs(w[:, 3:]).max() > 1.9
+    for axis in range(3):
+        assert np.sum(np.abs(w[:, 3 + axis]) > 0) >= len(stress) // 4  # each axis about a third of the set
+    lateral = np.abs(end[:, :2]) > 1e-4
+    assert np.any(lateral[:, 0] & ~lateral[:, 1]) and np.any(lateral[:, 1] & ~lateral[:, 0]) and np.any(lateral.all(1))
+    assert not set(stress) & (set(sc.episode_set("all")) | set(sc.episode_set("val")))
+    with pytest.raises(sc.EpisodeError, match="torque_axis"):
+        sc.make_episode(torque_axis="w")

@@ -156,6 +156,13 @@ def sequence_return(table: Table, start_grasp: jax.Array, actions: jax.Array) ->
     return jnp.sum(rewards)
 
 
+def sequence_rewards(table: Table, start_grasp: jax.Array, actions: jax.Array) -> jax.Array:
+    """Rewards (T,) of an open-loop action sequence (T,) replayed in a table from `start_grasp`; a step the
+    surrogate calls a fall or a collision has reward <= the table's R_min."""
+    _, _, rewards, _ = _replay(table, jnp.asarray(start_grasp, jnp.int32), lambda g, t: actions[t])
+    return rewards
+
+
 def random_sequence(table: Table, start_grasp: jax.Array, key: jax.Array, r_min: float, hold: float = 0.0) -> jax.Array:
     """A random feasible action sequence (T,) int32: at every step, with probability `hold` the null action (keep
     the grasp) if it does not fail, otherwise an action drawn uniformly from those that do not fail (reward >

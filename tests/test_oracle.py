@@ -84,3 +84,26 @@ def test_oracle_names_bad_input(oracle):
     ep = scenario.make_episode()
     with pytest.raises(ValueError, match="grasps must have"):
         oracle.sequence(ep, [0, 1, 2])
+
+
+def test_envelope_summary_counts_regret_and_classes():
+    """`experiments.envelope.summarise` on a hand-made pool: a planner's regret counts the episodes where it fell and
+    another sequence held; the falls' classes are counted; the AUC is the hold-above-fall probability."""
+    from experiments import envelope
+
+    kinds = ["four-tips", "dp-opt", "random0"]
+    fell = np.array([[0, 1, 1], [1, 1, 0], [0, 1, 1]], bool)  # episode 1: everything fell
+    angle = np.where(fell, 180.0, [[1.0, 0, 0], [0, 0, 2.0], [3.0, 0, 0]])
+    returns = np.array([[-1.0, -5, -4], [-6, -5, -1], [-2, -7, -3]])
+    feasible = np.ones_like(fell)
+    classes = {(0, 1): "necessary", (0, 2): "controller", (1, 0): "controller", (1, 1): "necessary",
+               (2, 1): "necessary", (2, 2): "undetermined"}
+    out = envelope.summarise(kinds, fell, angle, feasible, returns, classes)
+    assert out["kinds"]["four-tips"] == dict(out["kinds"]["four-tips"], falls=2, necessary=1, controller=1, regret=1,
+                                             regret_episodes=[2])
+    assert out["kinds"]["dp-opt"]["regret"] == 1 and out["kinds"]["dp-opt"]["regret_episodes"] == [0]
+    assert out["kinds"]["random0"]["undetermined"] == 1
+    holds, falls = returns[~fell], returns[fell]
+    brute = np.mean([[h > f for f in falls] for h in holds])
+    assert out["pool"]["auc_pooled"] == pytest.approx(brute)
+    assert out["pool"]["feasible_hold_share"] == pytest.approx(3 / 9)

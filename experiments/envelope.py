@@ -1,0 +1,180 @@
+"""`python -m experiments envelope --set stress|eval [--random 8]`: do the plans hold where holding is possible?
+
+Every episode of the set runs in C MuJoCo (one lockstep, `Physics.simulate_many`) under the constant four-tip grasp,
+DP optimal, L1, L2 and RL (closed loop), and a pool of `--random` random surrogate-feasible grasp sequences (half of
+them keeping each grasp with probability 0.8). Every fall is classified by the feasibility oracle
+(`gsp_jax.physics.oracle`) on the grasps the run held: *necessary* (at some point no forces in the friction cones hold
+the tool within the motors' limits), *controller* (forces exist everywhere: the controller let it fall) or
+*undetermined* (the cone's outer and inner pyramids disagree). A planner's *regret* counts the episodes where it fell
+while some other sequence of the pool (the four tips, another planner, a random one) held.
+
+On the pool the surrogate is judged as a predictor of physics: the share of the sequences it calls feasible that
+hold, and how well its return separates holds from falls (AUC, pooled and within episodes) and ranks the angle
+errors (Spearman). Writes results/envelope/<set>.json; prints the table last.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from experiments import evaluation
+from experiments.common import results_dir, table
+from gsp_jax import dp, physics, policies, scenario
+
+PLANNERS = ("four-tips", "dp-opt", "L1", "L2", "rl")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--set", default="stress", choices=["stress", "eval", "val", "train"])
+    p.add_argument("--episodes", type=int, default=None, help="only N episodes, spread over the set")
+    p.add_argument("--random", type=int, default=8, help="random surrogate-feasible sequences per episode")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--policy-dir", default=None)
+    p.add_argument("--jobs", type=int, default=None, help="processes classifying falls (default: the CPU cores)")
+
+
+# ------------------------------------------------------------------------------------------- the summary
+def auc(score_hold, score_fall) -> float:
+    """P(a hold's score > a fall's score), ties half (the Mann-Whitney U over the product); nan if either is
+    empty."""
+    a, b = np.asarray(score_hold, float), np.asarray(score_fall, float)
+    if not len(a) or not len(b):
+        return float("nan")
+    diff = a[:, None] - b[None, :]
+    return float(np.mean((diff > 0) + 0.5 * (diff == 0)))
+
+
+def summarise(kinds, fell, angle, feasible, returns, classes) -> dict:
+    """Per kind and over the pool. kinds (G,) names (PLANNERS first, then random ones); fell, angle, feasible,
+    returns (G, N) per sequence; classes {(g, e): "necessary" | "controller" | "undetermined"} for every fall."""
+    from scipy import stats
+
+    fell, angle = np.asarray(fell, bool), np.asarray(angle, float)
+    feasible, returns = np.asarray(feasible, bool), np.asarray(returns, float)
+    G, N = fell.shape
+    held_any = ~fell  # (G, N)
+    rows = {}
+    for g, kind in enumerate(kinds):
+        cls = [classes.get((g, e)) for e in range(N) if fell[g, e]]
+        others = np.delete(held_any, g, axis=0).any(0)
+        held = ~fell[g]
+        rows[kind] = dict(
+            episodes=N, falls=int(fell[g].sum()), necessary=cls.count("necessary"), controller=cls.count("controller"),
+            undetermined=cls.count("undetermined"), regret=int(np.sum(fell[g] & others)),
+            regret_episodes=[int(e) for e in np.flatnonzero(fell[g] & others)],
+            mean_angle_held_deg=float(angle[g, held].mean()) if held.any() else float("nan"))
+    within = [auc(returns[~fell[:, e] & feasible[:, e], e], returns[fell[:, e] & feasible[:, e], e]) for e in range(N)]
+    within = [a for a in within if np.isfinite(a)]
+    ok = feasible.ravel()
+    rho = stats.spearmanr(returns.ravel()[ok], -angle.ravel()[ok]).statistic if ok.sum() > 2 else float("nan")
+    pool = dict(sequences=int(G * N), surrogate_feasible=int(ok.sum()),
+                feasible_hold_share=float(np.mean(~fell.ravel()[ok])) if ok.any() else float("nan"),
+                auc_pooled=auc(returns.ravel()[ok & ~fell.ravel()], returns.ravel()[ok & fell.ravel()]),
+                auc_within_mean=float(np.mean(within)) if within else float("nan"), auc_within_episodes=len(within),
+                spearman_pooled=float(rho))
+    return dict(kinds=rows, pool=pool)
+
+
+# ------------------------------------------------------------------------------------ the oracle, in processes
+_ORACLE = None
+
+
+def _start_worker() -> None:
+    global _ORACLE
+    jax.config.update("jax_platforms", "cpu")
+    from gsp_jax.physics.oracle import Oracle
+    from gsp_jax.surrogate import Surrogate
+
+    sur = Surrogate()
+    _ORACLE = Oracle(sur, physics.Scene(sur.hand))
+
+
+def _classify(job) -> tuple[str, str, float]:
+    episode, grasps = job
+    v = _ORACLE.sequence(scenario.from_dict(episode), grasps)
+    point, ratio = v.worst
+    return ("necessary" if v.impossible else "controller" if v.possible else "undetermined"), point, ratio
+
+
+def classify(episodes: list, jobs: list, processes: int) -> list:
+    """The oracle's class of each (episode index, grasps) in `jobs`, in `processes` processes."""
+    if not jobs:
+        return []
+    work = [(scenario.to_dict(episodes[e]), g) for e, g in jobs]
+    if processes <= 1:
+        _start_worker()
+        return [_classify(w) for w in work]
+    import multiprocessing
+
+    with ProcessPoolExecutor(processes, multiprocessing.get_context("spawn"), initializer=_start_worker) as pool:
+        return list(pool.map(_classify, work, chunksize=max(1, len(work) // (4 * processes))))
+
+
+# ---------------------------------------------------------------------------------------------------- main
+def main(args: argparse.Namespace) -> None:
+    if args.random < 0:
+        raise SystemExit(f"envelope: --random must be >= 0, got {args.random}")
+    ctx = evaluation.context(args.set, args.episodes, args.policy_dir)
+    sur, N, T = ctx.surrogate, len(ctx.names), ctx.batch.n_steps
+    ring = sur.space.action("ring_distal", 1)
+    groups = [(policies.SequencePolicy(jnp.full(T, ring, jnp.int32)), None)]
+    groups += [evaluation.make(ctx, name) for name in PLANNERS[1:]]
+    keys = jax.random.split(jax.random.PRNGKey(args.seed), N * args.random).reshape(N, args.random, 2)
+    holds = jnp.where(jnp.arange(args.random) % 2 == 0, 0.0, 0.8)
+    rand = jax.vmap(jax.vmap(dp.random_sequence, (None, None, 0, None, 0)), (0, 0, 0, None, None))(
+        ctx.tables, ctx.batch.start_grasp, keys, sur.reward_config.r_min, holds)  # (N, R, T)
+    groups += [(policies.SequencePolicy(rand[:, r]), 0) for r in range(args.random)]
+    kinds = list(PLANNERS) + [f"random{r}" for r in range(args.random)]
+    phys = physics.Physics(sur)
+    print(f"envelope: {N} episodes of '{args.set}' x {len(kinds)} sequences = {N * len(kinds)} episodes in C MuJoCo "
+          f"(JAX on {jax.default_backend()})", flush=True)
+    t0 = time.perf_counter()
+    res = phys.simulate_many(groups, ctx.batch, backend="c", progress=True)
+    t_phys = time.perf_counter() - t0
+    fell = np.stack([np.asarray(r.fell) for r in res])
+    angle = np.stack([np.asarray(r.angle_error) for r in res])
+    actions = jnp.stack([jnp.asarray(r.actions) for r in res])  # (G, N, T)
+    rewards = jax.vmap(jax.vmap(dp.sequence_rewards), (None, 0, 0))(ctx.tables, jnp.broadcast_to(
+        ctx.batch.start_grasp, actions.shape[:2]), actions)  # (G, N, T)
+    feasible = np.asarray(jnp.all(rewards > sur.reward_config.r_min, -1))
+    returns = np.asarray(jnp.sum(rewards, -1))
+    print(f"  physics {t_phys:.0f} s; {int(fell.sum())} falls of {fell.size} to classify ...", flush=True)
+    episodes = scenario.unstack(ctx.batch)
+    falls = [(g, e) for g in range(len(kinds)) for e in range(N) if fell[g, e]]
+    t1 = time.perf_counter()
+    verdicts = classify(episodes, [(e, [int(x) for x in np.asarray(res[g].grasps[e])]) for g, e in falls],
+                        args.jobs or os.cpu_count() or 1)
+    classes = {ge: v[0] for ge, v in zip(falls, verdicts)}
+    summary = summarise(kinds, fell, angle, feasible, returns, classes)
+    verdict = dict(zip(falls, verdicts))
+
+    def row(g, e):
+        r = dict(kind=kinds[g], episode=ctx.names[e], fell=bool(fell[g, e]), angle_deg=float(angle[g, e]),
+                 surrogate_feasible=bool(feasible[g, e]), surrogate_return=float(returns[g, e]),
+                 grasps=[int(x) for x in np.asarray(res[g].grasps[e])])
+        if (g, e) in verdict:
+            r["oracle"] = dict(zip(("class", "worst_point", "worst_ratio"), verdict[g, e]))
+        return r
+
+    out = dict(set=args.set, episodes=ctx.names, kinds=kinds, physics_s=t_phys, oracle_s=time.perf_counter() - t1,
+               platform=jax.default_backend(), rl_policy=ctx.rl_source, summary=summary,
+               sequences=[row(g, e) for g in range(len(kinds)) for e in range(N)])
+    path = results_dir("envelope") / f"{args.set}.json"
+    path.write_text(json.dumps(out, indent=1))
+    print(f"wrote {path}\n")
+    p = summary["pool"]
+    print(f"pool: {p['sequences']} sequences, {p['surrogate_feasible']} surrogate-feasible, of those "
+          f"{100 * p['feasible_hold_share']:.1f}% hold; AUC(return: hold vs fall) pooled {p['auc_pooled']:.2f}, "
+          f"within episodes {p['auc_within_mean']:.2f} ({p['auc_within_episodes']} episodes); Spearman "
+          f"rho(return, -angle) {p['spearman_pooled']:.2f}")
+    rows = [[k, r["falls"], r["necessary"], r["controller"], r["undetermined"], r["regret"], r["mean_angle_held_deg"]]
+            for k, r in summary["kinds"].items() if k in PLANNERS or args.random <= 4]
+    print(table(["sequence", f"falls /{N}", "necessary", "controller", "undetermined", "regret", "angle held [deg]"],
+                rows, ".2f"))

@@ -137,8 +137,12 @@ def _smooth(u: jax.Array) -> jax.Array:
 class Controller:
     """The contact controller of one hand model (see the module docstring). Stateless after construction."""
 
-    def __init__(self, hand: HandModel, space: grasps.GraspSpace, config: PhysicsConfig, ctrl_range, gravity):
+    def __init__(self, hand: HandModel, space: grasps.GraspSpace, config: PhysicsConfig, ctrl_range, gravity,
+                 joint_damping=None):
         self.hand, self.space, self.config = hand, space, config
+        # (J,) the hand joints' own viscous damping [N m s/rad] (the model's), fed forward by `damping_compensation`
+        self.joint_damping = jnp.zeros(hand.n_joints, jnp.float32) if joint_damping is None else jnp.asarray(
+            joint_damping, jnp.float32)
         self.ctrl_range = tuple(jnp.asarray(r, jnp.float32) for r in ctrl_range)
         self.gravity = jnp.asarray(gravity, jnp.float32)
         fingers = [n.split("_")[0] for n in hand.link_names]
@@ -247,7 +251,8 @@ class Controller:
         # the feedback is capped: a contact's impact spikes the observed velocity, and an uncapped damping term
         # would turn the spike into grip forces the motors cannot give (measured: the tool thrown out of the hand)
         clip = lambda v, top: v * jnp.minimum(1.0, top / (jnp.linalg.norm(v) + 1e-9))  # noqa: E731
-        feedback, turn = clip(feedback, c.feedback_limit * weight), clip(turn, c.feedback_limit * weight * c.tool_radius)
+        cap = jnp.maximum(c.feedback_limit * weight, c.feedback_floor)
+        feedback, turn = clip(feedback, cap), clip(turn, cap * c.tool_radius)
         force = episode.mass * (ref.acc - self.gravity) + feedback
         torque = turn + jnp.cross(omega, inertia @ omega)
         return jnp.concatenate([force, torque]) - external
@@ -327,5 +332,6 @@ class Controller:
             forces = share * f_a + (1 - share) * f_b
             tau = jnp.einsum("lij,li->j", jac, forces + f_track) + c.posture_kp * (cs.q_rest - obs.q)
             tau = tau + jnp.where(c.gravity_compensation, obs.bias, 0.0)
+            tau = tau + c.damping_compensation * self.joint_damping * obs.dq
             tau = jnp.clip(tau, *self.ctrl_range)
         return tau, cs.replace(load=load, f_with=f_a, f_without=f_b, anchor=anchor, anchored=anchored)

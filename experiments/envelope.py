@@ -32,7 +32,7 @@ PLANNERS = ("four-tips", "dp-opt", "L1", "L2", "rl")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--set", default="stress", choices=["stress", "eval", "val", "train"])
+    p.add_argument("--set", default="stress", choices=["stress", "stress-cal", "eval", "val", "train"])
     p.add_argument("--episodes", type=int, default=None, help="only N episodes, spread over the set")
     p.add_argument("--random", type=int, default=8, help="random surrogate-feasible sequences per episode")
     p.add_argument("--seed", type=int, default=0)

@@ -159,7 +159,7 @@ STRESS_SEED = 20261125  # the stress set's draws: fixed, so the set is the same 
 STRESS_SIZE = 120
 
 
-def stress_set(n: int = STRESS_SIZE, seed: int = STRESS_SEED) -> dict[str, Episode]:
+def stress_set(n: int = STRESS_SIZE, seed: int = STRESS_SEED, prefix: str = "stress") -> dict[str, Episode]:
     """The stress set (ours, beyond the paper): `n` unseen episodes spanning the envelope the planners must hold
     in, fixed and seeded, never used for calibration or training. Per episode, stratified over the set (each range
     cut into n strata, one draw per stratum, strata shuffled per parameter): mass 0.25-3 m0 (log-uniform), friction
@@ -180,7 +180,7 @@ def stress_set(n: int = STRESS_SIZE, seed: int = STRESS_SEED) -> dict[str, Episo
         dy = (lat[i] if path == "lateral-y" else -lat[i] if path == "diagonal" else 0.0)
         axis = "xyz"[i % 3]
         m = float(np.exp(log_mass[i]))
-        name = f"stress{i:03d}_{m:.2f}m0_mu{mu[i]:.2f}_{axis}{torque[i]:+.1f}Nm_{path}"
+        name = f"{prefix}{i:03d}_{m:.2f}m0_mu{mu[i]:.2f}_{axis}{torque[i]:+.1f}Nm_{path}"
         eps[name] = make_episode(shift_mm=round(float(shift[i]), 1), torque=round(float(torque[i]), 2), mass_factor=m,
                                  com_y_cm=round(float(com_y[i]), 2), friction=round(float(mu[i]), 3),
                                  com_x_cm=round(float(com_x[i]), 2), lateral_mm=(round(float(dx), 1), round(float(dy), 1)),
@@ -188,13 +188,20 @@ def stress_set(n: int = STRESS_SIZE, seed: int = STRESS_SEED) -> dict[str, Episo
     return eps
 
 
+def stress_calibration_set() -> dict[str, Episode]:
+    """A calibration slice of the envelope: 60 episodes drawn as the stress set's, with another seed (disjoint from
+    it), for choosing controller and surrogate settings that the stress set then tests."""
+    return stress_set(60, STRESS_SEED + 1, prefix="envcal")
+
+
 SETS = {"nominal": nominal, "train": training_set, "val": validation_set, "evalA": eval_set_a, "evalB": eval_set_b,
-        "stress": stress_set}
+        "stress": stress_set, "stress-cal": stress_calibration_set}
 
 
 def episode_set(name: str) -> dict[str, Episode]:
-    """A named set: nominal, train, val, evalA, evalB, eval (A then B), all (train then eval) or stress (the
-    envelope; never part of "all": not for calibration or training)."""
+    """A named set: nominal, train, val, evalA, evalB, eval (A then B), all (train then eval), stress (the
+    envelope; never part of "all": not for calibration or training) or stress-cal (the envelope's calibration
+    slice, disjoint from stress)."""
     if name == "eval":
         return {**eval_set_a(), **eval_set_b()}
     if name == "all":

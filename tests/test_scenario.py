@@ -317,5 +317,9 @@ def test_stress_set_spans_the_envelope_and_is_fixed():
     lateral = np.abs(end[:, :2]) > 1e-4
     assert np.any(lateral[:, 0] & ~lateral[:, 1]) and np.any(lateral[:, 1] & ~lateral[:, 0]) and np.any(lateral.all(1))
     assert not set(stress) & (set(sc.episode_set("all")) | set(sc.episode_set("val")))
+    cal = sc.episode_set("stress-cal")
+    assert len(cal) == 60 and not set(cal) & set(stress)
+    assert not any(np.array_equal(np.asarray(a.w_ext), np.asarray(b.w_ext)) and float(a.mass) == float(b.mass)
+                   for a in cal.values() for b in stress.values())
     with pytest.raises(sc.EpisodeError, match="torque_axis"):
         sc.make_episode(torque_axis="w")

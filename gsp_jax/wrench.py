@@ -236,6 +236,43 @@ def _solve_newton(points, normals, active, mu, wrench, center, cfg, init=None, p
     return _result(a, b, x, base, scale, wrench, rho)
 
 
+def _lp_inputs(who: str, points, normals, wrench, center, facets):
+    """The linear programmes' inputs as float64 arrays (points, unit normals (K, 3), wrench (6,), center (3,)),
+    or a ValueError naming the bad one."""
+    import numpy as np
+
+    points, normals = np.asarray(points, float).reshape(-1, 3), np.asarray(normals, float).reshape(-1, 3)
+    wrench, center = np.asarray(wrench, float).reshape(6), np.asarray(center, float).reshape(3)
+    if len(points) == 0 or len(normals) != len(points) or not (np.all(np.isfinite(points)) and
+                                                              np.all(np.isfinite(normals))):
+        raise ValueError(f"{who}: points and normals must be finite (K, 3) arrays with K >= 1, got "
+                         f"{len(points)} points and {len(normals)} normals")
+    if not np.all(np.isfinite(wrench)):
+        raise ValueError(f"{who}: wrench must be finite, got {wrench}")
+    if not (isinstance(facets, int) and facets >= 3):
+        raise ValueError(f"{who}: facets must be an int >= 3, got {facets!r}")
+    return points, normals / np.linalg.norm(normals, axis=1, keepdims=True), wrench, center
+
+
+def _pyramid_rows(normals, facets: int):
+    """(D, N) with D - mu N <= 0 (rows of (3K,) force vectors) the `facets`-sided pyramids around unit `normals`
+    (K, 3) that circumscribe the Coulomb cones of mu: per contact `facets` rows d . f <= mu n . f, d across n, and
+    one pushing row -n . f <= 0."""
+    import numpy as np
+
+    k = len(normals)
+    angles = np.linspace(0.0, 2 * np.pi, facets, endpoint=False)
+    d_rows, n_rows = np.zeros((k, facets + 1, 3 * k)), np.zeros((k, facets + 1, 3 * k))
+    for i, n in enumerate(normals):
+        t1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        t1 /= np.linalg.norm(t1)
+        t2 = np.cross(n, t1)
+        d_rows[i, :facets, 3 * i : 3 * i + 3] = np.cos(angles)[:, None] * t1 + np.sin(angles)[:, None] * t2
+        n_rows[i, :facets, 3 * i : 3 * i + 3] = n
+        d_rows[i, facets, 3 * i : 3 * i + 3] = -n
+    return d_rows.reshape(-1, 3 * k), n_rows.reshape(-1, 3 * k)
+
+
 def least_friction(points, normals, wrench, center, facets: int = 64, tol: float = 1e-4,
                    max_mu: float = 1e6) -> tuple[float, float]:
     """The least friction coefficient at which point contacts can supply a wrench at all, however hard they press:
@@ -251,27 +288,10 @@ def least_friction(points, normals, wrench, center, facets: int = 64, tol: float
     import numpy as np
     from scipy.optimize import linprog
 
-    points, normals = np.asarray(points, float).reshape(-1, 3), np.asarray(normals, float).reshape(-1, 3)
-    wrench, center = np.asarray(wrench, float).reshape(6), np.asarray(center, float).reshape(3)
+    points, normals, wrench, center = _lp_inputs("least_friction", points, normals, wrench, center, facets)
     k = len(points)
-    if k == 0 or len(normals) != k or not (np.all(np.isfinite(points)) and np.all(np.isfinite(normals))):
-        raise ValueError(f"least_friction: points and normals must be finite (K, 3) arrays with K >= 1, got "
-                         f"{len(points)} points and {len(normals)} normals")
-    if not (isinstance(facets, int) and facets >= 3):
-        raise ValueError(f"least_friction: facets must be an int >= 3, got {facets!r}")
     g = grasp_matrix(points, center, xp=np)  # float64
-    # the pyramid's facets, d . f <= mu n . f for `facets` directions d across each normal, and pushing only
-    # (-n . f <= 0): rows (facets + 1) per contact, as D - mu N with D and N independent of mu
-    angles = np.linspace(0.0, 2 * np.pi, facets, endpoint=False)
-    d_rows, n_rows = np.zeros((k, facets + 1, 3 * k)), np.zeros((k, facets + 1, 3 * k))
-    for i, n in enumerate(normals):
-        t1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
-        t1 /= np.linalg.norm(t1)
-        t2 = np.cross(n, t1)
-        d_rows[i, :facets, 3 * i : 3 * i + 3] = np.cos(angles)[:, None] * t1 + np.sin(angles)[:, None] * t2
-        n_rows[i, :facets, 3 * i : 3 * i + 3] = n
-        d_rows[i, facets, 3 * i : 3 * i + 3] = -n
-    d_rows, n_rows = d_rows.reshape(-1, 3 * k), n_rows.reshape(-1, 3 * k)
+    d_rows, n_rows = _pyramid_rows(normals, facets)
 
     def feasible(mu: float) -> bool:
         res = linprog(np.zeros(3 * k), A_ub=d_rows - mu * n_rows, b_ub=np.zeros(len(d_rows)), A_eq=g, b_eq=wrench,
@@ -335,18 +355,10 @@ def hold_margin(points, normals, mu, wrench, center, jacobians=None, torque_limi
     import numpy as np
     from scipy.optimize import linprog
 
-    points, normals = np.asarray(points, float).reshape(-1, 3), np.asarray(normals, float).reshape(-1, 3)
-    wrench, center = np.asarray(wrench, float).reshape(6), np.asarray(center, float).reshape(3)
-    k = len(points)
-    if k == 0 or len(normals) != k or not (np.all(np.isfinite(points)) and np.all(np.isfinite(normals))):
-        raise ValueError(f"hold_margin: points and normals must be finite (K, 3) arrays with K >= 1, got "
-                         f"{len(points)} points and {len(normals)} normals")
     if not (np.isfinite(mu) and mu > 0):
         raise ValueError(f"hold_margin: mu must be finite and > 0, got {mu!r}")
-    if not np.all(np.isfinite(wrench)):
-        raise ValueError(f"hold_margin: wrench must be finite, got {wrench}")
-    if not (isinstance(facets, int) and facets >= 3):
-        raise ValueError(f"hold_margin: facets must be an int >= 3, got {facets!r}")
+    points, normals, wrench, center = _lp_inputs("hold_margin", points, normals, wrench, center, facets)
+    k = len(points)
     if jacobians is not None:
         jac = np.asarray(jacobians, float)
         if jac.ndim != 3 or jac.shape[:2] != (k, 3):
@@ -358,18 +370,7 @@ def hold_margin(points, normals, mu, wrench, center, jacobians=None, torque_limi
         if bias.shape != limit.shape or not np.all(np.isfinite(bias)):
             raise ValueError(f"hold_margin: bias must be finite (J={len(limit)},), got {bias!r}")
     g = grasp_matrix(points, center, xp=np)
-    angles = np.linspace(0.0, 2 * np.pi, facets, endpoint=False)
-    cone_rows = np.zeros((k, facets + 1, 3 * k))
-    for i, n in enumerate(normals / np.linalg.norm(normals, axis=1, keepdims=True)):
-        t1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
-        t1 /= np.linalg.norm(t1)
-        t2 = np.cross(n, t1)
-        cone_rows[i, :facets, 3 * i : 3 * i + 3] = np.cos(angles)[:, None] * t1 + np.sin(angles)[:, None] * t2
-        cone_rows[i, facets, 3 * i : 3 * i + 3] = -n
-    normal_rows = np.zeros_like(cone_rows)
-    for i, n in enumerate(normals / np.linalg.norm(normals, axis=1, keepdims=True)):
-        normal_rows[i, :facets, 3 * i : 3 * i + 3] = n
-    cone_rows, normal_rows = cone_rows.reshape(-1, 3 * k), normal_rows.reshape(-1, 3 * k)
+    cone_rows, normal_rows = _pyramid_rows(normals, facets)
 
     def solve(mu_pyramid: float):
         # variables [f (3K), s]; d . f - mu n . f <= 0 per facet (the pyramid circumscribing the cone of mu_pyramid)

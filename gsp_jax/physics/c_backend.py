@@ -6,10 +6,11 @@ MJX on an H100: ../shared/ENVIRONMENT.md).
 One lockstep runs every episode of every policy given (Fig. 4b's 5 policies x 27 episodes are one batch of 135):
 
   at each segment start   each policy decides for its own episodes (one jitted call per policy);
-  at each control tick    one jitted JAX call reads every episode's state and returns every episode's motor
-                          commands (and the status of the tick before); then `mujoco.batch.Batch` steps every
-                          episode `control_every` times on a thread pool over `cores` cores (MuJoCo's own batched
-                          stepping: bit-identical to a loop of `mj_step` per episode, at any thread count).
+  between decisions       the episodes run as chunks side by side (threads; `workers`), each chunk's control tick
+                          one jitted JAX call that reads its episodes' states and returns their motor commands (and
+                          the status of the tick before), then an `Engine` (`mujoco.batch.Batch`) steps them
+                          `control_every` times on its share of the cores (MuJoCo's own batched stepping:
+                          bit-identical to a loop of `mj_step` per episode, at any thread count).
 
 A tick's JAX call takes four flat arrays (controller states, observations, episodes, tick index) and returns two:
 a call with the controller's pytrees as arguments cost ~150 us of dispatch (21 leaves), more than the physics of
@@ -22,7 +23,6 @@ from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 from jax.flatten_util import ravel_pytree
 from mujoco import batch as mj_batch

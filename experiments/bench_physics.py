@@ -111,7 +111,7 @@ def main(args: argparse.Namespace) -> None:
                 _, warm = timed(run)
                 rate = steps / warm
                 share = rate / (engine[name] * cores) if cores else float("nan")
-                rows.append([name, backend, cores or "-", workers or "auto", len(eps), first, warm, steps / warm,
+                rows.append([name, backend, cores or "-", workers or "auto", len(eps), first, warm, rate,
                              share, warm / (steps / engine[name]), int(np.sum(res.fell))])
                 print(f"{name} {backend} cores {cores} workers {workers or 'auto'}: first call {first:.2f} s, warm "
                       f"{warm:.2f} s ({rate:,.0f} steps/s), {rows[-1][-1]} fell", flush=True)

@@ -152,8 +152,7 @@ def _replay(table: Table, start: jax.Array, choose):
 def sequence_return(table: Table, start_grasp: jax.Array, actions: jax.Array) -> jax.Array:
     """Return of an open-loop action sequence (T,) replayed in a table from `start_grasp` (the DP baseline:
     a sequence solved on one episode, scored on another)."""
-    _, _, rewards, _ = _replay(table, jnp.asarray(start_grasp, jnp.int32), lambda g, t: actions[t])
-    return jnp.sum(rewards)
+    return jnp.sum(sequence_rewards(table, start_grasp, actions))
 
 
 def sequence_rewards(table: Table, start_grasp: jax.Array, actions: jax.Array) -> jax.Array:

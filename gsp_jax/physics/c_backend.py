@@ -168,8 +168,9 @@ def simulate(phys, groups, episodes: Episode, cores: int | None = None, progress
     both run without Python's lock), each with its own controller call per tick and its own `Engine` on
     cores / workers threads, so one chunk's physics overlaps another's controller. Default: one chunk per ~32
     episodes, at most cores / 4 (measured, H100 host, 16 cores, 135 episodes warm: 1 chunk 13.3 s, 2 8.3 s, 4 6.2 s,
-    8 8.0 s, 16 13.8 s: each chunk's Python per tick holds Python's lock, and the controller calls contend). `engine_log` (a list, one worker only): every step's states are appended to it
-    (`Engine.log`; `experiments bench-physics` replays them to time the engine alone)."""
+    8 8.0 s, 16 13.8 s: each chunk's Python per tick holds Python's lock, and the controller calls contend).
+    `engine_log` (a list, one worker only): every step's states are appended to it (`Engine.log`; `experiments
+    bench-physics` replays them to time the engine alone)."""
     c, scene = phys.config, phys.scene
     N, T, n = int(np.shape(episodes.mass)[0]), episodes.n_steps, phys.n_segment
     G = len(groups)

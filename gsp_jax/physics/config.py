@@ -69,8 +69,6 @@ class PhysicsConfig:
     free_damping: float = 0.02  # [m] the damped least-squares step's damping (bounds the pull where J is singular)
     posture_kp: float = 0.02  # [N m/rad] weak pull of every joint to its start angle (the fingers' spare DoF)
     gravity_compensation: bool = True  # add the fingers' own gravity and bias forces (MuJoCo's qfrc_bias)
-    damping_compensation: float = 0.0  # this fraction of the joints' own viscous damping (the model's) is fed
-    # forward from the measured joint velocities
     # --- outcome
     fall_angle: float = 90.0  # [deg] tool rotation from its reference beyond which it counts as fallen
     fall_distance: float = 0.03  # [m] tool position error beyond which it counts as fallen
@@ -104,7 +102,7 @@ class PhysicsConfig:
             if not (isinstance(value, int) and value >= 1):
                 raise ValueError(f"PhysicsConfig.{name} must be an int >= 1, got {value!r}")
         for name in ("tool_damping", "held_stiffness_ratio", "squeeze", "finger_kp", "finger_kd", "posture_kp",
-                     "free_stiffness", "damping_compensation", "feedback_floor"):
+                     "free_stiffness", "feedback_floor"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and value >= 0):
                 raise ValueError(f"PhysicsConfig.{name} must be >= 0, got {value!r}")

@@ -137,12 +137,8 @@ def _smooth(u: jax.Array) -> jax.Array:
 class Controller:
     """The contact controller of one hand model (see the module docstring). Stateless after construction."""
 
-    def __init__(self, hand: HandModel, space: grasps.GraspSpace, config: PhysicsConfig, ctrl_range, gravity,
-                 joint_damping=None):
+    def __init__(self, hand: HandModel, space: grasps.GraspSpace, config: PhysicsConfig, ctrl_range, gravity):
         self.hand, self.space, self.config = hand, space, config
-        # (J,) the hand joints' own viscous damping [N m s/rad] (the model's), fed forward by `damping_compensation`
-        self.joint_damping = jnp.zeros(hand.n_joints, jnp.float32) if joint_damping is None else jnp.asarray(
-            joint_damping, jnp.float32)
         self.ctrl_range = tuple(jnp.asarray(r, jnp.float32) for r in ctrl_range)
         self.gravity = jnp.asarray(gravity, jnp.float32)
         fingers = [n.split("_")[0] for n in hand.link_names]
@@ -332,6 +328,5 @@ class Controller:
             forces = share * f_a + (1 - share) * f_b
             tau = jnp.einsum("lij,li->j", jac, forces + f_track) + c.posture_kp * (cs.q_rest - obs.q)
             tau = tau + jnp.where(c.gravity_compensation, obs.bias, 0.0)
-            tau = tau + c.damping_compensation * self.joint_damping * obs.dq
             tau = jnp.clip(tau, *self.ctrl_range)
         return tau, cs.replace(load=load, f_with=f_a, f_without=f_b, anchor=anchor, anchored=anchored)

@@ -5,8 +5,12 @@ DP optimal, L1, L2 and RL (closed loop), and a pool of `--random` random surroga
 them keeping each grasp with probability 0.8). Every fall is classified by the feasibility oracle
 (`gsp_jax.physics.oracle`) on the grasps the run held: *necessary* (at some point no forces in the friction cones hold
 the tool within the motors' limits), *controller* (forces exist everywhere: the controller let it fall) or
-*undetermined* (the cone's outer and inner pyramids disagree). A planner's *regret* counts the episodes where it fell
-while some other sequence of the pool (the four tips, another planner, a random one) held.
+*undetermined* (the cone's outer and inner pyramids disagree). Beside it the oracle is asked at the configurations
+the run *reached* (`Oracle.simulated`, the simulated joint angles and tool pose before each decision and at the
+hold's start, up to the fall): a necessary fall *before* the point the oracle calls impossible is counted as
+`early` (the controller dropped the tool before the grasp became impossible to hold). A planner's *regret* counts
+the episodes where it fell while some other sequence of the pool (the four tips, another planner, a random one)
+held.
 
 On the pool the surrogate is judged as a predictor of physics: the share of the sequences it calls feasible that
 hold, and how well its return separates holds from falls (AUC, pooled and within episodes) and ranks the angle
@@ -51,9 +55,11 @@ def auc(score_hold, score_fall) -> float:
     return float(np.mean((diff > 0) + 0.5 * (diff == 0)))
 
 
-def summarise(kinds, fell, angle, feasible, returns, classes) -> dict:
+def summarise(kinds, fell, angle, feasible, returns, classes, early=None) -> dict:
     """Per kind and over the pool. kinds (G,) names (PLANNERS first, then random ones); fell, angle, feasible,
-    returns (G, N) per sequence; classes {(g, e): "necessary" | "controller" | "undetermined"} for every fall."""
+    returns (G, N) per sequence; classes {(g, e): "necessary" | "controller" | "undetermined"} for every fall;
+    early {(g, e): bool}: a necessary fall that came before the point the oracle calls impossible."""
+    early = early or {}
     from scipy import stats
 
     fell, angle = np.asarray(fell, bool), np.asarray(angle, float)
@@ -67,7 +73,9 @@ def summarise(kinds, fell, angle, feasible, returns, classes) -> dict:
         held = ~fell[g]
         rows[kind] = dict(
             episodes=N, falls=int(fell[g].sum()), necessary=cls.count("necessary"), controller=cls.count("controller"),
-            undetermined=cls.count("undetermined"), regret=int(np.sum(fell[g] & others)),
+            undetermined=cls.count("undetermined"),
+            early=sum(bool(early.get((g, e))) for e in range(N) if fell[g, e] and classes.get((g, e)) == "necessary"),
+            regret=int(np.sum(fell[g] & others)),
             regret_episodes=[int(e) for e in np.flatnonzero(fell[g] & others)],
             mean_angle_held_deg=float(angle[g, held].mean()) if held.any() else float("nan"))
     within = [auc(returns[~fell[:, e] & feasible[:, e], e], returns[fell[:, e] & feasible[:, e], e]) for e in range(N)]
@@ -96,18 +104,34 @@ def _start_worker() -> None:
     _ORACLE = Oracle(sur, physics.Scene(sur.hand))
 
 
-def _classify(job) -> tuple[str, str, float]:
-    episode, grasps = job
-    v = _ORACLE.sequence(scenario.from_dict(episode), grasps)
+def _point_time(point: str, n_steps: int) -> int:
+    """The waypoint from which an oracle point matters ("t3", "t3 change": 3; "hold": T)."""
+    return n_steps if point == "hold" else int(point.split()[0][1:])
+
+
+def _classify(job) -> tuple:
+    """(class, worst point, its ratio[, fell before the first impossible point, the reached configurations' worst
+    point, its ratio]) of one fall."""
+    episode, grasps = job[:2]
+    episode = scenario.from_dict(episode)
+    v = _ORACLE.sequence(episode, grasps)
     point, ratio = v.worst
-    return ("necessary" if v.impossible else "controller" if v.possible else "undetermined"), point, ratio
+    out = (("necessary" if v.impossible else "controller" if v.possible else "undetermined"), point, ratio)
+    if len(job) == 2:
+        return out
+    rows, fall_row = job[2], job[3]  # (T, nq) configurations before each decision t >= 1 and at the hold's start
+    sim = _ORACLE.simulated(episode, grasps, rows, 1, fall_row)
+    first = min((_point_time(p, episode.n_steps) for p, r in zip(v.points, v.ratio_outer) if r > 1.0), default=None)
+    early = first is not None and fall_row < first
+    return out + (bool(early), *sim.worst)
 
 
 def classify(episodes: list, jobs: list, processes: int) -> list:
-    """The oracle's class of each (episode index, grasps) in `jobs`, in `processes` processes."""
+    """The oracle's class of each (episode index, grasps[, reached configurations (T, nq), rows before the fall])
+    in `jobs`, in `processes` processes (`_classify`)."""
     if not jobs:
         return []
-    work = [(scenario.to_dict(episodes[e]), g) for e, g in jobs]
+    work = [(scenario.to_dict(episodes[job[0]]), *job[1:]) for job in jobs]
     if processes <= 1:
         _start_worker()
         return [_classify(w) for w in work]
@@ -149,10 +173,17 @@ def main(args: argparse.Namespace) -> None:
     episodes = scenario.unstack(ctx.batch)
     falls = [(g, e) for g in range(len(kinds)) for e in range(N) if fell[g, e]]
     t1 = time.perf_counter()
-    verdicts = classify(episodes, [(e, [int(x) for x in np.asarray(res[g].grasps[e])]) for g, e in falls],
-                        args.jobs or os.cpu_count() or 1)
+    n_seg, tick = phys.n_segment, phys.config.tick
+
+    def reached(g, e):  # the configurations before each decision t >= 1 and at the hold's start; rows before the fall
+        rows = np.asarray(res[g].qpos[e, n_seg - 1 :: n_seg][:T])
+        fall_tick = int(round(float(res[g].fall_time[e]) / tick))
+        return rows, int(np.sum(np.arange(1, T + 1) * n_seg - 1 < fall_tick))
+
+    verdicts = classify(episodes, [(e, [int(x) for x in np.asarray(res[g].grasps[e])], *reached(g, e))
+                                   for g, e in falls], args.jobs or os.cpu_count() or 1)
     classes = {ge: v[0] for ge, v in zip(falls, verdicts)}
-    summary = summarise(kinds, fell, angle, feasible, returns, classes)
+    summary = summarise(kinds, fell, angle, feasible, returns, classes, {ge: v[3] for ge, v in zip(falls, verdicts)})
     verdict = dict(zip(falls, verdicts))
 
     def row(g, e):
@@ -160,7 +191,9 @@ def main(args: argparse.Namespace) -> None:
                  surrogate_feasible=bool(feasible[g, e]), surrogate_return=float(returns[g, e]),
                  grasps=[int(x) for x in np.asarray(res[g].grasps[e])])
         if (g, e) in verdict:
-            r["oracle"] = dict(zip(("class", "worst_point", "worst_ratio"), verdict[g, e]))
+            r["oracle"] = dict(zip(("class", "worst_point", "worst_ratio", "early", "reached_worst_point",
+                                    "reached_worst_ratio"), verdict[g, e]))
+            r["fall_time"] = float(res[g].fall_time[e])
         return r
 
     out = dict(set=args.set, episodes=ctx.names, kinds=kinds, physics_s=t_phys, oracle_s=time.perf_counter() - t1,
@@ -174,7 +207,8 @@ def main(args: argparse.Namespace) -> None:
           f"{100 * p['feasible_hold_share']:.1f}% hold; AUC(return: hold vs fall) pooled {p['auc_pooled']:.2f}, "
           f"within episodes {p['auc_within_mean']:.2f} ({p['auc_within_episodes']} episodes); Spearman "
           f"rho(return, -angle) {p['spearman_pooled']:.2f}")
-    rows = [[k, r["falls"], r["necessary"], r["controller"], r["undetermined"], r["regret"], r["mean_angle_held_deg"]]
-            for k, r in summary["kinds"].items() if k in PLANNERS or args.random <= 4]
-    print(table(["sequence", f"falls /{N}", "necessary", "controller", "undetermined", "regret", "angle held [deg]"],
+    rows = [[k, r["falls"], r["necessary"], r["early"], r["controller"], r["undetermined"], r["regret"],
+             r["mean_angle_held_deg"]] for k, r in summary["kinds"].items() if k in PLANNERS or args.random <= 4]
+    print(table(["sequence", f"falls /{N}", "necessary", "of them early", "controller", "undetermined", "regret",
+                 "angle held [deg]"],
                 rows, ".2f"))

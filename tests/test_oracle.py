@@ -80,10 +80,80 @@ def test_gravity_torques_are_the_fingers_weight(oracle):
         model.opt.gravity[:] = saved
 
 
+def _ik_configuration(oracle, grasp, ep, t):
+    """(nq,) the physics model's configuration with the hand at `grasp`'s IK solution at waypoint t and the tool
+    at waypoint t's pose."""
+    scene = oracle.scene
+    q = oracle.realise(grasp, ep, t)[0]
+    qpos = np.asarray(scene.model.qpos0, float).copy()
+    qpos[scene.hand_qpos] = q
+    a = scene.tool_qpos
+    qpos[a : a + 3], qpos[a + 3 : a + 7] = np.asarray(ep.waypoints[t]), np.asarray(ep.quats[t])
+    return qpos
+
+
+def test_reached_configuration_reads_the_contacts_off_the_hand(oracle):
+    """At the IK's own configuration, the oracle on the reached configuration (contacts where the links' centre lines
+    come nearest their options, on the faces) agrees with the IK's: the same Jacobians, contacts within the IK's 5 mm
+    acceptance, and four tips' torque ratios within 10% (the points differ by those millimetres); one tip cannot
+    hold at either. Moving the tool 2 cm along the faces' normals (y) moves every contact with its face, and the
+    torque rows are `mj_jac` at the links' points of the new configuration."""
+    sp, ep, scene = oracle.space, scenario.make_episode(mass_factor=1.5), oracle.scene
+    four, index = sp.encode([1, 1, 0, 1, 0, 1]), sp.encode([0, 1, 0, 0, 0, 0])
+    for t, hold in ((6, False), (15, True)):
+        qpos = _ik_configuration(oracle, four, ep, t)
+        _, pts_ik, _, realised, _, jac_ik = oracle.realise(four, ep, t)
+        _, pts, nrm, carried, jac, _ = oracle.at_configuration(four, qpos)
+        np.testing.assert_array_equal(carried, realised)
+        np.testing.assert_allclose(jac[carried], jac_ik[carried], atol=1e-5)
+        assert np.linalg.norm(pts - pts_ik, axis=-1)[carried].max() < 5e-3
+        ik, reached = oracle.check(four, ep, t, hold=hold), oracle.check_at(four, ep, qpos, None if hold else t)
+        assert reached.possible and reached.torque_ratio_outer == pytest.approx(ik.torque_ratio_outer, rel=0.1)
+        assert oracle.check_at(index, ep, _ik_configuration(oracle, index, ep, t), t).impossible
+    qpos = _ik_configuration(oracle, four, ep, 6)
+    moved = qpos.copy()
+    moved[scene.tool_qpos + 1] += 0.02
+    _, pts0, _, carried, _, _ = oracle.at_configuration(four, qpos)
+    q, pts1, _, _, jac1, _ = oracle.at_configuration(four, moved)
+    np.testing.assert_allclose((pts1 - pts0)[carried][:, 1], 0.02, atol=1e-6)  # on the faces, which moved
+    m, d = scene.model, mujoco.MjData(scene.model)
+    d.qpos[:] = moved
+    mujoco.mj_forward(m, d)
+    jacp = np.zeros((3, m.nv))
+    for link in np.flatnonzero(carried):  # the Jacobian at the link's own point (centre line) is mj_jac there
+        body = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, oracle.hand.body_names[oracle.hand.link_body[link]])
+        x, jx = oracle._links_at(q.astype(np.float32), pts1.astype(np.float32))
+        mujoco.mj_jac(m, d, jacp, None, np.asarray(x[link], float), body)
+        np.testing.assert_allclose(jac1[link], jacp[:, scene.hand_dof], atol=2e-5)
+
+
+def test_reached_verdict_checks_each_decision_up_to_the_fall(oracle):
+    """`Oracle.simulated` on a made-up run (the IK configuration of each waypoint held for a segment's ticks): each
+    point is `check_at` of the grasp then in force; points from the fall on read nan and decide nothing."""
+    sp, ep = oracle.space, scenario.make_episode()
+    four, three = sp.encode([1, 1, 0, 1, 0, 1]), sp.encode([1, 1, 0, 1, 0, 0])
+    T, n = ep.n_steps, 3
+    grasps = [four] * 8 + [three] * 8
+    rows = [_ik_configuration(oracle, grasps[t - 1], ep, min(t, T - 1)) for t in range(1, T + 1)]
+    qpos = np.repeat(np.stack(rows), n, axis=0)  # tick t * n - 1 is row t - 1
+    v = oracle.simulated(ep, grasps, qpos, n)
+    assert v.points[0] == "t1" and v.points[-1] == "hold" and len(v.points) == T
+    for t in (1, 9, T):
+        m = oracle.check_at(grasps[t - 1], ep, rows[t - 1], None if t == T else t)
+        assert v.ratio_outer[t - 1] == pytest.approx(m.torque_ratio_outer, rel=1e-9)
+    cut = oracle.simulated(ep, grasps, qpos, n, fall_tick=5 * n)
+    assert np.all(np.isfinite(cut.ratio_outer[:5])) and np.all(np.isnan(cut.ratio_outer[5:]))
+    assert cut.worst[0] in cut.points[:5] and not cut.possible
+
+
 def test_oracle_names_bad_input(oracle):
     ep = scenario.make_episode()
     with pytest.raises(ValueError, match="grasps must have"):
         oracle.sequence(ep, [0, 1, 2])
+    with pytest.raises(ValueError, match="qpos must be a finite"):
+        oracle.check_at(0, ep, np.full(3, np.nan))
+    with pytest.raises(ValueError, match="qpos must be"):
+        oracle.simulated(ep, [0] * ep.n_steps, np.zeros((4, oracle.scene.model.nq)), 10)
 
 
 def test_envelope_summary_counts_regret_and_classes():

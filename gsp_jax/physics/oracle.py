@@ -14,6 +14,12 @@ model's actuators; g(q): the fingers' own gravity)? The points checked, for a se
 The wrench is quasi-static plus the reference motion's inertia: m (a_ref - g) and no torque while lifting; in the
 hold -m g - w_ext (force and torque about the CoM). A sequence is *impossible* where some point's outer bound
 exceeds 1 (certain: no forces exist there) and *possible* where every point's inner bound is <= 1.
+
+`Oracle.simulated` asks the same questions at the configurations the physics run *reached* (`runner.Result.qpos`
+at the waypoints' ticks and at the hold's start): each link of the grasp touches the simulated tool where its centre
+line comes nearest its option's contact point, with the option's face normal turned by the simulated tool pose. It
+separates "this grasp cannot hold the tool" from "the hand reached a configuration that cannot" (the IK's contacts
+sit 2 mm below the handle's edge; the simulated ones where the fingers are).
 """
 from __future__ import annotations
 
@@ -52,7 +58,7 @@ class Verdict:
     @property
     def worst(self) -> tuple[str, float]:
         """The hardest point and its outer ratio."""
-        i = int(np.argmax(self.ratio_outer))
+        i = int(np.nanargmax(np.where(np.isnan(self.ratio_outer), -np.inf, self.ratio_outer)))
         return self.points[i], float(self.ratio_outer[i])
 
 
@@ -82,6 +88,14 @@ class Oracle:
 
         self._contacts = jax.jit(contacts)
 
+        def links_at(q, near):
+            p, mat, axes, anchors = kinematics.chain(hand, q)
+            centre, axis = kinematics.segments_on_links(hand, p, mat)
+            x = kinematics.closest_on_segments(hand, centre, axis, near)
+            return x, kinematics.point_jacobian(hand, axes, anchors, hand.link_body, x)
+
+        self._links_at = jax.jit(links_at)
+
     def gravity_torques(self, q: np.ndarray) -> np.ndarray:
         """(J,) the hand joints' gravity torques at joint angles q, at rest (MuJoCo's qfrc_bias) [N m]."""
         d, s = self._data, self.scene
@@ -110,6 +124,69 @@ class Oracle:
             ext = np.asarray(episode.w_ext, float)
             return np.r_[-m * g - ext[:3], -ext[3:]], centre
         return np.r_[m * (np.asarray(ref.acc, float) - g), np.zeros(3)], centre
+
+    def at_configuration(self, grasp: int, qpos: np.ndarray):
+        """(q (J,), contact points (L, 3), normals (L, 3), carried (L,), Jacobians (L, 3, J), CoM frame (pos (3,),
+        rotation (3, 3))) of `grasp`'s links on the tool at a simulated configuration `qpos` (nq,) (numpy)."""
+        s, hand = self.scene, self.hand
+        qpos = np.asarray(qpos, np.float64)
+        if qpos.shape != (s.model.nq,) or not np.all(np.isfinite(qpos)):
+            raise ValueError(f"Oracle: qpos must be a finite ({s.model.nq},) configuration, got shape {qpos.shape}")
+        q = qpos[s.hand_qpos]
+        pos, quat = qpos[s.tool_qpos : s.tool_qpos + 3], qpos[s.tool_qpos + 3 : s.tool_qpos + 7]
+        mat = np.asarray(kinematics.quat_to_mat(jnp.asarray(quat / np.linalg.norm(quat))), np.float64)
+        opts = np.asarray(self.space.decode(int(grasp)))
+        L = hand.n_links
+        option_pts = np.asarray(hand.option_pos, np.float64)[np.arange(L), opts]  # (L, 3) tool frame
+        normals_tool = np.asarray(hand.option_normal, np.float64)[np.arange(L), opts]
+        x, jac = self._links_at(jnp.asarray(q, jnp.float32), jnp.asarray(pos + option_pts @ mat.T, jnp.float32))
+        x, jac = np.asarray(x, np.float64), np.asarray(jac, np.float64)
+        normals = normals_tool @ mat.T
+        # the link's surface point towards the face, moved along the normal onto the face's plane
+        face = pos + option_pts @ mat.T
+        radius = np.asarray(hand.link_radius, np.float64)[:, None]
+        pts = x + radius * normals
+        pts = pts - np.sum((pts - face) * normals, -1, keepdims=True) * normals
+        return q, pts, normals, opts > 0, jac, (pos, mat)
+
+    def check_at(self, grasp: int, episode: Episode, qpos: np.ndarray, t: int | None = None,
+                 links=None) -> wrench.HoldMargin:
+        """The margin of `grasp` at the simulated configuration `qpos` (nq,) for the wrench of waypoint t, or of
+        the hold (t None), with only the links `links` (L,) bool carrying force if given."""
+        q, pts, nrm, carried, jac, (pos, mat) = self.at_configuration(grasp, qpos)
+        carry = carried if links is None else carried & np.asarray(links, bool)
+        wr, _ = self.required(episode, t)
+        centre = pos + mat @ np.asarray(episode.com, np.float64)
+        if not np.any(carry):
+            return wrench.HoldMargin(float("inf"), float("inf"), None)
+        return wrench.hold_margin(pts[carry], nrm[carry], float(episode.friction), wr, centre, jac[carry],
+                                  self.torque_limit, self.gravity_torques(q), self.facets)
+
+    def simulated(self, episode: Episode, grasps, qpos: np.ndarray, ticks_per_segment: int,
+                  fall_tick: int | None = None) -> Verdict:
+        """The verdict on the grasps (T,) at the configurations a physics run reached: `qpos` (K, nq) after each
+        control tick (`runner.Result.qpos`), `ticks_per_segment` ticks a segment (`Physics.n_segment`). Checked at
+        the tick before each decision t >= 1 (the grasp in force then, the wrench of waypoint t) and at the hold's
+        start (the last grasp, the hold's wrench); a run that fell at tick `fall_tick` is checked only before it
+        (points from then on read nan)."""
+        grasps = [int(g) for g in np.asarray(grasps).reshape(-1)]
+        T, qpos = episode.n_steps, np.asarray(qpos)
+        if len(grasps) != T:
+            raise ValueError(f"Oracle.simulated: grasps must have the episode's {T} entries, got {len(grasps)}")
+        if qpos.ndim != 2 or qpos.shape[0] < T * ticks_per_segment:
+            raise ValueError(f"Oracle.simulated: qpos must be (K, nq) with K >= {T * ticks_per_segment} "
+                             f"ticks, got shape {qpos.shape}")
+        names, outer, inner = [], [], []
+        for t in range(1, T + 1):
+            tick = t * ticks_per_segment - 1
+            hold = t == T
+            names.append("hold" if hold else f"t{t}")
+            if (fall_tick is not None and tick >= fall_tick) or not np.all(np.isfinite(qpos[tick])):
+                outer.append(np.nan), inner.append(np.nan)
+                continue
+            m = self.check_at(grasps[t - 1], episode, qpos[tick], None if hold else t)
+            outer.append(m.torque_ratio_outer), inner.append(m.torque_ratio_inner)
+        return Verdict(tuple(names), np.asarray(outer), np.asarray(inner))
 
     def check(self, grasp: int, episode: Episode, t: int, links=None, hold: bool = False) -> wrench.HoldMargin:
         """The margin of `grasp` at waypoint t (the hold's wrench at the last waypoint with `hold`), with only the

@@ -24,7 +24,7 @@ $(STAMP): pyproject.toml requirements.lock
 	@touch $(STAMP)
 
 demo: $(STAMP)
-	JAX_PLATFORMS=cpu $(PY) -m experiments surrogate --episode nominal
+	JAX_PLATFORMS=cpu $(PY) -m experiments demo
 
 test: $(STAMP)
 	JAX_PLATFORMS=cpu $(PY) -m pytest -q -n 2 tests --nbmake --nbmake-timeout=1200 experiments/notebooks

@@ -7,6 +7,7 @@ import os
 import sys
 
 COMMANDS = {  # command -> (module, one-line help)
+    "demo": ("experiments.demo", "the main job on one unseen episode: DP optimal and L1 plans, executed in C MuJoCo"),
     "surrogate": ("experiments.surrogate_demo", "reward terms of a few meaningful grasps on one episode"),
     "bench-surrogate": ("experiments.bench_surrogate", "surrogate steps/s: vmapped vs one step at a time"),
     "bench-dp": ("experiments.bench_dp", "DP solve time: one episode, 27 batched, vs the step-at-a-time table"),

@@ -61,7 +61,8 @@ def least_friction(env: surrogate.Surrogate, grasp: int, episode: scenario.Episo
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", default="evalA", choices=["nominal", "train", "val", "evalA", "evalB", "eval", "all"])
     p.add_argument("--policy", default="dp-opt", choices=POLICIES)
-    p.add_argument("--policy-dir", default="results/train/dp/seed0/policy", help="saved PPO policy for --policy rl")
+    p.add_argument("--policy-dir", default=None,
+                   help="saved PPO policy for --policy rl (default: results/train/dp/seed0, else the shipped one)")
     p.add_argument("--episodes", type=int, default=None, help="only the first N episodes of the set")
     p.add_argument("--seed", type=int, default=0, help="for --policy random")
     p.add_argument("--backend", default="mjx", choices=physics.BACKENDS,

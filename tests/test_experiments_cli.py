@@ -48,3 +48,15 @@ def test_table1_rejects_a_count_below_one_by_name(monkeypatch, capsys, option, v
     assert exit_.value.code == 2
     err = capsys.readouterr().err
     assert option in err and repr(value) in err, err
+
+
+@pytest.mark.parametrize("command", sorted(cli.COMMANDS))
+def test_every_command_imports_and_describes_itself(monkeypatch, capsys, command):
+    """`python -m experiments <command> --help` for every command: its module imports on a fresh clone, its options
+    build, and its help names it (the CLI imports every module for every command, so one broken import breaks all)."""
+    monkeypatch.setattr(cli, "use_compilation_cache", lambda: None)  # keep the tests' own cache
+    monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))
+    with pytest.raises(SystemExit) as stop:
+        cli.main([command, "--help"])
+    assert stop.value.code == 0
+    assert f"python -m experiments {command}" in capsys.readouterr().out

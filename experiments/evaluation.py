@@ -16,15 +16,13 @@ import numpy as np
 
 from experiments.common import dp_tables, nominal_actions
 from gsp_jax import dp, env as env_lib, hand, policies, scenario
-from gsp_jax.ppo import networks as nets
-from gsp_jax.ppo import train as ppo
 from gsp_jax.surrogate import Surrogate
 
 POLICIES = ("dp-base", "rl", "L1", "L2", "dp-opt")  # the paper's order (Table 1)
 LOOKAHEAD_DEPTH = {"L1": 1, "L2": 2}
 TRAINED_POLICY = pathlib.Path("results/train/dp/seed0/policy")  # what `python -m experiments train` writes
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-SHIPPED_POLICY = hand.MODELS_DIR / "policies/ppo_dp_seed0"  # a copy of results/train/dp/seed0/policy of a full GPU run
+SHIPPED_POLICY = policies.SHIPPED_POLICY  # a copy of results/train/dp/seed0/policy of a full GPU run
 PAPER = dict(  # the paper's numbers, printed beside ours
     table1_s={"dp-base": 1.34, "rl": 1.23, "L1": 2.68, "L2": 4.30, "dp-opt": 151.79},
     table1_machine="32-core Xeon Silver 4216, 2.1 GHz",
@@ -85,14 +83,12 @@ def subset(episodes: dict, n: int | None) -> dict:
 
 def load_rl(sur: Surrogate, policy_dir: str | pathlib.Path | None = None) -> tuple[policies.NetworkPolicy, str]:
     """The PPO policy: `policy_dir` if given, else the one `train` wrote (results/train/dp/seed0), else the shipped
-    copy under models/policies/."""
+    copy under models/policies/ (`policies.load_network_policy`); and where it was read from."""
     candidates = [pathlib.Path(policy_dir)] if policy_dir else [TRAINED_POLICY, SHIPPED_POLICY]
     for path in candidates:
         if path.exists():
-            obs = env_lib.observation_size(sur.space, scenario.N_WAYPOINTS, sur.hand.n_joints)
-            networks = nets.make_networks(obs, sur.n_actions, nets.NetworkConfig())
             shown = path.resolve().relative_to(ROOT) if path.resolve().is_relative_to(ROOT) else path
-            return policies.NetworkPolicy(ppo.load_policy(path, networks), networks, sur.space), str(shown)
+            return policies.load_network_policy(sur, path), str(shown)
     raise FileNotFoundError(
         f"policy_dir: no PPO policy at {', '.join(map(str, candidates))}; run `python -m experiments train --seeds 1`"
     )

@@ -18,9 +18,9 @@ import time
 import jax
 import numpy as np
 
-from experiments import evaluation, stats
+from experiments import evaluation
 from experiments.common import bar_png, results_dir, table
-from gsp_jax import lookahead, policies
+from gsp_jax import lookahead, policies, stats
 from gsp_jax.env import TableModel
 
 COMPARED = ("dp-base", "rl", "L1", "L2")  # relative to dp-opt

@@ -20,10 +20,10 @@ from concurrent.futures import ThreadPoolExecutor
 import jax
 import numpy as np
 
-from experiments import evaluation, stats
+from experiments import evaluation
 from experiments.common import bar_png, results_dir, table
 from experiments.physics import result_rows
-from gsp_jax import physics
+from gsp_jax import physics, stats
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -28,8 +28,8 @@ import numpy as np
 
 from experiments.common import dp_tables, nominal_actions, results_dir, table
 from experiments.evaluation import load_rl
-from experiments.stats import mean_ci
 from gsp_jax import dp, grasps, physics, policies, scenario, surrogate, wrench
+from gsp_jax.stats import mean_ci
 
 POLICIES = ("dp-opt", "dp-base", "rl", "random", "four-tips", "scripted", "one-tip")
 

@@ -11,11 +11,14 @@ policy the same way. A policy may read any field of the state except `terms` (th
 """
 from __future__ import annotations
 
+import pathlib
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from gsp_jax import hand as hand_lib, scenario as scenario_lib
 from gsp_jax.env import observation
 from gsp_jax.grasps import GraspSpace, default_space
 from gsp_jax.lookahead import Lookahead  # re-exported: the Ll policies
@@ -71,6 +74,23 @@ class NetworkPolicy:
     def value(self, state: State) -> jax.Array:
         """The critic's estimate of the return from `state`, in reward units (the lookahead's cut-off value)."""
         return self.networks.value(self.params, observation(self.space, state)) / self.reward_scale
+
+
+SHIPPED_POLICY = hand_lib.MODELS_DIR / "policies/ppo_dp_seed0"  # PPO with DP pretraining, a full GPU run
+
+
+def load_network_policy(sur: Surrogate, path: str | pathlib.Path | None = None) -> NetworkPolicy:
+    """The PPO policy saved at `path` (`ppo.train`'s `policy` folder; default: the one shipped with the package,
+    `SHIPPED_POLICY`) as a deterministic `NetworkPolicy` of the surrogate's grasp space, with its critic."""
+    from gsp_jax.env import observation_size
+    from gsp_jax.ppo.train import load_policy
+
+    path = pathlib.Path(SHIPPED_POLICY if path is None else path)
+    if not path.exists():
+        raise FileNotFoundError(f"load_network_policy: path: no PPO policy at {path}")
+    obs = observation_size(sur.space, scenario_lib.N_WAYPOINTS, sur.hand.n_joints)
+    networks = nets.make_networks(obs, sur.n_actions, nets.NetworkConfig())
+    return NetworkPolicy(load_policy(path, networks), networks, sur.space)
 
 
 def _check_concrete(actions, field: str) -> None:

@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments import evaluation
+from experiments import evaluation, fig4a
 from experiments.common import results_dir, table
 from gsp_jax import dp, physics, scenario
 from gsp_jax.grasps import NULL
@@ -46,25 +46,10 @@ def _context(name: str | None) -> evaluation.Context:
 
         episode = find_episode(name)
     batch = scenario.stack([episode])
-    tables = jax.block_until_ready(jax.jit(jax.vmap(lambda e: dp.build_table(sur, e)))(batch))
+    tables = jax.block_until_ready(jax.jit(lambda b: dp.build_tables(sur, b))(batch))
     solutions = jax.jit(jax.vmap(dp.backup))(tables, batch.start_grasp)
     rl, source = evaluation.load_rl(sur)
     return evaluation.Context(sur, "demo", [name], batch, tables, solutions, None, rl, source)
-
-
-def _plan(ctx: evaluation.Context, name: str) -> float:
-    """The surrogate return of planner `name`'s plan for the context's episode (its episode stepped in the table)."""
-    from gsp_jax import env as env_lib, lookahead, policies
-
-    policy, axis = evaluation.make(ctx, name)
-
-    def one(ep, tab, pol):
-        model = env_lib.TableModel(tab, ctx.surrogate.space)
-        if isinstance(pol, policies.Lookahead):
-            pol = pol.replace(model=model)
-        return lookahead.rollout(model, pol, model.reset(ep))[0]
-
-    return float(jax.jit(jax.vmap(one, (0, 0, axis)))(ctx.batch, ctx.tables, policy)[0])
 
 
 def _picture(phys: physics.Physics, ctx, grasps: dict, res: dict, path) -> None:
@@ -145,7 +130,7 @@ def main(args: argparse.Namespace) -> None:
     plans, wall = {}, {}
     for name in PLANNERS:
         t1 = time.perf_counter()
-        plans[name] = _plan(ctx, name)
+        plans[name] = float(fig4a.returns(ctx, name, "table")[0])  # the plan's episode stepped in its table
         wall[name] = time.perf_counter() - t1
         print(f"  {LABEL[name]} planned in {wall[name]:.1f} s after the table (includes compiling)", flush=True)
     phys = physics.Physics(ctx.surrogate)

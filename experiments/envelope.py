@@ -110,25 +110,22 @@ def _point_time(point: str, n_steps: int) -> int:
 
 
 def _classify(job) -> tuple:
-    """(class, worst point, its ratio[, fell before the first impossible point, the reached configurations' worst
-    point, its ratio]) of one fall."""
-    episode, grasps = job[:2]
+    """(class, worst point, its ratio, fell before the first impossible point, the reached configurations' worst
+    point, its ratio) of one fall."""
+    episode, grasps, rows, fall_row = job  # rows (T, nq): before each decision t >= 1 and at the hold's start
     episode = scenario.from_dict(episode)
     v = _ORACLE.sequence(episode, grasps)
     point, ratio = v.worst
-    out = (("necessary" if v.impossible else "controller" if v.possible else "undetermined"), point, ratio)
-    if len(job) == 2:
-        return out
-    rows, fall_row = job[2], job[3]  # (T, nq) configurations before each decision t >= 1 and at the hold's start
     sim = _ORACLE.simulated(episode, grasps, rows, 1, fall_row)
     first = min((_point_time(p, episode.n_steps) for p, r in zip(v.points, v.ratio_outer) if r > 1.0), default=None)
     early = first is not None and fall_row < first
-    return out + (bool(early), *sim.worst)
+    kind = "necessary" if v.impossible else "controller" if v.possible else "undetermined"
+    return (kind, point, ratio, early, *sim.worst)
 
 
 def classify(episodes: list, jobs: list, processes: int) -> list:
-    """The oracle's class of each (episode index, grasps[, reached configurations (T, nq), rows before the fall])
-    in `jobs`, in `processes` processes (`_classify`)."""
+    """The oracle's class of each (episode index, grasps, reached configurations (T, nq), rows before the fall) in
+    `jobs`, in `processes` processes (`_classify`)."""
     if not jobs:
         return []
     work = [(scenario.to_dict(episodes[job[0]]), *job[1:]) for job in jobs]

@@ -189,6 +189,13 @@ def closest_on_links(hand: HandModel, q: jax.Array, points: jax.Array) -> jax.Ar
     return closest_on_segments(hand, *contact_segments(hand, q), points)
 
 
+def closest_on_links_and_jacobians(hand: HandModel, q: jax.Array, points: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """`closest_on_links` (L, 3) and the point Jacobians (L, 3, J) there, from one pass of the kinematic chain."""
+    pos, mat, axes, anchors = chain(hand, q)
+    x = closest_on_segments(hand, *segments_on_links(hand, pos, mat), points)
+    return x, point_jacobian(hand, axes, anchors, hand.link_body, x)
+
+
 def sphere_centers(hand: HandModel, q: jax.Array) -> jax.Array:
     """World centres (S, 3) of the hand's collision spheres."""
     return local_points(hand, q, hand.sphere_body, hand.sphere_pos)

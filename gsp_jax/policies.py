@@ -19,11 +19,11 @@ import numpy as np
 from flax import struct
 
 from gsp_jax import hand as hand_lib, scenario as scenario_lib
-from gsp_jax.env import observation
+from gsp_jax.env import observation, observation_size
 from gsp_jax.grasps import GraspSpace, default_space
 from gsp_jax.lookahead import Lookahead  # re-exported: the Ll policies
 from gsp_jax.ppo import networks as nets
-from gsp_jax.ppo.train import PPOConfig
+from gsp_jax.ppo.train import PPOConfig, load_policy
 from gsp_jax.scenario import Episode
 from gsp_jax.surrogate import State, Surrogate
 
@@ -82,9 +82,6 @@ SHIPPED_POLICY = hand_lib.MODELS_DIR / "policies/ppo_dp_seed0"  # PPO with DP pr
 def load_network_policy(sur: Surrogate, path: str | pathlib.Path | None = None) -> NetworkPolicy:
     """The PPO policy saved at `path` (`ppo.train`'s `policy` folder; default: the one shipped with the package,
     `SHIPPED_POLICY`) as a deterministic `NetworkPolicy` of the surrogate's grasp space, with its critic."""
-    from gsp_jax.env import observation_size
-    from gsp_jax.ppo.train import load_policy
-
     path = pathlib.Path(SHIPPED_POLICY if path is None else path)
     if not path.exists():
         raise FileNotFoundError(f"load_network_policy: path: no PPO policy at {path}")

@@ -158,10 +158,7 @@ class Controller:
         """Link points (L, 3) on the links' centre lines nearest the world points `near` (L, 3) at joint angles q,
         and their Jacobians (L, 3, J). (Forces act there too: measured, that held better than at the touching
         point one radius out.)"""
-        pos, mat, axes, anchors = kinematics.chain(self.hand, q)
-        centre, axis = kinematics.segments_on_links(self.hand, pos, mat)
-        x = kinematics.closest_on_segments(self.hand, centre, axis, near)
-        return x, kinematics.point_jacobian(self.hand, axes, anchors, self.hand.link_body, x)
+        return kinematics.closest_on_links_and_jacobians(self.hand, q, near)
 
     def _target(self, options: jax.Array) -> jax.Array:
         """(L, 3) tool-frame targets of the links' centre lines for `options` (L,) (meaningless where 0)."""

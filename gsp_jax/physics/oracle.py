@@ -58,7 +58,7 @@ class Verdict:
     @property
     def worst(self) -> tuple[str, float]:
         """The hardest point and its outer ratio."""
-        i = int(np.nanargmax(np.where(np.isnan(self.ratio_outer), -np.inf, self.ratio_outer)))
+        i = int(np.argmax(np.where(np.isnan(self.ratio_outer), -np.inf, self.ratio_outer)))  # nan: after a fall
         return self.points[i], float(self.ratio_outer[i])
 
 
@@ -80,21 +80,11 @@ class Oracle:
 
         def contacts(grasp, pos, quat):
             c = surrogate.realise(grasp, pos, quat)
-            p, mat, axes, anchors = kinematics.chain(hand, c.ik.q)
-            centre, axis = kinematics.segments_on_links(hand, p, mat)
-            x = kinematics.closest_on_segments(hand, centre, axis, c.points)
-            jac = kinematics.point_jacobian(hand, axes, anchors, hand.link_body, x)
+            x, jac = kinematics.closest_on_links_and_jacobians(hand, c.ik.q, c.points)
             return c.ik.q, c.points, c.normals, c.realised, x, jac
 
         self._contacts = jax.jit(contacts)
-
-        def links_at(q, near):
-            p, mat, axes, anchors = kinematics.chain(hand, q)
-            centre, axis = kinematics.segments_on_links(hand, p, mat)
-            x = kinematics.closest_on_segments(hand, centre, axis, near)
-            return x, kinematics.point_jacobian(hand, axes, anchors, hand.link_body, x)
-
-        self._links_at = jax.jit(links_at)
+        self._links_at = jax.jit(lambda q, near: kinematics.closest_on_links_and_jacobians(hand, q, near))
 
     def gravity_torques(self, q: np.ndarray) -> np.ndarray:
         """(J,) the hand joints' gravity torques at joint angles q, at rest (MuJoCo's qfrc_bias) [N m]."""

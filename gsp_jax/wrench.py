@@ -97,6 +97,7 @@ def solve(
     init: jax.Array | None = None,
     prefer: jax.Array | None = None,
     grip: float = 0.0,
+    motors: "MotorLimits | None" = None,
 ) -> WrenchResult:
     """Best contact forces for one problem.
 
@@ -111,17 +112,33 @@ def solve(
     `forces` and `init` are total forces f, and `unmet` stays relative to `wrench`. A grasp whose contacts cannot
     all press at once without turning the tool (say two opposed side contacts at different x with nothing to
     balance them) then leaves the wrench unmet.
+    `motors` (`MotorLimits`, "apg" only): the joint torques the forces cost, |J^T f + offset|_j, are kept within
+    the motors' limits by an exact quadratic penalty on their excess (zero inside the limits, so it redistributes
+    forces only where a motor would saturate; `error` includes it).
     Differentiable (fixed iterations in a `lax.scan`); `vmap` it over problems. Matmuls run in full float32.
     """
     if cfg.method not in ("newton", "apg"):
         raise ValueError(f"WrenchConfig.method: 'newton' or 'apg', got {cfg.method!r}")
+    if motors is not None and cfg.method != "apg":
+        raise ValueError(f"solve: motors need WrenchConfig.method 'apg', got {cfg.method!r}")
     with jax.default_matmul_precision("highest"):
         if cfg.method == "newton":
             return _solve_newton(points, normals, active, mu, wrench, center, cfg, init, prefer, grip)
-        return _solve(points, normals, active, mu, wrench, center, cfg, init, prefer, grip)
+        return _solve(points, normals, active, mu, wrench, center, cfg, init, prefer, grip, motors)
 
 
-def _solve(points, normals, active, mu, wrench, center, cfg, init=None, prefer=None, grip=0.0) -> WrenchResult:
+@struct.dataclass
+class MotorLimits:
+    """The motors behind the contacts, for `solve`: contact forces f (K, 3) cost joint torques J^T f + offset."""
+
+    jacobians: jax.Array  # (K, 3, J) d(contact point)/d(joint angles) of the link at each contact
+    offset: jax.Array  # (J,) [N m] torques the motors give besides the contact forces (gravity, tracking)
+    limit: jax.Array  # (J,) [N m] > 0, the symmetric limit |tau_j| <= limit_j
+    weight: float = 100.0  # the excess torque's weight, as weight |excess / L|^2 beside the wrench residual
+
+
+def _solve(points, normals, active, mu, wrench, center, cfg, init=None, prefer=None, grip=0.0,
+           motors=None) -> WrenchResult:
     dtype = points.dtype
     wrench, center, mu = (jnp.asarray(x, dtype) for x in (wrench, center, mu))  # one dtype (x64 mode mixes them)
     k = points.shape[0]
@@ -131,6 +148,16 @@ def _solve(points, normals, active, mu, wrench, center, cfg, init=None, prefer=N
     b = scale * wrench - a @ base
     rho = cfg.force_penalty
     lip = jnp.linalg.eigvalsh(a @ a.T)[-1] + rho
+    if motors is not None:  # torques t = jt x + t0 (J,), penalty (w / L^2) |relu(|t| - limit)|^2
+        jt = (jnp.asarray(motors.jacobians, dtype) * active.astype(dtype)[:, None, None]).transpose(2, 0, 1)
+        jt = jt.reshape(-1, 3 * k)  # (J, 3K)
+        t0 = jnp.asarray(motors.offset, dtype) + jt @ base
+        w_t = jnp.asarray(motors.weight, dtype) / cfg.torque_length**2
+        lip = lip + w_t * jnp.linalg.eigvalsh(jt @ jt.T)[-1]
+
+        def excess(x):
+            t = jt @ x + t0
+            return jnp.sign(t) * jax.nn.relu(jnp.abs(t) - motors.limit)
     kappa_sqrt = jnp.sqrt(lip / rho)
     beta = (kappa_sqrt - 1.0) / (kappa_sqrt + 1.0)
     mask = active.astype(dtype)[:, None]
@@ -142,12 +169,17 @@ def _solve(points, normals, active, mu, wrench, center, cfg, init=None, prefer=N
         x, x_prev = carry
         y = x + beta * (x - x_prev)
         grad = a.T @ (a @ y - b) + rho * (y - target)
+        if motors is not None:
+            grad = grad + w_t * (jt.T @ excess(y))
         return (project(y - grad / lip), x), None
 
     target = 0.0 if prefer is None else jnp.asarray(prefer, dtype).reshape(-1) * jnp.repeat(mask[:, 0], 3)
     x0 = jnp.zeros(3 * k, dtype) if init is None else project(jnp.asarray(init, dtype).reshape(-1) - base)
     (x, _), _ = jax.lax.scan(iteration, (x0, x0), None, length=cfg.iterations, unroll=cfg.unroll)
-    return _result(a, b, x, base, scale, wrench, rho)
+    result = _result(a, b, x, base, scale, wrench, rho)
+    if motors is not None:
+        result = result.replace(error=result.error + w_t * jnp.sum(excess(x) ** 2))
+    return result
 
 
 def _result(a, b, x, base, scale, wrench, rho) -> WrenchResult:

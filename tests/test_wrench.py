@@ -539,6 +539,69 @@ def test_least_friction_zero_for_a_support_from_below_and_inf_for_one_side():
         wrench.least_friction([[0.0, 0.0, -0.005]], [[0.0, 0.0, 1.0]], np.zeros(6), np.zeros(3), facets=2)
 
 
+
+def _motor_limited_optimum(points, normals, active, mu, w, center, jac, offset, limit, weight, outer, m=256):
+    """min |S(G f - w)|^2 + rho |f|^2 + (weight / L^2) |relu(|J^T f + offset| - limit)|^2 with each active f_k in
+    the m-sided polyhedral cone (f = E lam, lam >= 0). The excess term is min over |u| <= limit of
+    |J^T f + offset - u|^2, so the whole is a bounded least-squares problem in (lam >= 0, u), solved exactly by
+    scipy's BVLS. Returns (value, forces (K, 3))."""
+    from scipy.optimize import lsq_linear
+
+    k, n_j = len(points), len(limit)
+    e = np.zeros((3 * k, k * m))
+    for i in range(k):
+        if active[i]:
+            e[3 * i : 3 * i + 3, i * m : (i + 1) * m] = _cone_generators(normals[i], mu, m, outer)
+    t = jac.transpose(2, 0, 1).reshape(n_j, 3 * k) @ e
+    sw = np.sqrt(weight) / L
+    mat = np.block([[S @ _grasp_matrix_np(points, center) @ e, np.zeros((6, n_j))],
+                    [np.sqrt(RHO) * e, np.zeros((3 * k, n_j))],
+                    [sw * t, -sw * np.eye(n_j)]])
+    rhs = np.concatenate([S @ w, np.zeros(3 * k), -sw * offset])
+    res = lsq_linear(mat, rhs, bounds=(np.r_[np.zeros(k * m), -limit], np.r_[np.full(k * m, np.inf), limit]),
+                     method="bvls", tol=1e-14, max_iter=20 * k * m)
+    return 2 * res.cost, (e @ res.x[: k * m]).reshape(k, 3)
+
+
+@pytest.mark.parametrize("i", range(3))
+def test_solve_with_motor_limits_matches_the_polyhedral_reference(scipy_problems, i):
+    """`motors`: random 'finger' Jacobians whose limits bind at the unlimited solution (60% of its peak torque).
+    The solve's value lies within the optima over the circumscribed and inscribed 256-sided cones, its
+    forces are theirs, its joint torques exceed the limits less than the unlimited solve's, and a limit no
+    force reaches leaves the plain solve unchanged."""
+    prob = scipy_problems[i]
+    p, n, a, mu, w, c = _as_f64(prob)
+    rng = np.random.default_rng(100 + i)
+    jac = rng.normal(0, 0.05, (len(p), 3, 6))
+    offset = rng.normal(0, 0.02, 6)
+    cfg = wrench.WrenchConfig(method="apg", iterations=4000)
+    free = np.asarray(wrench.solve(*_as_jax(prob), cfg).forces, np.float64)
+    tau_free = np.einsum("kij,ki->j", jac, free) + offset
+    limit = np.full(6, 0.6 * np.abs(tau_free).max())
+    weight = 1.0
+    lo, _ = _motor_limited_optimum(p, n, a, mu, w, c, jac, offset, limit, weight, outer=True)
+    hi, f_ref = _motor_limited_optimum(p, n, a, mu, w, c, jac, offset, limit, weight, outer=False)
+    assert lo <= hi * (1 + 1e-9) and hi - lo <= 1e-3 * hi  # the bracket is tight
+    motors = wrench.MotorLimits(jnp.asarray(jac, jnp.float32), jnp.asarray(offset, jnp.float32),
+                                jnp.asarray(limit, jnp.float32), weight)
+    res = wrench.solve(*_as_jax(prob), cfg, motors=motors)
+    assert lo * (1 - 2e-3) - 1e-6 <= float(res.error) <= hi * (1 + 2e-3) + 1e-6, (float(res.error), lo, hi)
+    forces = np.asarray(res.forces, np.float64)
+    np.testing.assert_allclose(forces, f_ref, atol=0.05 * max(np.abs(f_ref).max(), 0.1))
+    assert np.all(_cone_violation(forces[a], n[a], mu) <= 1e-5 * max(np.abs(forces).max(), 1e-3))
+    excess = lambda f: np.maximum(np.abs(np.einsum("kij,ki->j", jac, f) + offset) - limit, 0).max()  # noqa: E731
+    assert excess(forces) < excess(free)
+    loose = motors.replace(limit=jnp.full(6, 10 * np.abs(tau_free).max(), jnp.float32))
+    np.testing.assert_allclose(np.asarray(wrench.solve(*_as_jax(prob), cfg, motors=loose).forces), free,
+                               atol=1e-4 * max(np.abs(free).max(), 1.0))
+
+
+def test_solve_motor_limits_need_the_projected_gradient_method(scipy_problems):
+    jac = jnp.zeros((len(scipy_problems[0][0]), 3, 2))
+    motors = wrench.MotorLimits(jac, jnp.zeros(2), jnp.ones(2))
+    with pytest.raises(ValueError, match="method 'apg'"):
+        wrench.solve(*_as_jax(scipy_problems[0]), CFG, motors=motors)
+
 # ---------------------------------------------------------------------------------------- hold_margin (the oracle)
 def _squeeze(w=0.03, weight=3.0):
     """Two contacts at x = +-w pressing inwards along x, lifting `weight` newtons; each contact's 'joints' are its

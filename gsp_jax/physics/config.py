@@ -53,6 +53,13 @@ class PhysicsConfig:
     feedforward_external: bool = True  # the known external wrench is fed forward (as when tightening a bolt)
     squeeze: float = 8.0  # [N] grip along each normal: the force solve's preferred forces (their null-space part)
     friction_margin: float = 0.7  # the force solve uses this fraction of the friction coefficient
+    motor_margin: float = 0.0  # > 0: the force solve keeps the joint torques of the grip forces (with the fingers'
+    # gravity) within this fraction of the motors' limits (`wrench.MotorLimits`, a penalty on the excess); 0: off,
+    # the motors clip. Off by default, measured (C MuJoCo, four tips): 0.9 holds the 3 m0 nominal tool that falls
+    # at 0.71 s without it, but on the calibration slice (stress-cal + evaluation) falls go 26 -> 33 (0.8: 32,
+    # 1.0: 32; weights 0.3-3 alike), new falls at 4.3-4.8 s under the external torque: the solve then trades the
+    # wrench for torque inside the 0.7 mu cones, where the clipped forces held
+    motor_weight: float = 1.0  # the excess torque's weight in the force solve (`wrench.MotorLimits.weight`)
     force_iterations: int = 40  # projected-gradient iterations of the force solve per tick (warm-started)
     # --- controller: the fingers (Cartesian impedance through J^T from the measured joint state, no IK)
     finger_kp: float = 300.0  # [N/m] contact-point stiffness: 0.3 N per mm, a tenth of the grip forces
@@ -102,7 +109,7 @@ class PhysicsConfig:
             if not (isinstance(value, int) and value >= 1):
                 raise ValueError(f"PhysicsConfig.{name} must be an int >= 1, got {value!r}")
         for name in ("tool_damping", "held_stiffness_ratio", "squeeze", "finger_kp", "finger_kd", "posture_kp",
-                     "free_stiffness", "feedback_floor"):
+                     "free_stiffness", "feedback_floor", "motor_margin", "motor_weight"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and value >= 0):
                 raise ValueError(f"PhysicsConfig.{name} must be >= 0, got {value!r}")

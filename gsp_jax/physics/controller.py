@@ -140,6 +140,7 @@ class Controller:
     def __init__(self, hand: HandModel, space: grasps.GraspSpace, config: PhysicsConfig, ctrl_range, gravity):
         self.hand, self.space, self.config = hand, space, config
         self.ctrl_range = tuple(jnp.asarray(r, jnp.float32) for r in ctrl_range)
+        self.motor_limit = config.motor_margin * jnp.minimum(-self.ctrl_range[0], self.ctrl_range[1])  # (J,)
         self.gravity = jnp.asarray(gravity, jnp.float32)
         fingers = [n.split("_")[0] for n in hand.link_names]
         self.finger_names = tuple(dict.fromkeys(fingers))
@@ -250,11 +251,13 @@ class Controller:
         torque = turn + jnp.cross(omega, inertia @ omega)
         return jnp.concatenate([force, torque]) - external
 
-    def _forces(self, points, normals, active, mu, required, com, init):
+    def _forces(self, points, normals, active, mu, required, com, init, motors):
         """Cone forces (L, 3) on the links `active` (L,) that supply `required`, pulled towards `squeeze` newtons
-        along each normal (the grip: it lives in the grasp matrix's null space, inside the cones)."""
+        along each normal (the grip: it lives in the grasp matrix's null space, inside the cones), with the joint
+        torques they cost within `motors` (a `wrench.MotorLimits`, or None)."""
         prefer = self.config.squeeze * normals
-        return wrench.solve(points, normals, active, mu, required, com, self.wrench_config, init, prefer).forces
+        return wrench.solve(points, normals, active, mu, required, com, self.wrench_config, init, prefer,
+                            motors=motors).forces
 
     def control(self, cs: ControllerState, obs: Observation, episode: Episode, ref: Motion, time: jax.Array,
                 external: jax.Array) -> tuple[jax.Array, ControllerState]:
@@ -319,11 +322,15 @@ class Controller:
             mu = c.friction_margin * episode.friction
             com = p + mat @ episode.com
             active = (current > 0) & (load > 0)
-            f_a = self._forces(pts, nrm, active, mu, required, com, cs.f_with)
-            f_b = self._forces(pts, nrm, active & ~cs.changed, mu, required, com, cs.f_without)
+            posture = c.posture_kp * (cs.q_rest - obs.q)
+            gravity = jnp.where(c.gravity_compensation, obs.bias, 0.0)
+            # the motors' limits bind the grip forces with the fingers' own gravity (the tracking pull yields)
+            motors = (None if c.motor_margin == 0 else
+                      wrench.MotorLimits(jac, posture + gravity, self.motor_limit, c.motor_weight))
+            f_a = self._forces(pts, nrm, active, mu, required, com, cs.f_with, motors)
+            f_b = self._forces(pts, nrm, active & ~cs.changed, mu, required, com, cs.f_without, motors)
             share = jnp.sum(load * cs.changed)
             forces = share * f_a + (1 - share) * f_b
-            tau = jnp.einsum("lij,li->j", jac, forces + f_track) + c.posture_kp * (cs.q_rest - obs.q)
-            tau = tau + jnp.where(c.gravity_compensation, obs.bias, 0.0)
+            tau = jnp.einsum("lij,li->j", jac, forces + f_track) + posture + gravity
             tau = jnp.clip(tau, *self.ctrl_range)
         return tau, cs.replace(load=load, f_with=f_a, f_without=f_b, anchor=anchor, anchored=anchored)

@@ -1,15 +1,12 @@
 """The package installs as a package: the wheel carries the model files and the shipped policy, and a
-non-editable install into a fresh virtual environment steps the surrogate from a directory outside the checkout.
-
-Needs the package registry (it installs the pinned dependencies into the new environment; pip's cache makes
-that quick after `make test` has installed them once). Marked `network`; skipped when PyPI cannot be reached or
-with GSP_JAX_OFFLINE=1.
+non-editable install of it (into a directory of its own, first on the path, the dependencies those of the test's
+environment) steps the surrogate from a directory outside the checkout. That the pinned dependencies resolve on a
+fresh machine is what `make test` and `make demo` do each time they create their environment.
 """
 from __future__ import annotations
 
 import os
 import pathlib
-import socket
 import subprocess
 import sys
 import zipfile
@@ -34,19 +31,8 @@ print(json.dumps(dict(package=str(pathlib.Path(gsp_jax.__file__).parent), models
 """
 
 
-def _pypi_reachable() -> bool:
-    try:
-        socket.create_connection(("pypi.org", 443), timeout=5).close()
-        return True
-    except OSError:
-        return False
-
-
-@pytest.mark.network
 @pytest.mark.timeout(1200)
 def test_wheel_installs_outside_the_checkout_and_steps_the_surrogate(tmp_path):
-    if os.environ.get("GSP_JAX_OFFLINE") == "1" or not _pypi_reachable():
-        pytest.skip("offline: the install test needs the package registry")
     pip = [sys.executable, "-m", "pip", "--disable-pip-version-check", "-q"]
     run = lambda cmd, **kw: subprocess.run(cmd, check=True, capture_output=True, text=True, **kw)  # noqa: E731
 
@@ -57,18 +43,16 @@ def test_wheel_installs_outside_the_checkout_and_steps_the_surrogate(tmp_path):
         assert f"gsp_jax/models/{f}" in names, f"{f} is not in the wheel"
     assert not any(n.startswith("models/") for n in names)  # one copy, inside the package
 
-    venv = tmp_path / "venv"
-    run([sys.executable, "-m", "venv", str(venv)])
-    py = str(venv / "bin" / "python")
-    run([py, "-m", "pip", "--disable-pip-version-check", "-q", "install", "-c", str(ROOT / "requirements.lock"), str(wheel)])
+    site = tmp_path / "site"
+    run([*pip, "install", "--no-deps", "--no-compile", "--target", str(site), str(wheel)])
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
-    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
-    out = run([py, "-c", STEP_ONCE], cwd=elsewhere, env=dict(env, JAX_PLATFORMS="cpu"))
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH",)}
+    out = run([sys.executable, "-c", STEP_ONCE], cwd=elsewhere, env=dict(env, JAX_PLATFORMS="cpu", PYTHONPATH=str(site)))
     import json
 
     result = json.loads(out.stdout.strip().splitlines()[-1])
-    site = str(venv)
+    site = str(site)
     assert result["package"].startswith(site) and result["models"].startswith(site), result  # not the checkout
     assert result["policy"], "the shipped policy is not in the installed package"
     assert result["nbody"] == 19, "the physics scene did not build from the installed package"

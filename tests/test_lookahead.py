@@ -28,10 +28,40 @@ def solved(sur):
 
 
 @pytest.fixture(scope="module")
+def discrete(sur):
+    """The surrogate's discrete (grasp, waypoint) state, jitted: op by op its IK compiles for ~10 s on a CPU."""
+    return jax.jit(sur.discrete_state, static_argnums=2)
+
+
+@pytest.fixture(scope="module")
 def network(sur):
     """A small PPO actor-critic with random weights (a deterministic policy that is neither DP nor trivial)."""
     networks = nets.make_networks(observation_size(sur.space, 6, sur.hand.n_joints), sur.n_actions, nets.NetworkConfig(hidden=(32, 32)))
     return policies.NetworkPolicy(networks.init(jax.random.PRNGKey(3)), networks, sur.space)
+
+
+@pytest.fixture(scope="module")
+def stepped(sur, solved, network):
+    """depth -> (the cached lookahead policy on episode 0, its decisions [(plan, the surrogate's step under the
+    plan's action, that step's reward)], the return of the plans' rewards, the final state): the episode run
+    decision by decision, each plan's child taken; computed once per depth and shared."""
+    eps, tables, _ = solved
+    ep, cache = _pick(eps, 0), {}
+
+    def run(depth):
+        if depth not in cache:
+            policy = lookahead.Lookahead(network, sur, depth=depth, inner=TableModel(_pick(tables, 0), sur.space))
+            plan, step = jax.jit(policy.plan), jax.jit(sur.step)
+            s, ret, decisions = sur.reset(ep), 0.0, []
+            while len(decisions) < ep.n_steps and not bool(s.done):
+                p = plan(s)
+                stepped_state, r, _ = step(s, p.action)
+                decisions.append((p, stepped_state, r))
+                s, ret = p.child, ret + float(p.reward)
+            cache[depth] = policy, decisions, ret, s
+        return cache[depth]
+
+    return run
 
 
 def _pick(tree, i):
@@ -66,13 +96,13 @@ def _reference_q(step, act, value, state, depth, horizon):
     return np.array(q_of(state, depth))
 
 
-def test_search_on_the_surrogate_matches_a_recursive_search_from_a_continuous_state(sur, solved):
+def test_search_on_the_surrogate_matches_a_recursive_search_from_a_continuous_state(sur, solved, discrete):
     """From an off-waypoint state (tool 2-3 mm and a few degrees off, moving): the vmapped search with shared
     rollouts gives the same 17 Q-values and action as a plain recursive search stepping the surrogate (depth 1
     here, the continuous root's children; deeper levels are exercised on tables below)."""
     eps, _, sols = solved
     ep = _pick(eps, 2).head(5)
-    state = sur.discrete_state(ep, sols.grasps[2, 1], 1)
+    state = discrete(ep, sols.grasps[2, 1], 1)
     tilt = jnp.array([np.cos(0.03), 0.0, np.sin(0.03), 0.0], jnp.float32)  # 3.4 deg about y
     state = state.replace(
         tool_pos=state.tool_pos + jnp.array([0.002, -0.003, 0.001]),
@@ -89,7 +119,7 @@ def test_search_on_the_surrogate_matches_a_recursive_search_from_a_continuous_st
     assert float(plan.value) == pytest.approx(ref.max(), abs=tol.REWARD_ATOL)
 
 
-def test_cached_successors_give_the_surrogates_plan(sur, solved, network):
+def test_cached_successors_give_the_surrogates_plan(sur, solved, network, discrete):
     """The search with the tree's interior and rollouts on the episode's table (`inner`) against the search that
     steps the surrogate everywhere, from an off-waypoint continuous state (depth 2, one rollout step and the
     critic): the same Q-values (within the float32 reward tolerance) and plan. Below the root every state is a
@@ -97,7 +127,7 @@ def test_cached_successors_give_the_surrogates_plan(sur, solved, network):
     eps, tables, sols = solved
     ep, table = _pick(eps, 3), _pick(tables, 3)
     depth, horizon = 2, 1
-    state = sur.discrete_state(ep, sols.grasps[3, 1], 1)
+    state = discrete(ep, sols.grasps[3, 1], 1)
     state = state.replace(tool_pos=state.tool_pos + jnp.array([0.002, -0.003, 0.001]),
                           tool_vel=jnp.array([0.01, 0.0, 0.02, 0.1, 0.0, 0.0]))
     value = network.value
@@ -122,12 +152,12 @@ def test_experiments_cached_lookahead_is_one_policy_per_episode_table(sur, solve
     ctx = evaluation.Context(sur, "test", [f"e{i}" for i in range(4)], eps, tables, sols, sols.actions[0], network, "x")
     policy, axis = evaluation.make(ctx, "L1")
     assert hash(axis) == hash(policies.Lookahead(None, None, depth=1, inner=0))
-    states = jax.vmap(lambda e, g: sur.discrete_state(e, g, 2))(eps, sols.grasps[:, 2])
+    states = jax.jit(jax.vmap(lambda e, g: sur.discrete_state(e, g, 2)))(eps, sols.grasps[:, 2])
     plans = jax.jit(jax.vmap(lambda pol, s: pol.plan(s), in_axes=(axis, 0)))(policy, states)
+    own_plan = jax.jit(lambda m, s: policies.Lookahead(network, sur, depth=1, inner=m).plan(s))  # one compile
     clear = 0
     for i in range(4):
-        own = policies.Lookahead(network, sur, depth=1, inner=TableModel(_pick(tables, i), sur.space))
-        ref = jax.jit(own.plan)(_pick(states, i))
+        ref = own_plan(TableModel(_pick(tables, i), sur.space), _pick(states, i))
         tol.assert_close_with_rare_ties(np.asarray(plans.q[i]), np.asarray(ref.q), tol.REWARD_ATOL, f"q {i}")
         q = np.sort(np.asarray(ref.q))
         if q[-1] - q[-2] > 2 * tol.REWARD_ATOL:  # batched and single float32 steps may order exact ties apart
@@ -282,9 +312,10 @@ def test_shared_rollouts_cover_every_leaf(sur):
     assert lookahead._ball_size(sur.space, 2) == 1 + 10 + 40
 
 
-def test_bench_latency_times_the_planners_own_decisions(sur, solved, network):
+def test_bench_latency_times_the_planners_own_decisions(sur, solved, network, stepped):
     """`bench-latency` times one decision at a time on the planner's own episode: DP optimal earns each episode's
-    DP optimum, and the cached L1 earns what its jitted rollout earns; every step of every episode is a decision."""
+    DP optimum, and the cached L1 earns what the same policy earns run plan by plan (`stepped`, which the rollout
+    test below checks against the jitted `rollout_planned`); every step of every episode is a decision."""
     from experiments import bench_latency, evaluation
 
     eps, tables, sols = solved
@@ -293,9 +324,8 @@ def test_bench_latency_times_the_planners_own_decisions(sur, solved, network):
     result = bench_latency.run(ctx, ["dp-opt", "L1"], cached=True)
     opt, l1 = result["policies"]["dp-opt"], result["policies"]["L1"]
     np.testing.assert_allclose(opt["returns"], np.asarray(sols.ret[:1]), atol=tol.REWARD_ATOL * 6)
-    own = policies.Lookahead(network, sur, depth=1, inner=TableModel(_pick(tables, 0), sur.space))
-    ret, _ = jax.jit(lambda e: lookahead.rollout(sur, own, sur.reset(e)))(_pick(eps, 0))
-    np.testing.assert_allclose(l1["returns"][0], float(ret), atol=tol.REWARD_ATOL * 6)
+    _, _, ret, _ = stepped(1)
+    np.testing.assert_allclose(l1["returns"][0], ret, atol=tol.REWARD_ATOL * 6)
     assert opt["decisions"] == int(np.sum(sols.alive[0])) and l1["decisions"] <= 6
     assert 0 < opt["decision_median_s"] <= opt["decision_p99_s"] and opt["setup_median_s"] > 0
 
@@ -314,26 +344,22 @@ def test_table1_dp_optimal_earns_its_dp_optimum_by_replaying_its_own_table(sur, 
 
 
 @pytest.mark.parametrize("depth", [1, 2])
-def test_rollout_planned_runs_the_episode_that_stepping_the_surrogate_runs(sur, solved, network, depth):
+def test_rollout_planned_runs_the_episode_that_stepping_the_surrogate_runs(sur, solved, stepped, depth):
     """Moving on to each search's own root child instead of stepping the surrogate again gives the same episode.
     Decision by decision: the plan's child and reward are the surrogate's step under the plan's action (the same
     grasp, waypoint and end; the reward to its float32 tolerance, the child coming from the root's vmapped step).
     Whole episode: the jitted `rollout_planned` earns that return and ends there, compared only because every
     decision's best Q-value leads the runner-up by more than the return's tolerance."""
-    eps, tables, _ = solved
+    eps, _, _ = solved
     ep = _pick(eps, 0)
-    policy = lookahead.Lookahead(network, sur, depth=depth, inner=TableModel(_pick(tables, 0), sur.space))
-    plan, step = jax.jit(policy.plan), jax.jit(sur.step)
-    s, ret, n = sur.reset(ep), 0.0, 0
-    while n < ep.n_steps and not bool(s.done):
-        p = plan(s)
-        stepped, r, _ = step(s, p.action)
+    policy, decisions, ret, s = stepped(depth)
+    for n, (p, stepped_state, r) in enumerate(decisions):
         for f in ("grasp", "t", "done"):
-            np.testing.assert_array_equal(np.asarray(getattr(p.child, f)), np.asarray(getattr(stepped, f)))
+            np.testing.assert_array_equal(np.asarray(getattr(p.child, f)), np.asarray(getattr(stepped_state, f)))
         np.testing.assert_allclose(float(p.reward), float(r), atol=tol.REWARD_ATOL)
         q = np.sort(np.asarray(p.q))
         assert q[-1] - q[-2] > tol.REWARD_ATOL * ep.n_steps, f"decision {n}: margin {q[-1] - q[-2]:.2e}"
-        s, ret, n = p.child, ret + float(p.reward), n + 1
+    n = len(decisions)
     assert n >= 2  # the episode went somewhere
     planned, final = jax.jit(lambda e: lookahead.rollout_planned(policy, sur.reset(e)))(ep)
     np.testing.assert_allclose(float(planned), ret, atol=tol.REWARD_ATOL * ep.n_steps)

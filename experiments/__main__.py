@@ -8,27 +8,27 @@ import sys
 
 COMMANDS = {  # command -> (module, one-line help)
     "demo": ("experiments.demo", "the main job on one unseen episode: DP optimal and L1 plans, executed in C MuJoCo"),
-    "surrogate": ("experiments.surrogate_demo", "reward terms of a few meaningful grasps on one episode"),
-    "bench-surrogate": ("experiments.bench_surrogate", "surrogate steps/s: vmapped vs one step at a time"),
-    "bench-dp": ("experiments.bench_dp", "DP solve time: one episode, 27 batched, vs the step-at-a-time table"),
-    "bench-gym": ("experiments.bench_gym", "Gymnasium vector env steps/s: the native vmapped one vs SyncVectorEnv"),
-    "dp": ("experiments.dp", "exact DP (Bellman backups) over an episode set; grasp sequences and timeline"),
-    "train": ("experiments.train", "PPO on the training episodes, with or without DP pretraining, over seeds"),
-    "train-curves": ("experiments.train_curves", "Fig. 3: PPO training curves with and without DP pretraining"),
-    "bench-ppo": ("experiments.bench_ppo", "PPO env steps/s and wall time to the DP-baseline return"),
-    "physics": ("experiments.physics", "MJX physics check: a policy's grasp sequences, angle error under the torque"),
-    "physics-corr": ("experiments.physics_correlation", "rank correlation of surrogate return and simulated error"),
-    "physics-agree": ("experiments.physics_agreement", "MJX against C MuJoCo: held/fell agreement and hold angles"),
-    "bench-physics": ("experiments.bench_physics", "the physics check against the engine alone, on 1, 2 and all cores"),
-    "envelope": ("experiments.envelope", "the stress envelope in physics: falls classified by the oracle, regret"),
-    "calibrate": ("experiments.calibrate", "the reward's weights and thresholds against physics (train + val episodes)"),
-    "fig4a": ("experiments.fig4a", "Fig. 4a: surrogate returns relative to DP optimal, 95% CI, RM-ANOVA"),
-    "fig4b": ("experiments.fig4b", "Fig. 4b: the same policies closed loop in MJX, angle error under the torque"),
-    "table1": ("experiments.table1", "Table 1: online wall-clock time per unseen episode, beside the paper's"),
-    "bench-latency": ("experiments.bench_latency", "per-decision latency of each planner, one episode at a time"),
-    "ik-spikes": ("experiments.ik_spikes", "IK local minima: spikes between converged neighbours, with and without extra starts"),
-    "precision": ("experiments.precision", "float32 reward spread across CPUs, 1-ulp inputs and float64 (test tolerances)"),
-    "reproduce": ("experiments.reproduce", "everything above in sequence, one Markdown report (--quick on CPU)"),
+    "surrogate": ("experiments.diagnostics.surrogate", "reward terms of a few meaningful grasps on one episode"),
+    "bench-surrogate": ("experiments.bench.surrogate", "surrogate steps/s: vmapped vs one step at a time"),
+    "bench-dp": ("experiments.bench.dp", "DP solve time: one episode, 27 batched, vs the step-at-a-time table"),
+    "bench-gym": ("experiments.bench.gym", "Gymnasium vector env steps/s: the native vmapped one vs SyncVectorEnv"),
+    "dp": ("experiments.paper.dp", "exact DP (Bellman backups) over an episode set; grasp sequences and timeline"),
+    "train": ("experiments.paper.train", "PPO on the training episodes, with or without DP pretraining, over seeds"),
+    "train-curves": ("experiments.paper.train_curves", "Fig. 3: PPO training curves with and without DP pretraining"),
+    "bench-ppo": ("experiments.bench.ppo", "PPO env steps/s and wall time to the DP-baseline return"),
+    "physics": ("experiments.physics.check", "MJX physics check: a policy's grasp sequences, angle error under the torque"),
+    "physics-corr": ("experiments.physics.correlation", "rank correlation of surrogate return and simulated error"),
+    "physics-agree": ("experiments.physics.agreement", "MJX against C MuJoCo: held/fell agreement and hold angles"),
+    "bench-physics": ("experiments.bench.physics", "the physics check against the engine alone, on 1, 2 and all cores"),
+    "envelope": ("experiments.physics.envelope", "the stress envelope in physics: falls classified by the oracle, regret"),
+    "calibrate": ("experiments.physics.calibrate", "the reward's weights and thresholds against physics (train + val episodes)"),
+    "fig4a": ("experiments.paper.fig4a", "Fig. 4a: surrogate returns relative to DP optimal, 95% CI, RM-ANOVA"),
+    "fig4b": ("experiments.paper.fig4b", "Fig. 4b: the same policies closed loop in MJX, angle error under the torque"),
+    "table1": ("experiments.paper.table1", "Table 1: online wall-clock time per unseen episode, beside the paper's"),
+    "bench-latency": ("experiments.bench.latency", "per-decision latency of each planner, one episode at a time"),
+    "ik-spikes": ("experiments.diagnostics.ik_spikes", "IK local minima: spikes between converged neighbours, with and without extra starts"),
+    "precision": ("experiments.diagnostics.precision", "float32 reward spread across CPUs, 1-ulp inputs and float64 (test tolerances)"),
+    "reproduce": ("experiments.paper.reproduce", "everything above in sequence, one Markdown report (--quick on CPU)"),
 }
 
 
@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> None:
     for name, (module, help_) in COMMANDS.items():
         mod = importlib.import_module(module)
         modules[name] = mod
-        mod.add_arguments(sub.add_parser(name, help=help_, description=mod.__doc__))
+        mod.add_arguments(sub.add_parser(name, help=help_.replace("%", "%%"), description=mod.__doc__))
     args = parser.parse_args(argv)
     modules[args.command].main(args)
 

@@ -1,7 +1,7 @@
-"""Small helpers shared by the experiments: the results folder, plain-text tables, timing, and cached DP tables."""
+"""Small helpers shared by the experiments: the results folder, plain-text tables, timing, the paper's numbers,
+the fingerprint of a saved evaluation result."""
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import pathlib
 import time
@@ -9,7 +9,7 @@ import time
 import jax
 import numpy as np
 
-from gsp_jax import dp, hand, scenario
+from gsp_jax import hand
 
 RESULTS = pathlib.Path("results")
 
@@ -40,36 +40,31 @@ def best_time(fn, *args, repeats: int = 3) -> float:
     return min(timed(fn, *args)[1] for _ in range(max(1, repeats)))
 
 
-def dp_tables(env, set_name: str, episodes: dict, batch_size: int = 4):
-    """The stacked `dp.Table`s of named episodes, cached under results/tables/ (keyed by the episodes, the model
-    and the surrogate's configuration, so a change to any of them rebuilds). Builds `batch_size` at a time."""
-    batch = scenario.stack(list(episodes.values()))
+PAPER = dict(  # the paper's numbers, printed beside ours
+    table1_s={"dp-base": 1.34, "rl": 1.23, "L1": 2.68, "L2": 4.30, "dp-opt": 151.79},
+    table1_machine="32-core Xeon Silver 4216, 2.1 GHz",
+)
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def fingerprint(ctx) -> str:
+    """Hash of what a saved result of an `evaluation.Context` depends on: the library and model sources, the physics
+    experiments' sources, the episodes, the RL parameters."""
     h = hashlib.sha256()
-    for leaf in jax.tree.leaves(batch):
-        h.update(np.asarray(leaf).tobytes())
-    for path in sorted(pathlib.Path(hand.SCENE_XML).parent.glob("*.xml")):
+    package = pathlib.Path(hand.__file__).parent
+    sources = [*package.glob("**/*.py"), *hand.MODELS_DIR.glob("*.xml")]
+    sources += [ROOT / "experiments" / f for f in ("physics/check.py", "paper/fig4b.py")]
+    for path in sorted(sources):
         h.update(path.read_bytes())
-    for cfg in (env.reward_config, env.ik_config, env.wrench_config):
-        h.update(repr(dataclasses.asdict(cfg)).encode())
-    path = results_dir("tables") / f"{set_name}_{h.hexdigest()[:12]}.npz"
-    if path.exists():
-        with np.load(path) as d:
-            return dp.Table(**{k: jax.numpy.asarray(d[k]) for k in d.files})
-    print(f"building DP tables for {len(episodes)} episodes of '{set_name}' (cached in {path}) ...", flush=True)
-    t0 = time.perf_counter()
-    tables = jax.block_until_ready(jax.jit(lambda b: dp.build_tables(env, b, batch_size))(batch))
-    print(f"  {time.perf_counter() - t0:.1f} s", flush=True)
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, **{k: np.asarray(v) for k, v in vars(tables).items()})
-    tmp.replace(path)
-    return tables
+    h.update(repr(ctx.names).encode())
+    for leaf in jax.tree.leaves(ctx.rl.params):
+        h.update(np.asarray(leaf).tobytes())
+    return h.hexdigest()[:16]
 
 
-def nominal_actions(env) -> jax.Array:
-    """The DP baseline's open-loop sequence: the nominal training episode's optimal actions (T,)."""
-    tables = dp_tables(env, "nominal", scenario.nominal())
-    first = jax.tree.map(lambda x: x[0], tables)
-    return dp.backup(first, scenario.make_episode().start_grasp).actions
+def add_lookahead_argument(p) -> None:
+    p.add_argument("--lookahead", default="cached", choices=["cached", "continuous"],
+                   help="L1/L2 below the root: the episode's table (exact, default) or the surrogate")
 
 
 def bar_png(path, names, means, cis, ylabel: str, title: str, color, ylim=None, symlog: float | None = None) -> None:

@@ -20,7 +20,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments import evaluation, fig4a
+from gsp_jax import evaluation
+from experiments.paper import fig4a
 from experiments.common import results_dir, table
 from gsp_jax import dp, physics, scenario
 from gsp_jax.grasps import NULL
@@ -42,7 +43,7 @@ def _context(name: str | None) -> evaluation.Context:
     if name is None:
         name, episode = next(iter(scenario.episode_set("eval").items()))
     else:
-        from experiments.surrogate_demo import find_episode
+        from experiments.diagnostics.surrogate import find_episode
 
         episode = find_episode(name)
     batch = scenario.stack([episode])
@@ -113,7 +114,7 @@ def _gif(qpos: np.ndarray, stem) -> list[str]:
 
 def main(args: argparse.Namespace) -> None:
     if args.gif_from:
-        from experiments.physics import render_episode
+        from experiments.physics.check import render_episode
 
         stem = args.gif_from.removesuffix("_qpos.npy")
         if not render_episode(physics.Physics(Surrogate()), np.load(args.gif_from), stem):

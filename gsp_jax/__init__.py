@@ -7,7 +7,8 @@ Data flows one way:
                                                                      -> policies.py (one `act(state)` interface)
 
 The surrogate step is `surrogate.Surrogate.step`: `realise` (IK) at the current and next waypoint, then
-`score` (three wrench solves) -> reward.
+`score` (wrench solves: the move, the hold, the hold under the external wrench, and the change when changes are
+priced) -> reward.
 """
 
 

@@ -22,9 +22,9 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from gsp_jax.grasps import NULL
+from gsp_jax.grasps import NULL, GraspSpace
 from gsp_jax.scenario import Episode
-from gsp_jax.surrogate import Contacts, RewardTerms, Surrogate
+from gsp_jax.surrogate import Contacts, RewardTerms, State, Surrogate
 
 
 @struct.dataclass
@@ -179,3 +179,52 @@ def random_sequence(table: Table, start_grasp: jax.Array, key: jax.Array, r_min:
 
     actions, _, _, _ = _replay(table, jnp.asarray(start_grasp, jnp.int32), choose)
     return actions
+
+
+# ------------------------------------------------------------------------ one episode's table as a step model
+def table_state(episode: Episode, table: Table, grasp: jax.Array, t: jax.Array) -> State:
+    """`Surrogate.discrete_state(episode, grasp, t)` read from the episode's table (no IK). t may be T (over)."""
+    n_t = episode.n_steps
+    t = jnp.asarray(t, jnp.int32)
+    tc = jnp.minimum(t, n_t - 1)
+    pos = episode.waypoints[tc]
+    prev = episode.waypoints[jnp.clip(t - 1, 0, n_t - 1)]
+    return State(
+        grasp=jnp.asarray(grasp, jnp.int32),
+        t=t,
+        q=table.q[grasp, tc],
+        tool_pos=pos,
+        tool_quat=episode.quats[tc],
+        tool_vel=jnp.concatenate([(pos - prev) / episode.dt, jnp.zeros(3, jnp.float32)]),
+        episode=episode,
+        done=jnp.array(False),
+        terms=RewardTerms.zeros(),
+    )
+
+
+def table_step(table: Table, state: State, action: jax.Array) -> tuple[State, jax.Array, jax.Array]:
+    """`Surrogate.step` for a discrete state, read from the episode's table. Absorbing once done."""
+    n_t = state.episode.n_steps
+    tc = jnp.minimum(state.t, n_t - 1)
+    g_next = table.next_grasp[state.grasp, action]
+    reward = table.reward[state.grasp, action, tc]
+    moved = table_state(state.episode, table, g_next, state.t + 1)
+    moved = moved.replace(done=table.terminal[state.grasp, action, tc], terms=RewardTerms.zeros().replace(reward=reward))
+    out = jax.tree.map(lambda old, new: jnp.where(state.done, old, new), state, moved)
+    return out, jnp.where(state.done, 0.0, reward), out.done
+
+
+@struct.dataclass
+class TableModel:
+    """One episode's DP table as a step model (`step(state, action)`, like `Surrogate.step`): exact for the
+    discrete states the surrogate visits from `reset`, with lookups instead of IK and wrench solves. For
+    lookahead over an episode whose table is already built (evaluation); online, a new episode has none."""
+
+    table: Table  # one episode's table (no leading batch axis)
+    space: GraspSpace = struct.field(pytree_node=False)
+
+    def step(self, state: State, action: jax.Array) -> tuple[State, jax.Array, jax.Array]:
+        return table_step(self.table, state, self.space.checked(action))
+
+    def reset(self, episode: Episode) -> State:
+        return table_state(episode, self.table, episode.start_grasp, 0)

@@ -11,7 +11,7 @@ index + 1 mod N) and starts it afresh, so a batch of envs started on random epis
 Two backends, one MDP. From `reset` the surrogate only visits the DP's discrete states (the tool on a waypoint,
 the grasp realised by IK from the fixed start configuration), so an episode set's DP tables (`dp.build_tables`:
 reward, next grasp, terminal and joint angles per (grasp, waypoint)) step it exactly, with lookups instead of
-two IK and three wrench solves per step; a test checks the two backends agree step for step. Use the table
+the IK and wrench solves of a step; a test checks the two backends agree step for step. Use the table
 backend for training on a fixed set, the surrogate backend (no tables) for continuous states and new episodes.
 With tables, `pipeline_state.terms` carries the reward only (the other terms are not tabulated).
 """
@@ -21,95 +21,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from brax.envs import base as brax_base
-from flax import struct
 
 from gsp_jax import dp
-from gsp_jax.grasps import GraspSpace
+from gsp_jax.dp import TableModel, table_state, table_step  # noqa: F401  (the table backend; re-exported)
+from gsp_jax.observation import observation, observation_size  # noqa: F401  (the policy's view; re-exported)
 from gsp_jax.scenario import Episode
-from gsp_jax.surrogate import RewardTerms, State, Surrogate
-
-
-def observation_size(space: GraspSpace, n_steps: int, n_joints: int) -> int:
-    return sum(space.n_options) + n_steps + 1 + n_joints + 3 + 4 + 6 + 3 + 3 + 6 + 1 + 3 + 1
-
-
-def observation(space: GraspSpace, state: State) -> jax.Array:
-    """The policy's view of a surrogate state, (observation_size,) float32 -- only what a robot observes or is
-    told: the reference grasp (one-hot per link), time (one-hot and t/T), joint angles, tool pose and velocity,
-    the next waypoint relative to the tool, the final waypoint, and the episode's external wrench, mass, CoM
-    offset and friction. Continuous throughout, so the same policy acts in the physics check."""
-    ep = state.episode
-    n_t = ep.n_steps
-    options = space.decode(state.grasp)
-    grasp = jnp.concatenate([jax.nn.one_hot(options[i], n) for i, n in enumerate(space.n_options)])
-    t = jnp.minimum(state.t, n_t - 1)
-    nxt = ep.waypoints[jnp.minimum(state.t + 1, n_t - 1)]
-    scalars = lambda *xs: jnp.stack([jnp.asarray(x, jnp.float32) for x in xs])  # noqa: E731
-    return jnp.concatenate(
-        [
-            grasp,
-            jax.nn.one_hot(t, n_t),
-            scalars(state.t / n_t),
-            state.q,
-            state.tool_pos,
-            state.tool_quat,
-            state.tool_vel,
-            nxt - state.tool_pos,
-            ep.waypoints[-1],
-            ep.w_ext,
-            scalars(ep.mass),
-            ep.com,
-            scalars(ep.friction),
-        ]
-    ).astype(jnp.float32)
-
-
-def table_state(episode: Episode, table: dp.Table, grasp: jax.Array, t: jax.Array) -> State:
-    """`Surrogate.discrete_state(episode, grasp, t)` read from the episode's table (no IK). t may be T (over)."""
-    n_t = episode.n_steps
-    t = jnp.asarray(t, jnp.int32)
-    tc = jnp.minimum(t, n_t - 1)
-    pos = episode.waypoints[tc]
-    prev = episode.waypoints[jnp.clip(t - 1, 0, n_t - 1)]
-    return State(
-        grasp=jnp.asarray(grasp, jnp.int32),
-        t=t,
-        q=table.q[grasp, tc],
-        tool_pos=pos,
-        tool_quat=episode.quats[tc],
-        tool_vel=jnp.concatenate([(pos - prev) / episode.dt, jnp.zeros(3, jnp.float32)]),
-        episode=episode,
-        done=jnp.array(False),
-        terms=RewardTerms.zeros(),
-    )
-
-
-def table_step(table: dp.Table, state: State, action: jax.Array) -> tuple[State, jax.Array, jax.Array]:
-    """`Surrogate.step` for a discrete state, read from the episode's table. Absorbing once done."""
-    n_t = state.episode.n_steps
-    tc = jnp.minimum(state.t, n_t - 1)
-    g_next = table.next_grasp[state.grasp, action]
-    reward = table.reward[state.grasp, action, tc]
-    moved = table_state(state.episode, table, g_next, state.t + 1)
-    moved = moved.replace(done=table.terminal[state.grasp, action, tc], terms=RewardTerms.zeros().replace(reward=reward))
-    out = jax.tree.map(lambda old, new: jnp.where(state.done, old, new), state, moved)
-    return out, jnp.where(state.done, 0.0, reward), out.done
-
-
-@struct.dataclass
-class TableModel:
-    """One episode's DP table as a step model (`step(state, action)`, like `Surrogate.step`): exact for the
-    discrete states the surrogate visits from `reset`, with lookups instead of IK and wrench solves. For
-    lookahead over an episode whose table is already built (evaluation); online, a new episode has none."""
-
-    table: dp.Table  # one episode's table (no leading batch axis)
-    space: GraspSpace = struct.field(pytree_node=False)
-
-    def step(self, state: State, action: jax.Array) -> tuple[State, jax.Array, jax.Array]:
-        return table_step(self.table, state, self.space.checked(action))
-
-    def reset(self, episode: Episode) -> State:
-        return table_state(episode, self.table, episode.start_grasp, 0)
+from gsp_jax.surrogate import State, Surrogate
 
 
 class GraspEnv(brax_base.Env):

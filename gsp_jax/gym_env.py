@@ -9,7 +9,7 @@ Registered on `import gsp_jax` as `gsp_jax/GraspSequence-v0`:
 
 `episodes`: any name `scenario.episode_set` accepts (train, val, eval, evalA, evalB, nominal, all), a JSON file
 of episodes (`scenario.save`), or a dict of `Episode`s. `backend`: "table" (the episodes' DP tables, built once
-with a progress bar: exact lookups, fast) or "surrogate" (two IK and three wrench solves per step). Within one
+with a progress bar: exact lookups, fast) or "surrogate" (three IK and four wrench solves per step). Within one
 process, making the environment again with the same episodes, backend and surrogate reuses the built one (tables
 and compiled steps), so `SyncVectorEnv` or SB3's `make_vec_env` of N copies builds and compiles once.
 

@@ -116,55 +116,82 @@ def _capsule_spheres(half_len: float, radius: float) -> np.ndarray:
     return np.linspace(-half_len, half_len, n)
 
 
-def from_mjmodel(model: mujoco.MjModel) -> HandModel:
-    """Extract a `HandModel` from a compiled scene (hand + tool body named ``wrench``)."""
-    palm = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, PALM_BODY)
-    tool = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, TOOL_BODY)
-    if palm < 0 or tool < 0:
-        raise ValueError(f"model: needs bodies {PALM_BODY!r} and {TOOL_BODY!r}")
+@dataclasses.dataclass(frozen=True)
+class _Tree:
+    """The hand's kinematic tree as MuJoCo ids: the bodies below the palm and their hinge joints."""
+
+    model: mujoco.MjModel
+    palm: int
+    bodies: list[int]  # (B,) MuJoCo body ids, parents before children
+    index: dict[int, int]  # MuJoCo body id -> index into `bodies`
+    joints: list[int]  # (J,) MuJoCo joint ids
+    body_joint: np.ndarray  # (B,) index of each body's joint, -1 none
+    fingers: list[int]  # MuJoCo body ids of the bodies just below the palm
+
+    def depth(self, b: int) -> int:
+        return 0 if b == self.palm else 1 + self.depth(self.model.body_parentid[b])
+
+    def finger_of(self, b: int) -> int:
+        """Index into `fingers` of the finger body `b` belongs to."""
+        while self.model.body_parentid[b] != self.palm and b != self.palm:
+            b = self.model.body_parentid[b]
+        return self.fingers.index(b)
+
+    def joint_moves_body(self) -> np.ndarray:
+        """(B, J) 1 where joint j is on body b or one of its ancestors."""
+        moves = np.zeros((len(self.bodies), len(self.joints)))
+        for bi, b in enumerate(self.bodies):
+            while b in self.index:
+                if self.body_joint[self.index[b]] >= 0:
+                    moves[bi, self.body_joint[self.index[b]]] = 1.0
+                b = self.model.body_parentid[b]
+        return moves
+
+
+def _tree(model: mujoco.MjModel, palm: int) -> _Tree:
+    """The bodies below the palm, each with at most one hinge joint."""
 
     def root_below_world(b: int) -> int:
         while model.body_parentid[b] != 0:
             b = model.body_parentid[b]
         return b
 
-    hand_bodies = [b for b in range(1, model.nbody) if root_below_world(b) == palm]
-    index = {b: i for i, b in enumerate(hand_bodies)}
+    bodies = [b for b in range(1, model.nbody) if root_below_world(b) == palm]
+    index = {b: i for i, b in enumerate(bodies)}
     joints = [j for j in range(model.njnt) if model.jnt_bodyid[j] in index]
     for j in joints:
         if model.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE:
             raise ValueError(f"model: hand joint {model.joint(j).name!r} is not a hinge")
-    jindex = {j: i for i, j in enumerate(joints)}
-    body_joint = np.full(len(hand_bodies), -1)
-    for j in joints:
+    body_joint = np.full(len(bodies), -1)
+    for ji, j in enumerate(joints):
         bi = index[model.jnt_bodyid[j]]
         if body_joint[bi] >= 0:
             raise ValueError(f"model: body {model.body(model.jnt_bodyid[j]).name!r} has more than one joint")
-        body_joint[bi] = jindex[j]
+        body_joint[bi] = ji
+    tree = _Tree(model, palm, bodies, index, joints, body_joint, [])
+    fingers = set()
+    for b in bodies:
+        if b != palm:
+            while model.body_parentid[b] != palm:
+                b = model.body_parentid[b]
+            fingers.add(b)
+    return dataclasses.replace(tree, fingers=sorted(fingers))
 
-    def depth(b: int) -> int:
-        return 0 if b == palm else 1 + depth(model.body_parentid[b])
 
-    def finger_of(b: int) -> int:
-        while model.body_parentid[b] != palm and b != palm:
-            b = model.body_parentid[b]
-        return b
-
-    fingers = sorted({finger_of(b) for b in hand_bodies if b != palm})
-    finger_names = tuple(model.body(f).name.split("_")[0] for f in fingers)
-
-    link_names = tuple(_text(model, "gsp_contact_links").split())
-    link_body, link_site, link_axis, link_half, link_radius, n_options, opts = [], [], [], [], [], [], []
-    for name in link_names:
+def _links(model: mujoco.MjModel, tree: _Tree, tool: int) -> dict:
+    """The contact links (sites ``contact_<link>``) and their candidate contacts on the tool (``opt_<link>_<k>``)."""
+    names = tuple(_text(model, "gsp_contact_links").split())
+    body, site, axis, half, radius, n_options, opts = [], [], [], [], [], [], []
+    for name in names:
         s = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, f"contact_{name}")
         if s < 0:
             raise ValueError(f"model: site 'contact_{name}' is missing")
-        link_body.append(index[model.site_bodyid[s]])
-        link_site.append(model.site_pos[s].copy())
-        link_axis.append(_quat_to_mat(model.site_quat[s])[:, 2])
+        body.append(tree.index[model.site_bodyid[s]])
+        site.append(model.site_pos[s].copy())
+        axis.append(_quat_to_mat(model.site_quat[s])[:, 2])
         capsule = model.site_type[s] == mujoco.mjtGeom.mjGEOM_CAPSULE
-        link_half.append(float(model.site_size[s][1]) if capsule else 0.0)
-        link_radius.append(float(model.site_size[s][0]))
+        half.append(float(model.site_size[s][1]) if capsule else 0.0)
+        radius.append(float(model.site_size[s][0]))
         k, link_opts = 1, []
         while (o := mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, f"opt_{name}_{k}")) >= 0:
             if model.site_bodyid[o] != tool:
@@ -175,94 +202,89 @@ def from_mjmodel(model: mujoco.MjModel) -> HandModel:
             raise ValueError(f"model: link {name!r} has no candidate contact 'opt_{name}_1'")
         n_options.append(k)
         opts.append(link_opts)
-    kmax = max(n_options)
-    option_pos = np.zeros((len(link_names), kmax, 3))
-    option_normal = np.zeros((len(link_names), kmax, 3))
+    option_pos = np.zeros((len(names), max(n_options), 3))
+    option_normal = np.zeros((len(names), max(n_options), 3))
     for li, link_opts in enumerate(opts):
         for k, (p, n) in enumerate(link_opts, start=1):
             option_pos[li, k], option_normal[li, k] = p, n / np.linalg.norm(n)
+    return dict(link_names=names, link_body=np.array(body), link_site=np.array(site), link_axis=np.array(axis),
+                link_half=np.array(half), link_radius=np.array(radius), n_options=tuple(n_options),
+                option_pos=option_pos, option_normal=option_normal)
 
+
+def _collision(model: mujoco.MjModel, tree: _Tree, link_body: np.ndarray) -> dict:
+    """The hand's collision geoms as chains of spheres, and the capsules checked for self-collision."""
     body_link = {b: li for li, b in enumerate(link_body)}
     sph_body, sph_pos, sph_rad, sph_finger, sph_link = [], [], [], [], []
     cap_body, cap_ends, cap_rad, cap_finger = [], [], [], []
     for g in range(model.ngeom):
         b = model.geom_bodyid[g]
-        if b not in index or b == palm:
+        if b not in tree.index or b == tree.palm:
             continue
         gtype = model.geom_type[g]
         mat = _quat_to_mat(model.geom_quat[g])
         if gtype == mujoco.mjtGeom.mjGEOM_CAPSULE:
             r, h = model.geom_size[g][:2]
             offsets = _capsule_spheres(h, r)
-            if depth(b) >= SELF_COLLISION_MIN_DEPTH:
-                cap_body.append(index[b])
+            if tree.depth(b) >= SELF_COLLISION_MIN_DEPTH:
+                cap_body.append(tree.index[b])
                 cap_ends.append([model.geom_pos[g] - mat[:, 2] * h, model.geom_pos[g] + mat[:, 2] * h])
                 cap_rad.append(r)
-                cap_finger.append(fingers.index(finger_of(b)))
+                cap_finger.append(tree.finger_of(b))
         elif gtype == mujoco.mjtGeom.mjGEOM_SPHERE:
             r, offsets = model.geom_size[g][0], np.zeros(1)
         else:
             raise ValueError(f"model: hand geom {model.geom(g).name!r} must be a capsule or sphere")
         for z in offsets:
-            sph_body.append(index[b])
+            sph_body.append(tree.index[b])
             sph_pos.append(model.geom_pos[g] + mat[:, 2] * z)
             sph_rad.append(r)
-            sph_finger.append(fingers.index(finger_of(b)))
-            sph_link.append(body_link.get(index[b], -1))
+            sph_finger.append(tree.finger_of(b))
+            sph_link.append(body_link.get(tree.index[b], -1))
     pairs = np.array(
         [(i, j) for i in range(len(cap_body)) for j in range(i + 1, len(cap_body)) if cap_finger[i] != cap_finger[j]]
     )
+    return dict(sphere_body=np.array(sph_body), sphere_pos=np.array(sph_pos), sphere_radius=np.array(sph_rad),
+                sphere_finger=np.array(sph_finger), sphere_link=np.array(sph_link), capsule_body=np.array(cap_body),
+                capsule_ends=np.array(cap_ends), capsule_radius=np.array(cap_rad), self_pairs=pairs)
 
+
+def _tool(model: mujoco.MjModel, tool: int) -> dict:
+    """The tool's collision boxes (its frame) and nominal mass."""
     boxes = [g for g in range(model.ngeom) if model.geom_bodyid[g] == tool]
     for g in boxes:
         if model.geom_type[g] != mujoco.mjtGeom.mjGEOM_BOX:
             raise ValueError(f"model: tool geom {model.geom(g).name!r} must be a box")
+    return dict(tool_box_pos=np.array([model.geom_pos[g] for g in boxes]),
+                tool_box_mat=np.array([_quat_to_mat(model.geom_quat[g]) for g in boxes]),
+                tool_box_half=np.array([model.geom_size[g] for g in boxes]), tool_mass=float(model.body_mass[tool]))
 
-    moves = np.zeros((len(hand_bodies), len(joints)))
-    for bi, b in enumerate(hand_bodies):
-        a = b
-        while a in index:
-            if body_joint[index[a]] >= 0:
-                moves[bi, body_joint[index[a]]] = 1.0
-            a = model.body_parentid[a]
 
+def from_mjmodel(model: mujoco.MjModel) -> HandModel:
+    """Extract a `HandModel` from a compiled scene (hand + tool body named ``wrench``)."""
+    palm = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, PALM_BODY)
+    tool = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, TOOL_BODY)
+    if palm < 0 or tool < 0:
+        raise ValueError(f"model: needs bodies {PALM_BODY!r} and {TOOL_BODY!r}")
+    tree = _tree(model, palm)
+    links = _links(model, tree, tool)
+    bodies, joints = tree.bodies, tree.joints
     return HandModel(
-        joint_moves_body=moves,
-        body_names=tuple(model.body(b).name for b in hand_bodies),
-        body_parent=np.array([index.get(model.body_parentid[b], -1) for b in hand_bodies]),
-        body_pos=np.array([model.body_pos[b] for b in hand_bodies]),
-        body_mat=np.array([_quat_to_mat(model.body_quat[b]) for b in hand_bodies]),
-        body_joint=body_joint,
+        joint_moves_body=tree.joint_moves_body(),
+        body_names=tuple(model.body(b).name for b in bodies),
+        body_parent=np.array([tree.index.get(model.body_parentid[b], -1) for b in bodies]),
+        body_pos=np.array([model.body_pos[b] for b in bodies]),
+        body_mat=np.array([_quat_to_mat(model.body_quat[b]) for b in bodies]),
+        body_joint=tree.body_joint,
         joint_names=tuple(model.joint(j).name for j in joints),
         joint_axis=np.array([model.jnt_axis[j] for j in joints]),
         joint_pos=np.array([model.jnt_pos[j] for j in joints]),
         joint_range=np.array([model.jnt_range[j] for j in joints]),
         q_start=np.asarray(model.numeric("gsp_ik_start").data, dtype=np.float64),
         qpos_adr=np.array([model.jnt_qposadr[j] for j in joints]),
-        link_names=link_names,
-        link_body=np.array(link_body),
-        link_site=np.array(link_site),
-        link_axis=np.array(link_axis),
-        link_half=np.array(link_half),
-        link_radius=np.array(link_radius),
-        n_options=tuple(n_options),
-        option_pos=option_pos,
-        option_normal=option_normal,
-        sphere_body=np.array(sph_body),
-        sphere_pos=np.array(sph_pos),
-        sphere_radius=np.array(sph_rad),
-        sphere_finger=np.array(sph_finger),
-        sphere_link=np.array(sph_link),
-        capsule_body=np.array(cap_body),
-        capsule_ends=np.array(cap_ends),
-        capsule_radius=np.array(cap_rad),
-        self_pairs=pairs,
-        finger_names=finger_names,
-        tool_box_pos=np.array([model.geom_pos[g] for g in boxes]),
-        tool_box_mat=np.array([_quat_to_mat(model.geom_quat[g]) for g in boxes]),
-        tool_box_half=np.array([model.geom_size[g] for g in boxes]),
-        tool_mass=float(model.body_mass[tool]),
+        finger_names=tuple(model.body(f).name.split("_")[0] for f in tree.fingers),
         gravity=np.array(model.opt.gravity),
+        **links, **_collision(model, tree, links["link_body"]), **_tool(model, tool),
     )
 
 

@@ -19,7 +19,7 @@ import numpy as np
 from flax import struct
 
 from gsp_jax import hand as hand_lib, scenario as scenario_lib
-from gsp_jax.env import observation, observation_size
+from gsp_jax.observation import observation, observation_size
 from gsp_jax.grasps import GraspSpace, default_space
 from gsp_jax.lookahead import Lookahead  # re-exported: the Ll policies
 from gsp_jax.ppo import networks as nets

@@ -18,7 +18,8 @@ from flax import struct
 from tqdm.auto import tqdm
 
 from gsp_jax import dp
-from gsp_jax.env import observation, table_state
+from gsp_jax.dp import table_state
+from gsp_jax.observation import observation
 from gsp_jax.ppo import networks as nets
 from gsp_jax.scenario import Episode
 from gsp_jax.surrogate import Surrogate

@@ -1,4 +1,4 @@
-"""Tests of experiments/calibrate.py: the candidate tables (IK shared by all candidates, wrench solves by each
+"""Tests of experiments/physics/calibrate.py: the candidate tables (IK shared by all candidates, wrench solves by each
 friction scale) equal `dp.build_table` under each candidate's own surrogate; the winner is the fewest DP-optimal
 falls, then the highest correlation; the evaluation episodes are refused."""
 from __future__ import annotations
@@ -15,7 +15,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import tolerances as tol  # noqa: E402
-from experiments import calibrate  # noqa: E402
+from experiments.physics import calibrate  # noqa: E402
 from gsp_jax import dp, scenario, surrogate  # noqa: E402
 
 

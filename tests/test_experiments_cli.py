@@ -60,3 +60,27 @@ def test_every_command_imports_and_describes_itself(monkeypatch, capsys, command
         cli.main([command, "--help"])
     assert stop.value.code == 0
     assert f"python -m experiments {command}" in capsys.readouterr().out
+
+
+def test_the_command_list_describes_every_command(monkeypatch, capsys):
+    """`python -m experiments --help` lists every command with its one-line help (a '%' in a help line, as in
+    '95% CI', once broke it: argparse formats help strings)."""
+    monkeypatch.setattr(cli, "use_compilation_cache", lambda: None)
+    monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))
+    monkeypatch.setenv("COLUMNS", "400")  # one line per command (argparse wraps at the terminal's width)
+    with pytest.raises(SystemExit) as stop:
+        cli.main(["--help"])
+    assert stop.value.code == 0
+    out = " ".join(capsys.readouterr().out.split())
+    for command, (_, help_) in cli.COMMANDS.items():
+        assert command in out and " ".join(help_.split()) in out, command
+
+
+def test_every_command_lives_in_its_group():
+    """The experiments are grouped by what they are: the paper's runs, benchmarks, the physics studies and
+    diagnostics (the demo alone at the top)."""
+    for command, (module, _) in cli.COMMANDS.items():
+        group = module.split(".")[1]
+        assert group in ("paper", "bench", "physics", "diagnostics") or module == "experiments.demo", (command, module)
+        if command.startswith("bench-"):
+            assert group == "bench", command

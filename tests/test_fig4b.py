@@ -1,4 +1,4 @@
-"""Fig. 4b's runner (`experiments.fig4b.run`): in C MuJoCo every policy runs in one lockstep, and each gives what it
+"""Fig. 4b's runner (`experiments.paper.fig4b.run`): in C MuJoCo every policy runs in one lockstep, and each gives what it
 gives alone (the controller program of another batch size: float reassociation only)."""
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
-from experiments import evaluation, fig4b  # noqa: E402
+from experiments.paper import fig4b  # noqa: E402
+from gsp_jax import evaluation  # noqa: E402
 from gsp_jax import policies, scenario  # noqa: E402
 from gsp_jax.env import observation_size  # noqa: E402
 from gsp_jax.ppo import networks as nets  # noqa: E402

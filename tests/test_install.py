@@ -22,7 +22,7 @@ from gsp_jax import hand, scenario, surrogate
 env = surrogate.Surrogate()
 state = jax.jit(env.reset)(scenario.make_episode())
 state, reward, done = jax.jit(env.step)(state, jnp.int32(3))
-from experiments import evaluation
+from gsp_jax import evaluation
 from gsp_jax import physics
 nbody = physics.Physics(env).model.nbody  # the physics subpackage and its scene (world, palm, 16 finger bodies, tool)
 print(json.dumps(dict(package=str(pathlib.Path(gsp_jax.__file__).parent), models=str(hand.MODELS_DIR),

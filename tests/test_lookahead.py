@@ -146,7 +146,7 @@ def test_experiments_cached_lookahead_is_one_policy_per_episode_table(sur, solve
     """`evaluation.make` (Fig. 4a/4b): the cached L1 carries every episode's table with in_axes 0 (hashable, as the
     physics runner keys its programs by them), and vmapped over the episodes it acts as a per-episode Lookahead
     whose interior is that episode's table."""
-    from experiments import evaluation
+    from gsp_jax import evaluation
 
     eps, tables, sols = solved
     ctx = evaluation.Context(sur, "test", [f"e{i}" for i in range(4)], eps, tables, sols, sols.actions[0], network, "x")
@@ -316,7 +316,8 @@ def test_bench_latency_times_the_planners_own_decisions(sur, solved, network, st
     """`bench-latency` times one decision at a time on the planner's own episode: DP optimal earns each episode's
     DP optimum, and the cached L1 earns what the same policy earns run plan by plan (`stepped`, which the rollout
     test below checks against the jitted `rollout_planned`); every step of every episode is a decision."""
-    from experiments import bench_latency, evaluation
+    from experiments.bench import latency as bench_latency
+    from gsp_jax import evaluation
 
     eps, tables, sols = solved
     one = jax.tree.map(lambda x: x[:1], (eps, tables, sols))
@@ -334,7 +335,8 @@ def test_table1_dp_optimal_earns_its_dp_optimum_by_replaying_its_own_table(sur, 
     """`table1`'s DP optimal solves the unseen episode inside the timed call and runs its policy in that table
     (from its start the surrogate visits only the table's states: `test_env` checks the two step for step): the
     episode earns exactly the DP optimum of the episode."""
-    from experiments import evaluation, table1
+    from gsp_jax import evaluation
+    from experiments.paper import table1
 
     eps, tables, sols = solved
     one = jax.tree.map(lambda x: x[:1], (eps, tables, sols))

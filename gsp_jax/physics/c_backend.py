@@ -159,6 +159,97 @@ class Engine:
         self.batch.step(ids=ids, nstep=nstep)
 
 
+class _Lockstep:
+    """The state of `simulate`'s lockstep: M = groups x episodes rows, split into `workers` chunks of contiguous
+    rows, each with its own `Engine`; the recorded trace (numpy) and the controller states (on the CPU device)."""
+
+    def __init__(self, phys, groups, episodes: Episode, cores: int, workers: int, engine_log: list | None):
+        self.phys, self.groups, self.episodes = phys, groups, episodes
+        c, scene = phys.config, phys.scene
+        N, T = int(np.shape(episodes.mass)[0]), episodes.n_steps
+        G = len(groups)
+        M, K, nq = G * N, phys.n_ticks(T), phys.model.nq
+        self.T, self.K, self.nq, self.nu, self.n = T, K, nq, phys.model.nu, phys.n_segment
+        self.pr = pr = programs(phys, episodes)
+        self.cpu, self.default = jax.devices("cpu")[0], jax.devices()[0]
+        # every group runs on every episode: the lockstep's batch is the groups' episodes one after another
+        ep_flat = jnp.tile(jax.device_put(pr.ravel_episodes(episodes), self.cpu), (G, 1))
+        qpos0, cs = pr.start(episodes)
+        self.qpos0 = np.tile(np.asarray(qpos0, np.float64), (G, 1))
+        self.cs = jax.device_put(jnp.tile(cs, (G, 1)), self.cpu)
+        fields = jax.tree.map(lambda x: np.tile(np.asarray(x), (G,) + (1,) * (np.ndim(x) - 1)),
+                              jax.device_get(pr.fields(episodes)))
+        self.chunks = chunks = np.array_split(np.arange(M), workers)  # contiguous rows
+        if engine_log is not None and workers != 1:
+            raise ValueError(f"engine_log needs workers=1, got workers={workers}")
+        self.engines = [Engine(scene, jax.tree.map(lambda x: x[ids], fields), self.qpos0[ids],
+                               max(1, cores // workers), engine_log) for ids in chunks]
+        self.ep_flat, self.ep_chunks = ep_flat, [ep_flat[ids[0]:ids[-1] + 1] for ids in chunks]
+        self.grasp = np.tile(np.asarray(episodes.start_grasp, np.int32), G)
+        self.fell, self.fall_tick = np.zeros(M, bool), np.full(M, -1, np.int32)
+        self.angle, self.perr = np.zeros((M, K), np.float32), np.zeros((M, K), np.float32)
+        self.qpos_trace = np.zeros((M, K, nq), np.float32)
+        self.actions, self.grasps = np.zeros((M, T), np.int32), np.zeros((M, T), np.int32)
+        self.group_rows = [slice(g * N, (g + 1) * N) for g in range(G)]
+        self.decides = [pr.decide(axis) for _, axis in groups]
+        self.pedestal_drop, self.tick, self.control_every = scene.pedestal_drop, c.tick, c.control_every
+
+    def record(self, rows: slice, j, status, now):
+        """Tick j's status (angle, position error, fell) and configuration of the episodes `rows`."""
+        fell_now = status[:, 2] > 0.5
+        self.fall_tick[rows][fell_now & ~self.fell[rows]] = j
+        self.fell[rows] |= fell_now
+        self.angle[rows, j], self.perr[rows, j], self.qpos_trace[rows, j] = status[:, 0], status[:, 1], now
+
+    def observe_all(self):
+        return np.concatenate([e.observe() for e in self.engines])
+
+    def decide(self, k: int):
+        """Each policy decides for its episodes at segment k (the hold: set-up only); the controller states."""
+        obs, parts = self.observe_all(), []
+        for g, (policy, _) in enumerate(self.groups):
+            rows = self.group_rows[g]
+            act, gr, cs_g = self.decides[g](policy, jax.device_put(self.cs[rows], self.default), obs[rows],
+                                            self.grasp[rows], self.episodes, k)
+            if k < self.T:
+                self.actions[rows, k], self.grasps[rows, k] = np.asarray(act), np.asarray(gr)
+            self.grasp[rows] = np.asarray(gr)
+            parts.append(jax.device_put(cs_g, self.cpu))
+        self.cs = jnp.concatenate(parts) if len(parts) > 1 else parts[0]
+
+    def run_segment(self, w, k, cs_w):
+        """Chunk w's control ticks of segment k; its controller states after them."""
+        eng, ep_w, ids, nq, nu = self.engines[w], self.ep_chunks[w], self.chunks[w], self.nq, self.nu
+        rows = slice(ids[0], ids[-1] + 1)
+        obs, alive = eng.observe(), np.flatnonzero(~self.fell[rows])
+        for i in range(self.n):
+            j = k * self.n + i
+            eng.set_pedestals(float(self.pedestal_drop(j * self.tick, xp=np)))
+            cs_w, out = self.pr.tick(cs_w, obs, ep_w, j)
+            out = np.asarray(out)
+            if j > 0:
+                self.record(rows, j - 1, out[:, nu + 6:], obs[:, :nq])
+                if out[alive, -1].max(initial=0.0) > 0.5:  # a fall: that episode is no longer stepped
+                    alive = np.flatnonzero(~self.fell[rows])
+            if alive.size:
+                eng.step(alive, out[:, :nu], out[:, nu:nu + 6], self.control_every)
+            obs = eng.observe()
+        return cs_w
+
+    def results(self):
+        """The last tick's status, fallen tools' traces held, and a `runner.Result` (numpy) per group."""
+        obs = self.observe_all()
+        self.record(slice(0, len(self.fell)), self.K - 1, np.asarray(self.pr.check(obs, self.ep_flat, self.K - 1)),
+                    obs[:, :self.nq])
+        for e in np.flatnonzero(self.fell):  # a fallen tool's trace stays where it was before the tick it fell
+            f = self.fall_tick[e]
+            self.qpos_trace[e, f:] = self.qpos_trace[e, f - 1] if f > 0 else self.qpos0[e]
+        return [jax.device_get(self.phys.result(
+            jnp.asarray(self.actions[rows]), jnp.asarray(self.grasps[rows]), jnp.asarray(self.angle[rows]),
+            jnp.asarray(self.perr[rows]), jnp.asarray(self.qpos_trace[rows]), jnp.asarray(self.fell[rows]),
+            jnp.asarray(self.fall_tick[rows]), self.T)) for rows in self.group_rows]
+
+
 def simulate(phys, groups, episodes: Episode, cores: int | None = None, progress: bool = False,
              workers: int | None = None, engine_log: list | None = None):
     """`Physics.simulate_many(..., backend="c")`: every (policy, policy_axis) of `groups` on every episode of
@@ -171,92 +262,18 @@ def simulate(phys, groups, episodes: Episode, cores: int | None = None, progress
     8 8.0 s, 16 13.8 s: each chunk's Python per tick holds Python's lock, and the controller calls contend).
     `engine_log` (a list, one worker only): every step's states are appended to it (`Engine.log`; `experiments
     bench-physics` replays them to time the engine alone)."""
-    c, scene = phys.config, phys.scene
-    N, T, n = int(np.shape(episodes.mass)[0]), episodes.n_steps, phys.n_segment
-    G = len(groups)
-    M, K, nq, nu = G * N, phys.n_ticks(T), phys.model.nq, phys.model.nu
+    M = len(groups) * int(np.shape(episodes.mass)[0])
     cores = available_cores() if cores is None else cores
     workers = max(1, min(cores // 4, round(M / 32))) if workers is None else max(1, min(workers, M))
-    pr = programs(phys, episodes)
-    cpu, default = jax.devices("cpu")[0], jax.devices()[0]
-    # every group runs on every episode: the lockstep's batch is the groups' episodes one after another
-    ep_flat = jnp.tile(jax.device_put(pr.ravel_episodes(episodes), cpu), (G, 1))
-    qpos0, cs = pr.start(episodes)
-    qpos0 = np.tile(np.asarray(qpos0, np.float64), (G, 1))
-    cs = jax.device_put(jnp.tile(cs, (G, 1)), cpu)
-    fields = jax.tree.map(lambda x: np.tile(np.asarray(x), (G,) + (1,) * (np.ndim(x) - 1)),
-                          jax.device_get(pr.fields(episodes)))
-    chunks = np.array_split(np.arange(M), workers)  # contiguous rows
-    if engine_log is not None and workers != 1:
-        raise ValueError(f"engine_log needs workers=1, got workers={workers}")
-    engines = [Engine(scene, jax.tree.map(lambda x: x[ids], fields), qpos0[ids], max(1, cores // workers), engine_log)
-               for ids in chunks]
-    ep_chunks = [ep_flat[ids[0]:ids[-1] + 1] for ids in chunks]
-    grasp = np.tile(np.asarray(episodes.start_grasp, np.int32), G)
-    fell = np.zeros(M, bool)
-    fall_tick = np.full(M, -1, np.int32)
-    angle, perr = np.zeros((M, K), np.float32), np.zeros((M, K), np.float32)
-    qpos_trace = np.zeros((M, K, nq), np.float32)
-    actions, grasps = np.zeros((M, T), np.int32), np.zeros((M, T), np.int32)
-    group_rows = [slice(g * N, (g + 1) * N) for g in range(G)]
-    decides = [pr.decide(axis) for _, axis in groups]
-
-    def record(rows: slice, j, status, now):
-        """Tick j's status (angle, position error, fell) and configuration of the episodes `rows`."""
-        fell_now = status[:, 2] > 0.5
-        fall_tick[rows][fell_now & ~fell[rows]] = j
-        fell[rows] |= fell_now
-        angle[rows, j], perr[rows, j], qpos_trace[rows, j] = status[:, 0], status[:, 1], now
-
-    def run_segment(w, k, cs_w):
-        """Chunk w's control ticks of segment k; its controller states after them."""
-        eng, ep_w, ids = engines[w], ep_chunks[w], chunks[w]
-        rows = slice(ids[0], ids[-1] + 1)
-        obs, alive = eng.observe(), np.flatnonzero(~fell[rows])
-        for i in range(n):
-            j = k * n + i
-            eng.set_pedestals(float(scene.pedestal_drop(j * c.tick, xp=np)))
-            cs_w, out = pr.tick(cs_w, obs, ep_w, j)
-            out = np.asarray(out)
-            if j > 0:
-                record(rows, j - 1, out[:, nu + 6:], obs[:, :nq])
-                if out[alive, -1].max(initial=0.0) > 0.5:  # a fall: that episode is no longer stepped
-                    alive = np.flatnonzero(~fell[rows])
-            if alive.size:
-                eng.step(alive, out[:, :nu], out[:, nu:nu + 6], c.control_every)
-            obs = eng.observe()
-        return cs_w
-
-    def observe_all():
-        return np.concatenate([e.observe() for e in engines])
-
-    segments = range(T + phys.n_hold)
+    run = _Lockstep(phys, groups, episodes, cores, workers, engine_log)
+    segments = range(episodes.n_steps + phys.n_hold)
     if progress:
         from tqdm.auto import tqdm
 
         segments = tqdm(segments, desc="C MuJoCo segments", leave=False)
     with ThreadPoolExecutor(max_workers=workers) as pool:
         for k in segments:
-            obs, parts = observe_all(), []
-            for g, (policy, _) in enumerate(groups):  # each policy decides for its episodes (the hold: set-up only)
-                rows = group_rows[g]
-                act, gr, cs_g = decides[g](policy, jax.device_put(cs[rows], default), obs[rows], grasp[rows],
-                                           episodes, k)
-                if k < T:
-                    actions[rows, k], grasps[rows, k] = np.asarray(act), np.asarray(gr)
-                grasp[rows] = np.asarray(gr)
-                parts.append(jax.device_put(cs_g, cpu))
-            cs = jnp.concatenate(parts) if G > 1 else parts[0]
-            cs_chunks = [cs[ids[0]:ids[-1] + 1] for ids in chunks]
-            cs = jnp.concatenate(list(pool.map(run_segment, range(workers), [k] * workers, cs_chunks)))
-    obs = observe_all()
-    record(slice(0, M), K - 1, np.asarray(pr.check(obs, ep_flat, K - 1)), obs[:, :nq])
-    for e in np.flatnonzero(fell):  # a fallen tool's trace stays where it was before the tick it fell
-        qpos_trace[e, fall_tick[e]:] = qpos_trace[e, fall_tick[e] - 1] if fall_tick[e] > 0 else qpos0[e]
-    results = []
-    for rows in group_rows:
-        res = phys.result(jnp.asarray(actions[rows]), jnp.asarray(grasps[rows]), jnp.asarray(angle[rows]),
-                          jnp.asarray(perr[rows]), jnp.asarray(qpos_trace[rows]), jnp.asarray(fell[rows]),
-                          jnp.asarray(fall_tick[rows]), T)
-        results.append(jax.device_get(res))
-    return results
+            run.decide(k)
+            cs_chunks = [run.cs[ids[0]:ids[-1] + 1] for ids in run.chunks]
+            run.cs = jnp.concatenate(list(pool.map(run.run_segment, range(workers), [k] * workers, cs_chunks)))
+    return run.results()

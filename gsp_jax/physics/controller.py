@@ -259,6 +259,52 @@ class Controller:
         return wrench.solve(points, normals, active, mu, required, com, self.wrench_config, init, prefer,
                             motors=motors).forces
 
+    def _phase(self, cs: ControllerState, time: jax.Array):
+        """Where each link is in the segment's grasp change at `time`: (unloading, travelling, moving (L,) bool,
+        current (L,) the option each link's force acts at, on_path (L, 3) tool-frame point on the travel path)."""
+        c = self.config
+        tau_s = time - cs.start
+        unloading = cs.changed & (tau_s < c.unload)
+        u = jnp.clip((tau_s - c.unload) / c.move, 0.0, 1.0)
+        travelling = cs.changed & (u < 1)
+        current = jnp.where(unloading, cs.previous, cs.options)
+        times = jnp.asarray(PATH_TIMES)
+        seg = jnp.clip(jnp.searchsorted(times, u, side="right") - 1, 0, N_PATH - 2)
+        w = _smooth(jnp.clip((u - times[seg]) / (times[seg + 1] - times[seg]), 0.0, 1.0))
+        on_path = (1 - w) * cs.path[seg] + w * cs.path[seg + 1]
+        moving = cs.changed & (tau_s >= c.unload) & (u < 1)
+        return unloading, travelling, moving, current, on_path
+
+    def _targets(self, cs: ControllerState, current, on_path, anchored):
+        """Tool-frame targets (L, 3) of the links (contact option, travel path, anchor or parking point) and which
+        links are tracked (L,) (those in a grasp or changing, and the tip of a finger otherwise idle)."""
+        tgt = jnp.where((current > 0)[:, None], self._target(current), cs.park)
+        tgt = jnp.where(cs.changed[:, None], on_path, tgt)
+        tgt = jnp.where(anchored[:, None], cs.anchor, tgt)
+        busy_link = (current > 0) | cs.changed
+        busy = jnp.zeros(len(self.finger_names), bool).at[self.link_finger].max(busy_link)[self.link_finger]
+        return tgt, busy_link | (~busy & self.is_tip)
+
+    def _tracking(self, x_ref, v_ref, x, v, jac, nrm, held, tracked):
+        """Forces (L, 3) pulling every tracked link to its target; a touching (`held`) link only weakly across the
+        surface (there the force solve holds the tool; a stiff pull to a point on a tool that slips would pull the
+        tool with it)."""
+        c = self.config
+        err, derr = x_ref - x, v_ref - v
+        err_n, derr_n = jnp.sum(err * nrm, -1, keepdims=True) * nrm, jnp.sum(derr * nrm, -1, keepdims=True) * nrm
+        ratio = c.held_stiffness_ratio
+        # a free link (travelling, arriving, parked) is pulled as by a joint-space spring towards the damped
+        # least-squares step J^T (J J^T + lam^2)^-1 e: J^T kp e alone is weak along the directions a finger
+        # barely moves in (a near-straight finger lowering its tip), and an arriving tip came too late
+        if c.free_stiffness > 0:
+            jjt = jnp.einsum("lij,lkj->lik", jac, jac) + c.free_damping**2 * jnp.eye(3)
+            f_free = c.free_stiffness * _solve3(jjt, err)
+        else:
+            f_free = c.finger_kp * err
+        f_track = jnp.where(held, c.finger_kp * (err_n + ratio * (err - err_n)), f_free)
+        f_track = f_track + c.finger_kd * jnp.where(held, derr_n + ratio * (derr - derr_n), derr)
+        return jnp.where(tracked[:, None], f_track, 0.0)
+
     def control(self, cs: ControllerState, obs: Observation, episode: Episode, ref: Motion, time: jax.Array,
                 external: jax.Array) -> tuple[jax.Array, ControllerState]:
         """Joint torques (J,) for one tick at `time`, and the next state. `external` (6,): the external wrench
@@ -266,24 +312,10 @@ class Controller:
         c = self.config
         with jax.default_matmul_precision("highest"):
             p, mat, omega = self._frame(obs)
-            tau_s = time - cs.start
-            unloading = cs.changed & (tau_s < c.unload)
-            u = jnp.clip((tau_s - c.unload) / c.move, 0.0, 1.0)
-            travelling = cs.changed & (u < 1)
-            current = jnp.where(unloading, cs.previous, cs.options)  # the option each link's force acts at
-            # targets fixed to the observed tool
-            times = jnp.asarray(PATH_TIMES)
-            seg = jnp.clip(jnp.searchsorted(times, u, side="right") - 1, 0, N_PATH - 2)
-            w = _smooth(jnp.clip((u - times[seg]) / (times[seg + 1] - times[seg]), 0.0, 1.0))
-            on_path = (1 - w) * cs.path[seg] + w * cs.path[seg + 1]
-            moving = cs.changed & (tau_s >= c.unload) & (u < 1)
+            unloading, travelling, moving, current, on_path = self._phase(cs, time)
             anchored = cs.anchored & ~moving
-            tgt = jnp.where((current > 0)[:, None], self._target(current), cs.park)
-            tgt = jnp.where(cs.changed[:, None], on_path, tgt)
-            tgt = jnp.where(anchored[:, None], cs.anchor, tgt)
-            busy_link = (current > 0) | cs.changed
-            busy = jnp.zeros(len(self.finger_names), bool).at[self.link_finger].max(busy_link)[self.link_finger]
-            tracked = busy_link | (~busy & self.is_tip)
+            tgt, tracked = self._targets(cs, current, on_path, anchored)
+            # targets fixed to the observed tool
             x_ref = p + tgt @ mat.T
             v_ref = obs.tool_vel[:3] + jnp.cross(omega, x_ref - p)
             nrm = self._normal(current) @ mat.T
@@ -297,23 +329,9 @@ class Controller:
             anchored = anchored | arrive
             up = jnp.where(anchored, jnp.minimum(cs.load + c.tick / c.load, 1.0), cs.load)
             load = jnp.where(want, up, jnp.maximum(cs.load - c.tick / c.unload, 0.0))
-            # every tracked link is pulled to its target; a touching link only weakly across the surface (there the
-            # force solve holds the tool; a stiff pull to a point on a tool that slips would pull the tool with it)
             held = (anchored & (current > 0))[:, None]
-            err, derr = x_ref - x, v_ref - v
-            err_n, derr_n = jnp.sum(err * nrm, -1, keepdims=True) * nrm, jnp.sum(derr * nrm, -1, keepdims=True) * nrm
-            ratio = c.held_stiffness_ratio
-            # a free link (travelling, arriving, parked) is pulled as by a joint-space spring towards the damped
-            # least-squares step J^T (J J^T + lam^2)^-1 e: J^T kp e alone is weak along the directions a finger
-            # barely moves in (a near-straight finger lowering its tip), and an arriving tip came too late
-            if c.free_stiffness > 0:
-                jjt = jnp.einsum("lij,lkj->lik", jac, jac) + c.free_damping**2 * jnp.eye(3)
-                f_free = c.free_stiffness * _solve3(jjt, err)
-            else:
-                f_free = c.finger_kp * err
-            f_track = jnp.where(held, c.finger_kp * (err_n + ratio * (err - err_n)), f_free)
-            f_track = f_track + c.finger_kd * jnp.where(held, derr_n + ratio * (derr - derr_n), derr)
-            f_track = jnp.where(tracked[:, None], f_track, 0.0)
+            f_track = self._tracking(x_ref, v_ref, x, v, jac, nrm, held, tracked)
+
             # the force solve on the observed tool, blended over the changed link's load
             radius = jnp.asarray(self.hand.link_radius, jnp.float32)[:, None]
             surface = jnp.where(anchored[:, None], anchor, self._target(current)) + radius * (nrm @ mat)

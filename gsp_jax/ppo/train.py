@@ -146,10 +146,10 @@ class Trainer:
         )
 
     # -------------------------------------------------------------------------------------- iteration
-    def _iteration(self, ts: TrainState) -> tuple[TrainState, dict]:
+    def _rollout(self, params: nets.Params, env_state, key: jax.Array):
+        """`unroll` steps of every env under the sampling policy: the last env state and the trajectory's
+        (obs, action, logp, value, scaled reward, done, episode return), each (U, B, ...)."""
         cfg, networks = self.config, self.networks
-        key, k_roll, k_sgd = jax.random.split(ts.key, 3)
-        params = ts.params
 
         def env_step(env_state, k):
             logits = networks.logits(params, env_state.obs)
@@ -166,13 +166,12 @@ class Trainer:
             )
             return nxt, out
 
-        env_state, (obs, action, logp, value, reward, done, ep_return) = jax.lax.scan(
-            env_step, ts.env_state, jax.random.split(k_roll, cfg.unroll)
-        )
-        bootstrap = networks.value(params, env_state.obs)
-        advantage, target = losses.gae(reward, value, done, bootstrap, cfg.gamma, cfg.gae_lambda)
-        batch = losses.Batch(obs, action, logp, value, advantage, target)
-        batch = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), batch)  # (U * B, ...)
+        return jax.lax.scan(env_step, env_state, jax.random.split(key, cfg.unroll))
+
+    def _sgd(self, params: nets.Params, opt_state, batch: losses.Batch, key: jax.Array, lr):
+        """`epochs` passes of `minibatches` Adam steps over the flattened batch (stopped early by `target_kl`):
+        the trainable parameters, the optimiser state and the steps' metrics."""
+        cfg, networks = self.config, self.networks
         n = batch.action.shape[0]
 
         def loss_fn(trainable, mb):
@@ -197,13 +196,25 @@ class Trainer:
             mbs = jax.tree.map(lambda x: x[perm].reshape(cfg.minibatches, -1, *x.shape[1:]), batch)
             return jax.lax.scan(sgd_step, carry, mbs)
 
-        lr = cfg.learning_rate_at(ts.iteration * cfg.epochs * cfg.minibatches)
-        clip_state, adam_state = ts.opt_state
+        clip_state, adam_state = opt_state
         adam_state = adam_state._replace(hyperparams={**adam_state.hyperparams, "learning_rate": jnp.asarray(
             lr, jnp.float32)})
         (trainable, opt_state, _), metrics = jax.lax.scan(
-            epoch, (_trainable(params), (clip_state, adam_state), jnp.array(False)), jax.random.split(k_sgd, cfg.epochs)
+            epoch, (_trainable(params), (clip_state, adam_state), jnp.array(False)), jax.random.split(key, cfg.epochs)
         )
+        return trainable, opt_state, metrics
+
+    def _iteration(self, ts: TrainState) -> tuple[TrainState, dict]:
+        cfg, networks = self.config, self.networks
+        key, k_roll, k_sgd = jax.random.split(ts.key, 3)
+        params = ts.params
+        env_state, (obs, action, logp, value, reward, done, ep_return) = self._rollout(params, ts.env_state, k_roll)
+        bootstrap = networks.value(params, env_state.obs)
+        advantage, target = losses.gae(reward, value, done, bootstrap, cfg.gamma, cfg.gae_lambda)
+        batch = losses.Batch(obs, action, logp, value, advantage, target)
+        batch = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), batch)  # (U * B, ...)
+        lr = cfg.learning_rate_at(ts.iteration * cfg.epochs * cfg.minibatches)
+        trainable, opt_state, metrics = self._sgd(params, ts.opt_state, batch, k_sgd, lr)
         sgd_steps = jnp.sum(metrics.pop("sgd_steps"))
         params = params.replace(**trainable)
         if cfg.update_normalizer:

@@ -20,9 +20,10 @@ from concurrent.futures import ThreadPoolExecutor
 import jax
 import numpy as np
 
-from experiments import evaluation
+from experiments import common
+from gsp_jax import evaluation
 from experiments.common import bar_png, results_dir, table
-from experiments.physics import result_rows
+from experiments.physics.check import result_rows
 from gsp_jax import physics, stats
 
 
@@ -36,14 +37,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--jobs", type=int, default=None,
                    help="MJX: policies run side by side (threads; default 1). C MuJoCo runs them all in one lockstep")
     p.add_argument("--warm", action="store_true", help="C MuJoCo: time the lockstep a second time (warm)")
-    evaluation.add_lookahead_argument(p)
+    common.add_lookahead_argument(p)
 
 
 def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str = "mjx", cached: bool = True,
         jobs: int | None = None, warm: bool = False) -> dict:
     """Fig. 4b's result per policy (saved results reused); `jobs` policies at a time (default as `--jobs`)."""
     phys = physics.Physics(ctx.surrogate)
-    stamp = f"{evaluation.fingerprint(ctx)}-{backend}" + ("" if cached else "-continuous")
+    stamp = f"{common.fingerprint(ctx)}-{backend}" + ("" if cached else "-continuous")
     jobs = 1 if jobs is None else jobs
     if jobs < 1:
         raise ValueError(f"jobs (--jobs) must be >= 1, got {jobs}")

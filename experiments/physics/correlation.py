@@ -13,8 +13,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.common import dp_tables, results_dir, table
-from experiments.common import nominal_actions
+from gsp_jax.evaluation import dp_tables, nominal_actions
+from experiments.common import results_dir, table
 from gsp_jax import dp, physics, policies, scenario, surrogate
 
 

@@ -29,7 +29,8 @@ import time
 
 import jax
 
-from experiments import evaluation
+from experiments import common
+from gsp_jax import evaluation
 from experiments.common import results_dir, table
 from gsp_jax import dp, lookahead, policies
 from gsp_jax.env import TableModel
@@ -61,7 +62,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "every state)")
     p.add_argument("--policies", nargs="+", default=list(evaluation.POLICIES), choices=evaluation.POLICIES,
                    metavar="NAME", help=f"which rows to time (default: all of {', '.join(evaluation.POLICIES)})")
-    evaluation.add_lookahead_argument(p)
+    common.add_lookahead_argument(p)
 
 
 BATCHED = ("dp-base", "rl")  # the policies whose episode can also run as one batch of transitions
@@ -154,7 +155,7 @@ def run(ctx: evaluation.Context, batch: int, repeats: int, out, cached: bool = T
     result = dict(platform=device.platform, device=str(device.device_kind), episode=ctx.names[0], repeats=repeats,
                   ik_unroll=ctx.surrogate.ik_config.unroll, ahead=ahead,
                   lookahead="cached" if cached else "continuous",
-                  policies=rows, paper=evaluation.PAPER, wall_s=time.perf_counter() - t_start)
+                  policies=rows, paper=common.PAPER, wall_s=time.perf_counter() - t_start)
     if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
         result["note"] = "JAX's persistent compilation cache was on (JAX_COMPILATION_CACHE_DIR): compile times may be cache hits"
     (out / f"{device.platform}.json").write_text(json.dumps(result, indent=1))
@@ -168,12 +169,12 @@ def print_result(result: dict) -> None:
     rows = []
     for name, r in result["policies"].items():
         forms = f"{r['stepped_warm_s']:.4f} / {r['batched_warm_s']:.4f}" if "rollout" in r else "-"
-        row = [name, evaluation.PAPER["table1_s"][name], f"{r['warm_s']:.4f}", forms, f"{r['compile_s']:.1f}"]
+        row = [name, common.PAPER["table1_s"][name], f"{r['warm_s']:.4f}", forms, f"{r['compile_s']:.1f}"]
         rows.append(row + ([f"{r['batch_per_episode_s']:.4f} (of {r['batch']})"] if batched else []))
     unroll = f"; IK unrolled {result['ik_unroll']}" if result.get("ik_unroll", 1) != 1 else ""
     unroll += f"; RL realises {result['ahead']} decisions' states a batch" if result.get("ahead", 1) != 1 else ""
     print(f"Table 1: online wall-clock per unseen episode ({result['device']}{unroll}; "
-          f"paper: {evaluation.PAPER['table1_machine']})")
+          f"paper: {common.PAPER['table1_machine']})")
     print(table(headers, rows, ".2f"))
 
 

@@ -4,8 +4,8 @@ Every policy (DP baseline, RL, L1, L2, DP optimal) runs each unseen evaluation e
 episodes of a policy in one vmapped program; the return is reported relative to DP optimal (return - DP optimal
 return: 0 is optimal), with 95% t-intervals over episodes and a one-way repeated-measures ANOVA (episodes as
 subjects) with Holm-corrected paired post-hoc tests (the paper's analysis), and beside it the rank-based Friedman
-test with Wilcoxon post-hoc tests (returns with rare -200 falls are far from normal). `--backend surrogate` steps the surrogate itself (two IK and
-three wrench solves per step, also inside the lookahead trees: a GPU job); `table` steps the episodes' DP tables,
+test with Wilcoxon post-hoc tests (returns with rare -200 falls are far from normal). `--backend surrogate` steps the surrogate itself (three IK
+and four wrench solves per step, also inside the lookahead trees: a GPU job); `table` steps the episodes' DP tables,
 which give the same MDP for the discrete states the surrogate visits from a reset (tests check it) at a fraction of
 the cost (the CPU default). Writes results/fig4a/returns.json and fig4a.png; prints the table last.
 """
@@ -18,7 +18,8 @@ import time
 import jax
 import numpy as np
 
-from experiments import evaluation
+from experiments import common
+from gsp_jax import evaluation
 from experiments.common import bar_png, results_dir, table
 from gsp_jax import lookahead, policies, stats
 from gsp_jax.env import TableModel
@@ -31,7 +32,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--episodes", type=int, default=None, help="only N episodes, spread over the set")
     p.add_argument("--backend", default=None, choices=["table", "surrogate"], help="default: surrogate on a GPU, else table")
     p.add_argument("--policy-dir", default=None, help="PPO policy (default: results/train/dp/seed0, else the shipped one)")
-    evaluation.add_lookahead_argument(p)
+    common.add_lookahead_argument(p)
 
 
 def returns(ctx: evaluation.Context, name: str, backend: str, cached: bool = True) -> np.ndarray:

@@ -17,7 +17,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.common import dp_tables, results_dir, table
+from gsp_jax.evaluation import dp_tables
+from experiments.common import results_dir, table
 from gsp_jax import dp, pretrain, scenario
 from gsp_jax.env import GraspEnv
 from gsp_jax.ppo import networks as nets

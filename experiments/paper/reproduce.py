@@ -25,7 +25,11 @@ import time
 import jax
 import numpy as np
 
-from experiments import evaluation, fig4a, fig4b, table1
+from experiments import common
+from gsp_jax import evaluation
+from experiments.paper import fig4a
+from experiments.paper import fig4b
+from experiments.paper import table1
 from experiments.common import results_dir
 
 PRESETS = {
@@ -64,7 +68,7 @@ def main(args: argparse.Namespace) -> None:
     print(f"reproduce --{preset} on {device.device_kind} ({device.platform}); report -> {out / 'REPORT.md'}", flush=True)
     have_policy = evaluation.TRAINED_POLICY.exists() or evaluation.SHIPPED_POLICY.exists()
     if args.policy_dir is None and (args.train or (p["train"] and not have_policy)):
-        from experiments import train
+        from experiments.paper import train
 
         print("[0/3] training the PPO policy (DP pretraining, full preset, seed 0)", flush=True)
         train.main(argparse.Namespace(pretrain="dp", seeds=1, first_seed=0, preset="full", iterations=None, envs=None,
@@ -214,9 +218,9 @@ def report(s: dict) -> str:
         batched = any("batch" in r for r in t["policies"].values())
         lines += ["## Table 1: online wall-clock time per unseen episode", "",
                   f"Ours on {t['device']} (episode `{t['episode']}`, warm = fastest of {t['repeats']} after compiling); "
-                  f"paper on a {evaluation.PAPER['table1_machine']}." + (f" Note: {t['note']}." if t.get("note") else ""),
+                  f"paper on a {common.PAPER['table1_machine']}." + (f" Note: {t['note']}." if t.get("note") else ""),
                   "", "| | " + " | ".join(t["policies"]) + " |", "|---" * (len(t["policies"]) + 1) + "|",
-                  "| paper [s] | " + " | ".join(f"{evaluation.PAPER['table1_s'][n]:.2f}" for n in t["policies"]) + " |",
+                  "| paper [s] | " + " | ".join(f"{common.PAPER['table1_s'][n]:.2f}" for n in t["policies"]) + " |",
                   "| ours, warm [s] | " + " | ".join(f"{r['warm_s']:.4f}" for r in t["policies"].values()) + " |",
                   "| ours, compile [s] | " + " | ".join(f"{r['compile_s']:.1f}" for r in t["policies"].values()) + " |"]
         if batched:

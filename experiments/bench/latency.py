@@ -19,7 +19,8 @@ import json
 import jax
 import numpy as np
 
-from experiments import evaluation
+from experiments import common
+from gsp_jax import evaluation
 from experiments.common import results_dir, table, timed
 from gsp_jax import dp, policies
 from gsp_jax.env import TableModel
@@ -29,7 +30,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--episodes", type=int, default=7, help="evaluation episodes (each gives up to 16 decisions)")
     p.add_argument("--policies", nargs="+", default=list(evaluation.POLICIES), choices=evaluation.POLICIES)
     p.add_argument("--policy-dir", default=None)
-    evaluation.add_lookahead_argument(p)
+    common.add_lookahead_argument(p)
 
 
 def run(ctx: evaluation.Context, names: list[str], cached: bool) -> dict:
@@ -86,17 +87,17 @@ def run(ctx: evaluation.Context, names: list[str], cached: bool) -> dict:
               flush=True)
     device = jax.devices()[0]
     return dict(platform=device.platform, device=str(device.device_kind), episodes=ctx.names,
-                lookahead="cached" if cached else "continuous", policies=rows, paper=evaluation.PAPER)
+                lookahead="cached" if cached else "continuous", policies=rows, paper=common.PAPER)
 
 
 def print_result(result: dict) -> None:
     headers = ["planner", "setup / episode [s]", "decision median [ms]", "decision p99 [ms]", "surrogate step [ms]",
                "episode [s]", "paper, episode [s]"]
     rows = [[name, f"{r['setup_median_s']:.3f}", f"{r['decision_median_s'] * 1e3:.2f}", f"{r['decision_p99_s'] * 1e3:.2f}",
-             f"{r['step_median_s'] * 1e3:.2f}", f"{r['episode_median_s']:.3f}", evaluation.PAPER["table1_s"][name]]
+             f"{r['step_median_s'] * 1e3:.2f}", f"{r['episode_median_s']:.3f}", common.PAPER["table1_s"][name]]
             for name, r in result["policies"].items()]
     print(f"Per-decision latency, one episode at a time ({result['device']}, lookahead {result['lookahead']}, "
-          f"{len(result['episodes'])} episodes; medians; paper: {evaluation.PAPER['table1_machine']})")
+          f"{len(result['episodes'])} episodes; medians; paper: {common.PAPER['table1_machine']})")
     print(table(headers, rows, ".2f"))
 
 

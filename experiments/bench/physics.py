@@ -25,7 +25,7 @@ import mujoco
 import numpy as np
 
 from experiments.common import results_dir, table, timed
-from gsp_jax import physics, policies, scenario, surrogate
+from gsp_jax import evaluation, physics, policies, scenario, surrogate
 from gsp_jax.physics import c_backend
 
 
@@ -84,8 +84,7 @@ def main(args: argparse.Namespace) -> None:
         raise SystemExit(f"bench-physics: --copies must be >= 1, got {args.copies}")
     eps = [e.head(args.waypoints) for e in scenario.episode_set(args.set).values()] * args.copies
     batch = scenario.stack(eps)
-    ring = env.space.action("ring_distal", 1)
-    policy = policies.SequencePolicy(jnp.full(args.waypoints, ring, jnp.int32))
+    policy = policies.SequencePolicy(jnp.asarray(evaluation.four_tips(env.space, args.waypoints)))
     all_cores = c_backend.available_cores()
     core_counts = args.cores or sorted({1, min(2, all_cores), all_cores})
     for c in core_counts:

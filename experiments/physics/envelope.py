@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments import evaluation
+from gsp_jax import evaluation
 from experiments.common import results_dir, table
 from gsp_jax import dp, physics, policies, scenario
 
@@ -144,9 +144,7 @@ def main(args: argparse.Namespace) -> None:
         raise SystemExit(f"envelope: --random must be >= 0, got {args.random}")
     ctx = evaluation.context(args.set, args.episodes, args.policy_dir)
     sur, N, T = ctx.surrogate, len(ctx.names), ctx.batch.n_steps
-    ring = sur.space.action("ring_distal", 1)
-    groups = [(policies.SequencePolicy(jnp.full(T, ring, jnp.int32)), None)]
-    groups += [evaluation.make(ctx, name) for name in PLANNERS[1:]]
+    groups = [evaluation.make(ctx, name) for name in PLANNERS]
     keys = jax.random.split(jax.random.PRNGKey(args.seed), N * args.random).reshape(N, args.random, 2)
     holds = jnp.where(jnp.arange(args.random) % 2 == 0, 0.0, 0.8)
     rand = jax.vmap(jax.vmap(dp.random_sequence, (None, None, 0, None, 0)), (0, 0, 0, None, None))(

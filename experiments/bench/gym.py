@@ -14,7 +14,8 @@ import time
 import gymnasium as gym
 import numpy as np
 
-from experiments.common import dp_tables, table
+from gsp_jax.evaluation import dp_tables
+from experiments.common import table
 from gsp_jax import scenario
 from gsp_jax.env import GraspEnv
 from gsp_jax.gym_env import GraspVectorEnv, GymGraspEnv

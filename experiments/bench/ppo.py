@@ -1,7 +1,7 @@
 """`python -m experiments bench-ppo`: PPO throughput and time to a target.
 
 1. Environment steps per second inside a training iteration (rollout + update, one jitted call), for the table
-   backend that training uses and for the surrogate backend (two IK and three wrench solves per step), beside a
+   backend that training uses and for the surrogate backend (three IK and four wrench solves per step), beside a
    one-environment-at-a-time Gymnasium loop over the same MDP.
 2. Wall-clock time for PPO, with and without DP pretraining, until the deterministic policy's mean return on
    the training set reaches the DP baseline's (the nominal optimal sequence replayed), validating every
@@ -16,7 +16,7 @@ import time
 import jax
 import numpy as np
 
-from experiments import train as train_exp
+from experiments.paper import train as train_exp
 from experiments.common import best_time, table
 from gsp_jax.env import GraspEnv
 from gsp_jax.gym_env import GymGraspEnv

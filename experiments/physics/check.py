@@ -26,25 +26,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.common import dp_tables, nominal_actions, results_dir, table
-from experiments.evaluation import load_rl
-from gsp_jax import dp, grasps, physics, policies, scenario, surrogate, wrench
+from experiments.common import results_dir, table
+from gsp_jax import evaluation, physics, policies, scenario, surrogate, wrench
 from gsp_jax.stats import mean_ci
 
 POLICIES = ("dp-opt", "dp-base", "rl", "random", "four-tips", "scripted", "one-tip")
-
-
-def scripted_sequences(space, n_steps: int = scenario.N_WAYPOINTS) -> dict[str, np.ndarray]:
-    """The scripted sequences (see the module docstring), (T,) actions each; "keep the grasp" is the null action."""
-    keep = grasps.NULL
-    ring, m1, m2 = space.action("ring_distal", 1), space.action("middle_distal", 1), space.action("middle_distal", 2)
-    add_slide = np.full(n_steps, keep)
-    add_slide[2], add_slide[6], add_slide[10] = ring, m2, m1
-    early = add_slide.copy()
-    early[0], early[2] = ring, keep
-    alternate = np.array([ring] + [m2 if t % 2 else m1 for t in range(1, n_steps)])
-    return {"add-slide": add_slide.astype(np.int32), "add-slide-ring0": early.astype(np.int32),
-            "alternate": alternate.astype(np.int32)}
 
 
 def least_friction(env: surrogate.Surrogate, grasp: int, episode: scenario.Episode) -> tuple[float, float]:
@@ -75,31 +61,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="render only this time window [s] into the GIF")
 
 
-def make_policy(env: surrogate.Surrogate, kind: str, set_name: str, episodes: dict, args=None):
-    """(policy, policy_axis) for a batch of `episodes`: per-episode DP tables for dp-opt and random (axis 0), one
-    shared policy for dp-base and rl (axis None)."""
-    batch = scenario.stack(list(episodes.values()))
-    if kind == "dp-opt":
-        tables = dp_tables(env, set_name, episodes)
-        sols = jax.jit(jax.vmap(dp.backup))(tables, batch.start_grasp)
-        return policies.TablePolicy(sols.policy), 0
-    if kind == "dp-base":
-        return policies.SequencePolicy(nominal_actions(env)), None
-    if kind == "random":
-        tables = dp_tables(env, set_name, episodes)
-        keys = jax.random.split(jax.random.PRNGKey(getattr(args, "seed", 0)), len(episodes))
-        actions = jax.vmap(dp.random_sequence, (0, 0, 0, None))(tables, batch.start_grasp, keys, env.reward_config.r_min)
-        return policies.SequencePolicy(actions), 0
-    if kind == "four-tips":  # a reference without grasp changes: add the ring tip at t = 0, then keep the grasp
-        ring = env.space.action("ring_distal", 1)
-        return policies.SequencePolicy(jnp.full(scenario.N_WAYPOINTS, ring, jnp.int32)), None
-    if kind == "one-tip":  # the index tip alone: the middle tip lets go at 0, the thumb at 1
-        seq = np.full(scenario.N_WAYPOINTS, env.space.action("index_distal", 1), np.int32)
-        seq[0], seq[1] = env.space.action("middle_distal", 0), env.space.action("thumb_distal", 0)
-        return policies.SequencePolicy(jnp.asarray(seq)), None
-    if kind == "rl":
-        return load_rl(env, args.policy_dir)[0], None
-    raise ValueError(f"--policy must be one of {POLICIES}, got {kind!r}")
+def make_policy(kind: str, set_name: str, episodes: dict, args=None):
+    """(policy, policy_axis) of `evaluation.make` for a batch of named `episodes`: DP tables only for the planners
+    that need them, the PPO policy only for rl."""
+    ctx = evaluation.context(set_name, episodes=episodes, tables=kind in ("dp-opt", "random"), rl=kind == "rl",
+                             policy_dir=getattr(args, "policy_dir", None))
+    return evaluation.make(ctx, kind, seed=getattr(args, "seed", 0))
 
 
 def result_rows(names, res: physics.Result) -> list[dict]:
@@ -173,13 +140,13 @@ def main(args: argparse.Namespace) -> None:
     names = list(episodes)
     phys = physics.Physics(env)
     if args.policy == "scripted":  # every sequence on every episode, one batch
-        seqs = scripted_sequences(env.space)
+        seqs = evaluation.scripted_sequences(env.space)
         labels = [f"{k}/{n}" for k in seqs for n in names]
         batch = scenario.stack([episodes[n] for _ in seqs for n in names])
         policy, axis = policies.SequencePolicy(jnp.asarray(np.repeat(np.stack(list(seqs.values())), len(names), 0))), 0
     else:
         labels = names
-        policy, axis = make_policy(env, args.policy, args.set, episodes, args)
+        policy, axis = make_policy(args.policy, args.set, episodes, args)
         batch = scenario.stack(list(episodes.values()))
     print(f"physics check: {len(labels)} episodes of '{args.set}', policy {args.policy}, backend {args.backend}, "
           f"{phys.n_ticks(scenario.N_WAYPOINTS) * phys.config.control_every} physics steps each "

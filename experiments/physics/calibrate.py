@@ -35,10 +35,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.physics import scripted_sequences
-from experiments.physics_correlation import spearman
+from experiments.physics.correlation import spearman
 from experiments.common import results_dir, table
-from gsp_jax import dp, grasps, physics, policies, scenario, surrogate
+from gsp_jax import dp, evaluation, physics, policies, scenario, surrogate
 
 GRID = dict(  # the candidates: every combination. (A first sweep on the nominal episode: fall thresholds of 0.1
     # and below, or mu x0.6, leave no sequence feasible, not even the four tips that hold in physics -- the wrench
@@ -133,14 +132,12 @@ def main(args: argparse.Namespace) -> None:
             pool[e].append((kind, key))
 
     env0 = surrogate.Surrogate()
-    for name, seq in scripted_sequences(env0.space).items():
+    for name, seq in evaluation.scripted_sequences(env0.space).items():
         for e in range(len(names)):
             add(e, name, seq)
     for e in range(len(names)):
-        add(e, "four-tips", np.full(n_t, env0.space.action("ring_distal", 1)))
-        one = np.full(n_t, grasps.NULL)
-        one[0], one[1] = env0.space.action("middle_distal", 0), env0.space.action("thumb_distal", 0)
-        add(e, "one-tip", one)
+        add(e, "four-tips", evaluation.four_tips(env0.space, n_t))
+        add(e, "one-tip", evaluation.one_tip(env0.space, n_t))
     for i, tab in enumerate(tables):
         opt = np.asarray(backup(tab, batch.start_grasp).actions)
         nom = jax.tree.map(lambda x: x[0], nominal_tables[i])

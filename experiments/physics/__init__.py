@@ -1,0 +1,1 @@
+"""The physics check and what is measured with it: agreement, correlation, the envelope, calibration."""

@@ -1,0 +1,207 @@
+"""Every planner of the library behind one factory, over a batch of unseen episodes: the paper's five (DP baseline,
+RL, L1, L2, DP optimal) and the physics check's references (fixed grasp sequences, random feasible ones), built
+the same way for the surrogate evaluation (Fig. 4a), the physics check (Fig. 4b, `envelope`) and the timing
+(Table 1).
+
+    ctx = evaluation.context("eval")                  # 27 evaluation episodes, their DP tables, the PPO policy
+    policy, axis = evaluation.make(ctx, "L2")         # axis: 0 if the policy differs per episode, else None
+    res = physics.Physics(ctx.surrogate).simulate(policy, ctx.batch, policy_axis=axis, backend="c")
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import pathlib
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gsp_jax import dp, grasps, hand, policies, scenario
+from gsp_jax.dp import TableModel
+from gsp_jax.surrogate import Surrogate
+
+POLICIES = ("dp-base", "rl", "L1", "L2", "dp-opt")  # the paper's (its Table 1 order)
+REFERENCES = ("four-tips", "one-tip", "random")  # the physics check's: a constant grasp, a grasp that cannot hold,
+# and random sequences of the surrogate's feasible actions
+LOOKAHEAD_DEPTH = {"L1": 1, "L2": 2}
+TRAINED_POLICY = pathlib.Path("results/train/dp/seed0/policy")  # what `python -m experiments train` writes
+SHIPPED_POLICY = policies.SHIPPED_POLICY  # a copy of results/train/dp/seed0/policy of a full GPU run
+TABLE_CACHE = pathlib.Path("results/tables")  # `dp_tables` keeps built tables here (relative to the working dir)
+
+
+@dataclasses.dataclass
+class Context:
+    """What the planners of a batch of N episodes are built from. `tables` and `solutions` are None where no
+    planner needs them (`context(..., tables=False)`), `rl` where the PPO policy was not loaded."""
+
+    surrogate: Surrogate
+    set_name: str
+    names: list[str]  # episode names
+    batch: scenario.Episode  # stacked (N, ...)
+    tables: dp.Table | None  # stacked (N, ...), the episodes' DP tables
+    solutions: dp.Solution | None  # stacked, DP optimal per episode
+    nominal_actions: jax.Array | None  # (T,) the DP baseline: the nominal training episode's optimal sequence
+    rl: policies.NetworkPolicy | None  # the PPO actor (deterministic), with its critic
+    rl_source: str  # where the RL policy was read from
+
+    def take(self, n: int | None) -> "Context":
+        """The same context on `n` of its episodes, spread evenly (as `subset`): no new tables."""
+        if n is None or n >= len(self.names):
+            return self
+        keep = spread(len(self.names), n)
+        pick = lambda tree: jax.tree.map(lambda x: x[keep], tree)  # noqa: E731
+        return dataclasses.replace(self, names=[self.names[i] for i in keep], batch=pick(self.batch),
+                                   tables=pick(self.tables), solutions=pick(self.solutions))
+
+
+def spread(total: int, n: int) -> np.ndarray:
+    """Indices of `n` of `total` items spread evenly, first and last included."""
+    if n < 1:
+        raise ValueError(f"episodes: need at least 1, got {n}")
+    return np.unique(np.linspace(0, total - 1, n).round().astype(int))
+
+
+def subset(episodes: dict, n: int | None) -> dict:
+    """`n` episodes spread evenly over the set (both evaluation sets stay represented); all if n is None."""
+    if n is None or n >= len(episodes):
+        return episodes
+    keep = spread(len(episodes), n)
+    items = list(episodes.items())
+    return dict(items[i] for i in keep)
+
+
+def load_rl(sur: Surrogate, policy_dir: str | pathlib.Path | None = None) -> tuple[policies.NetworkPolicy, str]:
+    """The PPO policy: `policy_dir` if given, else the one `train` wrote (results/train/dp/seed0), else the shipped
+    copy (`policies.SHIPPED_POLICY`); and where it was read from."""
+    candidates = [pathlib.Path(policy_dir)] if policy_dir else [TRAINED_POLICY, SHIPPED_POLICY]
+    for path in candidates:
+        if path.exists():
+            here = pathlib.Path.cwd()
+            shown = path.resolve().relative_to(here) if path.resolve().is_relative_to(here) else path
+            return policies.load_network_policy(sur, path), str(shown)
+    raise FileNotFoundError(
+        f"policy_dir: no PPO policy at {', '.join(map(str, candidates))}; run `python -m experiments train --seeds 1`"
+    )
+
+
+def dp_tables(sur: Surrogate, set_name: str, episodes: dict, batch_size: int = 4,
+              cache: pathlib.Path | None = TABLE_CACHE) -> dp.Table:
+    """The stacked `dp.Table`s of named episodes, kept under `cache` (keyed by the episodes, the model files and
+    the surrogate's configuration, so a change to any of them rebuilds; None: no cache). Builds `batch_size` at a
+    time."""
+    batch = scenario.stack(list(episodes.values()))
+    h = hashlib.sha256()
+    for leaf in jax.tree.leaves(batch):
+        h.update(np.asarray(leaf).tobytes())
+    for path in sorted(pathlib.Path(hand.SCENE_XML).parent.glob("*.xml")):
+        h.update(path.read_bytes())
+    for cfg in (sur.reward_config, sur.ik_config, sur.wrench_config):
+        h.update(repr(dataclasses.asdict(cfg)).encode())
+    path = None if cache is None else pathlib.Path(cache) / f"{set_name}_{h.hexdigest()[:12]}.npz"
+    if path is not None and path.exists():
+        with np.load(path) as d:
+            return dp.Table(**{k: jnp.asarray(d[k]) for k in d.files})
+    print(f"building DP tables for {len(episodes)} episodes of '{set_name}'"
+          + (f" (cached in {path})" if path else "") + " ...", flush=True)
+    t0 = time.perf_counter()
+    tables = jax.block_until_ready(jax.jit(lambda b: dp.build_tables(sur, b, batch_size))(batch))
+    print(f"  {time.perf_counter() - t0:.1f} s", flush=True)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp.npz")
+        np.savez(tmp, **{k: np.asarray(v) for k, v in vars(tables).items()})
+        tmp.replace(path)
+    return tables
+
+
+def nominal_actions(sur: Surrogate) -> jax.Array:
+    """The DP baseline's open-loop sequence: the nominal training episode's optimal actions (T,)."""
+    tables = dp_tables(sur, "nominal", scenario.nominal())
+    first = jax.tree.map(lambda x: x[0], tables)
+    return dp.backup(first, scenario.make_episode().start_grasp).actions
+
+
+def four_tips(space: grasps.GraspSpace, n_steps: int = scenario.N_WAYPOINTS) -> np.ndarray:
+    """(T,) the constant four-tip grasp: add the ring tip at waypoint 0 (T1 I1 . M1 . R1), then keep the grasp."""
+    return np.full(n_steps, space.action("ring_distal", 1), np.int32)
+
+
+def one_tip(space: grasps.GraspSpace, n_steps: int = scenario.N_WAYPOINTS) -> np.ndarray:
+    """(T,) the index tip alone: the middle tip lets go at waypoint 0, the thumb at 1, then keep (must drop)."""
+    seq = np.full(n_steps, grasps.NULL, np.int32)
+    seq[0], seq[1] = space.action("middle_distal", 0), space.action("thumb_distal", 0)
+    return seq
+
+
+def scripted_sequences(space: grasps.GraspSpace, n_steps: int = scenario.N_WAYPOINTS) -> dict[str, np.ndarray]:
+    """Three scripted sequences with grasp changes, (T,) actions each ("keep the grasp" is the null action):
+    `add-slide` adds the ring tip at waypoint 2, slides the middle tip M1 -> M2 at 6 and back at 10;
+    `add-slide-ring0` the same with the ring tip added at 0; `alternate` adds the ring tip at 0, then changes at
+    every waypoint, sliding the middle tip between M2 and M1."""
+    keep = grasps.NULL
+    ring, m1, m2 = space.action("ring_distal", 1), space.action("middle_distal", 1), space.action("middle_distal", 2)
+    add_slide = np.full(n_steps, keep)
+    add_slide[2], add_slide[6], add_slide[10] = ring, m2, m1
+    early = add_slide.copy()
+    early[0], early[2] = ring, keep
+    alternate = np.array([ring] + [m2 if t % 2 else m1 for t in range(1, n_steps)])
+    return {"add-slide": add_slide.astype(np.int32), "add-slide-ring0": early.astype(np.int32),
+            "alternate": alternate.astype(np.int32)}
+
+
+def context(set_name: str = "eval", n_episodes: int | None = None, policy_dir=None, episodes: dict | None = None,
+            tables: bool = True, rl: bool = True) -> Context:
+    """The context of an episode set (`scenario.episode_set(set_name)`, or the named `episodes` given), `n_episodes`
+    of it spread evenly (all if None): with their DP tables and solutions (`tables`) and the PPO policy (`rl`,
+    `load_rl(policy_dir)`)."""
+    sur = Surrogate()
+    everything = scenario.episode_set(set_name) if episodes is None else episodes
+    chosen = subset(everything, n_episodes)
+    tag = set_name if len(chosen) == len(everything) else f"{set_name}{len(chosen)}"
+    batch = scenario.stack(list(chosen.values()))
+    tabs = sols = None
+    if tables:
+        tabs = dp_tables(sur, tag, chosen)
+        sols = jax.jit(jax.vmap(dp.backup))(tabs, batch.start_grasp)
+    net, source = load_rl(sur, policy_dir) if rl else (None, "")
+    return Context(sur, set_name, list(chosen), batch, tabs, sols, nominal_actions(sur), net, source)
+
+
+def make(ctx: Context, name: str, model=None, cached: bool = True, seed: int = 0, hold: float = 0.0):
+    """(policy, policy_axis) of planner `name` (one of `POLICIES` or `REFERENCES`) for the context's episode batch.
+
+    Lookahead (L1, L2) steps its root in `model` (default: the surrogate itself, which acts from any continuous
+    state) and, with `cached`, runs the tree's interior and its rollouts as lookups in each episode's table
+    (`inner`; exact, as every state below the root is discrete; policy_axis is then a `Lookahead` of in_axes, 0 for
+    the tables); without, all in `model`. `random`: one random feasible sequence per episode from `seed`
+    (`dp.random_sequence`, keeping the grasp with probability `hold`)."""
+    sur = ctx.surrogate
+    needs = {"dp-opt": ctx.solutions, "random": ctx.tables, "rl": ctx.rl, "L1": ctx.rl, "L2": ctx.rl}
+    if name in needs and needs[name] is None:
+        raise ValueError(f"policy {name!r}: the context was built without what it needs (tables or the RL policy)")
+    T = ctx.batch.n_steps
+    if name == "dp-base":
+        return policies.SequencePolicy(ctx.nominal_actions), None
+    if name == "dp-opt":
+        return policies.TablePolicy(ctx.solutions.policy), 0
+    if name == "rl":
+        return ctx.rl, None
+    if name in LOOKAHEAD_DEPTH:
+        depth = LOOKAHEAD_DEPTH[name]
+        if not cached:
+            return policies.Lookahead(ctx.rl, model or sur, depth=depth), None
+        inner = TableModel(ctx.tables, sur.space)
+        return (policies.Lookahead(ctx.rl, model or sur, depth=depth, inner=inner),
+                policies.Lookahead(None, None, depth=depth, inner=0))
+    if name == "four-tips":
+        return policies.SequencePolicy(jnp.asarray(four_tips(sur.space, T))), None
+    if name == "one-tip":
+        return policies.SequencePolicy(jnp.asarray(one_tip(sur.space, T))), None
+    if name == "random":
+        keys = jax.random.split(jax.random.PRNGKey(seed), len(ctx.names))
+        actions = jax.vmap(dp.random_sequence, (0, 0, 0, None, None))(
+            ctx.tables, ctx.batch.start_grasp, keys, sur.reward_config.r_min, hold)
+        return policies.SequencePolicy(actions), 0
+    raise ValueError(f"policy: expected one of {POLICIES + REFERENCES}, got {name!r}")

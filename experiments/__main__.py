@@ -66,6 +66,8 @@ def main(argv: list[str] | None = None) -> None:
     deterministic_gpu_kernels(next((w for w in words if not w.startswith("-")), None))
     use_compilation_cache()
     parser = argparse.ArgumentParser(prog="python -m experiments", description=__doc__)
+    parser.add_argument("--record", action="store_true",
+                        help="also write the result to docs/data/<name>.json and append it to docs/data/history/")
     sub = parser.add_subparsers(dest="command", required=True)
     modules = {}
     for name, (module, help_) in COMMANDS.items():
@@ -73,6 +75,9 @@ def main(argv: list[str] | None = None) -> None:
         modules[name] = mod
         mod.add_arguments(sub.add_parser(name, help=help_.replace("%", "%%"), description=mod.__doc__))
     args = parser.parse_args(argv)
+    from experiments import common
+
+    common.RECORD = args.record
     modules[args.command].main(args)
 
 

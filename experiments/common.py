@@ -3,6 +3,7 @@ the fingerprint of a saved evaluation result."""
 from __future__ import annotations
 
 import hashlib
+import os
 import pathlib
 import time
 
@@ -60,6 +61,49 @@ def fingerprint(ctx) -> str:
     for leaf in jax.tree.leaves(ctx.rl.params):
         h.update(np.asarray(leaf).tobytes())
     return h.hexdigest()[:16]
+
+
+DATA = ROOT / "docs" / "data"  # the current result of each benchmark and figure, and their histories
+RECORD = False  # `python -m experiments --record <command>`: `record` writes to DATA (off: runs leave docs alone)
+
+
+def device_slug() -> str:
+    """A short name of the device the results come from: h100, h200, cpu..."""
+    kind = jax.devices()[0].device_kind.lower()
+    return next((g for g in ("h100", "h200", "a100", "l4") if g in kind), jax.default_backend())
+
+
+def record(name: str, figures: dict, per_device: bool = False, data: pathlib.Path | None = None) -> dict | None:
+    """With `--record` (`RECORD`): `figures` (a small JSON-able dict, the benchmark's printed table) become the
+    current `docs/data/<name>.json` and a new line of `docs/data/history/<name>.jsonl`, one schema for all:
+    {name, date, commit, device, command, figures}. `per_device`: timings, kept per device (<name>_<device>)."""
+    import datetime
+    import json
+    import subprocess
+    import sys
+
+    if not RECORD:
+        return None
+    data = DATA if data is None else pathlib.Path(data)
+    name = f"{name}_{device_slug()}" if per_device else name
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=ROOT, capture_output=True, text=True,
+                                check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
+                               text=True).stdout.strip()
+        commit += "+dirty" if dirty else ""
+    except (OSError, subprocess.CalledProcessError):
+        commit = "unknown"
+    row = dict(name=name, date=datetime.datetime.now().isoformat(timespec="minutes"), commit=commit,
+               device=f"{jax.devices()[0].device_kind} ({jax.default_backend()}, {os.cpu_count()} cores)",
+               command="python -m experiments " + " ".join(sys.argv[1:]), figures=figures)
+    text = json.dumps(row, default=float)
+    (data / "history").mkdir(parents=True, exist_ok=True)
+    (data / f"{name}.json").write_text(json.dumps(json.loads(text), indent=1) + "\n")
+    with open(data / "history" / f"{name}.jsonl", "a") as f:
+        f.write(text + "\n")
+    print(f"recorded {name}: {data / (name + '.json')}", flush=True)
+    return row
 
 
 def add_lookahead_argument(p) -> None:

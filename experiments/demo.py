@@ -20,10 +20,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gsp_jax import evaluation
-from experiments.paper import fig4a
 from experiments.common import results_dir, table
-from gsp_jax import dp, physics, scenario
+from experiments.paper import fig4a
+from gsp_jax import dp, evaluation, physics, scenario
 from gsp_jax.grasps import NULL
 from gsp_jax.surrogate import Surrogate
 

@@ -43,25 +43,70 @@ def _pm(cell: str) -> tuple[float, float]:
     return float(mean), float(ci)
 
 
-def test_results_table_is_the_committed_report():
-    """The README's results rows (Fig. 4a, Fig. 4b, Table 1) equal docs/report/report.json, the run they come from,
-    at the digits shown."""
-    report = json.loads((ROOT / "docs/report/report.json").read_text())
+DATA = ROOT / "docs/data"
+SCHEMA = {"name", "date", "commit", "device", "command", "figures"}  # and an optional "note"
+
+
+def _data(name: str) -> dict:
+    return json.loads((DATA / f"{name}.json").read_text())["figures"]
+
+
+def test_results_table_is_docs_data():
+    """The README's results rows (Fig. 4a, Fig. 4b, Table 1) equal docs/data (fig4a, fig4b, table1_h100), at the
+    digits shown."""
     order = ["dp-base", "rl", "L1", "L2", "dp-opt"]
-    fig4a = report["fig4a"]["relative"]
+    fig4a = _data("fig4a")["relative"]
     cells = _row("Fig. 4a: surrogate return − DP optimal (mean ± 95% CI), H100")
     for cell, p in zip(cells, order[:4]):
         assert _pm(cell) == (round(fig4a[p]["mean"], 2), round(fig4a[p]["ci95"], 2)), (p, cell)
     assert cells[4] == "0"
-    fig4b = report["fig4b"]
+    fig4b = _data("fig4b")
     assert [int(x) for x in _row("Fig. 4b: falls / 27 in C MuJoCo, H100 host")] == [fig4b[p]["falls"] for p in order]
     for cell, p in zip(_row("Fig. 4b: tool angle error [deg] (mean ± 95% CI; 180 for a fall)"), order):
         assert _pm(cell) == (round(fig4b[p]["mean_deg"], 1), round(fig4b[p]["ci95_deg"], 1)), (p, cell)
-    table1 = report["table1"]["policies"]
+    table1 = _data("table1_h100")
     for cell, p in zip(_row("Table 1: ours, one H100"), order):
         value = float(cell.removesuffix(" s"))
         digits = len(cell.removesuffix(" s").split(".")[1])
-        assert value == round(table1[p]["warm_s"], digits), (p, cell)
-    paper = report["table1"]["paper"]["table1_s"]
+        assert value == round(table1["warm_s"][p], digits), (p, cell)
     assert [float(c.removesuffix(" s")) for c in _row("Table 1: online time per episode, paper (32-core Xeon)")] == [
-        paper[p] for p in order]
+        table1["paper_s"][p] for p in order]
+
+
+def test_docs_data_has_one_schema_and_a_history_per_result():
+    """Every current result in docs/data has the one schema, and its history (docs/data/history/<name>.jsonl, a
+    row per run) ends with it."""
+    current = sorted(DATA.glob("*.json"))
+    assert {p.stem for p in current} >= {"fig4a", "fig4b", "table1_h100", "envelope_stress", "envelope_eval"}
+    for path in current:
+        row = json.loads(path.read_text())
+        assert SCHEMA <= set(row) <= SCHEMA | {"note"}, (path.name, sorted(row))
+        assert row["name"] == path.stem and isinstance(row["figures"], dict) and row["figures"], path.name
+        history = (DATA / "history" / f"{path.stem}.jsonl").read_text().splitlines()
+        assert json.loads(history[-1]) == row, f"{path.name}: the history's last row is not the current result"
+
+
+def test_the_report_is_the_run_docs_data_holds():
+    """docs/report (REPORT.md, report.json) and docs/data's Fig. 4a, Fig. 4b and Table 1 come from the same run."""
+    from experiments.paper import fig4a, fig4b, table1
+
+    report = json.loads((ROOT / "docs/report/report.json").read_text())
+    assert fig4a.figures(report["fig4a"]) == _data("fig4a")
+    assert fig4b.figures(report["fig4b"]) == _data("fig4b")
+    assert table1.figures(report["table1"]) == _data("table1_h100")
+
+
+def test_record_writes_the_current_result_and_appends_its_history(tmp_path, monkeypatch):
+    """`python -m experiments --record <command>`: `common.record` writes the schema's row and appends it to the
+    history; without --record it writes nothing."""
+    from experiments import common
+
+    monkeypatch.setattr(common, "RECORD", False)
+    assert common.record("bench_x", {"a": 1.0}, data=tmp_path) is None and not any(tmp_path.iterdir())
+    monkeypatch.setattr(common, "RECORD", True)
+    first = common.record("bench_x", {"a": 1.0}, data=tmp_path)
+    second = common.record("bench_x", {"a": 2.0}, data=tmp_path)
+    assert set(first) == SCHEMA and first["figures"] == {"a": 1.0}
+    assert json.loads((tmp_path / "bench_x.json").read_text()) == second
+    rows = [json.loads(line) for line in (tmp_path / "history" / "bench_x.jsonl").read_text().splitlines()]
+    assert rows == [first, second]

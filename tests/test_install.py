@@ -18,14 +18,18 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 STEP_ONCE = """
 import json, pathlib, jax, jax.numpy as jnp
 import gsp_jax
-from gsp_jax import hand, scenario, surrogate
+from gsp_jax import evaluation, hand, scenario, surrogate
 env = surrogate.Surrogate()
 state = jax.jit(env.reset)(scenario.make_episode())
 state, reward, done = jax.jit(env.step)(state, jnp.int32(3))
-from gsp_jax import evaluation
 from gsp_jax import physics
+import importlib, experiments
+from experiments.__main__ import COMMANDS
+for module, _ in COMMANDS.values():  # every command's module, its group's subpackage included
+    importlib.import_module(module)
 nbody = physics.Physics(env).model.nbody  # the physics subpackage and its scene (world, palm, 16 finger bodies, tool)
 print(json.dumps(dict(package=str(pathlib.Path(gsp_jax.__file__).parent), models=str(hand.MODELS_DIR),
+                      experiments=str(pathlib.Path(experiments.__file__).parent),
                       reward=float(reward), grasp=int(state.grasp), policy=evaluation.SHIPPED_POLICY.is_dir(),
                       nbody=nbody)))
 """
@@ -54,6 +58,7 @@ def test_wheel_installs_outside_the_checkout_and_steps_the_surrogate(tmp_path):
     result = json.loads(out.stdout.strip().splitlines()[-1])
     site = str(site)
     assert result["package"].startswith(site) and result["models"].startswith(site), result  # not the checkout
+    assert result["experiments"].startswith(site), result
     assert result["policy"], "the shipped policy is not in the installed package"
     assert result["nbody"] == 19, "the physics scene did not build from the installed package"
     assert -200.0 <= result["reward"] < 0.0 and result["grasp"] >= 0, result

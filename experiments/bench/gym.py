@@ -14,10 +14,10 @@ import time
 import gymnasium as gym
 import numpy as np
 
-from gsp_jax.evaluation import dp_tables
 from experiments.common import table
 from gsp_jax import scenario
 from gsp_jax.env import GraspEnv
+from gsp_jax.evaluation import dp_tables
 from gsp_jax.gym_env import GraspVectorEnv, GymGraspEnv
 from gsp_jax.surrogate import Surrogate
 

@@ -20,9 +20,8 @@ import jax
 import numpy as np
 
 from experiments import common
-from gsp_jax import evaluation
 from experiments.common import results_dir, table, timed
-from gsp_jax import dp, policies
+from gsp_jax import dp, evaluation, policies
 from gsp_jax.env import TableModel
 
 
@@ -108,4 +107,6 @@ def main(args: argparse.Namespace) -> None:
     out = results_dir("bench_latency") / f"{result['platform']}.json"
     out.write_text(json.dumps(result, indent=1))
     print(f"wrote {out}\n")
+    common.record("bench_latency", dict(episodes=len(result["episodes"]), lookahead=result["lookahead"], policies={
+        n: {k: v for k, v in r.items() if k != "returns"} for n, r in result["policies"].items()}), per_device=True)
     print_result(result)

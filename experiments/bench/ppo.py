@@ -16,8 +16,8 @@ import time
 import jax
 import numpy as np
 
-from experiments.paper import train as train_exp
 from experiments.common import best_time, table
+from experiments.paper import train as train_exp
 from gsp_jax.env import GraspEnv
 from gsp_jax.gym_env import GymGraspEnv
 from gsp_jax.ppo import train as ppo

@@ -19,9 +19,8 @@ import jax
 import numpy as np
 
 from experiments import common
-from gsp_jax import evaluation
 from experiments.common import bar_png, results_dir, table
-from gsp_jax import lookahead, policies, stats
+from gsp_jax import evaluation, lookahead, policies, stats
 from gsp_jax.env import TableModel
 
 COMPARED = ("dp-base", "rl", "L1", "L2")  # relative to dp-opt
@@ -101,6 +100,13 @@ def print_result(result: dict) -> None:
     print(table(["policy", "return - DP opt", "95% CI +-", "optimal on", "falls"], rows, ".3f"))
 
 
+def figures(result: dict) -> dict:
+    """Fig. 4a's figures for docs/data: per policy, the return relative to DP optimal (mean, 95% CI), how often
+    optimal, falls."""
+    return dict(set=result.get("set"), episodes=len(result["episodes"]), backend=result.get("backend"),
+                relative=result["relative"])
+
+
 def main(args: argparse.Namespace) -> None:
     backend = args.backend or ("surrogate" if jax.default_backend() == "gpu" else "table")
     ctx = evaluation.context(args.set, args.episodes, args.policy_dir)
@@ -108,4 +114,5 @@ def main(args: argparse.Namespace) -> None:
     out = results_dir("fig4a")
     result = run(ctx, backend, out, cached=args.lookahead == "cached")
     print(f"wrote {out / 'returns.json'}, {out / 'fig4a.png'}")
+    common.record("fig4a", figures(result))
     print_result(result)

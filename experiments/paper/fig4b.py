@@ -21,10 +21,9 @@ import jax
 import numpy as np
 
 from experiments import common
-from gsp_jax import evaluation
 from experiments.common import bar_png, results_dir, table
 from experiments.physics.check import result_rows
-from gsp_jax import physics, stats
+from gsp_jax import evaluation, physics, stats
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -116,6 +115,12 @@ def print_result(results: dict) -> None:
     print(table(["policy", "angle error [deg]", "95% CI +-", "fell"], rows, ".1f"))
 
 
+def figures(results: dict) -> dict:
+    """Fig. 4b's figures for docs/data: per policy, falls and the tool angle error (mean, 95% CI) in physics."""
+    return {name: dict(episodes=len(r["episodes"]), falls=r["falls"], mean_deg=r["mean_deg"], ci95_deg=r["ci95_deg"],
+                       backend=r.get("backend")) for name, r in results.items()}
+
+
 def main(args: argparse.Namespace) -> None:
     ctx = evaluation.context(args.set, args.episodes, args.policy_dir)
     print(f"Fig. 4b: {len(ctx.names)} episodes of '{args.set}' in {args.backend} (JAX on {jax.default_backend()}), "
@@ -124,4 +129,5 @@ def main(args: argparse.Namespace) -> None:
     results = run(ctx, args.policies, out, args.fresh, args.backend, cached=args.lookahead == "cached", jobs=args.jobs,
                   warm=args.warm)
     print(f"wrote {out}/<policy>.json, {out / 'fig4b.png'}")
+    common.record("fig4b", figures(results))
     print_result(results)

@@ -26,11 +26,11 @@ import jax
 import numpy as np
 
 from experiments import common
-from gsp_jax import evaluation
+from experiments.common import results_dir
 from experiments.paper import fig4a
 from experiments.paper import fig4b
 from experiments.paper import table1
-from experiments.common import results_dir
+from gsp_jax import evaluation
 
 PRESETS = {
     "quick": dict(fig4a_episodes=9, backend="table", batch=0, repeats=1, fig4b_episodes=2, train=False),
@@ -98,12 +98,14 @@ def main(args: argparse.Namespace) -> None:
         fig4a.print_result(res)
         shutil.copy(results_dir("fig4a") / "fig4a.png", out / "fig4a.png")
         sections["fig4a"] = res
+        common.record("fig4a", fig4a.figures(res))
     if "table1" not in args.skip:
         print("[2/3] Table 1", flush=True)
         ctx = everything.take(max(1, p["batch"]))
         res = table1.run(table1.with_ik_unroll(ctx, None), p["batch"], p["repeats"], results_dir("table1"))
         table1.print_result(res)
         sections["table1"] = res
+        common.record("table1", table1.figures(res), per_device=True)
     if "fig4b" not in args.skip:
         backend = getattr(args, "backend", "mjx")
         print(f"[3/3] Fig. 4b ({backend})", flush=True)
@@ -112,6 +114,7 @@ def main(args: argparse.Namespace) -> None:
         fig4b.print_result(res)
         shutil.copy(results_dir("fig4b") / "fig4b.png", out / "fig4b.png")
         sections["fig4b"] = res
+        common.record("fig4b", fig4b.figures(res))
     (out / "report.json").write_text(json.dumps(sections, indent=1, default=str))
     (out / "REPORT.md").write_text(report(sections))
     print(f"wrote {out / 'REPORT.md'} ({(time.perf_counter() - t_start) / 60:.1f} min)")

@@ -30,9 +30,8 @@ import time
 import jax
 
 from experiments import common
-from gsp_jax import evaluation
 from experiments.common import results_dir, table
-from gsp_jax import dp, lookahead, policies
+from gsp_jax import dp, evaluation, lookahead, policies
 from gsp_jax.env import TableModel
 from gsp_jax.surrogate import Surrogate
 
@@ -162,6 +161,13 @@ def run(ctx: evaluation.Context, batch: int, repeats: int, out, cached: bool = T
     return result
 
 
+def figures(result: dict) -> dict:
+    """Table 1's figures for docs/data: per policy, the warm online time of one unseen episode [s]."""
+    return dict(episode=result["episode"], lookahead=result.get("lookahead"),
+                warm_s={name: r["warm_s"] for name, r in result["policies"].items()},
+                paper_s=result["paper"]["table1_s"])
+
+
 def print_result(result: dict) -> None:
     batched = any("batch" in r for r in result["policies"].values())
     headers = ["policy", "paper [s]", f"ours warm [s] ({result['platform']})", "stepped / batched steps [s]", "compile [s]"]
@@ -197,4 +203,5 @@ def main(args: argparse.Namespace) -> None:
     print(f"Table 1 on {jax.devices()[0].device_kind}: episode {ctx.names[0]} ...", flush=True)
     result = run(ctx, args.batch, repeats, results_dir("table1"), cached=args.lookahead == "cached",
                  names=tuple(n for n in evaluation.POLICIES if n in args.policies), ahead=args.ahead)
+    common.record("table1", figures(result), per_device=True)
     print_result(result)

@@ -17,10 +17,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gsp_jax.evaluation import dp_tables
 from experiments.common import results_dir, table
 from gsp_jax import dp, pretrain, scenario
 from gsp_jax.env import GraspEnv
+from gsp_jax.evaluation import dp_tables
 from gsp_jax.ppo import networks as nets
 from gsp_jax.ppo import train as ppo
 from gsp_jax.surrogate import Surrogate

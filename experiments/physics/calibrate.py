@@ -35,8 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.physics.correlation import spearman
 from experiments.common import results_dir, table
+from experiments.physics.correlation import spearman
 from gsp_jax import dp, evaluation, physics, policies, scenario, surrogate
 
 GRID = dict(  # the candidates: every combination. (A first sweep on the nominal episode: fall thresholds of 0.1

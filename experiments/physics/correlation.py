@@ -13,9 +13,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gsp_jax.evaluation import dp_tables, nominal_actions
 from experiments.common import results_dir, table
 from gsp_jax import dp, physics, policies, scenario, surrogate
+from gsp_jax.evaluation import dp_tables, nominal_actions
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -28,9 +28,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gsp_jax import evaluation
+from experiments import common
 from experiments.common import results_dir, table
-from gsp_jax import dp, physics, policies, scenario
+from gsp_jax import dp, evaluation, physics, policies, scenario
 
 PLANNERS = ("four-tips", "dp-opt", "L1", "L2", "rl")
 
@@ -197,6 +197,7 @@ def main(args: argparse.Namespace) -> None:
     path = results_dir("envelope") / f"{args.set}.json"
     path.write_text(json.dumps(out, indent=1))
     print(f"wrote {path}\n")
+    common.record(f"envelope_{args.set}", dict(episodes=N, random=args.random, summary=summary))
     p = summary["pool"]
     print(f"pool: {p['sequences']} sequences, {p['surrogate_feasible']} surrogate-feasible, of those "
           f"{100 * p['feasible_hold_share']:.1f}% hold; AUC(return: hold vs fall) pooled {p['auc_pooled']:.2f}, "

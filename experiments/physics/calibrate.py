@@ -96,97 +96,94 @@ def candidate_tables(configs, episodes: scenario.Episode) -> list[dp.Table]:
     return out
 
 
-def main(args: argparse.Namespace) -> None:
-    if args.from_sweep:
-        summary = json.loads(pathlib.Path(args.from_sweep).read_text())
-        if "rows" not in summary:
-            summary["rows"] = [[r["label"], r["spearman"], r["feasible"], r["feasible_held"], r["dp_opt_falls"],
-                                r["dp_opt_angle"], r["dp_opt_changes"]] for r in summary["sweep"]]
-        summary.setdefault("best_spearman_label", max(summary["sweep"], key=lambda r: np.nan_to_num(
-            r["spearman"], nan=-1.0))["label"])
-        choose_and_write(summary, args.write)
-        return
-    sets = [s.strip() for s in args.sets.split(",") if s.strip()]
-    if any(s.startswith("eval") or s == "all" for s in sets):
-        raise SystemExit(f"--sets: calibration never uses the evaluation episodes, got {args.sets!r}")
-    episodes = {}
-    for s in sets:
-        episodes.update(scenario.episode_set(s))
-    names, batch = list(episodes), scenario.stack(list(episodes.values()))
-    configs = candidates()
-    t0 = time.perf_counter()
-    print(f"calibrate: {len(configs)} candidate rewards x {len(names)} episodes ({'+'.join(sets)}) ...", flush=True)
-    tables = candidate_tables(configs, batch)
-    nominal = scenario.make_episode()
-    nominal_tables = candidate_tables(configs, scenario.stack([nominal]))
-    print(f"  tables: {time.perf_counter() - t0:.0f} s", flush=True)
+def _from_sweep(path: str, write: bool) -> None:
+    """`--from-sweep`: choose (and with `write`, write) from a saved sweep."""
+    summary = json.loads(pathlib.Path(path).read_text())
+    if "rows" not in summary:
+        summary["rows"] = [[r["label"], r["spearman"], r["feasible"], r["feasible_held"], r["dp_opt_falls"],
+                            r["dp_opt_angle"], r["dp_opt_changes"]] for r in summary["sweep"]]
+    summary.setdefault("best_spearman_label", max(summary["sweep"], key=lambda r: np.nan_to_num(
+        r["spearman"], nan=-1.0))["label"])
+    choose_and_write(summary, write)
 
-    # ---- the pool of sequences, per episode
+
+def sequence_pool(configs, tables, nominal_tables, batch, n_random: int, seed: int) -> list[list[tuple[str, tuple]]]:
+    """Per episode, the distinct (kind, actions) sequences the candidates are scored on: the scripted ones, four
+    tips, one tip, every candidate's DP optimum and DP baseline, and `n_random` random feasible ones."""
+    n_e, n_t = int(np.shape(batch.mass)[0]), scenario.N_WAYPOINTS
     backup = jax.jit(jax.vmap(dp.backup))
-    n_t = scenario.N_WAYPOINTS
-    pool: list[list[tuple[str, tuple]]] = [[] for _ in names]
+    pool: list[list[tuple[str, tuple]]] = [[] for _ in range(n_e)]
 
     def add(e, kind, actions):
         key = tuple(int(a) for a in actions)
         if key not in {k for _, k in pool[e]}:
             pool[e].append((kind, key))
 
-    env0 = surrogate.Surrogate()
-    for name, seq in evaluation.scripted_sequences(env0.space).items():
-        for e in range(len(names)):
+    space = surrogate.Surrogate().space
+    for name, seq in evaluation.scripted_sequences(space).items():
+        for e in range(n_e):
             add(e, name, seq)
-    for e in range(len(names)):
-        add(e, "four-tips", evaluation.four_tips(env0.space, n_t))
-        add(e, "one-tip", evaluation.one_tip(env0.space, n_t))
+    for e in range(n_e):
+        add(e, "four-tips", evaluation.four_tips(space, n_t))
+        add(e, "one-tip", evaluation.one_tip(space, n_t))
+    nominal = scenario.make_episode()
     for i, tab in enumerate(tables):
         opt = np.asarray(backup(tab, batch.start_grasp).actions)
         nom = jax.tree.map(lambda x: x[0], nominal_tables[i])
         base_seq = np.asarray(dp.backup(nom, nominal.start_grasp).actions)
-        for e in range(len(names)):
+        for e in range(n_e):
             add(e, "dp-opt", opt[e])
             add(e, "dp-base", base_seq)
-    key = jax.random.PRNGKey(args.seed)
+    key = jax.random.PRNGKey(seed)
     sample = jax.jit(jax.vmap(dp.random_sequence, (0, 0, 0, None, None)), static_argnums=())
-    for r in range(args.random):
+    for r in range(n_random):
         tab = tables[r % len(tables)]
-        keys = jax.random.split(jax.random.fold_in(key, r), len(names))
+        keys = jax.random.split(jax.random.fold_in(key, r), n_e)
         seqs = np.asarray(sample(tab, batch.start_grasp, keys, configs[0].r_min, HOLDS[r % len(HOLDS)]))
-        for e in range(len(names)):
+        for e in range(n_e):
             add(e, "random", seqs[e])
+    return pool
 
-    # ---- physics, cached per (episode, sequence)
-    out = results_dir("calibrate")
-    cache_path = out / f"physics_{args.backend}.json"
+
+def simulate_pool(pool, episodes: dict, backend: str, chunk_size: int, t0: float) -> dict:
+    """Every (episode, sequence) of the pool in physics, cached in results/calibrate/physics_<backend>.json (kept
+    after each chunk): {"<episode>|<actions>": [angle error, fell]}."""
+    names = list(episodes)
+    cache_path = results_dir("calibrate") / f"physics_{backend}.json"
     cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
-    ckey = lambda e, seq: f"{names[e]}|{','.join(map(str, seq))}"  # noqa: E731
-    todo = [(e, seq) for e in range(len(names)) for _, seq in pool[e] if ckey(e, seq) not in cache]
+    todo = [(e, seq) for e in range(len(names)) for _, seq in pool[e] if pool_key(names, e, seq) not in cache]
     n_pool = sum(len(p) for p in pool)
-    print(f"  pool: {n_pool} distinct (episode, sequence) pairs, {len(todo)} to simulate ({args.backend})", flush=True)
-    phys = physics.Physics(env0)
-    n_chunks = max(1, -(-len(todo) // args.chunk))
+    print(f"  pool: {n_pool} distinct (episode, sequence) pairs, {len(todo)} to simulate ({backend})", flush=True)
+    phys = physics.Physics(surrogate.Surrogate())
+    n_chunks = max(1, -(-len(todo) // chunk_size))
     chunk = -(-len(todo) // n_chunks) if todo else 0  # equal chunks: one MJX compile
     for i in range(0, len(todo), max(chunk, 1)):
         part = todo[i:i + chunk]
         padded = part + [part[0]] * (chunk - len(part))  # the last chunk padded to the same shape
         eps = scenario.stack([episodes[names[e]] for e, _ in padded])
         acts = jnp.asarray([seq for _, seq in padded], jnp.int32)
-        res = phys.simulate_batch(policies.SequencePolicy(acts), eps, 0, backend=args.backend)
+        res = phys.simulate_batch(policies.SequencePolicy(acts), eps, 0, backend=backend)
         for j, (e, seq) in enumerate(part):
-            cache[ckey(e, seq)] = [float(res.angle_error[j]), bool(res.fell[j])]
+            cache[pool_key(names, e, seq)] = [float(res.angle_error[j]), bool(res.fell[j])]
         tmp = cache_path.with_suffix(".tmp")
         tmp.write_text(json.dumps(cache))
         tmp.replace(cache_path)
         print(f"  simulated {min(i + chunk, len(todo))}/{len(todo)}, {time.perf_counter() - t0:.0f} s", flush=True)
+    return cache
 
-    flat = [(e, kind, seq) for e in range(len(names)) for kind, seq in pool[e]]
-    angle = np.array([cache[ckey(e, seq)][0] for e, _, seq in flat])
-    fell = np.array([cache[ckey(e, seq)][1] for e, _, seq in flat])
+
+def pool_key(names, e: int, seq) -> str:
+    return f"{names[e]}|{','.join(map(str, seq))}"
+
+
+def score_candidates(configs, tables, batch, names, flat, angle, fell):
+    """Each candidate's scores of the whole pool `flat` [(episode, kind, actions)]: its sweep row (correlation with
+    physics, feasible share held, its DP optimum's falls, angle and changes), and its returns of the pool."""
+    backup = jax.jit(jax.vmap(dp.backup))
+    score = jax.jit(jax.vmap(dp.sequence_return, (0, 0, 0)))
     ep_idx = np.array([e for e, _, _ in flat])
     acts = jnp.asarray([seq for _, _, seq in flat], jnp.int32)
-
-    # ---- every candidate scores the whole pool
-    score = jax.jit(jax.vmap(dp.sequence_return, (0, 0, 0)))
-    rows, results, rets = [], [], []
+    results, rets = [], []
     for cfg, tab in zip(configs, tables):
         per_seq = jax.tree.map(lambda x: x[ep_idx], tab)
         ret = np.asarray(score(per_seq, batch.start_grasp[ep_idx], acts))
@@ -199,27 +196,51 @@ def main(args: argparse.Namespace) -> None:
         sol = backup(tab, batch.start_grasp)
         g = np.asarray(sol.grasps)
         changes = float(np.mean(np.sum((g[:, 1:] != g[:, :-1]) & np.asarray(sol.alive), axis=1)))
-        res = dict(config=dataclasses.asdict(cfg), label=label(cfg), spearman=rho, feasible=int(feasible.sum()),
-                   feasible_held=held_feasible, dp_opt_falls=int(fell[opt_idx].sum()),
-                   dp_opt_angle=float(angle[opt_idx].mean()), dp_opt_changes=changes,
-                   dp_opt_sequences={names[e]: [int(a) for a in opt[e]] for e in range(len(names))})
-        results.append(res)
+        results.append(dict(config=dataclasses.asdict(cfg), label=label(cfg), spearman=rho,
+                            feasible=int(feasible.sum()), feasible_held=held_feasible,
+                            dp_opt_falls=int(fell[opt_idx].sum()), dp_opt_angle=float(angle[opt_idx].mean()),
+                            dp_opt_changes=changes,
+                            dp_opt_sequences={names[e]: [int(a) for a in opt[e]] for e in range(len(names))}))
         rets.append(ret)
-        rows.append([label(cfg), rho, int(feasible.sum()), held_feasible, int(fell[opt_idx].sum()),
-                     float(angle[opt_idx].mean()), changes])
+    return results, rets
+
+
+def main(args: argparse.Namespace) -> None:
+    if args.from_sweep:
+        return _from_sweep(args.from_sweep, args.write)
+    sets = [s.strip() for s in args.sets.split(",") if s.strip()]
+    if any(s.startswith("eval") or s == "all" for s in sets):
+        raise SystemExit(f"--sets: calibration never uses the evaluation episodes, got {args.sets!r}")
+    episodes = {}
+    for s in sets:
+        episodes.update(scenario.episode_set(s))
+    names, batch = list(episodes), scenario.stack(list(episodes.values()))
+    configs = candidates()
+    t0 = time.perf_counter()
+    print(f"calibrate: {len(configs)} candidate rewards x {len(names)} episodes ({'+'.join(sets)}) ...", flush=True)
+    tables = candidate_tables(configs, batch)
+    nominal_tables = candidate_tables(configs, scenario.stack([scenario.make_episode()]))
+    print(f"  tables: {time.perf_counter() - t0:.0f} s", flush=True)
+    pool = sequence_pool(configs, tables, nominal_tables, batch, args.random, args.seed)
+    cache = simulate_pool(pool, episodes, args.backend, args.chunk, t0)
+    flat = [(e, kind, seq) for e in range(len(names)) for kind, seq in pool[e]]
+    angle = np.array([cache[pool_key(names, e, seq)][0] for e, _, seq in flat])
+    fell = np.array([cache[pool_key(names, e, seq)][1] for e, _, seq in flat])
+    results, rets = score_candidates(configs, tables, batch, names, flat, angle, fell)
     rho_all = np.nan_to_num(np.array([r["spearman"] for r in results]), nan=-1.0)
     top = int(np.argmax(rho_all))
-    se = bootstrap_se(rets[top], angle, ep_idx, args.seed)
+    se = bootstrap_se(rets[top], angle, np.array([e for e, _, _ in flat]), args.seed)
     summary = dict(sets=sets, episodes=names, sequences=len(flat), physics_falls=int(fell.sum()),
                    best_spearman=float(rho_all[top]), best_spearman_se=se, best_spearman_label=results[top]["label"],
                    backend=args.backend, chosen=None, sweep=results,
                    kinds={k: int(sum(1 for _, kk, _ in flat if kk == k)) for k in sorted({k for _, k, _ in flat})},
-                   wall_s=time.perf_counter() - t0)
-    summary["rows"] = rows
+                   wall_s=time.perf_counter() - t0,
+                   rows=[[r["label"], r["spearman"], r["feasible"], r["feasible_held"], r["dp_opt_falls"],
+                          r["dp_opt_angle"], r["dp_opt_changes"]] for r in results])
     print(f"\n{len(flat)} sequences on {len(names)} episodes ({'+'.join(sets)}), {int(fell.sum())} fell in physics "
           f"({args.backend}); {time.perf_counter() - t0:.0f} s")
     choose_and_write(summary, args.write)  # sets summary["chosen"]
-    (out / "sweep.json").write_text(json.dumps(summary, indent=1))
+    (results_dir("calibrate") / "sweep.json").write_text(json.dumps(summary, indent=1))
 
 
 def choose_and_write(summary: dict, write: bool) -> dict:

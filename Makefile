@@ -11,7 +11,7 @@ STAMP := $(VENV)/.installed
 PYTHON ?= $(shell for p in python3.12 python3.13 $$HOME/.pyenv/versions/3.12*/bin/python $$HOME/.pyenv/versions/3.13*/bin/python python3; do \
 	  if command -v $$p >/dev/null 2>&1 && $$p -c 'import sys; sys.exit(sys.version_info < (3, 12))' >/dev/null 2>&1; then command -v $$p; break; fi; done)
 
-.PHONY: demo test bench venv clean
+.PHONY: demo test commands bench venv clean
 
 venv: $(STAMP)
 
@@ -28,6 +28,9 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	JAX_PLATFORMS=cpu $(PY) -m pytest -q -n 2 tests --nbmake --nbmake-timeout=1200 experiments/notebooks
+
+commands: $(STAMP)  # every `python -m experiments` command in its quickest form (long: a GPU host with -n 8)
+	$(PY) -m pytest -q -m commands -n $(or $(JOBS),2) tests/test_commands.py
 
 bench: $(STAMP)
 	$(PY) -m experiments bench-surrogate

@@ -4,6 +4,7 @@ falls, then the highest correlation; the evaluation episodes are refused."""
 from __future__ import annotations
 
 import argparse
+import pathlib
 import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
@@ -59,3 +60,10 @@ def test_evaluation_episodes_are_refused():
     args = argparse.Namespace(from_sweep=None, sets="train,eval", random=1, backend="c", seed=0, chunk=8, write=False)
     with pytest.raises(SystemExit, match="never uses the evaluation episodes"):
         calibrate.main(args)
+
+
+def test_write_targets_the_librarys_calibration_module():
+    """`calibrate --write` rewrites gsp_jax/calibration.py, the module `surrogate.RewardConfig` reads."""
+    from gsp_jax import calibration
+
+    assert calibrate.CALIBRATION_PY == pathlib.Path(calibration.__file__).resolve() and calibrate.CALIBRATION_PY.is_file()

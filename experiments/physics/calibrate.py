@@ -37,7 +37,7 @@ import numpy as np
 
 from experiments.common import results_dir, table
 from experiments.physics.correlation import spearman
-from gsp_jax import dp, evaluation, physics, policies, scenario, surrogate
+from gsp_jax import calibration, dp, evaluation, physics, policies, scenario, surrogate
 
 GRID = dict(  # the candidates: every combination. (A first sweep on the nominal episode: fall thresholds of 0.1
     # and below, or mu x0.6, leave no sequence feasible, not even the four tips that hold in physics -- the wrench
@@ -51,7 +51,7 @@ GRID = dict(  # the candidates: every combination. (A first sweep on the nominal
     change=((0.0, False), (1.0, True), (5.0, True)),  # (w_wrench_change, change_falls): off / on / on, weighted 5
 )
 HOLDS = (0.0, 0.6, 0.9)
-CALIBRATION_PY = pathlib.Path(__file__).resolve().parents[1] / "gsp_jax" / "calibration.py"
+CALIBRATION_PY = pathlib.Path(calibration.__file__).resolve()  # where `--write` puts the chosen defaults
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -1,0 +1,75 @@
+"""Every `python -m experiments` command runs in its quickest real form, in a fresh working directory (no results/
+from an earlier run: the shipped policy, the committed model files), and writes what it says it writes.
+
+Marked `commands` and left out of `make test` (together they compile for about half an hour on a 2-core CPU):
+`make commands` runs them (on a GPU host with `-n 8`, a few minutes). The order is the one a user follows:
+`physics-agree` reads what `physics` wrote in both backends, `train-curves` what `train` wrote.
+"""
+from __future__ import annotations
+
+import os
+import pathlib
+import subprocess
+import sys
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+# (command line, files it must write, relative to the working directory); the groups run in one directory each
+QUICKEST = {
+    "demo": [(["demo", "--no-gif"], ["results/demo/demo.png"])],
+    "surrogate": [(["surrogate", "--episode", "nominal", "--waypoints", "0"], [])],
+    "bench-surrogate": [(["bench-surrogate", "--loop-steps", "17", "--repeats", "1", "--out", "b.json"], ["b.json"])],
+    "bench-dp": [(["bench-dp", "--episodes", "2", "--loop-steps", "17", "--repeats", "1", "--out", "b.json"],
+                  ["b.json"])],
+    "bench-gym": [(["bench-gym", "--envs", "4", "--sync-max", "4", "--seconds", "1"], [])],
+    "dp": [(["dp", "--set", "nominal"], [])],
+    "train": [(["train", "--preset", "quick", "--seeds", "1", "--iterations", "1", "--envs", "16"],
+               ["results/train/dp/seed0/history.json"]),
+              (["train-curves"], ["results/train/curves.json"])],
+    "bench-ppo": [(["bench-ppo", "--preset", "quick", "--max-iterations", "1"], [])],
+    "physics": [(["physics", "--set", "nominal", "--policy", "four-tips", "--backend", "c"],
+                 ["results/physics/nominal_four-tips_c.json"]),
+                (["physics", "--set", "nominal", "--policy", "four-tips", "--backend", "mjx"],
+                 ["results/physics/nominal_four-tips.json"]),
+                (["physics-agree", "--set", "nominal", "--policies", "four-tips"],
+                 ["results/physics/nominal_agreement.json"])],
+    "physics-corr": [(["physics-corr", "--set", "nominal", "--random", "1", "--backend", "c"], [])],
+    "bench-physics": [(["bench-physics", "--set", "nominal", "--waypoints", "2", "--backends", "c", "--cores", "1"],
+                       [])],
+    "envelope": [(["envelope", "--set", "eval", "--episodes", "1", "--random", "0"], ["results/envelope/eval.json"])],
+    "calibrate": [(["calibrate", "--sets", "nominal", "--random", "1", "--backend", "c"],
+                   ["results/calibrate/sweep.json"])],
+    "fig4a": [(["fig4a", "--set", "evalA", "--episodes", "2"], ["results/fig4a/returns.json"])],
+    "fig4b": [(["fig4b", "--set", "evalA", "--episodes", "1", "--backend", "c", "--policies", "dp-base", "rl"],
+               ["results/fig4b/rl.json"])],
+    "table1": [(["table1", "--set", "evalA", "--repeats", "1", "--policies", "dp-base"], [])],
+    "bench-latency": [(["bench-latency", "--episodes", "1", "--policies", "dp-base", "dp-opt"], [])],
+    "ik-spikes": [(["ik-spikes", "--set", "nominal"], [])],
+    "precision": [(["precision", "--episodes", "nominal", "--isa", "--ulp", "1", "--no-float64"], [])],
+    "reproduce": [(["reproduce", "--report-only", "--out", "report"], ["report/REPORT.md"])],
+}
+
+
+def test_every_command_has_a_quickest_form():
+    from experiments.__main__ import COMMANDS
+
+    covered = {line[0] for group in QUICKEST.values() for line, _ in group}
+    assert covered == set(COMMANDS), sorted(set(COMMANDS) ^ covered)
+
+
+@pytest.mark.commands
+@pytest.mark.timeout(3600)
+@pytest.mark.parametrize("group", sorted(QUICKEST))
+def test_command_runs_in_its_quickest_form(group, tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(ROOT), GSP_JAX_CACHE=os.environ.get("GSP_JAX_CACHE", "off"))
+    if group == "reproduce":  # --report-only rebuilds the committed report's REPORT.md from its report.json
+        (tmp_path / "report").mkdir()
+        (tmp_path / "report" / "report.json").write_bytes((ROOT / "docs/report/report.json").read_bytes())
+    for line, files in QUICKEST[group]:
+        run = subprocess.run([sys.executable, "-m", "experiments", *line], cwd=tmp_path, env=env,
+                             capture_output=True, text=True)
+        assert run.returncode == 0, f"{' '.join(line)} failed:\n{run.stdout[-3000:]}\n{run.stderr[-3000:]}"
+        for f in files:
+            assert (tmp_path / f).is_file(), f"{' '.join(line)} did not write {f}"

@@ -10,6 +10,7 @@ import time
 import jax
 import numpy as np
 
+from experiments import common
 from experiments.common import best_time, results_dir, table, timed
 from gsp_jax import dp, scenario, surrogate
 
@@ -67,6 +68,7 @@ def main(args: argparse.Namespace) -> None:
     with open(out, "w") as f:
         json.dump(result, f, indent=1)
     print(f"wrote {out}\n")
+    common.record("bench_dp", result, per_device=True)
     print(table(
         ["DP solve (table + backup)", "wall [s]", "per episode [s]", "vs step-at-a-time"],
         [

@@ -24,6 +24,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from experiments import common
 from experiments.common import results_dir, table, timed
 from gsp_jax import evaluation, physics, policies, scenario, surrogate
 from gsp_jax.physics import c_backend
@@ -128,4 +129,5 @@ def main(args: argparse.Namespace) -> None:
     print(f"wrote {path}\n")
     print(f"engine alone (mj_step, one core, the same states): {engine['default']:,.0f} steps/s, "
           f"{steps / engine['default']:.2f} s for the batch's {steps:,} steps")
+    common.record("bench_physics", dict(head=head, rows=rows), per_device=True)
     print(table(head, rows, ".2f"))

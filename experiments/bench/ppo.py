@@ -16,6 +16,7 @@ import time
 import jax
 import numpy as np
 
+from experiments import common
 from experiments.common import best_time, table
 from experiments.paper import train as train_exp
 from gsp_jax.env import GraspEnv
@@ -104,5 +105,7 @@ def main(args: argparse.Namespace) -> None:
         ["PPO", "reached", "iteration", "wall s (all)", "pretraining s", "first iteration s (compile)", "final greedy train return"],
         [[r["mode"], r["reached"], str(r["iteration"]), r["wall_s"], r["pretrain_s"], r["first_iteration_s"], r["final_train_greedy_return"]] for r in runs],
     ))
+    common.record("bench_ppo", dict(preset=preset, steps_per_s={r[0]: dict(envs=r[1], steps_per_s=r[2], compile_s=r[3])
+                                                              for r in rows}, time_to_baseline=runs), per_device=True)
     print(f"\ntable backend: {table_rate / loop_rate:,.0f}x the one-env loop; {table_rate / sur_rate:,.0f}x the surrogate backend\n")
     print(table(["env steps/s", "envs", "steps/s", "compile s"], rows, floatfmt=",.1f"))

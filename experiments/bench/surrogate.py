@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from experiments import common
 from experiments.common import best_time, results_dir, table, timed
 from gsp_jax import scenario, surrogate
 
@@ -70,6 +71,7 @@ def main(args: argparse.Namespace) -> None:
     with open(out, "w") as f:
         json.dump(result, f, indent=1)
     print(f"wrote {out}")
+    common.record("bench_surrogate", result, per_device=True)
     print()
     print(table(
         ["mode", "steps", "wall [s]", "steps/s", f"{n_g}x{n_a}x{ep.n_steps} table by steps [s]"],

@@ -2,9 +2,13 @@
 the fingerprint of a saved evaluation result."""
 from __future__ import annotations
 
+import datetime
 import hashlib
+import json
 import os
 import pathlib
+import subprocess
+import sys
 import time
 
 import jax
@@ -77,11 +81,6 @@ def record(name: str, figures: dict, per_device: bool = False, data: pathlib.Pat
     """With `--record` (`RECORD`): `figures` (a small JSON-able dict, the benchmark's printed table) become the
     current `docs/data/<name>.json` and a new line of `docs/data/history/<name>.jsonl`, one schema for all:
     {name, date, commit, device, command, figures}. `per_device`: timings, kept per device (<name>_<device>)."""
-    import datetime
-    import json
-    import subprocess
-    import sys
-
     if not RECORD:
         return None
     data = DATA if data is None else pathlib.Path(data)

@@ -34,7 +34,8 @@ TABLE_CACHE = pathlib.Path("results/tables")  # `dp_tables` keeps built tables h
 @dataclasses.dataclass
 class Context:
     """What the planners of a batch of N episodes are built from. `tables` and `solutions` are None where no
-    planner needs them (`context(..., tables=False)`), `rl` where the PPO policy was not loaded."""
+    planner needs them (`context(..., tables=False)`), `rl` where the PPO policy was not loaded, `nominal_actions`
+    where the DP baseline was not asked for."""
 
     surrogate: Surrogate
     set_name: str
@@ -152,10 +153,11 @@ def scripted_sequences(space: grasps.GraspSpace, n_steps: int = scenario.N_WAYPO
 
 
 def context(set_name: str = "eval", n_episodes: int | None = None, policy_dir=None, episodes: dict | None = None,
-            tables: bool = True, rl: bool = True) -> Context:
+            tables: bool = True, rl: bool = True, nominal: bool = True) -> Context:
     """The context of an episode set (`scenario.episode_set(set_name)`, or the named `episodes` given), `n_episodes`
-    of it spread evenly (all if None): with their DP tables and solutions (`tables`) and the PPO policy (`rl`,
-    `load_rl(policy_dir)`)."""
+    of it spread evenly (all if None): with their DP tables and solutions (`tables`), the PPO policy (`rl`,
+    `load_rl(policy_dir)`) and the DP baseline's sequence (`nominal`: the nominal episode's table, built once and
+    cached)."""
     sur = Surrogate()
     everything = scenario.episode_set(set_name) if episodes is None else episodes
     chosen = subset(everything, n_episodes)
@@ -166,7 +168,8 @@ def context(set_name: str = "eval", n_episodes: int | None = None, policy_dir=No
         tabs = dp_tables(sur, tag, chosen)
         sols = jax.jit(jax.vmap(dp.backup))(tabs, batch.start_grasp)
     net, source = load_rl(sur, policy_dir) if rl else (None, "")
-    return Context(sur, set_name, list(chosen), batch, tabs, sols, nominal_actions(sur), net, source)
+    base = nominal_actions(sur) if nominal else None
+    return Context(sur, set_name, list(chosen), batch, tabs, sols, base, net, source)
 
 
 def make(ctx: Context, name: str, model=None, cached: bool = True, seed: int = 0, hold: float = 0.0):
@@ -178,9 +181,11 @@ def make(ctx: Context, name: str, model=None, cached: bool = True, seed: int = 0
     the tables); without, all in `model`. `random`: one random feasible sequence per episode from `seed`
     (`dp.random_sequence`, keeping the grasp with probability `hold`)."""
     sur = ctx.surrogate
-    needs = {"dp-opt": ctx.solutions, "random": ctx.tables, "rl": ctx.rl, "L1": ctx.rl, "L2": ctx.rl}
-    if name in needs and needs[name] is None:
-        raise ValueError(f"policy {name!r}: the context was built without what it needs (tables or the RL policy)")
+    needs = {"dp-base": [ctx.nominal_actions], "dp-opt": [ctx.solutions], "random": [ctx.tables], "rl": [ctx.rl],
+             **{n: [ctx.rl] + ([ctx.tables] if cached else []) for n in LOOKAHEAD_DEPTH}}
+    if any(x is None for x in needs.get(name, [])):
+        raise ValueError(f"policy {name!r}: the context was built without what it needs (tables, the RL policy or "
+                         "the DP baseline)")
     T = ctx.batch.n_steps
     if name == "dp-base":
         return policies.SequencePolicy(ctx.nominal_actions), None

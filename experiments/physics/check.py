@@ -63,9 +63,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def make_policy(kind: str, set_name: str, episodes: dict, args=None):
     """(policy, policy_axis) of `evaluation.make` for a batch of named `episodes`: DP tables only for the planners
-    that need them, the PPO policy only for rl."""
+    that need them, the PPO policy only for rl, the DP baseline only for dp-base."""
     ctx = evaluation.context(set_name, episodes=episodes, tables=kind in ("dp-opt", "random"), rl=kind == "rl",
-                             policy_dir=getattr(args, "policy_dir", None))
+                             nominal=kind == "dp-base", policy_dir=getattr(args, "policy_dir", None))
     return evaluation.make(ctx, kind, seed=getattr(args, "seed", 0))
 
 

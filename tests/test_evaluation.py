@@ -1,0 +1,50 @@
+"""`gsp_jax.evaluation`: the one planner factory and its reference sequences."""
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gsp_jax import evaluation, grasps, scenario
+
+
+def _bare(sur, rl=None):
+    """A context of one episode with nothing built (no tables, no PPO policy, no DP baseline)."""
+    batch = scenario.stack([scenario.make_episode()])
+    return evaluation.Context(sur, "test", ["nominal"], batch, None, None, None, rl, "")
+
+
+@pytest.mark.parametrize("name", ["dp-base", "dp-opt", "random", "rl", "L1", "L2"])
+def test_a_planner_missing_what_it_needs_is_refused_by_name(sur, name):
+    with pytest.raises(ValueError, match=f"policy '{name}'"):
+        evaluation.make(_bare(sur), name)
+
+
+def test_cached_lookahead_needs_the_tables_too(sur):
+    rl = object()  # present: only the tables are missing
+    with pytest.raises(ValueError, match="policy 'L1'"):
+        evaluation.make(_bare(sur, rl), "L1", cached=True)
+    policy, axis = evaluation.make(_bare(sur, rl), "L1", cached=False)
+    assert axis is None and policy.inner is None
+
+
+def test_reference_sequences_reach_their_grasps(sur):
+    """four-tips adds the ring tip to the start grasp and keeps it; one-tip leaves the index tip alone."""
+    space, start = sur.space, int(scenario.make_episode().start_grasp)
+
+    def final(actions):
+        g = start
+        for a in actions:
+            g = int(space.apply(g, int(a))[0])
+        return np.asarray(space.decode(g))
+
+    names = [n.split("_")[0] for n in sur.hand.link_names]
+    tips = [n.endswith("distal") for n in sur.hand.link_names]
+    four = final(evaluation.four_tips(space))
+    assert {names[i] for i in np.flatnonzero(four)} == {"thumb", "index", "middle", "ring"}
+    assert all(tips[i] for i in np.flatnonzero(four))
+    one = final(evaluation.one_tip(space))
+    assert [names[i] for i in np.flatnonzero(one)] == ["index"]
+    policy, axis = evaluation.make(_bare(sur), "four-tips")
+    assert axis is None and np.array_equal(np.asarray(policy.actions), evaluation.four_tips(space))
+    assert np.all(evaluation.one_tip(space)[2:] == grasps.NULL) and jnp.asarray(evaluation.one_tip(space)).dtype == jnp.int32

@@ -50,6 +50,7 @@ class HandModel:
     joint_axis: np.ndarray  # (J, 3) hinge axis in the body frame
     joint_pos: np.ndarray  # (J, 3) hinge anchor in the body frame [m]
     joint_range: np.ndarray  # (J, 2) limits [rad]
+    joint_torque_limit: np.ndarray  # (J,) the joint's motor's symmetric torque limit |ctrlrange| x gear [N m]
     q_start: np.ndarray  # (J,) fixed IK start configuration [rad]
     qpos_adr: np.ndarray  # (J,) the joints' addresses in the scene's qpos
     # contact links and their options
@@ -260,6 +261,20 @@ def _tool(model: mujoco.MjModel, tool: int) -> dict:
                 tool_box_half=np.array([model.geom_size[g] for g in boxes]), tool_mass=float(model.body_mass[tool]))
 
 
+def _torque_limits(model: mujoco.MjModel, joints) -> np.ndarray:
+    """(J,) each hand joint's motor limit [N m]: min(-lo, hi) of the ctrlrange of the one motor that drives it,
+    times its gear."""
+    limit = {}
+    for a in range(model.nu):
+        if model.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT:
+            lo, hi = model.actuator_ctrlrange[a] if model.actuator_ctrllimited[a] else (-np.inf, np.inf)
+            limit[int(model.actuator_trnid[a, 0])] = min(-lo, hi) * abs(model.actuator_gear[a, 0])
+    missing = [model.joint(j).name for j in joints if not limit.get(int(j), 0) > 0]
+    if missing:
+        raise ValueError(f"model: hand joints {missing} need a motor with a control range around 0")
+    return np.array([limit[int(j)] for j in joints])
+
+
 def from_mjmodel(model: mujoco.MjModel) -> HandModel:
     """Extract a `HandModel` from a compiled scene (hand + tool body named ``wrench``)."""
     palm = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, PALM_BODY)
@@ -280,6 +295,7 @@ def from_mjmodel(model: mujoco.MjModel) -> HandModel:
         joint_axis=np.array([model.jnt_axis[j] for j in joints]),
         joint_pos=np.array([model.jnt_pos[j] for j in joints]),
         joint_range=np.array([model.jnt_range[j] for j in joints]),
+        joint_torque_limit=_torque_limits(model, joints),
         q_start=np.asarray(model.numeric("gsp_ik_start").data, dtype=np.float64),
         qpos_adr=np.array([model.jnt_qposadr[j] for j in joints]),
         finger_names=tuple(model.body(f).name.split("_")[0] for f in tree.fingers),

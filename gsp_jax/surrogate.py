@@ -58,6 +58,12 @@ class RewardConfig:
     grip: float = CALIBRATED["grip"]  # [N] every realised contact presses with at least this (`wrench.solve`) ...
     grip_scales_with_mass: bool = CALIBRATED["grip_scales_with_mass"]  # ... times m / m0 (`grip_of`): the wrench
     # problem then stays positively homogeneous in the mass, so a lighter tool is never harder to hold
+    squeeze: float = CALIBRATED.get("squeeze", 0.0)  # [N] a soft grip, as the physics' controller squeezes: every
+    # realised contact's preferred force is this along its normal (`wrench.solve(prefer=...)`), and the error
+    # prices the forces' distance from it instead of their size
+    motors: bool = CALIBRATED.get("motors", False)  # price the hand's motors: the solved forces as motors of the
+    # model's torque limits deliver them (`wrench.saturate`: a link whose joints would saturate pushes
+    # proportionally less), so a grasp whose forces the motors cannot give leaves its wrench unmet
     ik_scale: float = 0.01  # [m]: an IK error of 1 cm costs w_ik
     wrench_scale: float = (M0 * 9.81) ** 2  # [N^2]: wrench errors are divided by (m0 g)^2
     contact_tol: float = 0.005  # [m]: a link within this of its contact point carries force
@@ -74,6 +80,10 @@ class RewardConfig:
                 raise ValueError(f"RewardConfig.{name}: must be > 0, got {getattr(self, name)}")
         if not self.grip >= 0:
             raise ValueError(f"RewardConfig.grip: must be >= 0 [N], got {self.grip}")
+        if not self.squeeze >= 0:
+            raise ValueError(f"RewardConfig.squeeze: must be >= 0 [N], got {self.squeeze}")
+        if not isinstance(self.motors, bool):
+            raise ValueError(f"RewardConfig.motors: must be a bool, got {self.motors!r}")
         if not isinstance(self.grip_scales_with_mass, bool):
             raise ValueError(f"RewardConfig.grip_scales_with_mass: must be a bool, got {self.grip_scales_with_mass!r}")
         if not (isinstance(self.supported_steps, int) and self.supported_steps >= 0):
@@ -144,6 +154,8 @@ class Surrogate:
         self.space = grasps.space_of(self.hand)
         self.reward_config, self.ik_config, self.wrench_config = reward, ik_config, wrench_config
         self.gravity = jnp.asarray(self.hand.gravity, jnp.float32)
+        self.torque_limit = jnp.asarray(self.hand.joint_torque_limit, jnp.float32)  # (J,)
+        self.link_joints = jnp.asarray(self.hand.joint_moves_body[self.hand.link_body] > 0)  # (L, J)
 
     @property
     def n_actions(self) -> int:
@@ -167,10 +179,21 @@ class Surrogate:
         self, contacts: Contacts, episode: Episode, tool_pos, tool_quat, required: jax.Array
     ) -> wrench.WrenchResult:
         """Wrench solve for `required` (6,) = (force, torque about the CoM) that the contacts must supply."""
+        cfg = self.reward_config
         com = tool_pos + kinematics.quat_to_mat(tool_quat) @ episode.com
-        mu = episode.friction * self.reward_config.friction_scale
-        return wrench.solve(contacts.points, contacts.normals, contacts.realised, mu, required, com, self.wrench_config,
-                            grip=self.grip_of(episode))
+        mu = episode.friction * cfg.friction_scale
+        grip = self.grip_of(episode)
+        prefer = None if cfg.squeeze == 0 else cfg.squeeze * contacts.normals
+        res = wrench.solve(contacts.points, contacts.normals, contacts.realised, mu, required, com, self.wrench_config,
+                           prefer=prefer, grip=grip)
+        if cfg.squeeze == 0 and not cfg.motors:
+            return res
+        forces = res.forces
+        if cfg.motors:
+            _, jac = kinematics.closest_on_links_and_jacobians(self.hand, contacts.ik.q, contacts.points)
+            forces = wrench.saturate(forces, jac, self.torque_limit, self.link_joints)
+        reference = (grip + cfg.squeeze) * contacts.normals  # the forces the solve pulls towards
+        return wrench.assess(forces, contacts.points, contacts.realised, required, com, self.wrench_config, reference)
 
     def grip_of(self, episode: Episode) -> jax.Array:
         """() [N] the grip of `episode`'s wrench solves: `RewardConfig.grip`, times m / m0 if it scales with mass."""

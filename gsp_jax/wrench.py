@@ -194,6 +194,39 @@ def _result(a, b, x, base, scale, wrench, rho) -> WrenchResult:
     )
 
 
+def assess(forces: jax.Array, points: jax.Array, active: jax.Array, wrench: jax.Array, center: jax.Array,
+           cfg: WrenchConfig = WrenchConfig(), reference: jax.Array | None = None) -> WrenchResult:
+    """The `WrenchResult` of given contact forces (K, 3) (not a solve): the residual G f - w, the error
+    |S(G f - w)|^2 + rho |f - reference|^2 (reference (K, 3), default zero: the forces a solve pulls towards) and
+    the unmet fraction, on the active (K,) contacts. `solve`'s result, recomputed for forces a hand delivers."""
+    dtype = points.dtype
+    wrench, center = jnp.asarray(wrench, dtype), jnp.asarray(center, dtype)
+    mask = active.astype(dtype)[:, None]
+    f = forces * mask
+    scale = jnp.asarray([1.0, 1.0, 1.0] + [1.0 / cfg.torque_length] * 3, dtype)
+    with jax.default_matmul_precision("highest"):
+        res_scaled = scale * (grasp_matrix(points, center) @ f.reshape(-1) - wrench)
+    dev = f if reference is None else f - reference * mask
+    return WrenchResult(
+        forces=f,
+        residual=res_scaled / scale,
+        error=jnp.sum(res_scaled**2) + cfg.force_penalty * jnp.sum(dev**2),
+        unmet=jnp.sqrt(jnp.sum(res_scaled**2)) / jnp.sqrt(jnp.sum((scale * wrench) ** 2) + 1e-12),
+    )
+
+
+def saturate(forces: jax.Array, jacobians: jax.Array, limit: jax.Array, link_joints: jax.Array) -> jax.Array:
+    """Contact forces (K, 3) as motors of symmetric torque limits (J,) deliver them: the joint torques the forces
+    cost are tau = sum_k J_k^T f_k (jacobians (K, 3, J)), and each contact's force is scaled by min(1, limit_j /
+    |tau_j|) over the joints that move its link (link_joints (K, J) bool), so a finger whose motor would saturate
+    pushes proportionally less (its direction kept: a first-order model of the motors' clipping)."""
+    with jax.default_matmul_precision("highest"):
+        tau = jnp.einsum("kij,ki->j", jacobians, forces)
+    over = jnp.abs(tau) / limit  # (J,) > 1 where a motor saturates
+    worst = jnp.max(jnp.where(link_joints, over[None, :], 0.0), axis=-1)  # (K,)
+    return forces * jnp.minimum(1.0, 1.0 / jnp.maximum(worst, 1e-12))[:, None]
+
+
 def cone_jacobian(f: jax.Array, normal: jax.Array, mu: jax.Array) -> jax.Array:
     """Jacobian (..., 3, 3) of `project_cone` at f (..., 3): the identity inside the cone, zero in its polar cone,
     and on the boundary branch v v^T / (1 + mu^2) + (mu fn_b / |f_t|) (I - n n^T - u u^T), v = n + mu u, u the

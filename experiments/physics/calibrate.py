@@ -44,9 +44,13 @@ GRID = dict(  # the candidates: every combination. (A first sweep on the nominal
     # solve's force penalty leaves a residual -- so the grid spans 0.15..0.3. mu x0.8 never won in two sweeps of
     # 30 candidates, nor did fall 0.4, and they made way for the grip.)
     friction_scale=(1.0,),
-    grip=((0.0, False), (2.0, False), (4.0, False), (2.0, True), (4.0, True), (6.0, True)),  # (grip [N], scales
-    # with mass): every realised contact presses with at least this, fixed or times m / m0 (the controller squeezes
-    # a fixed 8 N; a fixed 4 N grip left the 0.5 m0 evaluation tools no feasible start)
+    grip=((0.0, False, 0.0, False), (2.0, False, 0.0, False), (4.0, False, 0.0, False), (2.0, True, 0.0, False),
+          (4.0, True, 0.0, False), (6.0, True, 0.0, False),
+          (0.0, False, 4.0, False), (0.0, False, 8.0, False), (0.0, False, 4.0, True), (0.0, False, 8.0, True)),
+    # (grip [N], scales with mass, squeeze [N], motors): a hard grip (every realised contact presses with at least
+    # this, fixed or times m / m0; a fixed 4 N grip left the 0.5 m0 evaluation tools no feasible start), or a soft
+    # one as the controller squeezes (8 N, a preference, `RewardConfig.squeeze`), with or without the motors'
+    # torque limits (`RewardConfig.motors`)
     fall_unmet=(0.15, 0.2, 0.25, 0.3),
     change=((0.0, False), (1.0, True), (5.0, True)),  # (w_wrench_change, change_falls): off / on / on, weighted 5
 )
@@ -66,28 +70,32 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def candidates() -> list[surrogate.RewardConfig]:
     base = surrogate.RewardConfig()
-    return [dataclasses.replace(base, friction_scale=fs, grip=gr, grip_scales_with_mass=gm, fall_unmet=fu,
-                                w_wrench_change=w, change_falls=cf)
-            for fs, (gr, gm), fu, (w, cf) in itertools.product(GRID["friction_scale"], GRID["grip"],
-                                                               GRID["fall_unmet"], GRID["change"])]
+    return [dataclasses.replace(base, friction_scale=fs, grip=gr, grip_scales_with_mass=gm, squeeze=sq, motors=mo,
+                                fall_unmet=fu, w_wrench_change=w, change_falls=cf)
+            for fs, (gr, gm, sq, mo), fu, (w, cf) in itertools.product(GRID["friction_scale"], GRID["grip"],
+                                                                       GRID["fall_unmet"], GRID["change"])]
 
 
 def label(cfg: surrogate.RewardConfig) -> str:
     change = f"w {cfg.w_wrench_change:g}" if cfg.change_falls or cfg.w_wrench_change else "off"
     grip = f"{cfg.grip:g} N x m/m0" if cfg.grip_scales_with_mass else f"{cfg.grip:g} N"
+    if cfg.squeeze:
+        grip = f"squeeze {cfg.squeeze:g} N" if not cfg.grip else f"{grip} + squeeze {cfg.squeeze:g} N"
+    if cfg.motors:
+        grip += ", motors"
     return f"mu x{cfg.friction_scale:g}, grip {grip}, fall {cfg.fall_unmet:g}, change {change}"
 
 
 def candidate_tables(configs, episodes: scenario.Episode) -> list[dp.Table]:
     """Every candidate's tables (leaves (E, ...)): IK once, wrench solves once per (friction scale, grip)."""
-    grip_key = lambda c: (c.friction_scale, c.grip, c.grip_scales_with_mass)  # noqa: E731
+    grip_key = lambda c: (c.friction_scale, c.grip, c.grip_scales_with_mass, c.squeeze, c.motors)  # noqa: E731
     base = surrogate.Surrogate(reward=configs[0])
     contacts = jax.jit(jax.vmap(lambda ep: dp.realise_all(base, ep)))(episodes)
     terms = {}
-    for fs, gr, gm in sorted({grip_key(c) for c in configs}):
-        env = surrogate.Surrogate(hand=base.hand, reward=dataclasses.replace(configs[0], friction_scale=fs, grip=gr,
-                                                                             grip_scales_with_mass=gm))
-        terms[fs, gr, gm] = jax.jit(jax.vmap(lambda ep, c: dp.grasp_terms(env, ep, c)))(episodes, contacts)
+    for fs, gr, gm, sq, mo in sorted({grip_key(c) for c in configs}):
+        env = surrogate.Surrogate(hand=base.hand, reward=dataclasses.replace(
+            configs[0], friction_scale=fs, grip=gr, grip_scales_with_mass=gm, squeeze=sq, motors=mo))
+        terms[fs, gr, gm, sq, mo] = jax.jit(jax.vmap(lambda ep, c: dp.grasp_terms(env, ep, c)))(episodes, contacts)
     out = []
     for cfg in configs:
         env = surrogate.Surrogate(hand=base.hand, reward=cfg)
@@ -279,7 +287,8 @@ def bootstrap_se(ret, angle, ep_idx, seed: int, n: int = 200) -> float:
 
 def write_calibration(res: dict, summary: dict) -> None:
     cfg = res["config"]
-    keys = ("friction_scale", "grip", "grip_scales_with_mass", "fall_unmet", "w_wrench_change", "change_falls")
+    keys = ("friction_scale", "grip", "grip_scales_with_mass", "squeeze", "motors", "fall_unmet", "w_wrench_change",
+            "change_falls")
     body = ",\n".join(f"    {k}={cfg.get(k, getattr(surrogate.RewardConfig(), k))!r}" for k in keys)
     CALIBRATION_PY.write_text(f'''"""The reward's calibrated defaults, read by `surrogate.RewardConfig`. Written by `python -m experiments calibrate
 --write` ({datetime.date.today().isoformat()}); rerun it rather than editing by hand."""

@@ -58,10 +58,10 @@ class RewardConfig:
     grip: float = CALIBRATED["grip"]  # [N] every realised contact presses with at least this (`wrench.solve`) ...
     grip_scales_with_mass: bool = CALIBRATED["grip_scales_with_mass"]  # ... times m / m0 (`grip_of`): the wrench
     # problem then stays positively homogeneous in the mass, so a lighter tool is never harder to hold
-    squeeze: float = CALIBRATED.get("squeeze", 0.0)  # [N] a soft grip, as the physics' controller squeezes: every
+    squeeze: float = CALIBRATED["squeeze"]  # [N] a soft grip, as the physics' controller squeezes: every
     # realised contact's preferred force is this along its normal (`wrench.solve(prefer=...)`), and the error
     # prices the forces' distance from it instead of their size
-    motors: bool = CALIBRATED.get("motors", False)  # price the hand's motors: the solved forces as motors of the
+    motors: bool = CALIBRATED["motors"]  # price the hand's motors: the solved forces as motors of the
     # model's torque limits deliver them (`wrench.saturate`: a link whose joints would saturate pushes
     # proportionally less), so a grasp whose forces the motors cannot give leaves its wrench unmet
     ik_scale: float = 0.01  # [m]: an IK error of 1 cm costs w_ik

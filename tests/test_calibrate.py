@@ -56,6 +56,38 @@ def test_winner_is_fewest_dp_optimal_falls_then_highest_rho(capsys):
     assert "chosen" in capsys.readouterr().out
 
 
+def test_sign_test_p_is_the_exact_binomial_tail():
+    """8 episodes only the challenger held against 5 only the incumbent did: p = 2 sum_{k<=5} C(13, k) / 2^13."""
+    from math import comb
+
+    fell_c = [False] * 8 + [True] * 5 + [False] * 3 + [True] * 2  # 3 both held, 2 both fell
+    fell_i = [True] * 8 + [False] * 5 + [False] * 3 + [True] * 2
+    wins, losses, p = calibrate.challenger_wins(fell_c, fell_i)
+    assert (wins, losses) == (8, 5)
+    assert p == pytest.approx(2 * sum(comb(13, k) for k in range(6)) / 2**13)
+    assert calibrate.challenger_wins([True, False], [True, False])[2] == 1.0
+    with pytest.raises(ValueError, match="falls of"):
+        calibrate.challenger_wins([True], [True, False])
+
+
+def test_incumbent_stays_unless_the_challenger_falls_significantly_less(capsys):
+    """The incumbent (today's calibration, by its label) keeps its place against a challenger whose DP plans hold
+    3 episodes more of 20 (p 0.25), and gives it up to one that holds 9 more and loses none (p 0.004)."""
+    incumbent = calibrate.label(surrogate.RewardConfig())
+
+    def sweep(challenger_fell):
+        s = _sweep([(0.5, sum(challenger_fell)), (0.3, 12)])
+        s["sweep"][1]["label"] = s["rows"][1][0] = incumbent
+        s["sweep"][0]["dp_opt_fell"] = challenger_fell
+        s["sweep"][1]["dp_opt_fell"] = [True] * 12 + [False] * 8
+        s["episodes"] = [f"e{i}" for i in range(20)]
+        return s
+
+    assert calibrate.choose_and_write(sweep([True] * 9 + [False] * 11), False)["label"] == incumbent
+    assert calibrate.choose_and_write(sweep([True] * 3 + [False] * 17), False)["label"] == "c0"
+    assert "sign test" in capsys.readouterr().out
+
+
 def test_evaluation_episodes_are_refused():
     args = argparse.Namespace(from_sweep=None, sets="train,eval", random=1, backend="c", seed=0, chunk=8, write=False)
     with pytest.raises(SystemExit, match="never uses the evaluation episodes"):

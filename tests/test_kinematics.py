@@ -334,3 +334,18 @@ def test_gpu_form_of_the_contractions_gives_the_same_fk_and_ik(hand, qs, monkeyp
     gpu = jax.jit(jax.vmap(outputs))(q)
     for a, b in zip(jax.tree.leaves(cpu), jax.tree.leaves(gpu)):
         np.testing.assert_allclose(np.asarray(b), np.asarray(a), atol=1e-5, rtol=1e-5)
+
+
+def test_joint_torque_limits_are_the_models_motors(hand, mjmodel):
+    """`HandModel.joint_torque_limit`: each hand joint's motor's control range times its gear, read off MuJoCo's
+    actuators by joint name; a joint that no motor drives is refused by name."""
+    by_joint = {mjmodel.joint(int(mjmodel.actuator_trnid[a, 0])).name: min(-mjmodel.actuator_ctrlrange[a, 0],
+                mjmodel.actuator_ctrlrange[a, 1]) * abs(mjmodel.actuator_gear[a, 0]) for a in range(mjmodel.nu)}
+    np.testing.assert_array_equal(hand.joint_torque_limit, [by_joint[n] for n in hand.joint_names])
+    broken = hand_lib.load_mjmodel().__copy__()
+    j0 = mujoco.mj_name2id(broken, mujoco.mjtObj.mjOBJ_JOINT, hand.joint_names[0])
+    j1 = mujoco.mj_name2id(broken, mujoco.mjtObj.mjOBJ_JOINT, hand.joint_names[1])
+    a = [a for a in range(broken.nu) if broken.actuator_trnid[a, 0] == j0][0]
+    broken.actuator_trnid[a, 0] = j1  # two motors on the second joint, none on the first
+    with pytest.raises(ValueError, match=hand.joint_names[0]):
+        hand_lib.from_mjmodel(broken)

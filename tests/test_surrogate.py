@@ -558,3 +558,60 @@ def test_grip_in_proportion_to_the_mass_keeps_the_reward_homogeneous(env, fns, e
     np.testing.assert_allclose(float(fixed.grip_of(scenario.make_episode(mass_factor=0.5))), 4.0, rtol=1e-6)
     with pytest.raises(ValueError, match="RewardConfig.grip_scales_with_mass"):
         surrogate.RewardConfig(grip_scales_with_mass=1)
+
+
+# ------------------------------------------------------------------ the controller's squeeze and the motors
+def _solve_at(sur, fns, ep, label, t=0, required=None):
+    """(contacts, wrench result) of the grasp `label` realised at waypoint t (the module's compiled IK), for
+    `required` (default: hold the tool against gravity), under `sur`'s reward."""
+    g = jnp.int32({sur.space.label(x): x for x in range(sur.space.n_grasps)}[label])
+    c, _ = fns["contacts"](ep, g, jnp.int32(t))
+    req = jnp.concatenate([-ep.mass * sur.gravity, jnp.zeros(3)]) if required is None else required
+    return c, jax.jit(sur.wrench_error)(c, ep, ep.waypoints[t], ep.quats[t], req)
+
+
+def test_squeeze_is_a_preference_not_a_floor(env, fns):
+    """The controller's squeeze as the surrogate's soft grip: the grasp balanced on one support (see
+    `test_grip_drops_a_grasp_balanced_on_one_support`), which a hard 4 N grip leaves mostly unmet, keeps its
+    wrench under a 8 N squeeze; the error prices the forces' distance from the squeeze, |S r|^2 + rho |f - 8 n|^2
+    from the returned forces."""
+    ep = scenario.eval_set_b()["mass1m0_comy-1cm"]
+    soft = surrogate.Surrogate(hand=env.hand, reward=dataclasses.replace(env.reward_config, grip=0.0, squeeze=8.0))
+    t = 12
+    c, res = _solve_at(soft, fns, ep, "T1 . . M3 . R1", t, soft.move_wrench(ep, jnp.int32(t)))
+    assert float(res.unmet) < 0.1
+    f, n, act = (np.asarray(x, np.float64) for x in (res.forces, c.normals, c.realised))
+    com = np.asarray(ep.waypoints[t] + ep.com, np.float64)  # the tool is level at the waypoints
+    w = np.asarray(soft.move_wrench(ep, jnp.int32(t)), np.float64)
+    r = (np.diag([1, 1, 1, 20, 20, 20]) @ (np.concatenate([f.sum(0), np.cross(np.asarray(c.points) - com, f).sum(0)])
+                                          - w))
+    expect = np.sum(r**2) + soft.wrench_config.force_penalty * np.sum((f - 8.0 * n * act[:, None]) ** 2)
+    np.testing.assert_allclose(float(res.error), expect, rtol=1e-3)
+    with pytest.raises(ValueError, match="RewardConfig.squeeze"):
+        surrogate.RewardConfig(squeeze=-1.0)
+    with pytest.raises(ValueError, match="RewardConfig.motors"):
+        surrogate.RewardConfig(motors="yes")
+
+
+def test_motors_leave_unmet_what_the_motors_cannot_give(env, fns):
+    """Four tips on a 2.5 m0 tool under the hard grip (4 N x m/m0): the forces that hold it cost more than the
+    model's 3 N m at some joint (the thumb's MCP, ~5.5 N m), so with the motors priced part of the wrench is unmet
+    (the saturated links push less) and the error grows; with limits no force reaches (a hand of 1e6 N m motors)
+    the motors change nothing."""
+    ep = scenario.make_episode(mass_factor=2.5)
+    cfg = dataclasses.replace(env.reward_config, grip=4.0, grip_scales_with_mass=True, squeeze=0.0, motors=False)
+    plain = surrogate.Surrogate(hand=env.hand, reward=cfg)
+    motors = surrogate.Surrogate(hand=env.hand, reward=dataclasses.replace(cfg, motors=True))
+    strong = surrogate.Surrogate(hand=dataclasses.replace(env.hand, joint_torque_limit=np.full(env.hand.n_joints, 1e6)),
+                                 reward=dataclasses.replace(cfg, motors=True))
+    out = {k: _solve_at(s, fns, ep, "T1 I1 . M1 . R1")[1] for k, s in
+           (("plain", plain), ("motors", motors), ("strong", strong))}
+    c, _ = _solve_at(plain, fns, ep, "T1 I1 . M1 . R1")
+    from gsp_jax import kinematics
+    _, jac = kinematics.closest_on_links_and_jacobians(env.hand, c.ik.q, c.points)
+    tau = np.einsum("kij,ki->j", np.asarray(jac, np.float64), np.asarray(out["plain"].forces, np.float64))
+    assert np.max(np.abs(tau)) > 3.0  # the plain forces need more than the motors give
+    assert float(out["motors"].unmet) > float(out["plain"].unmet) + 0.05
+    assert float(out["motors"].error) > float(out["plain"].error)
+    np.testing.assert_allclose(float(out["strong"].unmet), float(out["plain"].unmet), atol=tol.WRENCH_ATOL)
+    np.testing.assert_allclose(float(out["strong"].error), float(out["plain"].error), rtol=1e-5)

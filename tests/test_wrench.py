@@ -22,6 +22,7 @@ from hypothesis import assume, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 from scipy.optimize import nnls  # noqa: E402
 
+import tolerances as tol  # noqa: E402
 from gsp_jax import wrench  # noqa: E402
 
 CFG = wrench.WrenchConfig()
@@ -687,3 +688,69 @@ def test_hold_margin_names_bad_inputs():
         wrench.hold_margin(points, normals, 1.0, w6, np.zeros(3), jac, -np.ones(6))
     with pytest.raises(ValueError, match="points and normals"):
         wrench.hold_margin(points[:1], normals, 1.0, w6, np.zeros(3))
+
+
+# ------------------------------------------------------------------ forces as delivered: assess and saturate
+_assess = jax.jit(wrench.assess, static_argnames=("cfg",))
+_saturate = jax.jit(wrench.saturate)
+
+
+@pytest.mark.parametrize("i", range(4))
+def test_assess_is_the_objective_of_given_forces(scipy_problems, i):
+    """`assess` of a solve's forces gives the solve's own residual, unmet fraction and error (no grip, no prefer),
+    and its residual is the numpy sum of forces and moments; a reference moves the force penalty to |f - ref|^2."""
+    prob = scipy_problems[i]
+    p, n, a, mu, w, c = _as_jax(prob)
+    res = _solve(p, n, a, mu, w, c)
+    got = _assess(res.forces, p, a, w, c)
+    np.testing.assert_allclose(np.asarray(got.residual), np.asarray(res.residual), atol=1e-5 * (1 + np.abs(w).max()))
+    np.testing.assert_allclose(float(got.unmet), float(res.unmet), atol=tol.WRENCH_ATOL)
+    np.testing.assert_allclose(float(got.error), float(res.error), rtol=1e-4, atol=1e-7)
+    pf, nf, af, _, wf, cf = _as_f64(prob)
+    forces = np.asarray(res.forces, np.float64) * af[:, None]
+    r = _grasp_matrix_np(pf, cf) @ forces.ravel() - wf
+    np.testing.assert_allclose(np.asarray(got.residual, np.float64), r, atol=1e-4 * (1 + np.abs(wf).max()))
+    ref = 2.0 * nf
+    with_ref = _assess(res.forces, p, a, w, c, wrench.WrenchConfig(), jnp.asarray(ref, jnp.float32))
+    expect = np.sum((S @ r) ** 2) + RHO * np.sum((forces - ref * af[:, None]) ** 2)
+    np.testing.assert_allclose(float(with_ref.error), expect, rtol=1e-4)
+
+
+def _saturate_np(forces, jac, limit, link_joints):
+    """The reference: torques summed contact by contact, each contact scaled by its own joints' worst ratio."""
+    tau = np.zeros(jac.shape[2])
+    for k in range(len(forces)):
+        tau += jac[k].T @ forces[k]
+    out = forces.copy()
+    for k in range(len(forces)):
+        worst = max([abs(tau[j]) / limit[j] for j in range(len(tau)) if link_joints[k, j]], default=0.0)
+        out[k] = forces[k] * min(1.0, 1.0 / worst) if worst > 0 else forces[k]
+    return out, tau
+
+
+def test_saturate_scales_each_link_by_its_worst_joint():
+    """Against the numpy reference on random forces and Jacobians (three links: two on one finger sharing its
+    joints, one alone); a finger within its limits is untouched; a lone link's torques end within the limits,
+    its direction kept; limits no force reaches leave every force unchanged."""
+    rng = np.random.default_rng(7)
+    link_joints = np.zeros((3, 7), bool)
+    link_joints[0, :3] = True  # the medial link: the finger's first three joints
+    link_joints[1, :4] = True  # the distal link: all four
+    link_joints[2, 4:] = True  # another finger
+    for _ in range(20):
+        jac = rng.normal(size=(3, 3, 7)) * 0.03 * link_joints[:, None, :]
+        forces = rng.normal(size=(3, 3)) * 40.0
+        limit = rng.uniform(0.5, 3.0, size=7)
+        got = np.asarray(_saturate(jnp.asarray(forces, jnp.float32), jnp.asarray(jac, jnp.float32),
+                                   jnp.asarray(limit, jnp.float32), jnp.asarray(link_joints)), np.float64)
+        ref, tau = _saturate_np(forces, jac, limit, link_joints)
+        np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-4)
+        tau_alone = jac[2].T @ got[2]
+        assert np.all(np.abs(tau_alone[4:]) <= limit[4:] * (1 + 1e-4))
+        if np.all(np.abs(tau[4:]) <= limit[4:]):
+            np.testing.assert_array_equal(got[2], forces[2].astype(np.float32))
+        cosine = np.sum(got * forces, -1) / (np.linalg.norm(got, axis=-1) * np.linalg.norm(forces, axis=-1))
+        np.testing.assert_allclose(cosine, 1.0, atol=1e-5)
+    free = np.asarray(_saturate(jnp.asarray(forces, jnp.float32), jnp.asarray(jac, jnp.float32),
+                                jnp.full(7, 1e6, jnp.float32), jnp.asarray(link_joints)))
+    np.testing.assert_array_equal(free, forces.astype(np.float32))

@@ -55,6 +55,7 @@ GRID = dict(  # the candidates: every combination. (A first sweep on the nominal
     change=((0.0, False), (1.0, True), (5.0, True)),  # (w_wrench_change, change_falls): off / on / on, weighted 5
 )
 HOLDS = (0.0, 0.6, 0.9)
+ALPHA = 0.05  # a challenger replaces the incumbent calibration only at this significance (`choose_and_write`)
 CALIBRATION_PY = pathlib.Path(calibration.__file__).resolve()  # where `--write` puts the chosen defaults
 
 
@@ -112,6 +113,14 @@ def _from_sweep(path: str, write: bool) -> None:
                             r["dp_opt_angle"], r["dp_opt_changes"]] for r in summary["sweep"]]
     summary.setdefault("best_spearman_label", max(summary["sweep"], key=lambda r: np.nan_to_num(
         r["spearman"], nan=-1.0))["label"])
+    cache_path = results_dir("calibrate") / f"physics_{summary['backend']}.json"
+    if cache_path.exists():  # sweeps written before the per-episode falls were kept: read them off the cache
+        cache = json.loads(cache_path.read_text())
+        for r in summary["sweep"]:
+            keys = [pool_key(summary["episodes"], e, s) for e, s in enumerate(
+                r.get("dp_opt_sequences", {}).get(n) for n in summary["episodes"])]
+            if "dp_opt_fell" not in r and "dp_opt_sequences" in r and all(k in cache for k in keys):
+                r["dp_opt_fell"] = [bool(cache[k][1]) for k in keys]
     choose_and_write(summary, write)
 
 
@@ -206,7 +215,8 @@ def score_candidates(configs, tables, batch, names, flat, angle, fell):
         changes = float(np.mean(np.sum((g[:, 1:] != g[:, :-1]) & np.asarray(sol.alive), axis=1)))
         results.append(dict(config=dataclasses.asdict(cfg), label=label(cfg), spearman=rho,
                             feasible=int(feasible.sum()), feasible_held=held_feasible,
-                            dp_opt_falls=int(fell[opt_idx].sum()), dp_opt_angle=float(angle[opt_idx].mean()),
+                            dp_opt_falls=int(fell[opt_idx].sum()), dp_opt_fell=[bool(x) for x in fell[opt_idx]],
+                            dp_opt_angle=float(angle[opt_idx].mean()),
                             dp_opt_changes=changes,
                             dp_opt_sequences={names[e]: [int(a) for a in opt[e]] for e in range(len(names))}))
         rets.append(ret)
@@ -252,23 +262,51 @@ def main(args: argparse.Namespace) -> None:
 
 
 def choose_and_write(summary: dict, write: bool) -> dict:
-    """Print the sweep, pick the winner (fewest DP-optimal falls, then correlation; a candidate under which no
-    sequence is feasible has no correlation and no meaningful optimum, and comes last) and, with `write`, write it."""
+    """Print the sweep, pick the winner and, with `write`, write it. The challenger is the candidate whose DP-optimal
+    plans fall least, then the highest correlation (a candidate under which no sequence is feasible has no
+    correlation and no meaningful optimum, and comes last). It replaces the incumbent (today's calibration, if it
+    is in the sweep) only where it falls significantly less: a paired sign test over the episodes where exactly
+    one of the two DP optima fell (`challenger_wins`). Single physics verdicts near the envelope's edge are last-bit
+    decisions, so a few falls either way are noise."""
     results, n_e = summary["sweep"], len(summary["episodes"])
     print(table(["candidate reward", "rho", "feasible", "of them held", f"DP opt falls /{n_e}", "DP opt angle",
                  "DP opt changes"], summary["rows"], ".3f"))
     rho = np.nan_to_num(np.array([r["spearman"] for r in results]), nan=-1.0)
     finite = np.isfinite([np.nan if r["spearman"] is None else r["spearman"] for r in results])
     best = min(range(len(results)), key=lambda i: (not finite[i], results[i]["dp_opt_falls"], -rho[i]))
-    summary["chosen"] = results[best]
+    challenger, chosen = results[best], results[best]
+    incumbent = next((r for r in results if r["label"] == label(surrogate.RewardConfig())), None)
     print(f"\nhighest rho: {summary['best_spearman_label']} ({summary['best_spearman']:.3f} +- "
           f"{summary['best_spearman_se']:.3f}, bootstrap over episodes)")
-    print(f"chosen (fewest DP-optimal falls, then rho): {results[best]['label']} (rho {results[best]['spearman']:.3f}, "
-          f"DP optimal falls {results[best]['dp_opt_falls']}/{n_e}, {results[best]['dp_opt_changes']:.2f} grasp changes)")
+    print(f"challenger (fewest DP-optimal falls, then rho): {challenger['label']} (rho {challenger['spearman']:.3f}, "
+          f"DP optimal falls {challenger['dp_opt_falls']}/{n_e}, {challenger['dp_opt_changes']:.2f} grasp changes)")
+    if incumbent is not None and incumbent is not challenger and "dp_opt_fell" in incumbent:
+        wins, losses, p = challenger_wins(challenger["dp_opt_fell"], incumbent["dp_opt_fell"])
+        summary["challenge"] = dict(challenger=challenger["label"], incumbent=incumbent["label"], held_only_by=[
+            wins, losses], p=p, alpha=ALPHA)
+        print(f"against the incumbent {incumbent['label']} (DP optimal falls {incumbent['dp_opt_falls']}/{n_e}): "
+              f"the challenger alone holds {wins} episodes, the incumbent alone {losses}; sign test p = {p:.3f}")
+        if p >= ALPHA:
+            chosen = incumbent
+    summary["chosen"] = chosen
+    print(f"chosen: {chosen['label']}")
     if write:
-        write_calibration(results[best], summary)
+        write_calibration(chosen, summary)
         print(f"wrote {CALIBRATION_PY}")
-    return results[best]
+    return chosen
+
+
+def challenger_wins(challenger_fell, incumbent_fell) -> tuple[int, int, float]:
+    """(episodes only the challenger's plan held, episodes only the incumbent's held, the two-sided exact sign
+    test's p-value that they are equally likely) from the per-episode falls (E,) of two DP optima."""
+    from scipy import stats
+
+    c, i = np.asarray(challenger_fell, bool), np.asarray(incumbent_fell, bool)
+    if c.shape != i.shape:
+        raise ValueError(f"challenger_wins: falls of {c.shape} and {i.shape} episodes")
+    wins, losses = int(np.sum(~c & i)), int(np.sum(c & ~i))
+    p = 1.0 if wins + losses == 0 else float(stats.binomtest(wins, wins + losses, 0.5).pvalue)
+    return wins, losses, p
 
 
 def bootstrap_se(ret, angle, ep_idx, seed: int, n: int = 200) -> float:
@@ -305,6 +343,6 @@ MEASURED = dict(  # on the calibration episodes, against the physics check
     dp_opt_falls={res["dp_opt_falls"]},  # of {len(summary["episodes"])} episodes
     dp_opt_changes={res["dp_opt_changes"]:.2f},  # mean grasp changes per episode of the DP-optimal plans
     best_spearman={summary["best_spearman"]:.3f},  # the sweep's highest correlation (another candidate), and its
-    best_spearman_se={summary["best_spearman_se"]:.3f},  # bootstrap SE; the winner falls least under DP optimal
+    best_spearman_se={summary["best_spearman_se"]:.3f},  # bootstrap SE; see calibrate.choose_and_write for the choice
 )
 ''')

@@ -21,6 +21,7 @@ COMMANDS = {  # command -> (module, one-line help)
     "physics-agree": ("experiments.physics.agreement", "MJX against C MuJoCo: held/fell agreement and hold angles"),
     "bench-physics": ("experiments.bench.physics", "the physics check against the engine alone, on 1, 2 and all cores"),
     "envelope": ("experiments.physics.envelope", "the stress envelope in physics: falls classified by the oracle, regret"),
+    "rescore": ("experiments.physics.rescore", "a recorded envelope pool scored under other rewards, no new physics"),
     "calibrate": ("experiments.physics.calibrate", "the reward's weights and thresholds against physics (train + val episodes)"),
     "fig4a": ("experiments.paper.fig4a", "Fig. 4a: surrogate returns relative to DP optimal, 95% CI, RM-ANOVA"),
     "fig4b": ("experiments.paper.fig4b", "Fig. 4b: the same policies closed loop in MJX, angle error under the torque"),

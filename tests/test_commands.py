@@ -40,6 +40,7 @@ QUICKEST = {
     "bench-physics": [(["bench-physics", "--set", "nominal", "--waypoints", "2", "--backends", "c", "--cores", "1"],
                        [])],
     "envelope": [(["envelope", "--set", "eval", "--episodes", "1", "--random", "0"], ["results/envelope/eval.json"])],
+    "rescore": [(["rescore", "--episodes", "2", "--reward", "squeeze=8,grip=0"], ["results/rescore/stress.json"])],
     "calibrate": [(["calibrate", "--sets", "nominal", "--random", "1", "--backend", "c"],
                    ["results/calibrate/sweep.json"])],
     "fig4a": [(["fig4a", "--set", "evalA", "--episodes", "2"], ["results/fig4a/returns.json"])],

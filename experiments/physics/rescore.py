@@ -1,0 +1,183 @@
+"""`python -m experiments rescore [--pool FILE] [--reward field=value,... ...]`: a recorded envelope pool's physics
+outcomes scored under other rewards, with no new physics.
+
+`envelope` writes every (sequence, episode) it simulated with its grasps and physics outcome. Here each step of each
+sequence is scored again by the surrogate (`Surrogate.score`: the IK of every state the pool visits once, then only
+the wrench solves per reward), so a candidate reward is judged against physics in seconds instead of a GPU run: the
+share of the sequences it calls feasible that held, how well its return separates holds from falls (AUC, pooled and
+within episodes) and its Spearman rho with -angle error (`envelope.summarise`). The pool stays what the planners of
+the recorded run chose: a reward whose own optimum differs is judged on its ranking of this pool, not on its plans
+(for those, rerun `envelope` with it as the default).
+
+The first row is the calibrated reward; each `--reward` adds one, as fields of `surrogate.RewardConfig` to change
+(e.g. `--reward squeeze=8,grip=0 --reward squeeze=8,grip=0,motors=true`). Prints a table; writes
+results/rescore/<set>.json.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import pathlib
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from experiments.common import ROOT, results_dir, table
+from experiments.physics.envelope import summarise
+from gsp_jax import ik, scenario, surrogate
+
+DEFAULT_POOL = ROOT / "docs" / "data" / "archive" / "envelope" / "stress_reached_h100.json"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--pool", default=str(DEFAULT_POOL), help="an envelope result (results/envelope/<set>.json)")
+    p.add_argument("--reward", action="append", default=[], metavar="FIELD=VALUE,...",
+                   help="a RewardConfig variant to score (repeatable)")
+    p.add_argument("--episodes", type=int, default=None, help="only the pool's first N episodes")
+    p.add_argument("--batch", type=int, default=2048, help="states or steps per compiled batch")
+
+
+def parse_reward(text: str, base: surrogate.RewardConfig) -> surrogate.RewardConfig:
+    """`base` with the fields of 'field=value,...' replaced (each value read as the field's type)."""
+    fields = {f.name for f in dataclasses.fields(base)}
+    changes = {}
+    for part in filter(None, (s.strip() for s in text.split(","))):
+        name, sep, value = part.partition("=")
+        if not sep or name not in fields:
+            raise SystemExit(f"--reward: expected FIELD=VALUE with a RewardConfig field, got {part!r} "
+                             f"(fields: {', '.join(sorted(fields))})")
+        kind = type(getattr(base, name))
+        if kind is bool:
+            if value.lower() not in ("true", "false", "1", "0"):
+                raise SystemExit(f"--reward: {name} takes true or false, got {value!r}")
+            changes[name] = value.lower() in ("true", "1")
+        else:
+            try:
+                changes[name] = kind(value)
+            except ValueError:
+                raise SystemExit(f"--reward: {name} takes a {kind.__name__}, got {value!r}") from None
+    try:
+        return dataclasses.replace(base, **changes)
+    except ValueError as e:
+        raise SystemExit(f"--reward {text!r}: {e}") from None
+
+
+def load_pool(path: str, n_episodes: int | None):
+    """(set name, episode names (N,), the batch, kinds (G,), grasps (G, N, T), fell (G, N), angle (G, N)) of an
+    envelope result, its sequences laid out kind by kind as `envelope` writes them."""
+    file = pathlib.Path(path)
+    if not file.is_file():
+        raise SystemExit(f"--pool: no envelope result at {path!r} (python -m experiments envelope writes one)")
+    data = json.loads(file.read_text())
+    missing = {"set", "episodes", "kinds", "sequences"} - set(data)
+    if missing:
+        raise SystemExit(f"--pool: {path!r} is not an envelope result (missing {sorted(missing)})")
+    names, kinds = data["episodes"], data["kinds"]
+    seqs = data["sequences"]
+    if len(seqs) != len(names) * len(kinds):
+        raise SystemExit(f"--pool: {len(seqs)} sequences for {len(kinds)} kinds x {len(names)} episodes")
+    keep = names[:n_episodes] if n_episodes else names
+    episodes = scenario.episode_set(data["set"])
+    batch = scenario.stack([episodes[n] for n in keep])
+    rows = np.array([[seqs[g * len(names) + e] for e in range(len(keep))] for g in range(len(kinds))], object)
+    grasps = np.array([[r["grasps"] for r in row] for row in rows], np.int32)
+    fell = np.array([[r["fell"] for r in row] for row in rows], bool)
+    angle = np.array([[r["angle_deg"] for r in row] for row in rows], float)
+    return data["set"], keep, batch, kinds, grasps, fell, angle
+
+
+def step_states(sur: surrogate.Surrogate, start: np.ndarray, grasps: np.ndarray):
+    """The states a pool's steps read: for every step (g, e, t) the new grasp at waypoints t and t+1 and the shared
+    grasp (what stays during a change) at t. Returns the distinct (episode, grasp, waypoint) keys (S, 3) and, per
+    step, the indices of its three states into them (3, G, N, T), and whether the step changes the grasp."""
+    G, N, T = grasps.shape
+    prev = np.concatenate([np.broadcast_to(start[None, :, None], (G, N, 1)), grasps[..., :-1]], -1)
+    decode = jax.jit(jax.vmap(sur.space.decode))
+    old, new = (np.asarray(decode(jnp.asarray(x.ravel()))).reshape(G, N, T, -1) for x in (prev, grasps))
+    shared = np.asarray(jax.jit(jax.vmap(sur.space.encode))(jnp.asarray(np.where(old != new, 0, new).reshape(
+        -1, new.shape[-1])))).reshape(G, N, T)
+    e = np.broadcast_to(np.arange(N)[None, :, None], (G, N, T))
+    t = np.broadcast_to(np.arange(T), (G, N, T))
+    wanted = np.stack([np.stack([e, grasps, t], -1), np.stack([e, grasps, np.minimum(t + 1, T - 1)], -1),
+                       np.stack([e, shared, t], -1)])  # (3, G, N, T, 3)
+    keys, index = np.unique(wanted.reshape(-1, 3), axis=0, return_inverse=True)
+    return keys, index.reshape(3, G, N, T), grasps != prev
+
+
+def realise_states(sur: surrogate.Surrogate, batch: scenario.Episode, keys: np.ndarray, size: int):
+    """`Surrogate.realise` of every (episode, grasp, waypoint) key (S, 3), in compiled batches: Contacts (S, ...)."""
+    def one(e, g, t):
+        ep = jax.tree.map(lambda x: x[e], batch)
+        return sur.realise(g, ep.waypoints[t], ep.quats[t])
+
+    run = jax.jit(jax.vmap(one))
+    parts = []
+    for i in range(0, len(keys), size):
+        k = keys[i:i + size]
+        padded = np.concatenate([k, np.repeat(k[-1:], size - len(k), 0)]) if len(k) < size else k
+        out = run(*(jnp.asarray(padded[:, j]) for j in range(3)))
+        parts.append(jax.tree.map(lambda x, n=len(k): np.asarray(x)[:n], out))
+    return jax.tree.map(lambda *xs: jnp.asarray(np.concatenate(xs)), *parts)
+
+
+def score_pool(reward: surrogate.RewardConfig, hand, batch, contacts, index, changed, size: int):
+    """(returns (G, N), feasible (G, N)) of the pool's sequences under `reward`: each step scored as a DP table
+    scores it (the tool on its waypoint, the change term from the shared grasp), summed up to the first step that
+    ends the episode."""
+    sur = surrogate.Surrogate(hand=hand, reward=reward)
+    _, G, N, T = index.shape
+
+    def step(e, t, a, b, c, ch):
+        ep = jax.tree.map(lambda x: x[e], batch)
+        pick = lambda i: jax.tree.map(lambda x: x[i], contacts)  # noqa: E731
+        terms = sur.score(ep, t, ep.waypoints[t], ep.quats[t], pick(a), pick(b), False, pick(c), ch)
+        return terms.reward, terms.fall | terms.collision
+
+    run = jax.jit(jax.vmap(step))
+    e = np.broadcast_to(np.arange(N)[None, :, None], (G, N, T)).ravel()
+    t = np.broadcast_to(np.arange(T), (G, N, T)).ravel()
+    flat = [e, t, index[0].ravel(), index[1].ravel(), index[2].ravel(), changed.ravel()]
+    rewards, ends = [], []
+    for i in range(0, len(e), size):
+        part = [x[i:i + size] for x in flat]
+        pad = size - len(part[0])
+        part = [np.concatenate([x, np.repeat(x[-1:], pad)]) if pad else x for x in part]
+        r, end = run(*(jnp.asarray(x) for x in part))
+        rewards.append(np.asarray(r)[:size - pad])
+        ends.append(np.asarray(end)[:size - pad])
+    r, end = np.concatenate(rewards).reshape(G, N, T), np.concatenate(ends).reshape(G, N, T)
+    alive = np.concatenate([np.ones((G, N, 1), bool), np.cumsum(end, -1)[..., :-1] == 0], -1)
+    return np.sum(np.where(alive, r, 0.0), -1), ~np.any(end, -1)
+
+
+def main(args: argparse.Namespace) -> None:
+    if args.batch < 1:
+        raise SystemExit(f"--batch must be >= 1, got {args.batch}")
+    base = surrogate.RewardConfig()
+    rewards = [("calibrated", base)] + [(text, parse_reward(text, base)) for text in args.reward]
+    set_name, names, batch, kinds, grasps, fell, angle = load_pool(args.pool, args.episodes)
+    sur = surrogate.Surrogate()
+    t0 = time.perf_counter()
+    keys, index, changed = step_states(sur, np.asarray(batch.start_grasp), grasps)
+    print(f"rescore: {grasps.shape[0]} x {len(names)} sequences of '{set_name}' ({grasps.size} steps, {len(keys)} "
+          f"distinct states to realise) ...", flush=True)
+    contacts = realise_states(sur, batch, keys, args.batch)
+    print(f"  IK {time.perf_counter() - t0:.0f} s", flush=True)
+    rows, out = [], []
+    for label, reward in rewards:
+        t1 = time.perf_counter()
+        returns, feasible = score_pool(reward, sur.hand, batch, contacts, index, changed, args.batch)
+        pool = summarise(kinds, fell, angle, feasible, returns, {})["pool"]
+        out.append(dict(reward=label, config=dataclasses.asdict(reward), **pool))
+        rows.append([label, pool["surrogate_feasible"], pool["feasible_hold_share"], pool["auc_pooled"],
+                     pool["auc_within_mean"], pool["spearman_pooled"]])
+        print(f"  {label}: {time.perf_counter() - t1:.0f} s", flush=True)
+    path = results_dir("rescore") / f"{set_name}.json"
+    path.write_text(json.dumps(dict(pool=str(args.pool), set=set_name, episodes=names, sequences=int(fell.size),
+                                    physics_falls=int(fell.sum()), rewards=out), indent=1))
+    print(f"wrote {path}\n")
+    print(f"{fell.size} sequences of '{set_name}', {int(fell.sum())} fell in the recorded physics")
+    print(table(["reward", "feasible", "of them held", "AUC pooled", "AUC within", "Spearman rho"], rows))

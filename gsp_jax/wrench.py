@@ -143,7 +143,7 @@ def _solve(points, normals, active, mu, wrench, center, cfg, init=None, prefer=N
     dtype = points.dtype
     wrench, center, mu = (jnp.asarray(x, dtype) for x in (wrench, center, mu))  # one dtype (x64 mode mixes them)
     k = points.shape[0]
-    scale = jnp.asarray([1.0, 1.0, 1.0] + [1.0 / cfg.torque_length] * 3, dtype)
+    scale = _scale(cfg, dtype)
     a = scale[:, None] * grasp_matrix(points, center) * jnp.repeat(active.astype(dtype), 3)[None]  # (6, 3K)
     base = (jnp.asarray(grip, dtype) * normals * active.astype(dtype)[:, None]).reshape(-1)  # (3K,) the grip
     b = scale * wrench - a @ base
@@ -183,6 +183,11 @@ def _solve(points, normals, active, mu, wrench, center, cfg, init=None, prefer=N
     return result
 
 
+def _scale(cfg: WrenchConfig, dtype) -> jax.Array:
+    """S (6,): 1 on the force rows, 1 / torque_length on the torque rows."""
+    return jnp.asarray([1.0, 1.0, 1.0] + [1.0 / cfg.torque_length] * 3, dtype)
+
+
 def _result(a, b, x, base, scale, wrench, rho) -> WrenchResult:
     """The result of forces x (3K,) beyond the grip `base` (3K,), for the scaled problem (a (6, 3K), b (6,))."""
     res_scaled = a @ x - b
@@ -201,18 +206,13 @@ def assess(forces: jax.Array, points: jax.Array, active: jax.Array, wrench: jax.
     the unmet fraction, on the active (K,) contacts. `solve`'s result, recomputed for forces a hand delivers."""
     dtype = points.dtype
     wrench, center = jnp.asarray(wrench, dtype), jnp.asarray(center, dtype)
-    mask = active.astype(dtype)[:, None]
-    f = forces * mask
-    scale = jnp.asarray([1.0, 1.0, 1.0] + [1.0 / cfg.torque_length] * 3, dtype)
+    mask3 = jnp.repeat(active.astype(dtype), 3)
+    scale = _scale(cfg, dtype)
+    base = jnp.zeros_like(mask3) if reference is None else jnp.asarray(reference, dtype).reshape(-1) * mask3
     with jax.default_matmul_precision("highest"):
-        res_scaled = scale * (grasp_matrix(points, center) @ f.reshape(-1) - wrench)
-    dev = f if reference is None else f - reference * mask
-    return WrenchResult(
-        forces=f,
-        residual=res_scaled / scale,
-        error=jnp.sum(res_scaled**2) + cfg.force_penalty * jnp.sum(dev**2),
-        unmet=jnp.sqrt(jnp.sum(res_scaled**2)) / jnp.sqrt(jnp.sum((scale * wrench) ** 2) + 1e-12),
-    )
+        a = scale[:, None] * grasp_matrix(points, center) * mask3[None]  # (6, 3K)
+        return _result(a, scale * wrench - a @ base, forces.reshape(-1) * mask3 - base, base, scale, wrench,
+                       cfg.force_penalty)
 
 
 def saturate(forces: jax.Array, jacobians: jax.Array, limit: jax.Array, link_joints: jax.Array) -> jax.Array:
@@ -257,7 +257,7 @@ def _solve_newton(points, normals, active, mu, wrench, center, cfg, init=None, p
     dtype = points.dtype
     wrench, center, mu = (jnp.asarray(x, dtype) for x in (wrench, center, mu))
     k = points.shape[0]
-    scale = jnp.asarray([1.0, 1.0, 1.0] + [1.0 / cfg.torque_length] * 3, dtype)
+    scale = _scale(cfg, dtype)
     mask3 = jnp.repeat(active.astype(dtype), 3)
     a = scale[:, None] * grasp_matrix(points, center) * mask3[None]  # (6, 3K)
     base = (jnp.asarray(grip, dtype) * normals * active.astype(dtype)[:, None]).reshape(-1)

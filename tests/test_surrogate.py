@@ -18,7 +18,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import tolerances as tol  # noqa: E402
-from gsp_jax import grasps, scenario, surrogate, wrench  # noqa: E402
+from gsp_jax import grasps, kinematics, scenario, surrogate, wrench  # noqa: E402
 
 T = scenario.N_WAYPOINTS
 BATCH = 17  # = the number of actions, so one vmapped compile serves every batched test
@@ -607,7 +607,6 @@ def test_motors_leave_unmet_what_the_motors_cannot_give(env, fns):
     out = {k: _solve_at(s, fns, ep, "T1 I1 . M1 . R1")[1] for k, s in
            (("plain", plain), ("motors", motors), ("strong", strong))}
     c, _ = _solve_at(plain, fns, ep, "T1 I1 . M1 . R1")
-    from gsp_jax import kinematics
     _, jac = kinematics.closest_on_links_and_jacobians(env.hand, c.ik.q, c.points)
     tau = np.einsum("kij,ki->j", np.asarray(jac, np.float64), np.asarray(out["plain"].forces, np.float64))
     assert np.max(np.abs(tau)) > 3.0  # the plain forces need more than the motors give

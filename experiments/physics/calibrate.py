@@ -116,10 +116,12 @@ def _from_sweep(path: str, write: bool) -> None:
     cache_path = results_dir("calibrate") / f"physics_{summary['backend']}.json"
     if cache_path.exists():  # sweeps written before the per-episode falls were kept: read them off the cache
         cache = json.loads(cache_path.read_text())
+        names = summary["episodes"]
         for r in summary["sweep"]:
-            keys = [pool_key(summary["episodes"], e, s) for e, s in enumerate(
-                r.get("dp_opt_sequences", {}).get(n) for n in summary["episodes"])]
-            if "dp_opt_fell" not in r and "dp_opt_sequences" in r and all(k in cache for k in keys):
+            if "dp_opt_fell" in r or "dp_opt_sequences" not in r:
+                continue
+            keys = [pool_key(names, e, r["dp_opt_sequences"][n]) for e, n in enumerate(names)]
+            if all(k in cache for k in keys):
                 r["dp_opt_fell"] = [bool(cache[k][1]) for k in keys]
     choose_and_write(summary, write)
 

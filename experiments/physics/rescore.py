@@ -37,7 +37,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--reward", action="append", default=[], metavar="FIELD=VALUE,...",
                    help="a RewardConfig variant to score (repeatable)")
     p.add_argument("--episodes", type=int, default=None, help="only the pool's first N episodes")
-    p.add_argument("--batch", type=int, default=2048, help="states or steps per compiled batch")
+    p.add_argument("--batch", type=int, default=2048, help="states or steps vmapped at a time")
 
 
 def parse_reward(text: str, base: surrogate.RewardConfig) -> surrogate.RewardConfig:
@@ -108,19 +108,13 @@ def step_states(sur: surrogate.Surrogate, start: np.ndarray, grasps: np.ndarray)
 
 
 def realise_states(sur: surrogate.Surrogate, batch: scenario.Episode, keys: np.ndarray, size: int):
-    """`Surrogate.realise` of every (episode, grasp, waypoint) key (S, 3), in compiled batches: Contacts (S, ...)."""
-    def one(e, g, t):
-        ep = jax.tree.map(lambda x: x[e], batch)
-        return sur.realise(g, ep.waypoints[t], ep.quats[t])
+    """`Surrogate.realise` of every (episode, grasp, waypoint) key (S, 3), `size` at a time (`lax.map`, as
+    `dp.build_tables`): Contacts (S, ...)."""
+    def one(key):
+        ep = jax.tree.map(lambda x: x[key[0]], batch)
+        return sur.realise(key[1], ep.waypoints[key[2]], ep.quats[key[2]])
 
-    run = jax.jit(jax.vmap(one))
-    parts = []
-    for i in range(0, len(keys), size):
-        k = keys[i:i + size]
-        padded = np.concatenate([k, np.repeat(k[-1:], size - len(k), 0)]) if len(k) < size else k
-        out = run(*(jnp.asarray(padded[:, j]) for j in range(3)))
-        parts.append(jax.tree.map(lambda x, n=len(k): np.asarray(x)[:n], out))
-    return jax.tree.map(lambda *xs: jnp.asarray(np.concatenate(xs)), *parts)
+    return jax.jit(lambda k: jax.lax.map(one, k, batch_size=size))(jnp.asarray(keys, jnp.int32))
 
 
 def score_pool(reward: surrogate.RewardConfig, hand, batch, contacts, index, changed, size: int):
@@ -130,25 +124,18 @@ def score_pool(reward: surrogate.RewardConfig, hand, batch, contacts, index, cha
     sur = surrogate.Surrogate(hand=hand, reward=reward)
     _, G, N, T = index.shape
 
-    def step(e, t, a, b, c, ch):
+    def step(contacts, e, t, a, b, c, ch):
         ep = jax.tree.map(lambda x: x[e], batch)
         pick = lambda i: jax.tree.map(lambda x: x[i], contacts)  # noqa: E731
         terms = sur.score(ep, t, ep.waypoints[t], ep.quats[t], pick(a), pick(b), False, pick(c), ch)
         return terms.reward, terms.fall | terms.collision
 
-    run = jax.jit(jax.vmap(step))
     e = np.broadcast_to(np.arange(N)[None, :, None], (G, N, T)).ravel()
     t = np.broadcast_to(np.arange(T), (G, N, T)).ravel()
-    flat = [e, t, index[0].ravel(), index[1].ravel(), index[2].ravel(), changed.ravel()]
-    rewards, ends = [], []
-    for i in range(0, len(e), size):
-        part = [x[i:i + size] for x in flat]
-        pad = size - len(part[0])
-        part = [np.concatenate([x, np.repeat(x[-1:], pad)]) if pad else x for x in part]
-        r, end = run(*(jnp.asarray(x) for x in part))
-        rewards.append(np.asarray(r)[:size - pad])
-        ends.append(np.asarray(end)[:size - pad])
-    r, end = np.concatenate(rewards).reshape(G, N, T), np.concatenate(ends).reshape(G, N, T)
+    columns = tuple(jnp.asarray(x) for x in (e, t, index[0].ravel(), index[1].ravel(), index[2].ravel(),
+                                             changed.ravel()))
+    run = jax.jit(lambda cs, cols: jax.lax.map(lambda x: step(cs, *x), cols, batch_size=size))
+    r, end = (np.asarray(x).reshape(G, N, T) for x in run(contacts, columns))
     alive = np.concatenate([np.ones((G, N, 1), bool), np.cumsum(end, -1)[..., :-1] == 0], -1)
     return np.sum(np.where(alive, r, 0.0), -1), ~np.any(end, -1)
 

@@ -17,6 +17,11 @@ class PhysicsConfig:
     control_every: int = 1  # physics steps per control tick: every step (measured: see README "physics check")
     solver_iterations: int = 20  # Newton iterations per step (MJX stops earlier when converged)
     ls_iterations: int = 20  # line-search iterations
+    implicit_damping: bool = False  # Euler integrates the joints' damping implicitly (MuJoCo's default). Off: in
+    # float32 MJX the Newton solve can stop unconverged (a failed line search ends it) when a link first touches,
+    # and the implicit step then re-solves the accelerations from that solve's constraint forces, which are the new
+    # contact's whole spring-damper response: the tool was kicked 2 mm in one tick (measured, MJX on an AMD CPU).
+    # Explicit damping uses the solve's own accelerations and is stable here (timestep x damping / inertia = 0.1)
     spheres_per_capsule: int = 4  # contact spheres replacing each hand capsule (MJX misses tilted capsule-box)
     tool_contact_links: tuple[str, ...] = ("medial", "distal")  # hand capsules (name suffixes) that touch the tool
     table_friction: float = 0.6

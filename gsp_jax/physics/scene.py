@@ -88,6 +88,8 @@ def physics_model(path=hand_lib.SCENE_XML, config: PhysicsConfig = PhysicsConfig
     model = spec.compile()
     model.opt.timestep = config.timestep
     model.opt.iterations, model.opt.ls_iterations = config.solver_iterations, config.ls_iterations
+    if not config.implicit_damping:
+        model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_EULERDAMP
     return model
 
 

@@ -51,21 +51,32 @@ def _data(name: str) -> dict:
     return json.loads((DATA / f"{name}.json").read_text())["figures"]
 
 
+def _report() -> dict:
+    return json.loads((ROOT / "docs/report/report.json").read_text())
+
+
+def _gpu() -> str:
+    """The GPU of the report's run as the README names it (H100, H200, ...); its Table 1 is docs/data/table1_<gpu>."""
+    found = re.search(r"\b([A-Z]\d{2,3})\b", _report()["device"])
+    assert found, f"report.json names no GPU: {_report()['device']!r}"
+    return found.group(1)
+
+
 def test_results_table_is_docs_data():
     """The README's results rows (Fig. 4a, Fig. 4b, Table 1) equal docs/data (fig4a, fig4b, table1_h100), at the
     digits shown."""
     order = ["dp-base", "rl", "L1", "L2", "dp-opt"]
     fig4a = _data("fig4a")["relative"]
-    cells = _row("Fig. 4a: surrogate return − DP optimal (mean ± 95% CI), H100")
+    cells = _row("Fig. 4a: surrogate return − DP optimal (mean ± 95% CI)")
     for cell, p in zip(cells, order[:4]):
         assert _pm(cell) == (round(fig4a[p]["mean"], 2), round(fig4a[p]["ci95"], 2)), (p, cell)
     assert cells[4] == "0"
     fig4b = _data("fig4b")
-    assert [int(x) for x in _row("Fig. 4b: falls / 27 in C MuJoCo, H100 host")] == [fig4b[p]["falls"] for p in order]
+    assert [int(x) for x in _row("Fig. 4b: falls / 27 in C MuJoCo")] == [fig4b[p]["falls"] for p in order]
     for cell, p in zip(_row("Fig. 4b: tool angle error [deg] (mean ± 95% CI; 180 for a fall)"), order):
         assert _pm(cell) == (round(fig4b[p]["mean_deg"], 1), round(fig4b[p]["ci95_deg"], 1)), (p, cell)
-    table1 = _data("table1_h100")
-    for cell, p in zip(_row("Table 1: ours, one H100"), order):
+    table1 = _data(f"table1_{_gpu().lower()}")
+    for cell, p in zip(_row(f"Table 1: ours, one {_gpu()}"), order):
         value = float(cell.removesuffix(" s"))
         digits = len(cell.removesuffix(" s").split(".")[1])
         assert value == round(table1["warm_s"][p], digits), (p, cell)
@@ -77,7 +88,7 @@ def test_docs_data_has_one_schema_and_a_history_per_result():
     """Every current result in docs/data has the one schema, and its history (docs/data/history/<name>.jsonl, a
     row per run) ends with it."""
     current = sorted(DATA.glob("*.json"))
-    assert {p.stem for p in current} >= {"fig4a", "fig4b", "table1_h100", "envelope_stress", "envelope_eval"}
+    assert {p.stem for p in current} >= {"fig4a", "fig4b", f"table1_{_gpu().lower()}", "envelope_stress", "envelope_eval"}
     for path in current:
         row = json.loads(path.read_text())
         assert SCHEMA <= set(row) <= SCHEMA | {"note"}, (path.name, sorted(row))
@@ -90,10 +101,10 @@ def test_the_report_is_the_run_docs_data_holds():
     """docs/report (REPORT.md, report.json) and docs/data's Fig. 4a, Fig. 4b and Table 1 come from the same run."""
     from experiments.paper import fig4a, fig4b, table1
 
-    report = json.loads((ROOT / "docs/report/report.json").read_text())
+    report = _report()
     assert fig4a.figures(report["fig4a"]) == _data("fig4a")
     assert fig4b.figures(report["fig4b"]) == _data("fig4b")
-    assert table1.figures(report["table1"]) == _data("table1_h100")
+    assert table1.figures(report["table1"]) == _data(f"table1_{_gpu().lower()}")
 
 
 def test_record_writes_the_current_result_and_appends_its_history(tmp_path, monkeypatch):

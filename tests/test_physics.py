@@ -140,6 +140,28 @@ def test_batched_equals_single(phys, batch, runs):
     np.testing.assert_array_equal(one.grasps, res.grasps[1])
 
 
+def test_reflected_force_is_the_least_inertia_torque_that_accelerates_the_point():
+    """J^T reflected_force(J, M, a) equals M qdd*, the joint accelerations of least kinetic-energy rate
+    (min qdd^T M qdd subject to J qdd = a, solved by numpy's lstsq in the M^(1/2) metric), as the cap grows; with a
+    cap, the force is (J M^-1 J^T + I / cap)^-1 a and never exceeds cap |a| along a direction."""
+    rng = np.random.default_rng(0)
+    jac = rng.normal(size=(3, 3, 4)) * 0.05
+    jac[2, 0] = 1e-4 * jac[2, 1]  # a near-singular link: its point barely moves along one direction
+    m = rng.uniform(0.002, 0.003, size=4)
+    acc = rng.normal(size=(3, 3))
+    for link in (0, 1):
+        y, *_ = np.linalg.lstsq(jac[link] / np.sqrt(m), acc[link], rcond=None)  # y = M^(1/2) qdd
+        qdd = y / np.sqrt(m)
+        f = np.asarray(ctl.reflected_force(jnp.asarray(jac[link : link + 1], jnp.float32), jnp.asarray(m, jnp.float32),
+                                           jnp.asarray(acc[link : link + 1], jnp.float32), 1e6))[0]
+        np.testing.assert_allclose(jac[link].T @ f, m * qdd, rtol=2e-3, atol=1e-6)
+    capped = np.asarray(ctl.reflected_force(jnp.asarray(jac, jnp.float32), jnp.asarray(m, jnp.float32),
+                                            jnp.asarray(acc, jnp.float32), 1.0))
+    ref = np.stack([np.linalg.solve(jac[k] @ np.diag(1 / m) @ jac[k].T + np.eye(3), acc[k]) for k in range(3)])
+    np.testing.assert_allclose(capped, ref, rtol=1e-4, atol=1e-6)
+    assert np.all(np.linalg.norm(capped, axis=-1) <= np.linalg.norm(acc, axis=-1) + 1e-6)
+
+
 def test_reference_motion_interpolates_the_waypoints():
     """The spline passes through every waypoint; its velocity and acceleration are the derivatives of its path
     (central differences), and it stays at the last waypoint afterwards."""

@@ -55,6 +55,16 @@ class PhysicsConfig:
     # feedback. Chosen on the envelope's calibration slice (`scenario.episode_set("stress-cal")`, four tips, C
     # MuJoCo: 0 / 4 N -> 30 / 26 falls, 13 / 9 where the oracle said forces exist; 0 evaluation falls either way)
     tool_radius: float = 0.05  # [m] rotational gains act as on a mass m at this radius (plus the tool's inertia)
+    hand_compensation: float = 0.3  # the fingers holding the tool also get this fraction of the torques that move
+    # their own inertia (armature included) with the tool's commanded acceleration (`reflected_force`); without it
+    # the commanded wrench must also accelerate the fingers, whose reflected inertia is several times a light
+    # tool's. Chosen on the calibration slice (stress-cal + evaluation, four tips, C MuJoCo, 2-core): 0 / 0.2 / 0.3
+    # / 0.5 / 1.0 -> 27 / 26 / 26 / 25 / 25 stress-cal falls, 0 / 0 / 0 / 2 / 7 evaluation falls, held angle
+    # 1.89 / 1.24 / 1.18 / 1.53 / 1.58 deg (stress-cal) and 0.86 / 0.66 / 0.63 / 0.59 / 0.63 deg (evaluation). The
+    # joints' damping compensated as well (1.0 x their damping on the measured velocities) dropped 19 evaluation tools
+    hand_reflected_mass: float = 1.0  # [kg] the most inertia a link's compensation assumes along any direction: a
+    # near-straight finger cannot move its tip along itself, and its reflected inertia there grows without bound
+    # (uncapped, 0.3 dropped 7 evaluation tools as the pedestals sank)
     feedforward_external: bool = True  # the known external wrench is fed forward (as when tightening a bolt)
     squeeze: float = 8.0  # [N] grip along each normal: the force solve's preferred forces (their null-space part)
     friction_margin: float = 0.7  # the force solve uses this fraction of the friction coefficient
@@ -105,7 +115,7 @@ class PhysicsConfig:
     def __post_init__(self):
         for name in ("timestep", "segment", "hold", "ramp", "unload", "move", "load", "slide_depth", "clearance",
                      "contact_tol", "reach_tol", "tool_freq", "feedback_limit", "tool_radius", "pedestal_speed",
-                     "free_damping", "fall_angle", "fall_distance", "friction_margin"):
+                     "free_damping", "fall_angle", "fall_distance", "friction_margin", "hand_reflected_mass"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and value > 0):
                 raise ValueError(f"PhysicsConfig.{name} must be > 0, got {value!r}")
@@ -114,7 +124,7 @@ class PhysicsConfig:
             if not (isinstance(value, int) and value >= 1):
                 raise ValueError(f"PhysicsConfig.{name} must be an int >= 1, got {value!r}")
         for name in ("tool_damping", "held_stiffness_ratio", "squeeze", "finger_kp", "finger_kd", "posture_kp",
-                     "free_stiffness", "feedback_floor", "motor_margin", "motor_weight"):
+                     "free_stiffness", "feedback_floor", "motor_margin", "motor_weight", "hand_compensation"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and value >= 0):
                 raise ValueError(f"PhysicsConfig.{name} must be >= 0, got {value!r}")

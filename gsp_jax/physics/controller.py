@@ -15,7 +15,9 @@ of the episode's waypoints (a cubic Hermite spline through them):
                 friction cones (`friction_margin` of mu) that supply (F, T), with `squeeze` newtons along every
                 normal as the solve's preferred forces, so the grip lives in the grasp matrix's null space and
                 inside the cones (`wrench.solve(prefer=...)`, warm-started from the last tick);
-  fingers       tau = sum_l J_l^T (f_l + K_l (x*_l - x_l) + D (v*_l - J_l dq)) + bias + posture, with J_l the
+  fingers       tau = sum_l J_l^T (f_l + K_l (x*_l - x_l) + D (v*_l - J_l dq) + h Lambda_l a*_l) + bias + posture
+                (h Lambda_l a*_l on held links only: `hand_compensation` of the force that moves the link's finger
+                with the tool's commanded acceleration a*_l at its point, `reflected_force`), with J_l the
                 Jacobian of link l's centre-line point nearest its target x*_l at the *measured* joint angles: no IK
                 while the tool is held. Targets are fixed to the observed tool: a touching link's where it touches
                 (K stiff along the normal, `held_stiffness_ratio` across); an arriving link's its option's nominal
@@ -130,6 +132,15 @@ def _solve3(m: jax.Array, v: jax.Array) -> jax.Array:
     return (c0 * v[..., :1] + c1 * v[..., 1:2] + c2 * v[..., 2:]) / det
 
 
+def reflected_force(jac: jax.Array, joint_inertia: jax.Array, acc: jax.Array, most: float) -> jax.Array:
+    """(L, 3) the force at each link point that accelerates its joints' inertia with the point: Lambda a with
+    Lambda = (J M^-1 J^T + I / most)^-1, the link's reflected inertia [kg] for joints of diagonal inertia M (J,),
+    capped at `most` kg along any direction. J^T Lambda a are the least joint-inertia torques that give the point
+    the acceleration a (as most -> inf). jac (L, 3, J), acc (L, 3)."""
+    jmj = jnp.einsum("lij,j,lkj->lik", jac, 1.0 / joint_inertia, jac) + jnp.eye(3) / most
+    return _solve3(jmj, acc)
+
+
 def _smooth(u: jax.Array) -> jax.Array:
     return u * u * (3 - 2 * u)
 
@@ -137,8 +148,13 @@ def _smooth(u: jax.Array) -> jax.Array:
 class Controller:
     """The contact controller of one hand model (see the module docstring). Stateless after construction."""
 
-    def __init__(self, hand: HandModel, space: grasps.GraspSpace, config: PhysicsConfig, ctrl_range, gravity):
+    def __init__(self, hand: HandModel, space: grasps.GraspSpace, config: PhysicsConfig, ctrl_range, gravity,
+                 joint_inertia=None):
         self.hand, self.space, self.config = hand, space, config
+        # (J,) the joints' inertia [kg m^2] (`Scene.joint_inertia`); needed where `hand_compensation` > 0
+        if config.hand_compensation > 0 and joint_inertia is None:
+            raise ValueError("Controller: joint_inertia is required when PhysicsConfig.hand_compensation > 0")
+        self.joint_inertia = jnp.asarray(np.ones(hand.n_joints) if joint_inertia is None else joint_inertia, jnp.float32)
         self.ctrl_range = tuple(jnp.asarray(r, jnp.float32) for r in ctrl_range)
         self.motor_limit = config.motor_margin * jnp.minimum(-self.ctrl_range[0], self.ctrl_range[1])  # (J,)
         self.gravity = jnp.asarray(gravity, jnp.float32)
@@ -251,6 +267,20 @@ class Controller:
         torque = turn + jnp.cross(omega, inertia @ omega)
         return jnp.concatenate([force, torque]) - external
 
+    def _hand_compensation(self, obs: Observation, episode: Episode, x, jac, held, wrench_cmd):
+        """Joint torques (J,) that move the holding links' fingers with the tool: `hand_compensation` x
+        `reflected_force` of each held link at its point's commanded acceleration (the tool's, from the wrench the
+        contacts and the external load command and the inertia `tool_wrench` assumes)."""
+        c = self.config
+        p, mat, omega = self._frame(obs)
+        com = p + mat @ episode.com
+        inertia = (mat * episode.inertia) @ mat.T
+        inertia_ref = inertia + episode.mass * c.tool_radius**2 * jnp.eye(3)
+        acc = wrench_cmd[:3] / episode.mass + self.gravity  # the CoM's commanded acceleration
+        alpha = _solve3(inertia_ref, wrench_cmd[3:] - jnp.cross(omega, inertia @ omega))  # ... and angular
+        force = reflected_force(jac, self.joint_inertia, acc + jnp.cross(alpha, x - com), c.hand_reflected_mass)
+        return c.hand_compensation * jnp.einsum("lij,li->j", jac, jnp.where(held, force, 0.0))
+
     def _forces(self, points, normals, active, mu, required, com, init, motors):
         """Cone forces (L, 3) on the links `active` (L,) that supply `required`, pulled towards `squeeze` newtons
         along each normal (the grip: it lives in the grasp matrix's null space, inside the cones), with the joint
@@ -350,5 +380,7 @@ class Controller:
             share = jnp.sum(load * cs.changed)
             forces = share * f_a + (1 - share) * f_b
             tau = jnp.einsum("lij,li->j", jac, forces + f_track) + posture + gravity
+            if c.hand_compensation > 0:
+                tau = tau + self._hand_compensation(obs, episode, x, jac, held & active[:, None], required + external)
             tau = jnp.clip(tau, *self.ctrl_range)
         return tau, cs.replace(load=load, f_with=f_a, f_without=f_b, anchor=anchor, anchored=anchored)

@@ -62,7 +62,8 @@ class Physics:
         self.hand, self.space, self.config = self.surrogate.hand, self.surrogate.space, config
         self.scene = Scene(self.hand, config, path)
         self.model = self.scene.model
-        self.controller = Controller(self.hand, self.space, config, self.scene.ctrl_range, self.hand.gravity)
+        self.controller = Controller(self.hand, self.space, config, self.scene.ctrl_range, self.hand.gravity,
+                                     self.scene.joint_inertia())
         c = config
         self.n_segment = c.ticks(c.segment)  # control ticks per segment
         self.n_hold = max(1, int(round(c.hold / c.segment)))  # hold segments

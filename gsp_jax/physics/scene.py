@@ -147,6 +147,16 @@ class Scene:
             for b in range(len(hand.tool_box_half))]).astype(np.float32)
         self.mx = mjx.put_model(m)
 
+    def joint_inertia(self) -> np.ndarray:
+        """(J,) [kg m^2] the hand joints' inertia: the diagonal of the joint-space inertia (armature included, 80-100%
+        of it) at the model's reference pose."""
+        m = self.model
+        d = mujoco.MjData(m)
+        mujoco.mj_forward(m, d)
+        full = np.zeros((m.nv, m.nv))
+        mujoco.mj_fullM(m, d, full)
+        return np.diag(full)[self.hand_dof].astype(np.float32)
+
     # ------------------------------------------------------------------------------------------ episodes
     def episode_fields(self, episode: Episode) -> EpisodeFields:
         """The model fields of one episode (pure JAX; vmap over episodes)."""

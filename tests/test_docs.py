@@ -63,8 +63,8 @@ def _gpu() -> str:
 
 
 def test_results_table_is_docs_data():
-    """The README's results rows (Fig. 4a, Fig. 4b, Table 1) equal docs/data (fig4a, fig4b, table1_h100), at the
-    digits shown."""
+    """The README's results rows (Fig. 4a, Fig. 4b, Table 1) equal docs/data (fig4a, fig4b, table1_<the report's
+    GPU>), at the digits shown."""
     order = ["dp-base", "rl", "L1", "L2", "dp-opt"]
     fig4a = _data("fig4a")["relative"]
     cells = _row("Fig. 4a: surrogate return − DP optimal (mean ± 95% CI)")
@@ -88,7 +88,8 @@ def test_docs_data_has_one_schema_and_a_history_per_result():
     """Every current result in docs/data has the one schema, and its history (docs/data/history/<name>.jsonl, a
     row per run) ends with it."""
     current = sorted(DATA.glob("*.json"))
-    assert {p.stem for p in current} >= {"fig4a", "fig4b", f"table1_{_gpu().lower()}", "envelope_stress", "envelope_eval"}
+    expected = {"fig4a", "fig4b", f"table1_{_gpu().lower()}", "envelope_stress", "envelope_eval"}
+    assert {p.stem for p in current} >= expected
     for path in current:
         row = json.loads(path.read_text())
         assert SCHEMA <= set(row) <= SCHEMA | {"note"}, (path.name, sorted(row))

@@ -253,10 +253,7 @@ class Controller:
         v_com = obs.tool_vel[:3] + jnp.cross(omega, r_com)
         c, weight = self.config, episode.mass * jnp.linalg.norm(self.gravity)
         feedback = episode.mass * (kp * (com_ref - com) + kd * (ref.vel - v_com))
-        inertia = (mat * episode.inertia) @ mat.T
-        # rotational stiffness as of a mass m at `tool_radius`: the inertia about a thin tool's long axis is ~50x
-        # smaller, and inertia-normalised gains would leave it free to roll under an offset CoM's grip forces
-        inertia_ref = inertia + episode.mass * c.tool_radius**2 * jnp.eye(3)
+        inertia, inertia_ref = self._tool_inertia(mat, episode)
         turn = inertia_ref @ (kp * rotation_error(ref.quat, obs.tool_quat) - kd * omega)
         # the feedback is capped: a contact's impact spikes the observed velocity, and an uncapped damping term
         # would turn the spike into grip forces the motors cannot give (measured: the tool thrown out of the hand)
@@ -267,15 +264,21 @@ class Controller:
         torque = turn + jnp.cross(omega, inertia @ omega)
         return jnp.concatenate([force, torque]) - external
 
-    def _hand_compensation(self, obs: Observation, episode: Episode, x, jac, held, wrench_cmd):
-        """Joint torques (J,) that move the holding links' fingers with the tool: `hand_compensation` x
-        `reflected_force` of each held link at its point's commanded acceleration (the tool's, from the wrench the
-        contacts and the external load command and the inertia `tool_wrench` assumes)."""
-        c = self.config
-        p, mat, omega = self._frame(obs)
-        com = p + mat @ episode.com
+    def _tool_inertia(self, mat: jax.Array, episode: Episode) -> tuple[jax.Array, jax.Array]:
+        """(3, 3) x 2, world frame: the tool's inertia about its CoM, and the inertia its rotational gains act on,
+        the tool's plus its mass at `tool_radius` (rotational stiffness as of that mass: the inertia about a thin
+        tool's long axis is ~50x smaller, and inertia-normalised gains would leave it free to roll under an offset
+        CoM's grip forces)."""
         inertia = (mat * episode.inertia) @ mat.T
-        inertia_ref = inertia + episode.mass * c.tool_radius**2 * jnp.eye(3)
+        return inertia, inertia + episode.mass * self.config.tool_radius**2 * jnp.eye(3)
+
+    def _hand_compensation(self, mat, omega, com, episode: Episode, x, jac, held, wrench_cmd):
+        """Joint torques (J,) that move the holding links' fingers with the tool (observed at rotation `mat`,
+        angular velocity `omega`, CoM `com`): `hand_compensation` x `reflected_force` of each held link at its
+        point's commanded acceleration (the tool's, from the wrench the contacts and the external load command and
+        the inertia `tool_wrench` assumes)."""
+        c = self.config
+        inertia, inertia_ref = self._tool_inertia(mat, episode)
         acc = wrench_cmd[:3] / episode.mass + self.gravity  # the CoM's commanded acceleration
         alpha = _solve3(inertia_ref, wrench_cmd[3:] - jnp.cross(omega, inertia @ omega))  # ... and angular
         force = reflected_force(jac, self.joint_inertia, acc + jnp.cross(alpha, x - com), c.hand_reflected_mass)
@@ -381,6 +384,7 @@ class Controller:
             forces = share * f_a + (1 - share) * f_b
             tau = jnp.einsum("lij,li->j", jac, forces + f_track) + posture + gravity
             if c.hand_compensation > 0:
-                tau = tau + self._hand_compensation(obs, episode, x, jac, held & active[:, None], required + external)
+                tau = tau + self._hand_compensation(mat, omega, com, episode, x, jac, held & active[:, None],
+                                                    required + external)
             tau = jnp.clip(tau, *self.ctrl_range)
         return tau, cs.replace(load=load, f_with=f_a, f_without=f_b, anchor=anchor, anchored=anchored)

@@ -100,6 +100,37 @@ def test_a_tip_added_at_the_lowest_start_arrives_before_the_pedestals_sink():
         touched, fell)
 
 
+def _tool_rates(quats: np.ndarray, tick: float) -> np.ndarray:
+    """(K-1, 3) the tool's body-frame angular velocity between successive orientations (K, 4) (w, x, y, z)."""
+    w0, x0, y0, z0 = quats[:-1].T
+    w1, x1, y1, z1 = quats[1:].T
+    return 2 / tick * np.stack([w0 * x1 - x0 * w1 - y0 * z1 + z0 * y1, w0 * y1 + x0 * z1 - y0 * w1 - z0 * x1,
+                                w0 * z1 - x0 * y1 + y0 * x1 - z0 * w1], -1)
+
+
+def test_the_tool_loop_is_stable_at_the_control_rate():
+    """Four tips on a light (0.25 m0) and a heavy (2.5 m0) tool, the reduced lift (first T waypoints) and 1 s under
+    the +1 N m torque (C MuJoCo): both held, and the tool's angular velocity about none of its axes alternates tick
+    to tick: the energy of the rates' tick-to-tick differences over that of their sums (the part at the control
+    rate's Nyquist frequency against the rest), from the pedestals' sinking to the end, < 0.1. Measured (2-core):
+    0.04 / 0.006 at most (light / heavy); with the rotational damping on 36x the roll inertia (`rotation_step` 0)
+    the heavy tool's roll 0.53, and 82 with `hand_compensation` 0.3 (a limit cycle at the control rate). (3 m0
+    falls at 0.7 s on this lift, the thumb's motor saturated: a limit of the motors, not of the loop.)"""
+    config = dataclasses.replace(CONFIG, hold=1.0)
+    phys = physics.Physics(Surrogate(), config)
+    masses = (0.25, 2.5)
+    eps = [_short(scenario.make_episode(mass_factor=f)) for f in masses]
+    ring, keep = phys.space.action("ring_distal", 1), phys.space.action("index_distal", 1)
+    policy = policies.SequencePolicy(jnp.asarray([[ring] + [keep] * (T - 1)] * len(masses), jnp.int32))
+    res = jax.device_get(phys.simulate_batch(policy, scenario.stack(eps), policy_axis=0, backend="c"))
+    assert not np.any(res.fell), (masses, res.fall_time)
+    a = phys.scene.tool_qpos
+    for i, f in enumerate(masses):
+        rates = _tool_rates(np.asarray(res.qpos[i, phys.n_segment:, a + 3 : a + 7], np.float64), config.tick)
+        alternating = np.sum((rates[1:] - rates[:-1]) ** 2, 0) / np.sum((rates[1:] + rates[:-1]) ** 2, 0)
+        assert np.all(alternating < 0.1), (f, alternating)
+
+
 @pytest.mark.parametrize("backend", physics.BACKENDS)
 def test_one_fingertip_and_a_one_sided_pinch_drop_the_tool(runs, backend):
     """Without an opposing contact the tool falls once the start pedestals sink away (after 0.25 s)."""

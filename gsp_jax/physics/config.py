@@ -22,6 +22,11 @@ class PhysicsConfig:
     # and the implicit step then re-solves the accelerations from that solve's constraint forces, which are the new
     # contact's whole spring-damper response: the tool was kicked 2 mm in one tick (measured, MJX on an AMD CPU).
     # Explicit damping uses the solve's own accelerations and is stable here (timestep x damping / inertia = 0.1)
+    noslip_iterations: int = 10  # C MuJoCo's noslip solver after each step's solve (MJX has none and ignores it):
+    # MuJoCo's soft friction lets a contact creep under any tangential load, where Coulomb friction (the oracle's
+    # model and the real fingertips') sticks inside the cone. Measured (C MuJoCo, four tips, 2-core): without it a
+    # 3 m0 tool held still (first 3 waypoints, no torque) creeps out of the thumb after 1.1 s (the thumb's T/muN
+    # 0.4 -> 0.75, then it lets go); with it T/muN stops at 0.57 and the tool holds
     spheres_per_capsule: int = 4  # contact spheres replacing each hand capsule (MJX misses tilted capsule-box)
     tool_contact_links: tuple[str, ...] = ("medial", "distal")  # hand capsules (name suffixes) that touch the tool
     table_friction: float = 0.6
@@ -55,6 +60,10 @@ class PhysicsConfig:
     # feedback. Chosen on the envelope's calibration slice (`scenario.episode_set("stress-cal")`, four tips, C
     # MuJoCo: 0 / 4 N -> 30 / 26 falls, 13 / 9 where the oracle said forces exist; 0 evaluation falls either way)
     tool_radius: float = 0.05  # [m] rotational gains act as on a mass m at this radius (plus the tool's inertia)
+    rotation_step: float = 1.0  # > 0: the rotational damping about each principal axis of the tool acts on at most
+    # rotation_step / (tick kd) times the tool's own inertia there, so one tick takes at most this fraction of the
+    # tool's angular velocity off (a discrete-time bound: above 1 the damping overshoots, alternates at the control
+    # rate, and above 2 it grows); 0: the damping acts on the stiffness's inertia (the tool's + m tool_radius^2)
     hand_compensation: float = 0.0  # > 0: the fingers holding the tool also get this fraction of the torques that
     # move their own inertia (armature included) with the tool's commanded acceleration (`reflected_force`); else
     # the commanded wrench must also accelerate the fingers, whose reflected inertia is several times a light tool's.
@@ -126,8 +135,11 @@ class PhysicsConfig:
             value = getattr(self, name)
             if not (isinstance(value, int) and value >= 1):
                 raise ValueError(f"PhysicsConfig.{name} must be an int >= 1, got {value!r}")
+        if not (isinstance(self.noslip_iterations, int) and self.noslip_iterations >= 0):
+            raise ValueError(f"PhysicsConfig.noslip_iterations must be an int >= 0, got {self.noslip_iterations!r}")
         for name in ("tool_damping", "held_stiffness_ratio", "squeeze", "finger_kp", "finger_kd", "posture_kp",
-                     "free_stiffness", "feedback_floor", "motor_margin", "motor_weight", "hand_compensation"):
+                     "free_stiffness", "feedback_floor", "rotation_step", "motor_margin", "motor_weight",
+                     "hand_compensation"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and value >= 0):
                 raise ValueError(f"PhysicsConfig.{name} must be >= 0, got {value!r}")

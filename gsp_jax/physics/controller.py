@@ -7,10 +7,12 @@ Per control tick, with the tool observed at pose (p, R), velocity (v, w), and th
 of the episode's waypoints (a cubic Hermite spline through them):
 
   tool wrench   F = m (a_r - g) + m [kp (c_r - c) + kd (v_r - v_c)] - s f_ext          (c: centre of mass)
-                T = I' [kp e_R - kd w] + w x I w - s tau_ext                         (e_R: rotation error vector)
+                T = I' kp e_R - I'' kd w + w x I w - s tau_ext                       (e_R: rotation error vector)
                 kp, kd from `tool_freq` / `tool_damping`; I' = I + m tool_radius^2 (a thin tool's inertia about its
-                long axis alone would leave it free to roll); each bracket capped at `feedback_limit` tool weights
-                (times tool_radius for the torque); s the external wrench's ramp (0 while lifting, 1 in the hold);
+                long axis alone would leave it free to roll); I'' = I' but per principal axis at most
+                `rotation_step` / (tick kd) I (damping stable at the control rate); the feedback force and torque
+                capped at `feedback_limit` tool weights (times tool_radius for the torque); s the external wrench's
+                ramp (0 while lifting, 1 in the hold);
   contacts      the grasp's contact points on the *observed* tool (where each link touches); forces f in the
                 friction cones (`friction_margin` of mu) that supply (F, T), with `squeeze` newtons along every
                 normal as the solve's preferred forces, so the grip lives in the grasp matrix's null space and
@@ -253,8 +255,8 @@ class Controller:
         v_com = obs.tool_vel[:3] + jnp.cross(omega, r_com)
         c, weight = self.config, episode.mass * jnp.linalg.norm(self.gravity)
         feedback = episode.mass * (kp * (com_ref - com) + kd * (ref.vel - v_com))
-        inertia, inertia_ref = self._tool_inertia(mat, episode)
-        turn = inertia_ref @ (kp * rotation_error(ref.quat, obs.tool_quat) - kd * omega)
+        inertia, stiff, damp = self._tool_inertia(mat, episode)
+        turn = stiff @ (kp * rotation_error(ref.quat, obs.tool_quat)) - damp @ (kd * omega)
         # the feedback is capped: a contact's impact spikes the observed velocity, and an uncapped damping term
         # would turn the spike into grip forces the motors cannot give (measured: the tool thrown out of the hand)
         clip = lambda v, top: v * jnp.minimum(1.0, top / (jnp.linalg.norm(v) + 1e-9))  # noqa: E731
@@ -264,13 +266,21 @@ class Controller:
         torque = turn + jnp.cross(omega, inertia @ omega)
         return jnp.concatenate([force, torque]) - external
 
-    def _tool_inertia(self, mat: jax.Array, episode: Episode) -> tuple[jax.Array, jax.Array]:
-        """(3, 3) x 2, world frame: the tool's inertia about its CoM, and the inertia its rotational gains act on,
-        the tool's plus its mass at `tool_radius` (rotational stiffness as of that mass: the inertia about a thin
-        tool's long axis is ~50x smaller, and inertia-normalised gains would leave it free to roll under an offset
-        CoM's grip forces)."""
+    def _tool_inertia(self, mat: jax.Array, episode: Episode) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """(3, 3) x 3, world frame: the tool's inertia about its CoM, and the inertias its rotational stiffness and
+        damping act on. Stiffness: the tool's plus its mass at `tool_radius` (as of that mass: the inertia about a
+        thin tool's long axis is ~50x smaller, and inertia-normalised gains would leave it free to roll under an
+        offset CoM's grip forces). Damping: the same, but about each principal axis at most `rotation_step` /
+        (tick kd) times the tool's own inertia there, so one tick's damping takes at most `rotation_step` of the
+        tool's angular velocity off (within a tick the tool turns alone, the fingers follow through the contacts'
+        compliance: bounded by the fingers' reflected inertia too, a heavy tool's roll still alternated at the
+        control rate and grew)."""
+        c = self.config
         inertia = (mat * episode.inertia) @ mat.T
-        return inertia, inertia + episode.mass * self.config.tool_radius**2 * jnp.eye(3)
+        stiff = episode.inertia + episode.mass * c.tool_radius**2  # (3,) about the tool's principal axes
+        damp = stiff if c.rotation_step == 0 else jnp.minimum(
+            stiff, c.rotation_step / (c.tick * c.tool_gains[1]) * episode.inertia)
+        return inertia, (mat * stiff) @ mat.T, (mat * damp) @ mat.T
 
     def _hand_compensation(self, mat, omega, com, episode: Episode, x, jac, held, wrench_cmd):
         """Joint torques (J,) that move the holding links' fingers with the tool (observed at rotation `mat`,
@@ -278,9 +288,9 @@ class Controller:
         point's commanded acceleration (the tool's, from the wrench the contacts and the external load command and
         the inertia `tool_wrench` assumes)."""
         c = self.config
-        inertia, inertia_ref = self._tool_inertia(mat, episode)
+        inertia, stiff, _ = self._tool_inertia(mat, episode)
         acc = wrench_cmd[:3] / episode.mass + self.gravity  # the CoM's commanded acceleration
-        alpha = _solve3(inertia_ref, wrench_cmd[3:] - jnp.cross(omega, inertia @ omega))  # ... and angular
+        alpha = _solve3(stiff, wrench_cmd[3:] - jnp.cross(omega, inertia @ omega))  # ... and angular
         force = reflected_force(jac, self.joint_inertia, acc + jnp.cross(alpha, x - com), c.hand_reflected_mass)
         return c.hand_compensation * jnp.einsum("lij,li->j", jac, jnp.where(held, force, 0.0))
 

@@ -90,6 +90,7 @@ def physics_model(path=hand_lib.SCENE_XML, config: PhysicsConfig = PhysicsConfig
     model.opt.iterations, model.opt.ls_iterations = config.solver_iterations, config.ls_iterations
     if not config.implicit_damping:
         model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_EULERDAMP
+    model.opt.noslip_iterations = config.noslip_iterations
     return model
 
 

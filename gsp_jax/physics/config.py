@@ -26,7 +26,9 @@ class PhysicsConfig:
     # MuJoCo's soft friction lets a contact creep under any tangential load, where Coulomb friction (the oracle's
     # model and the real fingertips') sticks inside the cone. Measured (C MuJoCo, four tips, 2-core): without it a
     # 3 m0 tool held still (first 3 waypoints, no torque) creeps out of the thumb after 1.1 s (the thumb's T/muN
-    # 0.4 -> 0.75, then it lets go); with it T/muN stops at 0.57 and the tool holds
+    # 0.4 -> 0.75, then it lets go); with it T/muN stops at 0.57 and the tool holds. Stress envelope (H200 host)
+    # falls 49 / 53 / 67 / 61 / 82 -> 44 / 49 / 64 / 58 / 84, four-tip controller falls 27 -> 22; the engine's
+    # step 1.3-2.1x slower (the runner on all cores the same: the controller sets its time)
     spheres_per_capsule: int = 4  # contact spheres replacing each hand capsule (MJX misses tilted capsule-box)
     tool_contact_links: tuple[str, ...] = ("medial", "distal")  # hand capsules (name suffixes) that touch the tool
     table_friction: float = 0.6
@@ -64,6 +66,9 @@ class PhysicsConfig:
     # rotation_step / (tick kd) times the tool's own inertia there, so one tick takes at most this fraction of the
     # tool's angular velocity off (a discrete-time bound: above 1 the damping overshoots, alternates at the control
     # rate, and above 2 it grows); 0: the damping acts on the stiffness's inertia (the tool's + m tool_radius^2)
+    # (there a tick took up to ~9x the roll rate off). Measured (C MuJoCo): a 2.5 m0 tool's roll alternating/smooth
+    # energy 0.53 -> 0.006 (82 -> 0.013 with hand_compensation 0.3); stress envelope (H200 host) falls 49 / 53 / 66 /
+    # 60 / 83 -> 49 / 53 / 67 / 61 / 82 (four tips / DP optimal / L1 / L2 / RL), regret down 1-3 each
     hand_compensation: float = 0.0  # > 0: the fingers holding the tool also get this fraction of the torques that
     # move their own inertia (armature included) with the tool's commanded acceleration (`reflected_force`); else
     # the commanded wrench must also accelerate the fingers, whose reflected inertia is several times a light tool's.

@@ -273,8 +273,8 @@ class Controller:
         offset CoM's grip forces). Damping: the same, but about each principal axis at most `rotation_step` /
         (tick kd) times the tool's own inertia there, so one tick's damping takes at most `rotation_step` of the
         tool's angular velocity off (within a tick the tool turns alone, the fingers follow through the contacts'
-        compliance: bounded by the fingers' reflected inertia too, a heavy tool's roll still alternated at the
-        control rate and grew)."""
+        compliance: bounded by the tool's plus the fingers' reflected inertia, the heavy tool of
+        `test_the_tool_loop_is_stable_at_the_control_rate` still fell, measured before the noslip solver)."""
         c = self.config
         inertia = (mat * episode.inertia) @ mat.T
         stiff = episode.inertia + episode.mass * c.tool_radius**2  # (3,) about the tool's principal axes

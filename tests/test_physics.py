@@ -22,6 +22,10 @@ from gsp_jax import physics, policies, scenario  # noqa: E402
 from gsp_jax.physics import controller as ctl  # noqa: E402
 from gsp_jax.surrogate import Surrogate  # noqa: E402
 
+# one worker runs the module (make test: --dist loadgroup), so its module fixtures (the MJX runner: ~3 min on a
+# 2-core CPU) are computed once, not once per xdist worker
+pytestmark = pytest.mark.xdist_group("physics")
+
 T = 5
 CONFIG = physics.PhysicsConfig(hold=0.5)
 TILT = 10.0  # [deg] the largest tilt the tests allow while the tool is held

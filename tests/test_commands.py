@@ -2,7 +2,7 @@
 from an earlier run: the shipped policy, the committed model files), and writes what it says it writes.
 
 Marked `commands` and left out of `make test` (one after another they take ~32 min on the H100 host, mostly
-compiles; a 2-core CPU is slower): `make commands JOBS=8` runs them (the same lines 8 at a time took 5.5 min on the
+compiles; a 2-core CPU is slower): `make commands JOBS=8` runs them (the same lines 8 at a time took 7.8 min on the
 H100 host). Within a group the order is the one a user follows: `physics-agree` reads what `physics` wrote in both
 backends, `train-curves` what `train` wrote.
 """
@@ -65,7 +65,8 @@ def test_every_command_has_a_quickest_form():
 @pytest.mark.timeout(3600)
 @pytest.mark.parametrize("group", sorted(QUICKEST))
 def test_command_runs_in_its_quickest_form(group, tmp_path):
-    env = dict(os.environ, PYTHONPATH=str(ROOT), GSP_JAX_CACHE=os.environ.get("GSP_JAX_CACHE", "off"))
+    path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH", "")) if p)  # keeps the caller's
+    env = dict(os.environ, PYTHONPATH=path, GSP_JAX_CACHE=os.environ.get("GSP_JAX_CACHE", "off"))
     if group == "reproduce":  # --report-only rebuilds the committed report's REPORT.md from its report.json
         (tmp_path / "report").mkdir()
         (tmp_path / "report" / "report.json").write_bytes((ROOT / "docs/report/report.json").read_bytes())

@@ -342,6 +342,32 @@ def test_c_lockstep_of_several_policies_is_each_policy_alone(phys, batch, runs):
     assert not np.array_equal(both[0][1].grasps, res.grasps)  # the second group ran its own policy
 
 
+def test_c_continuation_from_a_snapshot_is_the_original_run(phys, batch, runs):
+    """`c_backend.simulate(..., until=2)` stops at the start of segment 2 with a `Snapshot` (MuJoCo's state rows,
+    the observation, the controller states, the traces so far); continued from it (`start=`) the run is the
+    uninterrupted one bit for bit. Branched from it under another policy (the middle tip kept from segment 2 on
+    instead of changed), the rows share the past and part from segment 2 on."""
+    from gsp_jax.physics import c_backend
+
+    episodes, policy, _ = batch
+    snap = c_backend.simulate(phys, [(policy, 0)], episodes, until=2)
+    assert snap.segment == 2 and snap.state.shape[0] == 5 and not np.any(snap.actions[:, 2:])
+    cont, ref = c_backend.simulate(phys, [(policy, 0)], episodes, start=snap)[0], runs["c"]
+    for f in ("qpos", "angle", "fell", "fall_time", "actions", "grasps", "angle_error", "position_error"):
+        np.testing.assert_array_equal(getattr(cont, f), getattr(ref, f), err_msg=f)
+    acts = np.array(policy.actions)
+    acts[4, 2:] = acts[4, 1]  # keep the grasp of segment 1 (the original changes the middle tip at every waypoint)
+    other = c_backend.simulate(phys, [(policies.SequencePolicy(jnp.asarray(acts)), 0)], episodes, start=snap)[0]
+    k2 = 2 * phys.n_segment
+    np.testing.assert_array_equal(other.qpos[:, :k2], ref.qpos[:, :k2])
+    np.testing.assert_array_equal(other.qpos[:4], ref.qpos[:4])  # the other rows' actions are the same
+    assert other.grasps[4, 2] != ref.grasps[4, 2] and not np.array_equal(other.qpos[4, k2:], ref.qpos[4, k2:])
+    with pytest.raises(ValueError, match="start"):
+        c_backend.simulate(phys, [(policy, 0)], episodes, start=snap.take([0, 1]))
+    with pytest.raises(ValueError, match="until"):
+        c_backend.simulate(phys, [(policy, 0)], episodes, start=snap, until=1)
+
+
 def test_c_backend_rejects_bad_cores_by_name(phys, batch):
     episodes, policy, _ = batch
     for bad in (0, -2, 1.5):

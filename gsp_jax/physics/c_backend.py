@@ -18,6 +18,7 @@ a call with the controller's pytrees as arguments cost ~150 us of dispatch (21 l
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 from concurrent.futures import ThreadPoolExecutor
 
@@ -115,6 +116,33 @@ def programs(phys, episodes: Episode) -> _Programs:
     return phys._jitted["c"]
 
 
+@dataclasses.dataclass(frozen=True)
+class Snapshot:
+    """A lockstep's M rows at the start of segment `segment`, before its decision: everything the rest of those
+    episodes depends on, so that `simulate(..., start=snapshot)` continues them bit for bit as the original run
+    would (with the same policies and row count: the controller's programs are compiled per batch size). numpy."""
+
+    segment: int  # the next segment (its decision not yet made)
+    state: np.ndarray  # (M, nstate) float64: MuJoCo's state rows (`mujoco.batch.Batch.state`: time, qpos, qvel,
+    # act, the solver's warm start, ctrl, applied forces, ...)
+    obs: np.ndarray  # (M, nq + 2 nv) float32: the observation the decision reads (qfrc_bias is the last step's)
+    cs: np.ndarray  # (M, C) float32: the controller states, flat
+    grasp: np.ndarray  # (M,) int32: the reference grasp
+    fell: np.ndarray  # (M,) bool
+    fall_tick: np.ndarray  # (M,) int32, -1 if not fallen
+    angle: np.ndarray  # (M, K) float32: the recorded traces so far (later ticks zero)
+    perr: np.ndarray  # (M, K) float32
+    qpos: np.ndarray  # (M, K, nq) float32
+    actions: np.ndarray  # (M, T) int32: the decisions so far
+    grasps: np.ndarray  # (M, T) int32
+
+    def take(self, rows) -> "Snapshot":
+        """The snapshot of `rows` (an index array: rows may repeat, e.g. one copy per branch)."""
+        rows = np.asarray(rows)
+        return dataclasses.replace(self, **{f.name: getattr(self, f.name)[rows] for f in dataclasses.fields(self)
+                                            if f.name != "segment"})
+
+
 class Engine:
     """The episodes of one lockstep in C MuJoCo: a `mujoco.batch.Batch` of the physics model with the per-episode
     fields (tool mass, inertia, CoM, finger-tool friction, pedestals) expanded per simulation."""
@@ -138,6 +166,13 @@ class Engine:
         nq, nv = scene.model.nq, scene.model.nv
         self.obs = np.zeros((n, nq + 2 * nv), np.float32)
         self._cut = (nq, nq + nv)
+        self._restored = None  # an observation restored with the state, read until the next step
+
+    def restore(self, state: np.ndarray, obs: np.ndarray) -> None:
+        """Every episode's MuJoCo state rows (n, nstate) and the observation that went with them (its qfrc_bias
+        came from the step before: MuJoCo's derived fields are one step behind the state)."""
+        self.batch.state[:] = state
+        self._restored = np.array(obs, np.float32)
 
     def set_pedestals(self, drop: float) -> None:
         """The pedestals of every episode `drop` (<= 0) metres below their start."""
@@ -145,6 +180,9 @@ class Engine:
 
     def observe(self) -> np.ndarray:
         """(n, nq + 2 nv) float32: qpos, qvel and qfrc_bias of every episode."""
+        if self._restored is not None:
+            self.obs[:] = self._restored
+            return self.obs
         a, b = self._cut
         self.obs[:, :a], self.obs[:, a:b], self.obs[:, b:] = self.qpos, self.qvel, self.bias
         return self.obs
@@ -157,13 +195,15 @@ class Engine:
         if self.log is not None:  # (episodes, their mjSTATE_INTEGRATION rows, pedestal positions) before the step
             self.log.append((ids.copy(), self.batch.state[ids].copy(), self._geom_pos[ids][:, self.scene.pedestal_geoms]))
         self.batch.step(ids=ids, nstep=nstep)
+        self._restored = None
 
 
 class _Lockstep:
     """The state of `simulate`'s lockstep: M = groups x episodes rows, split into `workers` chunks of contiguous
     rows, each with its own `Engine`; the recorded trace (numpy) and the controller states (on the CPU device)."""
 
-    def __init__(self, phys, groups, episodes: Episode, cores: int, workers: int, engine_log: list | None):
+    def __init__(self, phys, groups, episodes: Episode, cores: int, workers: int, engine_log: list | None,
+                 start: Snapshot | None = None):
         self.phys, self.groups, self.episodes = phys, groups, episodes
         c, scene = phys.config, phys.scene
         N, T = int(np.shape(episodes.mass)[0]), episodes.n_steps
@@ -193,6 +233,46 @@ class _Lockstep:
         self.group_rows = [slice(g * N, (g + 1) * N) for g in range(G)]
         self.decides = [pr.decide(axis) for _, axis in groups]
         self.pedestal_drop, self.tick, self.control_every = scene.pedestal_drop, c.tick, c.control_every
+        self.segment = 0
+        if start is not None:
+            self._restore(start)
+
+    def _restore(self, start: Snapshot) -> None:
+        """Continue from `start` (its rows are this lockstep's rows)."""
+        M = len(self.fell)
+        if np.shape(start.state)[0] != M or not 0 <= start.segment <= self.T + self.phys.n_hold:
+            raise ValueError(f"start: a snapshot of {M} rows (groups x episodes) at a segment in 0..{self.T + self.phys.n_hold}"
+                             f" is needed, got {np.shape(start.state)[0]} rows at segment {start.segment}")
+        for eng, ids in zip(self.engines, self.chunks):
+            eng.restore(start.state[ids], start.obs[ids])
+        self.cs = jax.device_put(jnp.asarray(start.cs), self.cpu)
+        self.grasp, self.fell, self.fall_tick = (np.array(x) for x in (start.grasp, start.fell, start.fall_tick))
+        self.angle, self.perr, self.qpos_trace = (np.array(x) for x in (start.angle, start.perr, start.qpos))
+        self.actions, self.grasps = np.array(start.actions), np.array(start.grasps)
+        self.segment = start.segment
+
+    def snapshot(self) -> Snapshot:
+        """Every row at the start of the next segment (copies)."""
+        return Snapshot(segment=self.segment, state=np.concatenate([np.array(e.batch.state) for e in self.engines]),
+                        obs=np.array(self.observe_all()), cs=np.asarray(self.cs), grasp=self.grasp.copy(),
+                        fell=self.fell.copy(), fall_tick=self.fall_tick.copy(), angle=self.angle.copy(),
+                        perr=self.perr.copy(), qpos=self.qpos_trace.copy(), actions=self.actions.copy(),
+                        grasps=self.grasps.copy())
+
+    def advance(self, until: int, progress: bool = False) -> None:
+        """Segments self.segment .. until - 1: each a decision, then the chunks' ticks side by side."""
+        segments = range(self.segment, until)
+        if progress:
+            from tqdm.auto import tqdm
+
+            segments = tqdm(segments, desc="C MuJoCo segments", leave=False)
+        workers = len(self.chunks)
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            for k in segments:
+                self.decide(k)
+                cs_chunks = [self.cs[ids[0]:ids[-1] + 1] for ids in self.chunks]
+                self.cs = jnp.concatenate(list(pool.map(self.run_segment, range(workers), [k] * workers, cs_chunks)))
+                self.segment = k + 1
 
     def record(self, rows: slice, j, status, now):
         """Tick j's status (angle, position error, fell) and configuration of the episodes `rows`."""
@@ -251,7 +331,8 @@ class _Lockstep:
 
 
 def simulate(phys, groups, episodes: Episode, cores: int | None = None, progress: bool = False,
-             workers: int | None = None, engine_log: list | None = None):
+             workers: int | None = None, engine_log: list | None = None, start: Snapshot | None = None,
+             until: int | None = None):
     """`Physics.simulate_many(..., backend="c")`: every (policy, policy_axis) of `groups` on every episode of
     `episodes` (leading axis) in one lockstep; a list of `runner.Result`s of numpy arrays, one per group.
 
@@ -261,19 +342,18 @@ def simulate(phys, groups, episodes: Episode, cores: int | None = None, progress
     episodes, at most cores / 4 (measured, H100 host, 16 cores, 135 episodes warm: 1 chunk 13.3 s, 2 8.3 s, 4 6.2 s,
     8 8.0 s, 16 13.8 s: each chunk's Python per tick holds Python's lock, and the controller calls contend).
     `engine_log` (a list, one worker only): every step's states are appended to it (`Engine.log`; `experiments
-    bench-physics` replays them to time the engine alone)."""
+    bench-physics` replays them to time the engine alone).
+
+    `until`: stop at the start of segment `until` (before its decision) and return the lockstep's `Snapshot`
+    instead of results. `start`: continue from such a snapshot (rows: groups x episodes, the same order) instead
+    of from the episodes' start; with the same groups, episodes and row count the continuation is the original
+    run's, bit for bit (tests/test_physics.py), so a snapshot's rows can be branched under other policies."""
     M = len(groups) * int(np.shape(episodes.mass)[0])
     cores = available_cores() if cores is None else cores
     workers = max(1, min(cores // 4, round(M / 32))) if workers is None else max(1, min(workers, M))
-    run = _Lockstep(phys, groups, episodes, cores, workers, engine_log)
-    segments = range(episodes.n_steps + phys.n_hold)
-    if progress:
-        from tqdm.auto import tqdm
-
-        segments = tqdm(segments, desc="C MuJoCo segments", leave=False)
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        for k in segments:
-            run.decide(k)
-            cs_chunks = [run.cs[ids[0]:ids[-1] + 1] for ids in run.chunks]
-            run.cs = jnp.concatenate(list(pool.map(run.run_segment, range(workers), [k] * workers, cs_chunks)))
-    return run.results()
+    run = _Lockstep(phys, groups, episodes, cores, workers, engine_log, start)
+    end = episodes.n_steps + phys.n_hold
+    if until is not None and not run.segment <= until <= end:
+        raise ValueError(f"until must be a segment in {run.segment}..{end}, got {until!r}")
+    run.advance(end if until is None else until, progress)
+    return run.snapshot() if until is not None else run.results()

@@ -26,6 +26,7 @@ POLICIES = ("dp-base", "rl", "L1", "L2", "dp-opt")  # the paper's (its Table 1 o
 REFERENCES = ("four-tips", "one-tip", "random")  # the physics check's: a constant grasp, a grasp that cannot hold,
 # and random sequences of the surrogate's feasible actions
 LOOKAHEAD_DEPTH = {"L1": 1, "L2": 2}
+VERIFIED = ("L1-physics",)  # the surrogate's L1 candidates branched in C MuJoCo (`physics.verified`; backend c only)
 TRAINED_POLICY = pathlib.Path("results/train/dp/seed0/policy")  # what `python -m experiments train` writes
 SHIPPED_POLICY = policies.SHIPPED_POLICY  # a copy of results/train/dp/seed0/policy of a full GPU run
 TABLE_CACHE = pathlib.Path("results/tables")  # `dp_tables` keeps built tables here (relative to the working dir)
@@ -172,17 +173,19 @@ def context(set_name: str = "eval", n_episodes: int | None = None, policy_dir=No
     return Context(sur, set_name, list(chosen), batch, tabs, sols, base, net, source)
 
 
-def make(ctx: Context, name: str, model=None, cached: bool = True, seed: int = 0, hold: float = 0.0):
+def make(ctx: Context, name: str, model=None, cached: bool = True, seed: int = 0, hold: float = 0.0, k: int = 17):
     """(policy, policy_axis) of planner `name` (one of `POLICIES` or `REFERENCES`) for the context's episode batch.
 
     Lookahead (L1, L2) steps its root in `model` (default: the surrogate itself, which acts from any continuous
     state) and, with `cached`, runs the tree's interior and its rollouts as lookups in each episode's table
     (`inner`; exact, as every state below the root is discrete; policy_axis is then a `Lookahead` of in_axes, 0 for
     the tables); without, all in `model`. `random`: one random feasible sequence per episode from `seed`
-    (`dp.random_sequence`, keeping the grasp with probability `hold`)."""
+    (`dp.random_sequence`, keeping the grasp with probability `hold`). `L1-physics` (`VERIFIED`): L1's `k` best
+    root actions at each decision branched in C MuJoCo to the episode's end under the RL policy
+    (`physics.verified.PhysicsLookahead`)."""
     sur = ctx.surrogate
     needs = {"dp-base": [ctx.nominal_actions], "dp-opt": [ctx.solutions], "random": [ctx.tables], "rl": [ctx.rl],
-             **{n: [ctx.rl] + ([ctx.tables] if cached else []) for n in LOOKAHEAD_DEPTH}}
+             **{n: [ctx.rl] + ([ctx.tables] if cached else []) for n in (*LOOKAHEAD_DEPTH, *VERIFIED)}}
     if any(x is None for x in needs.get(name, [])):
         raise ValueError(f"policy {name!r}: the context was built without what it needs (tables, the RL policy or "
                          "the DP baseline)")
@@ -200,6 +203,11 @@ def make(ctx: Context, name: str, model=None, cached: bool = True, seed: int = 0
         inner = TableModel(ctx.tables, sur.space)
         return (policies.Lookahead(ctx.rl, model or sur, depth=depth, inner=inner),
                 policies.Lookahead(None, None, depth=depth, inner=0))
+    if name in VERIFIED:
+        from gsp_jax.physics.verified import PhysicsLookahead
+
+        root, axis = make(ctx, "L1", model, cached)
+        return PhysicsLookahead(root, axis, ctx.rl, None, k=k), None
     if name == "four-tips":
         return policies.SequencePolicy(jnp.asarray(four_tips(sur.space, T))), None
     if name == "one-tip":
@@ -209,4 +217,4 @@ def make(ctx: Context, name: str, model=None, cached: bool = True, seed: int = 0
         actions = jax.vmap(dp.random_sequence, (0, 0, 0, None, None))(
             ctx.tables, ctx.batch.start_grasp, keys, sur.reward_config.r_min, hold)
         return policies.SequencePolicy(actions), 0
-    raise ValueError(f"policy: expected one of {POLICIES + REFERENCES}, got {name!r}")
+    raise ValueError(f"policy: expected one of {POLICIES + VERIFIED + REFERENCES}, got {name!r}")

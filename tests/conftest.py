@@ -26,6 +26,18 @@ if not CACHE_OFF:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
+# `make test` gives each xdist worker whole files (--dist loadfile), so a module's fixtures (the MJX runner, the
+# lookahead's tables, PPO's trainer) are computed once per run, not once per worker; in this order
+# (--no-loadscope-reorder), the longest files first, so that no worker is left with one of them at the end
+LONGEST_FIRST = ("test_lookahead.py", "test_physics.py", "walkthrough.ipynb", "test_policies.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    """The longest files' tests first (a stable sort: the others keep their order)."""
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
+
+
 def pytest_sessionfinish(session, exitstatus):
     """The run's compilation cache goes with it (in the process that made it: not an xdist worker)."""
     import shutil

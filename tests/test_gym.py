@@ -26,8 +26,6 @@ import gsp_jax  # noqa: E402, F401  (registers the environment)
 from gsp_jax import dp, scenario  # noqa: E402
 from gsp_jax.gym_env import ENV_ID, GraspVectorEnv, GymGraspEnv, make_grasp_env  # noqa: E402
 
-pytestmark = pytest.mark.xdist_group("gym")  # one worker runs the module: its tables and built env are built once
-
 T = 3  # waypoints of the reduced episodes
 N_ENVS = 6
 RESERVED = {"episode", "_episode", "final_obs", "final_info", "TimeLimit.truncated", "terminal_observation"}

@@ -22,10 +22,6 @@ from gsp_jax import physics, policies, scenario  # noqa: E402
 from gsp_jax.physics import controller as ctl  # noqa: E402
 from gsp_jax.surrogate import Surrogate  # noqa: E402
 
-# one worker runs the module (make test: --dist loadgroup), so its module fixtures (the MJX runner: ~3 min on a
-# 2-core CPU) are computed once, not once per xdist worker
-pytestmark = pytest.mark.xdist_group("physics")
-
 T = 5
 CONFIG = physics.PhysicsConfig(hold=0.5)
 TILT = 10.0  # [deg] the largest tilt the tests allow while the tool is held
@@ -366,6 +362,40 @@ def test_c_continuation_from_a_snapshot_is_the_original_run(phys, batch, runs):
         c_backend.simulate(phys, [(policy, 0)], episodes, start=snap.take([0, 1]))
     with pytest.raises(ValueError, match="until"):
         c_backend.simulate(phys, [(policy, 0)], episodes, start=snap, until=1)
+
+
+def test_physics_lookahead_takes_the_branch_that_does_best_in_physics(phys):
+    """`verified.PhysicsLookahead` (L1-physics) on two short episodes: at each decision the surrogate lookahead's k
+    best root actions are branched in C MuJoCo from the current state (the base policy after the first action) and
+    the one that did best is taken (held, then the least angle error, then the surrogate's Q). With k = 1 that is
+    the root's own action: the run equals the root policy's, bit for bit (compared where the root's best Q leads
+    its runner-up by more than the float32 reward tolerance, so both programs' argmax agree)."""
+    from gsp_jax.physics import verified
+    import tolerances as tol
+
+    sp = phys.space
+    nominal = scenario.make_episode()
+    eps = scenario.stack([_short(nominal).head(3), _short(scenario.make_episode(mass_factor=0.5)).head(3)])
+    keep = policies.SequencePolicy(jnp.full((3,), sp.action("index_distal", 1), jnp.int32))
+    root = policies.Lookahead(keep, phys.surrogate, depth=1, horizon=1)
+    two = verified.PhysicsLookahead(root, None, keep, k=2, cores=2)
+    res2 = phys.simulate_batch(two, eps, backend="c")
+    assert len(two.decisions) == 2 * 3 and all(d.candidates.shape == (2,) for d in two.decisions)
+    for d in two.decisions:
+        qk = d.q[d.candidates]
+        assert qk[0] == d.q.max() and qk[0] >= qk[1]  # the surrogate's two best, best first
+        assert d.chosen == d.candidates[np.lexsort((-qk, d.angle_error, d.fell))[0]]
+    assert [d.chosen for d in two.decisions if d.episode == 0] == list(res2.actions[0])
+    one = verified.PhysicsLookahead(root, None, keep, k=1, cores=2)
+    res1, alone = phys.simulate_batch(one, eps, backend="c"), phys.simulate_batch(root, eps, backend="c")
+    for d in one.decisions:  # each argmax clear of the two programs' last bits
+        assert np.diff(np.sort(d.q)[-2:])[0] > 2 * tol.REWARD_ATOL, (d.segment, np.sort(d.q)[-2:])
+    np.testing.assert_array_equal(res1.actions, alone.actions)
+    np.testing.assert_array_equal(res1.qpos, alone.qpos)
+    with pytest.raises(ValueError, match="backend"):
+        phys.simulate_batch(one, eps, backend="mjx")
+    with pytest.raises(ValueError, match="k"):
+        verified.PhysicsLookahead(root, None, keep, k=0)
 
 
 def test_c_backend_rejects_bad_cores_by_name(phys, batch):

@@ -26,8 +26,6 @@ from gsp_jax.ppo import losses  # noqa: E402
 from gsp_jax.ppo import networks as nets  # noqa: E402
 from gsp_jax.ppo import train as ppo  # noqa: E402
 
-pytestmark = pytest.mark.xdist_group("ppo")  # one worker runs the module: its Trainer and reference run are built once
-
 T = 3  # waypoints (decisions) of the probe episodes
 SMALL = nets.NetworkConfig(hidden=(32, 32))
 

@@ -29,7 +29,9 @@ from gsp_jax import evaluation, physics, stats
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", default="eval", choices=["evalA", "evalB", "eval", "val"])
     p.add_argument("--episodes", type=int, default=None, help="only N episodes, spread over the set")
-    p.add_argument("--policies", nargs="+", default=list(evaluation.POLICIES), choices=evaluation.POLICIES)
+    p.add_argument("--policies", nargs="+", default=list(evaluation.POLICIES),
+                   choices=evaluation.POLICIES + evaluation.VERIFIED,
+                   help="the paper's five by default; L1-physics (C MuJoCo only) branches L1's candidates in physics")
     p.add_argument("--policy-dir", default=None)
     p.add_argument("--fresh", action="store_true", help="ignore saved per-policy results")
     p.add_argument("--backend", default="mjx", choices=physics.BACKENDS, help="mjx (one XLA batch) or c (C MuJoCo)")

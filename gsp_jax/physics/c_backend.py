@@ -28,6 +28,8 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from mujoco import batch as mj_batch
 
+from gsp_jax.physics import verified
+from gsp_jax.policies import SequencePolicy
 from gsp_jax.scenario import Episode
 
 
@@ -110,10 +112,12 @@ class _Programs:
 
 
 def programs(phys, episodes: Episode) -> _Programs:
-    """The C backend's jitted programs of `phys` (made on first use)."""
-    if "c" not in phys._jitted:
-        phys._jitted["c"] = _Programs(phys, jax.tree.map(lambda x: np.asarray(x)[0], episodes))
-    return phys._jitted["c"]
+    """The C backend's jitted programs of `phys` for episodes of this length (made on first use: the flat
+    layout of an episode depends on its number of waypoints)."""
+    key = ("c", episodes.n_steps)
+    if key not in phys._jitted:
+        phys._jitted[key] = _Programs(phys, jax.tree.map(lambda x: np.asarray(x)[0], episodes))
+    return phys._jitted[key]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,6 +127,7 @@ class Snapshot:
     would (with the same policies and row count: the controller's programs are compiled per batch size). numpy."""
 
     segment: int  # the next segment (its decision not yet made)
+    qpos0: np.ndarray  # (M, nq) float64: the episodes' initial configurations
     state: np.ndarray  # (M, nstate) float64: MuJoCo's state rows (`mujoco.batch.Batch.state`: time, qpos, qvel,
     # act, the solver's warm start, ctrl, applied forces, ...)
     obs: np.ndarray  # (M, nq + 2 nv) float32: the observation the decision reads (qfrc_bias is the last step's)
@@ -214,9 +219,17 @@ class _Lockstep:
         self.cpu, self.default = jax.devices("cpu")[0], jax.devices()[0]
         # every group runs on every episode: the lockstep's batch is the groups' episodes one after another
         ep_flat = jnp.tile(jax.device_put(pr.ravel_episodes(episodes), self.cpu), (G, 1))
-        qpos0, cs = pr.start(episodes)
-        self.qpos0 = np.tile(np.asarray(qpos0, np.float64), (G, 1))
-        self.cs = jax.device_put(jnp.tile(cs, (G, 1)), self.cpu)
+        end = T + phys.n_hold
+        if start is not None and (np.shape(start.state)[0] != M or np.shape(start.qpos0)[0] != M
+                                  or not 0 <= start.segment <= end):
+            raise ValueError(f"start: a snapshot of {M} rows (groups x episodes) at a segment in 0..{end} is "
+                             f"needed, got {np.shape(start.state)[0]} rows at segment {start.segment}")
+        if start is None:
+            qpos0, cs = pr.start(episodes)
+            self.qpos0 = np.tile(np.asarray(qpos0, np.float64), (G, 1))
+            self.cs = jax.device_put(jnp.tile(cs, (G, 1)), self.cpu)
+        else:  # the start's IK is not run again (its rows are checked in `_restore`)
+            self.qpos0 = np.array(start.qpos0, np.float64)
         fields = jax.tree.map(lambda x: np.tile(np.asarray(x), (G,) + (1,) * (np.ndim(x) - 1)),
                               jax.device_get(pr.fields(episodes)))
         self.chunks = chunks = np.array_split(np.arange(M), workers)  # contiguous rows
@@ -231,7 +244,8 @@ class _Lockstep:
         self.qpos_trace = np.zeros((M, K, nq), np.float32)
         self.actions, self.grasps = np.zeros((M, T), np.int32), np.zeros((M, T), np.int32)
         self.group_rows = [slice(g * N, (g + 1) * N) for g in range(G)]
-        self.decides = [pr.decide(axis) for _, axis in groups]
+        self.decides = [pr.decide(0 if isinstance(policy, verified.PhysicsLookahead) else axis)
+                        for policy, axis in groups]
         self.pedestal_drop, self.tick, self.control_every = scene.pedestal_drop, c.tick, c.control_every
         self.segment = 0
         if start is not None:
@@ -239,10 +253,6 @@ class _Lockstep:
 
     def _restore(self, start: Snapshot) -> None:
         """Continue from `start` (its rows are this lockstep's rows)."""
-        M = len(self.fell)
-        if np.shape(start.state)[0] != M or not 0 <= start.segment <= self.T + self.phys.n_hold:
-            raise ValueError(f"start: a snapshot of {M} rows (groups x episodes) at a segment in 0..{self.T + self.phys.n_hold}"
-                             f" is needed, got {np.shape(start.state)[0]} rows at segment {start.segment}")
         for eng, ids in zip(self.engines, self.chunks):
             eng.restore(start.state[ids], start.obs[ids])
         self.cs = jax.device_put(jnp.asarray(start.cs), self.cpu)
@@ -253,7 +263,8 @@ class _Lockstep:
 
     def snapshot(self) -> Snapshot:
         """Every row at the start of the next segment (copies)."""
-        return Snapshot(segment=self.segment, state=np.concatenate([np.array(e.batch.state) for e in self.engines]),
+        state = np.concatenate([np.array(e.batch.state) for e in self.engines])
+        return Snapshot(segment=self.segment, qpos0=self.qpos0.copy(), state=state,
                         obs=np.array(self.observe_all()), cs=np.asarray(self.cs), grasp=self.grasp.copy(),
                         fell=self.fell.copy(), fall_tick=self.fall_tick.copy(), angle=self.angle.copy(),
                         perr=self.perr.copy(), qpos=self.qpos_trace.copy(), actions=self.actions.copy(),
@@ -286,11 +297,18 @@ class _Lockstep:
 
     def decide(self, k: int):
         """Each policy decides for its episodes at segment k (the hold: set-up only); the controller states."""
-        obs, parts = self.observe_all(), []
+        obs, parts, snapshot = self.observe_all(), [], None
         for g, (policy, _) in enumerate(self.groups):
-            rows = self.group_rows[g]
-            act, gr, cs_g = self.decides[g](policy, jax.device_put(self.cs[rows], self.default), obs[rows],
-                                            self.grasp[rows], self.episodes, k)
+            rows, decide = self.group_rows[g], self.decides[g]
+            if isinstance(policy, verified.PhysicsLookahead):  # its actions chosen by branching in physics
+                actions = np.zeros((len(self.grasp[rows]), self.T), np.int32)
+                if k < self.T:
+                    snapshot = self.snapshot() if snapshot is None else snapshot
+                    actions[:, k] = verified.choose(policy, self.phys, snapshot, np.arange(len(self.fell))[rows],
+                                                    obs[rows], self.episodes, k)
+                policy = SequencePolicy(actions)
+            act, gr, cs_g = decide(policy, jax.device_put(self.cs[rows], self.default), obs[rows],
+                                   self.grasp[rows], self.episodes, k)
             if k < self.T:
                 self.actions[rows, k], self.grasps[rows, k] = np.asarray(act), np.asarray(gr)
             self.grasp[rows] = np.asarray(gr)

@@ -89,15 +89,18 @@ class Physics:
     def decide(self, policy, cs: ControllerState, obs: Observation, grasp, episode: Episode, k):
         """Segment k's decision: the policy acts on the observed state if k < T; (action (-1 in the hold), new
         grasp, controller state for the segment)."""
-        T = episode.n_steps
-        decision, t = k < T, jnp.minimum(k, T - 1)
-        state = State(grasp=jnp.asarray(grasp, jnp.int32), t=jnp.asarray(t, jnp.int32), q=obs.q, tool_pos=obs.tool_pos,
-                      tool_quat=obs.tool_quat, tool_vel=obs.tool_vel, episode=episode, done=jnp.array(False),
-                      terms=RewardTerms.zeros())
+        decision, state = k < episode.n_steps, self.observed_state(obs, grasp, episode, k)
         action = jax.lax.cond(decision, lambda s: jnp.asarray(policy.act(s), jnp.int32), lambda s: jnp.int32(0), state)
         grasp = jnp.where(decision, self.space.apply(grasp, action)[0], grasp)
         cs = self.controller.begin_segment(cs, obs, grasp, k * self.n_segment * self.config.tick)
         return jnp.where(decision, action, -1), grasp, cs
+
+    def observed_state(self, obs: Observation, grasp, episode: Episode, k) -> State:
+        """The surrogate `State` a policy reads at segment k: the simulated joints and tool, the reference grasp."""
+        t = jnp.minimum(k, episode.n_steps - 1)
+        return State(grasp=jnp.asarray(grasp, jnp.int32), t=jnp.asarray(t, jnp.int32), q=obs.q, tool_pos=obs.tool_pos,
+                     tool_quat=obs.tool_quat, tool_vel=obs.tool_vel, episode=episode, done=jnp.array(False),
+                     terms=RewardTerms.zeros())
 
     def external(self, episode: Episode, j) -> jax.Array:
         """(6,) the external wrench applied during control tick j (ramped on in the hold)."""
@@ -211,6 +214,12 @@ class Physics:
         for name, value in (("cores", cores), ("workers", workers)):
             if value is not None and not (isinstance(value, int) and value >= 1):
                 raise ValueError(f"{name} must be an int >= 1, got {value!r}")
+        if backend != "c":
+            from gsp_jax.physics.verified import PhysicsLookahead
+
+            if any(isinstance(p, PhysicsLookahead) for p, _ in policies):
+                raise ValueError(f"policy: PhysicsLookahead branches copies of C MuJoCo's state and needs backend='c', "
+                                 f"got backend={backend!r}")
         if backend == "c":
             from gsp_jax.physics import c_backend
 

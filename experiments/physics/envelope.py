@@ -42,6 +42,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--policy-dir", default=None)
     p.add_argument("--jobs", type=int, default=None, help="processes classifying falls (default: the CPU cores)")
+    p.add_argument("--physics-lookahead", type=int, default=0, metavar="K",
+                   help="also L1-physics, branching L1's K best actions in physics at each decision (0: not run)")
 
 
 # ------------------------------------------------------------------------------------------- the summary
@@ -142,15 +144,18 @@ def classify(episodes: list, jobs: list, processes: int) -> list:
 def main(args: argparse.Namespace) -> None:
     if args.random < 0:
         raise SystemExit(f"envelope: --random must be >= 0, got {args.random}")
+    if args.physics_lookahead < 0:
+        raise SystemExit(f"envelope: --physics-lookahead must be >= 0, got {args.physics_lookahead}")
     ctx = evaluation.context(args.set, args.episodes, args.policy_dir)
     sur, N, T = ctx.surrogate, len(ctx.names), ctx.batch.n_steps
-    groups = [evaluation.make(ctx, name) for name in PLANNERS]
+    planners = list(PLANNERS) + (["L1-physics"] if args.physics_lookahead else [])
+    groups = [evaluation.make(ctx, name, k=args.physics_lookahead or 17) for name in planners]
     keys = jax.random.split(jax.random.PRNGKey(args.seed), N * args.random).reshape(N, args.random, 2)
     holds = jnp.where(jnp.arange(args.random) % 2 == 0, 0.0, 0.8)
     rand = jax.vmap(jax.vmap(dp.random_sequence, (None, None, 0, None, 0)), (0, 0, 0, None, None))(
         ctx.tables, ctx.batch.start_grasp, keys, sur.reward_config.r_min, holds)  # (N, R, T)
     groups += [(policies.SequencePolicy(rand[:, r]), 0) for r in range(args.random)]
-    kinds = list(PLANNERS) + [f"random{r}" for r in range(args.random)]
+    kinds = planners + [f"random{r}" for r in range(args.random)]
     phys = physics.Physics(sur)
     print(f"envelope: {N} episodes of '{args.set}' x {len(kinds)} sequences = {N * len(kinds)} episodes in C MuJoCo "
           f"(JAX on {jax.default_backend()})", flush=True)
@@ -204,7 +209,7 @@ def main(args: argparse.Namespace) -> None:
           f"within episodes {p['auc_within_mean']:.2f} ({p['auc_within_episodes']} episodes); Spearman "
           f"rho(return, -angle) {p['spearman_pooled']:.2f}")
     rows = [[k, r["falls"], r["necessary"], r["early"], r["controller"], r["undetermined"], r["regret"],
-             r["mean_angle_held_deg"]] for k, r in summary["kinds"].items() if k in PLANNERS or args.random <= 4]
+             r["mean_angle_held_deg"]] for k, r in summary["kinds"].items() if k in planners or args.random <= 4]
     print(table(["sequence", f"falls /{N}", "necessary", "of them early", "controller", "undetermined", "regret",
                  "angle held [deg]"],
                 rows, ".2f"))

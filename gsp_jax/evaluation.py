@@ -173,7 +173,8 @@ def context(set_name: str = "eval", n_episodes: int | None = None, policy_dir=No
     return Context(sur, set_name, list(chosen), batch, tabs, sols, base, net, source)
 
 
-def make(ctx: Context, name: str, model=None, cached: bool = True, seed: int = 0, hold: float = 0.0, k: int = 17):
+def make(ctx: Context, name: str, model=None, cached: bool = True, seed: int = 0, hold: float = 0.0, k: int = 17,
+         branch_base: str = "rl"):
     """(policy, policy_axis) of planner `name` (one of `POLICIES` or `REFERENCES`) for the context's episode batch.
 
     Lookahead (L1, L2) steps its root in `model` (default: the surrogate itself, which acts from any continuous
@@ -181,8 +182,8 @@ def make(ctx: Context, name: str, model=None, cached: bool = True, seed: int = 0
     (`inner`; exact, as every state below the root is discrete; policy_axis is then a `Lookahead` of in_axes, 0 for
     the tables); without, all in `model`. `random`: one random feasible sequence per episode from `seed`
     (`dp.random_sequence`, keeping the grasp with probability `hold`). `L1-physics` (`VERIFIED`): L1's `k` best
-    root actions at each decision branched in C MuJoCo to the episode's end under the RL policy
-    (`physics.verified.PhysicsLookahead`)."""
+    root actions at each decision branched in C MuJoCo to the episode's end under `branch_base` (a planner
+    name, e.g. "rl" or "L1"; `physics.verified.PhysicsLookahead`)."""
     sur = ctx.surrogate
     needs = {"dp-base": [ctx.nominal_actions], "dp-opt": [ctx.solutions], "random": [ctx.tables], "rl": [ctx.rl],
              **{n: [ctx.rl] + ([ctx.tables] if cached else []) for n in (*LOOKAHEAD_DEPTH, *VERIFIED)}}
@@ -206,8 +207,11 @@ def make(ctx: Context, name: str, model=None, cached: bool = True, seed: int = 0
     if name in VERIFIED:
         from gsp_jax.physics.verified import PhysicsLookahead
 
+        if branch_base in VERIFIED:
+            raise ValueError(f"branch_base: a planner the branches can run, got {branch_base!r}")
         root, axis = make(ctx, "L1", model, cached)
-        return PhysicsLookahead(root, axis, ctx.rl, None, k=k), None
+        base, base_axis = make(ctx, branch_base, model, cached)
+        return PhysicsLookahead(root, axis, base, base_axis, k=k), None
     if name == "four-tips":
         return policies.SequencePolicy(jnp.asarray(four_tips(sur.space, T))), None
     if name == "one-tip":

@@ -44,6 +44,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--jobs", type=int, default=None, help="processes classifying falls (default: the CPU cores)")
     p.add_argument("--physics-lookahead", type=int, default=0, metavar="K",
                    help="also L1-physics, branching L1's K best actions in physics at each decision (0: not run)")
+    p.add_argument("--branch-base", default="rl", choices=["rl", "L1", "dp-opt"],
+                   help="L1-physics: the policy its branches follow after their first action")
 
 
 # ------------------------------------------------------------------------------------------- the summary
@@ -149,7 +151,8 @@ def main(args: argparse.Namespace) -> None:
     ctx = evaluation.context(args.set, args.episodes, args.policy_dir)
     sur, N, T = ctx.surrogate, len(ctx.names), ctx.batch.n_steps
     planners = list(PLANNERS) + (["L1-physics"] if args.physics_lookahead else [])
-    groups = [evaluation.make(ctx, name, k=args.physics_lookahead or 17) for name in planners]
+    groups = [evaluation.make(ctx, name, k=args.physics_lookahead or 17, branch_base=args.branch_base)
+              for name in planners]
     keys = jax.random.split(jax.random.PRNGKey(args.seed), N * args.random).reshape(N, args.random, 2)
     holds = jnp.where(jnp.arange(args.random) % 2 == 0, 0.0, 0.8)
     rand = jax.vmap(jax.vmap(dp.random_sequence, (None, None, 0, None, 0)), (0, 0, 0, None, None))(

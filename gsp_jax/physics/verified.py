@@ -56,7 +56,8 @@ class PhysicsLookahead:
     root: Any  # a policy with `plan(state)` -> Q-values `.q` (A,) over the actions (`lookahead.Lookahead`)
     root_axis: Any  # its policy_axis (e.g. 0 for the tables of the cached L1)
     base: Any  # the policy the branches follow after their first action (e.g. the RL policy)
-    base_axis: Any = None  # its policy_axis: None (shared by every branch); per-episode bases are not supported
+    base_axis: Any = None  # its policy_axis: None (one base for every branch) or per episode (e.g. the cached L1's
+    # tables: each branch gets its episode's)
     k: int = 17  # candidates simulated per decision (the surrogate's best k)
     cores: int | None = None  # cores of the branches' lockstep (default: all)
     workers: int | None = None  # its chunks (default as `c_backend.simulate`)
@@ -65,9 +66,6 @@ class PhysicsLookahead:
     def __post_init__(self):
         if not (isinstance(self.k, int) and self.k >= 1):
             raise ValueError(f"PhysicsLookahead.k must be an int >= 1, got {self.k!r}")
-        if self.base_axis is not None:
-            raise ValueError(f"PhysicsLookahead.base_axis: the base policy is shared by every branch (None), got "
-                             f"{self.base_axis!r}")
 
 
 def root_q(phys, root_axis, observe):
@@ -83,6 +81,14 @@ def root_q(phys, root_axis, observe):
     return phys._jitted[key]
 
 
+def _per_branch(base, axis, top: int):
+    """The base policy for the N x top branches (episode-major): its per-episode leaves (axis 0) repeated."""
+    if axis is None:
+        return base
+    return jax.tree.map(lambda ax, sub: sub if ax is None else jax.tree.map(lambda x: jnp.repeat(x, top, 0), sub),
+                        axis, base, is_leaf=lambda x: x is None)
+
+
 def choose(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, obs: np.ndarray, episodes, k: int) -> np.ndarray:
     """(N,) the actions of the episodes `rows` of a lockstep at segment k (its `snapshot`, observations `obs`
     (N, ...), their `episodes`): the surrogate's k best, each branched to the episode's end in C MuJoCo."""
@@ -96,7 +102,8 @@ def choose(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, obs: np.n
     cand = np.argsort(-q, axis=1, kind="stable")[:, :top].astype(np.int32)  # (N, top): ties keep the lower action
     branch_rows = np.repeat(rows, top)
     branch_eps = jax.tree.map(lambda x: np.repeat(np.asarray(x), top, 0), episodes)
-    first = FirstThen(first=jnp.asarray(cand.ravel()), at=jnp.int32(k), base=policy.base)
+    first = FirstThen(first=jnp.asarray(cand.ravel()), at=jnp.int32(k), base=_per_branch(policy.base,
+                                                                                     policy.base_axis, top))
     axis = FirstThen(first=0, at=None, base=policy.base_axis)
     res = c_backend.simulate(phys, [(first, axis)], branch_eps, cores=policy.cores, workers=policy.workers,
                              start=snapshot.take(branch_rows))[0]

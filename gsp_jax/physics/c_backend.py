@@ -228,7 +228,7 @@ class _Lockstep:
             qpos0, cs = pr.start(episodes)
             self.qpos0 = np.tile(np.asarray(qpos0, np.float64), (G, 1))
             self.cs = jax.device_put(jnp.tile(cs, (G, 1)), self.cpu)
-        else:  # the start's IK is not run again (its rows are checked in `_restore`)
+        else:  # the start's IK is not run again (its rows were checked above)
             self.qpos0 = np.array(start.qpos0, np.float64)
         fields = jax.tree.map(lambda x: np.tile(np.asarray(x), (G,) + (1,) * (np.ndim(x) - 1)),
                               jax.device_get(pr.fields(episodes)))

@@ -110,6 +110,14 @@ def add_lookahead_argument(p) -> None:
                    help="L1/L2 below the root: the episode's table (exact, default) or the surrogate")
 
 
+def add_bases_argument(p) -> None:
+    from gsp_jax import evaluation
+
+    p.add_argument("--bases", nargs="+", default=["rl"], choices=evaluation.BRANCH_BASES,
+                   help="L1-physics: the policies its branches follow after their first action (each candidate is "
+                        "branched under each; several: never worse than any of them)")
+
+
 def bar_png(path, names, means, cis, ylabel: str, title: str, color, ylim=None, symlog: float | None = None) -> None:
     """A bar chart of means with error bars (95% intervals); `symlog`: a symmetric-log y axis with this linear
     threshold, and a line at zero."""

@@ -27,6 +27,7 @@ REFERENCES = ("four-tips", "one-tip", "random")  # the physics check's: a consta
 # and random sequences of the surrogate's feasible actions
 LOOKAHEAD_DEPTH = {"L1": 1, "L2": 2}
 VERIFIED = ("L1-physics",)  # the surrogate's L1 candidates branched in C MuJoCo (`physics.verified`; backend c only)
+BRANCH_BASES = POLICIES + ("four-tips",)  # what L1-physics' branches can follow after their first action
 TRAINED_POLICY = pathlib.Path("results/train/dp/seed0/policy")  # what `python -m experiments train` writes
 SHIPPED_POLICY = policies.SHIPPED_POLICY  # a copy of results/train/dp/seed0/policy of a full GPU run
 TABLE_CACHE = pathlib.Path("results/tables")  # `dp_tables` keeps built tables here (relative to the working dir)
@@ -52,7 +53,11 @@ class Context:
         """The same context on `n` of its episodes, spread evenly (as `subset`): no new tables."""
         if n is None or n >= len(self.names):
             return self
-        keep = spread(len(self.names), n)
+        return self.select(spread(len(self.names), n))
+
+    def select(self, keep) -> "Context":
+        """The same context on the episodes `keep` (indices): no new tables."""
+        keep = np.asarray(keep, int)
         pick = lambda tree: jax.tree.map(lambda x: x[keep], tree)  # noqa: E731
         return dataclasses.replace(self, names=[self.names[i] for i in keep], batch=pick(self.batch),
                                    tables=pick(self.tables), solutions=pick(self.solutions))
@@ -174,7 +179,7 @@ def context(set_name: str = "eval", n_episodes: int | None = None, policy_dir=No
 
 
 def make(ctx: Context, name: str, model=None, cached: bool = True, seed: int = 0, hold: float = 0.0, k: int = 17,
-         branch_base: str = "rl"):
+         bases=("rl",)):
     """(policy, policy_axis) of planner `name` (one of `POLICIES` or `REFERENCES`) for the context's episode batch.
 
     Lookahead (L1, L2) steps its root in `model` (default: the surrogate itself, which acts from any continuous
@@ -182,8 +187,9 @@ def make(ctx: Context, name: str, model=None, cached: bool = True, seed: int = 0
     (`inner`; exact, as every state below the root is discrete; policy_axis is then a `Lookahead` of in_axes, 0 for
     the tables); without, all in `model`. `random`: one random feasible sequence per episode from `seed`
     (`dp.random_sequence`, keeping the grasp with probability `hold`). `L1-physics` (`VERIFIED`): L1's `k` best
-    root actions at each decision branched in C MuJoCo to the episode's end under `branch_base` (a planner
-    name, e.g. "rl" or "L1"; `physics.verified.PhysicsLookahead`)."""
+    root actions (and each base's own action) at each decision branched in C MuJoCo to the episode's end under
+    each of `bases` (planner names of `BRANCH_BASES`, e.g. ("rl",) or ("four-tips", "dp-opt");
+    `physics.verified.PhysicsLookahead`)."""
     sur = ctx.surrogate
     needs = {"dp-base": [ctx.nominal_actions], "dp-opt": [ctx.solutions], "random": [ctx.tables], "rl": [ctx.rl],
              **{n: [ctx.rl] + ([ctx.tables] if cached else []) for n in (*LOOKAHEAD_DEPTH, *VERIFIED)}}
@@ -207,11 +213,10 @@ def make(ctx: Context, name: str, model=None, cached: bool = True, seed: int = 0
     if name in VERIFIED:
         from gsp_jax.physics.verified import PhysicsLookahead
 
-        if branch_base in VERIFIED:
-            raise ValueError(f"branch_base: a planner the branches can run, got {branch_base!r}")
+        if isinstance(bases, str) or not bases or any(b not in BRANCH_BASES for b in bases):
+            raise ValueError(f"bases: one or more of {BRANCH_BASES}, got {bases!r}")
         root, axis = make(ctx, "L1", model, cached)
-        base, base_axis = make(ctx, branch_base, model, cached)
-        return PhysicsLookahead(root, axis, base, base_axis, k=k), None
+        return PhysicsLookahead(root, axis, tuple(make(ctx, b, model, cached) for b in bases), k=k), None
     if name == "four-tips":
         return policies.SequencePolicy(jnp.asarray(four_tips(sur.space, T))), None
     if name == "one-tip":

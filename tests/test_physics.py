@@ -366,10 +366,12 @@ def test_c_continuation_from_a_snapshot_is_the_original_run(phys, batch, runs):
 
 def test_physics_lookahead_takes_the_branch_that_does_best_in_physics(phys):
     """`verified.PhysicsLookahead` (L1-physics) on two short episodes: at each decision the surrogate lookahead's k
-    best root actions are branched in C MuJoCo from the current state (the base policy after the first action) and
-    the one that did best is taken (held, then the least angle error, then the surrogate's Q). With k = 1 that is
-    the root's own action: the run equals the root policy's, bit for bit (compared where the root's best Q leads
-    its runner-up by more than the float32 reward tolerance, so both programs' argmax agree)."""
+    best root actions and each base's own action are branched in C MuJoCo from the current state under each base
+    policy, and the best branch's first action is taken (held, then the least angle error, then the surrogate's
+    Q). As the branch taken is continued by a candidate of the next decision, the outcomes taken never get worse
+    and the episode ends as the last one taken. With one candidate (k = 1, no base actions) that is the root's own
+    action: the run equals the root policy's, bit for bit (compared where the root's best Q leads its runner-up by
+    more than the float32 reward tolerance, so both programs' argmax agree)."""
     from gsp_jax.physics import verified
     import tolerances as tol
 
@@ -377,17 +379,31 @@ def test_physics_lookahead_takes_the_branch_that_does_best_in_physics(phys):
     nominal = scenario.make_episode()
     eps = scenario.stack([_short(nominal).head(3), _short(scenario.make_episode(mass_factor=0.5)).head(3)])
     keep = policies.SequencePolicy(jnp.full((3,), sp.action("index_distal", 1), jnp.int32))
+    change = policies.SequencePolicy(jnp.tile(jnp.full((3,), sp.action("middle_distal", 2), jnp.int32), (2, 1)))
     root = policies.Lookahead(keep, phys.surrogate, depth=1, horizon=1)
-    two = verified.PhysicsLookahead(root, None, keep, k=2, cores=2)
+    two = verified.PhysicsLookahead(root, None, ((keep, None), (change, 0)), k=2, cores=2)  # change: per episode
     res2 = phys.simulate_batch(two, eps, backend="c")
-    assert len(two.decisions) == 2 * 3 and all(d.candidates.shape == (2,) for d in two.decisions)
-    for d in two.decisions:
-        qk = d.q[d.candidates]
-        assert qk[0] == d.q.max() and qk[0] >= qk[1]  # the surrogate's two best, best first
-        assert d.chosen == d.candidates[np.lexsort((-qk, d.angle_error, d.fell))[0]]
+    assert len(two.decisions) == 2 * 3 and all(d.candidates.shape == (2, 3) for d in two.decisions)
+    for e in range(2):
+        taken = []
+        for d in (d for d in two.decisions if d.episode == e):
+            qk = d.q[d.candidates[0, :2]]
+            assert qk[0] == d.q.max() and qk[0] >= qk[1]  # the surrogate's two best, best first, under both bases
+            np.testing.assert_array_equal(d.candidates[:, :2], d.candidates[[1, 0], :2])
+            assert d.candidates[0, 2] == keep.actions[d.segment] and d.candidates[1, 2] == change.actions[e, d.segment]
+            if d.fell is None:  # not branched: the tool had fallen before this decision
+                assert res2.fell[e] and res2.fall_time[e] <= d.segment * phys.config.segment
+                continue
+            c, f, a = d.candidates.ravel(), d.fell.ravel(), d.angle_error.ravel()
+            pick = np.lexsort((-d.q[c], a, f))[0]
+            assert d.chosen == c[pick] and d.base == pick // 3
+            taken.append((f[pick], a[pick]))
+        assert all(later <= before for before, later in zip(taken, taken[1:])), taken  # (fell, angle) never worse
+        assert taken[-1] == (res2.fell[e], res2.angle_error[e])  # the last branch taken is the episode, bit for bit
     assert [d.chosen for d in two.decisions if d.episode == 0] == list(res2.actions[0])
-    one = verified.PhysicsLookahead(root, None, keep, k=1, cores=2)
+    one = verified.PhysicsLookahead(root, None, ((keep, None),), k=1, base_actions=False, cores=2)
     res1, alone = phys.simulate_batch(one, eps, backend="c"), phys.simulate_batch(root, eps, backend="c")
+    assert all(d.fell is None and d.base == -1 for d in one.decisions)  # one candidate: nothing to branch
     for d in one.decisions:  # each argmax clear of the two programs' last bits
         assert np.diff(np.sort(d.q)[-2:])[0] > 2 * tol.REWARD_ATOL, (d.segment, np.sort(d.q)[-2:])
     np.testing.assert_array_equal(res1.actions, alone.actions)
@@ -395,7 +411,9 @@ def test_physics_lookahead_takes_the_branch_that_does_best_in_physics(phys):
     with pytest.raises(ValueError, match="backend"):
         phys.simulate_batch(one, eps, backend="mjx")
     with pytest.raises(ValueError, match="k"):
-        verified.PhysicsLookahead(root, None, keep, k=0)
+        verified.PhysicsLookahead(root, None, ((keep, None),), k=0)
+    with pytest.raises(ValueError, match="bases"):
+        verified.PhysicsLookahead(root, None, keep)
 
 
 def test_c_backend_rejects_bad_cores_by_name(phys, batch):

@@ -10,6 +10,12 @@ the episode on is timed apart. Per episode, setup + its decisions + its surrogat
 that steps the surrogate after each decision; `table1` times one jitted call (no dispatch per call), in which L1 and
 L2 move on to their searches' own root children (`lookahead.rollout_planned`) instead of stepping again. Writes
 results/bench_latency/<platform>.json and prints median and p99 latencies beside the paper's per-episode times last.
+
+`--policies ... L1-physics [--k 17 4]`: the physics-verified lookahead (`physics.verified`) runs each episode
+alone in C MuJoCo on every core; its decision is L1's ranking plus the k branches simulated to the episode's end
+(the call `Decision.seconds` times), its setup the episode's table (the cached L1 ranks the candidates), and its
+episode setup + decisions. The episode's own simulation, which a robot would live through, is not counted
+(`simulated_s` gives the run's whole wall time).
 """
 from __future__ import annotations
 
@@ -27,12 +33,16 @@ from gsp_jax.env import TableModel
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--episodes", type=int, default=7, help="evaluation episodes (each gives up to 16 decisions)")
-    p.add_argument("--policies", nargs="+", default=list(evaluation.POLICIES), choices=evaluation.POLICIES)
+    p.add_argument("--policies", nargs="+", default=list(evaluation.POLICIES),
+                   choices=evaluation.POLICIES + evaluation.VERIFIED)
+    p.add_argument("--k", nargs="+", type=int, default=[17],
+                   help="L1-physics: candidates branched in physics per decision (several: a row each)")
+    common.add_bases_argument(p)
     p.add_argument("--policy-dir", default=None)
     common.add_lookahead_argument(p)
 
 
-def run(ctx: evaluation.Context, names: list[str], cached: bool) -> dict:
+def run(ctx: evaluation.Context, names: list[str], cached: bool, ks=(17,), bases=("rl",)) -> dict:
     sur = ctx.surrogate
     step = jax.jit(sur.step)
     act = jax.jit(lambda policy, state: policy.act(state))
@@ -43,7 +53,8 @@ def run(ctx: evaluation.Context, names: list[str], cached: bool) -> dict:
     # setup per episode, shared by the planners that need it: the table (cached L1/L2, DP optimal) and its backup
     jax.block_until_ready(backup(build(episodes[0]), episodes[0].start_grasp))  # compile both
     tables, t_build, t_backup = [], [], []
-    needs_table = "dp-opt" in names or (cached and any(n in evaluation.LOOKAHEAD_DEPTH for n in names))
+    needs_table = "dp-opt" in names or (cached and any(n in evaluation.LOOKAHEAD_DEPTH + evaluation.VERIFIED
+                                                       for n in names))
     for i, ep in enumerate(episodes if needs_table else []):
         tab, tb = timed(build, ep)
         sol, tk = timed(backup, tab, ep.start_grasp)
@@ -53,6 +64,12 @@ def run(ctx: evaluation.Context, names: list[str], cached: bool) -> dict:
 
     rows = {}
     for name in names:
+        if name in evaluation.VERIFIED:
+            for k in ks:
+                label = name if len(ks) == 1 else f"{name} k={k}"
+                rows[label] = physics_lookahead(ctx, name, k, bases, cached,
+                                                list(t_build) if cached else [0.0] * len(episodes))
+            continue
         base, _ = evaluation.make(ctx, name, cached=False)  # dp-base, rl, continuous lookahead: episode-independent
 
         def policy_for(i):
@@ -89,11 +106,43 @@ def run(ctx: evaluation.Context, names: list[str], cached: bool) -> dict:
                 lookahead="cached" if cached else "continuous", policies=rows, paper=common.PAPER)
 
 
+def physics_lookahead(ctx: evaluation.Context, name: str, k: int, bases, cached: bool, setup) -> dict:
+    """`name` (L1-physics) with k candidates on each episode alone in C MuJoCo, warm (episode 0 run once before):
+    per decision the `Decision.seconds` of its call, per episode setup + its decisions."""
+    from gsp_jax import physics
+    from gsp_jax.physics import c_backend
+
+    phys = physics.Physics(ctx.surrogate)
+
+    def episode(i):
+        one = ctx.select([i])
+        policy, axis = evaluation.make(one, name, cached=cached, k=k, bases=bases)
+        res, wall = timed(lambda: phys.simulate_batch(policy, one.batch, axis, backend="c"))
+        return [d.seconds for d in policy.decisions], wall, res
+
+    print(f"  {name} k={k}: compiling (episode 0) ...", flush=True)
+    episode(0)
+    decide, per_episode, simulated, falls, angles = [], [], [], 0, []
+    for i in range(len(ctx.names)):
+        d, wall, res = episode(i)
+        decide += d
+        per_episode.append(setup[i] + sum(d)), simulated.append(wall)
+        falls += int(np.sum(res.fell)), angles.append(float(np.asarray(res.angle_error)[0]))
+        print(f"  {name} k={k}, episode {i}: {len(d)} decisions, median {np.median(d):.3f} s, planning "
+              f"{per_episode[-1]:.2f} s, simulated in {wall:.2f} s, {'FELL' if res.fell[0] else 'held'}", flush=True)
+    d = np.asarray(decide)
+    return dict(k=k, bases=list(bases), decisions=len(d), decision_median_s=float(np.median(d)),
+                decision_p99_s=float(np.percentile(d, 99)), setup_median_s=float(np.median(setup)), step_median_s=0.0,
+                episode_median_s=float(np.median(per_episode)), simulated_median_s=float(np.median(simulated)),
+                falls=falls, angle_error_deg=angles, cores=c_backend.available_cores())
+
+
 def print_result(result: dict) -> None:
     headers = ["planner", "setup / episode [s]", "decision median [ms]", "decision p99 [ms]", "surrogate step [ms]",
                "episode [s]", "paper, episode [s]"]
     rows = [[name, f"{r['setup_median_s']:.3f}", f"{r['decision_median_s'] * 1e3:.2f}", f"{r['decision_p99_s'] * 1e3:.2f}",
-             f"{r['step_median_s'] * 1e3:.2f}", f"{r['episode_median_s']:.3f}", common.PAPER["table1_s"][name]]
+             f"{r['step_median_s'] * 1e3:.2f}", f"{r['episode_median_s']:.3f}",
+             common.PAPER["table1_s"].get(name.split()[0].removesuffix("-physics"), "-")]
             for name, r in result["policies"].items()]
     print(f"Per-decision latency, one episode at a time ({result['device']}, lookahead {result['lookahead']}, "
           f"{len(result['episodes'])} episodes; medians; paper: {common.PAPER['table1_machine']})")
@@ -103,7 +152,9 @@ def print_result(result: dict) -> None:
 def main(args: argparse.Namespace) -> None:
     ctx = evaluation.context("eval", args.episodes, args.policy_dir)
     print(f"bench-latency on {jax.devices()[0].device_kind}: {len(ctx.names)} episodes ...", flush=True)
-    result = run(ctx, args.policies, cached=args.lookahead == "cached")
+    if any(k < 1 for k in args.k):
+        raise SystemExit(f"bench-latency: --k must be >= 1, got {args.k}")
+    result = run(ctx, args.policies, cached=args.lookahead == "cached", ks=args.k, bases=args.bases)
     out = results_dir("bench_latency") / f"{result['platform']}.json"
     out.write_text(json.dumps(result, indent=1))
     print(f"wrote {out}\n")

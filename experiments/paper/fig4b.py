@@ -39,17 +39,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="MJX: policies run side by side (threads; default 1). C MuJoCo runs them all in one lockstep")
     p.add_argument("--warm", action="store_true", help="C MuJoCo: time the lockstep a second time (warm)")
     p.add_argument("--k", type=int, default=17, help="L1-physics: candidates branched in physics per decision")
-    p.add_argument("--branch-base", default="rl", choices=["rl", "L1", "dp-opt"],
-                   help="L1-physics: the policy its branches follow after their first action")
+    common.add_bases_argument(p)
     common.add_lookahead_argument(p)
 
 
 def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str = "mjx", cached: bool = True,
-        jobs: int | None = None, warm: bool = False, k: int = 17, branch_base: str = "rl") -> dict:
+        jobs: int | None = None, warm: bool = False, k: int = 17, bases=("rl",)) -> dict:
     """Fig. 4b's result per policy (saved results reused); `jobs` policies at a time (default as `--jobs`)."""
     phys = physics.Physics(ctx.surrogate)
     stamp = f"{common.fingerprint(ctx)}-{backend}" + ("" if cached else "-continuous") + (f"-k{k}" if k != 17 else "") + (
-        f"-{branch_base}" if branch_base != "rl" else "")
+        "-" + "+".join(bases) if tuple(bases) != ("rl",) else "")
     jobs = 1 if jobs is None else jobs
     if jobs < 1:
         raise ValueError(f"jobs (--jobs) must be >= 1, got {jobs}")
@@ -76,14 +75,14 @@ def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str =
         return result
 
     def simulate(name):
-        policy, axis = evaluation.make(ctx, name, cached=cached, k=k, branch_base=branch_base)
+        policy, axis = evaluation.make(ctx, name, cached=cached, k=k, bases=bases)
         t0 = time.perf_counter()
         res = jax.block_until_ready(phys.simulate_batch(policy, ctx.batch, axis, backend=backend))
         return save(name, res, time.perf_counter() - t0)
 
     t0 = time.perf_counter()
     if backend == "c" and todo:  # every policy's episodes in one lockstep on every core
-        made = [evaluation.make(ctx, name, cached=cached, k=k, branch_base=branch_base) for name in todo]
+        made = [evaluation.make(ctx, name, cached=cached, k=k, bases=bases) for name in todo]
         res = phys.simulate_many(made, ctx.batch, backend="c", progress=True)
         wall = time.perf_counter() - t0
         done = {name: save(name, r, wall) for name, r in zip(todo, res)}
@@ -133,7 +132,7 @@ def main(args: argparse.Namespace) -> None:
           f"RL policy {ctx.rl_source}", flush=True)
     out = results_dir("fig4b")
     results = run(ctx, args.policies, out, args.fresh, args.backend, cached=args.lookahead == "cached", jobs=args.jobs,
-                  warm=args.warm, k=args.k, branch_base=args.branch_base)
+                  warm=args.warm, k=args.k, bases=args.bases)
     print(f"wrote {out}/<policy>.json, {out / 'fig4b.png'}")
     common.record("fig4b", figures(results))
     print_result(results)

@@ -44,8 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--jobs", type=int, default=None, help="processes classifying falls (default: the CPU cores)")
     p.add_argument("--physics-lookahead", type=int, default=0, metavar="K",
                    help="also L1-physics, branching L1's K best actions in physics at each decision (0: not run)")
-    p.add_argument("--branch-base", default="rl", choices=["rl", "L1", "dp-opt"],
-                   help="L1-physics: the policy its branches follow after their first action")
+    common.add_bases_argument(p)
 
 
 # ------------------------------------------------------------------------------------------- the summary
@@ -151,7 +150,7 @@ def main(args: argparse.Namespace) -> None:
     ctx = evaluation.context(args.set, args.episodes, args.policy_dir)
     sur, N, T = ctx.surrogate, len(ctx.names), ctx.batch.n_steps
     planners = list(PLANNERS) + (["L1-physics"] if args.physics_lookahead else [])
-    groups = [evaluation.make(ctx, name, k=args.physics_lookahead or 17, branch_base=args.branch_base)
+    groups = [evaluation.make(ctx, name, k=args.physics_lookahead or 17, bases=args.bases)
               for name in planners]
     keys = jax.random.split(jax.random.PRNGKey(args.seed), N * args.random).reshape(N, args.random, 2)
     holds = jnp.where(jnp.arange(args.random) % 2 == 0, 0.0, 0.8)

@@ -1,20 +1,30 @@
 """Lookahead verified in physics: Algorithm 2 with the simulator as its model (C MuJoCo).
 
 At each decision of an episode the surrogate's lookahead (`root`, e.g. the cached L1) ranks the root actions by
-its Q-values; the `k` best are each simulated from a copy of the current simulated state (`c_backend.Snapshot`:
-MuJoCo's state rows and the controller's), closed loop to the end of the episode, hold included, with the
-candidate as the first action and the `base` policy after it (`FirstThen`). The action taken is the one whose
-branch did best in physics: held first, then the least hold angle error, then the surrogate's Q. The surrogate
-prunes and ranks, the physics decides. Every decision's candidates and their outcomes are kept (`Decision`).
+its Q-values. Its `k` best, and each base policy's own action, are simulated from a copy of the current
+simulated state (`c_backend.Snapshot`: MuJoCo's state rows and the controller's), closed loop to the end of the
+episode, hold included: each candidate as the first action and a base policy after it (`FirstThen`), once under
+every base policy of `bases`. The action taken is the one whose branch did best in physics: held first, then the
+least hold angle error, then the surrogate's Q. The surrogate prunes and ranks, the physics decides. Every
+decision's candidates and their outcomes are kept (`Decision`).
 
-    policy = PhysicsLookahead(root=L1, root_axis=axis, base=rl, base_axis=None, k=17)
+A rollout with several base policies (Bertsekas' rollout with multiple heuristics): as every base's own action
+is among the candidates at every decision, the branch taken at one decision is continued, bit for bit, by a
+candidate of the next (the physics is deterministic and a branch from a snapshot is the original run:
+tests/test_physics.py). So the episode's outcome is never worse than the branch taken at its first decision,
+and so never worse than any base policy run from the start: with `bases` (four tips, DP optimal), L1-physics
+holds every episode that either holds.
+
+    policy = PhysicsLookahead(root=L1, root_axis=axis, bases=((rl, None), (four_tips, None)), k=17)
     result = phys.simulate_batch(policy, episodes, backend="c")      # only the C backend can copy its state
 
-The branches of all the lockstep's episodes at one decision run as one lockstep of N x k rows on every core.
+The branches of all the lockstep's episodes at one decision run as one lockstep of B x N x slots rows on every
+core.
 """
 from __future__ import annotations
 
 import dataclasses
+import time
 from typing import Any
 
 import jax
@@ -37,15 +47,19 @@ class FirstThen:
 
 @dataclasses.dataclass(frozen=True)
 class Decision:
-    """One decision of one episode: the candidates in the surrogate's order and their branches' outcomes."""
+    """One decision of one episode: the candidates per base policy and their branches' outcomes."""
 
     episode: int  # row of the policy's episode batch
     segment: int
-    candidates: np.ndarray  # (k,) int32 actions, the surrogate's best first
+    candidates: np.ndarray  # (B, slots) int32 first actions: the surrogate's k best (best first), then (with
+    # `base_actions`) the base's own action
     q: np.ndarray  # (A,) the surrogate's Q-values of every root action
-    fell: np.ndarray  # (k,) bool: the branch's tool fell
-    angle_error: np.ndarray  # (k,) [deg] the branch's mean hold angle error (180 if it fell)
+    fell: np.ndarray | None  # (B, slots) bool: the branch's tool fell (None: not branched, as with one candidate
+    # or a tool that had already fallen: the surrogate's best is taken)
+    angle_error: np.ndarray | None  # (B, slots) [deg] the branch's mean hold angle error (180 if it fell)
     chosen: int  # the action taken
+    base: int  # the base policy of the branch taken (-1: not branched)
+    seconds: float  # wall time of the decision call that made it (every episode of the lockstep at once)
 
 
 @dataclasses.dataclass(eq=False)
@@ -55,63 +69,108 @@ class PhysicsLookahead:
 
     root: Any  # a policy with `plan(state)` -> Q-values `.q` (A,) over the actions (`lookahead.Lookahead`)
     root_axis: Any  # its policy_axis (e.g. 0 for the tables of the cached L1)
-    base: Any  # the policy the branches follow after their first action (e.g. the RL policy)
-    base_axis: Any = None  # its policy_axis: None (one base for every branch) or per episode (e.g. the cached L1's
-    # tables: each branch gets its episode's)
-    k: int = 17  # candidates simulated per decision (the surrogate's best k)
+    bases: tuple  # ((policy, policy_axis), ...): the policies the branches follow after their first action (axis
+    # None: one for every branch; per episode, e.g. DP optimal's tables: each branch gets its episode's)
+    k: int = 17  # the surrogate's best k root actions are candidates
+    base_actions: bool = True  # each base's own action is a candidate too (under that base): never worse than a
+    # base (module docstring); without it and with k = 1 the root's action is taken, nothing branched
     cores: int | None = None  # cores of the branches' lockstep (default: all)
     workers: int | None = None  # its chunks (default as `c_backend.simulate`)
     decisions: list = dataclasses.field(default_factory=list)
+    _gathered: dict = dataclasses.field(default_factory=dict, repr=False)  # bases per set of branched rows
 
     def __post_init__(self):
         if not (isinstance(self.k, int) and self.k >= 1):
             raise ValueError(f"PhysicsLookahead.k must be an int >= 1, got {self.k!r}")
+        if not (isinstance(self.bases, (tuple, list)) and self.bases
+                and all(isinstance(b, (tuple, list)) and len(b) == 2 for b in self.bases)):
+            raise ValueError(f"PhysicsLookahead.bases must be a non-empty sequence of (policy, policy_axis) pairs, "
+                             f"got {self.bases!r}")
+        self.bases = tuple(tuple(b) for b in self.bases)
+
+
+def _program(phys, key, make):
+    if key not in phys._jitted:
+        phys._jitted[key] = jax.jit(make())
+    return phys._jitted[key]
 
 
 def root_q(phys, root_axis, observe):
     """A jitted program: (root, obs_flat (N, nq + 2 nv), grasp (N,), episodes (N), k) -> (N, A) the root's Q;
     `observe` the C backend's flat-observation reader (`c_backend.programs(...).observe`)."""
-    key = ("root_q", root_axis)
-    if key not in phys._jitted:
-        def q(root, obs_flat, grasp, episodes, k):
-            return jax.vmap(lambda pol, o, g, e: pol.plan(phys.observed_state(o, g, e, k)).q,
-                            in_axes=(root_axis, 0, 0, 0))(root, observe(obs_flat), grasp, episodes)
-
-        phys._jitted[key] = jax.jit(q)
-    return phys._jitted[key]
+    return _program(phys, ("root_q", root_axis), lambda: lambda root, obs_flat, grasp, episodes, k: jax.vmap(
+        lambda pol, o, g, e: pol.plan(phys.observed_state(o, g, e, k)).q, in_axes=(root_axis, 0, 0, 0))(
+        root, observe(obs_flat), grasp, episodes))
 
 
-def _per_branch(base, axis, top: int):
-    """The base policy for the N x top branches (episode-major): its per-episode leaves (axis 0) repeated."""
+def base_action(phys, axis, observe):
+    """A jitted program: (base, obs_flat (N, ...), grasp (N,), episodes (N), k) -> (N,) the base's actions."""
+    return _program(phys, ("base_action", axis), lambda: lambda base, obs_flat, grasp, episodes, k: jax.vmap(
+        lambda pol, o, g, e: jnp.asarray(pol.act(phys.observed_state(o, g, e, k)), jnp.int32),
+        in_axes=(axis, 0, 0, 0))(base, observe(obs_flat), grasp, episodes))
+
+
+def _gather(policy: PhysicsLookahead, b: int, episodes: np.ndarray, slots: int):
+    """Base b for the branches of `episodes` (indices into the policy's episode batch), `slots` each
+    (episode-major): its per-episode leaves gathered; kept while the branched rows stay the same."""
+    base, axis = policy.bases[b]
     if axis is None:
         return base
-    return jax.tree.map(lambda ax, sub: sub if ax is None else jax.tree.map(lambda x: jnp.repeat(x, top, 0), sub),
-                        axis, base, is_leaf=lambda x: x is None)
+    key = (b, episodes.tobytes(), slots)
+    if key not in policy._gathered:
+        idx = jnp.asarray(np.repeat(episodes, slots))
+        if len(policy._gathered) >= 4 * len(policy.bases):
+            policy._gathered.pop(next(iter(policy._gathered)))
+        policy._gathered[key] = jax.tree.map(
+            lambda ax, sub: sub if ax is None else jax.tree.map(lambda x: jnp.take(x, idx, 0), sub),
+            axis, base, is_leaf=lambda x: x is None)
+    return policy._gathered[key]
 
 
 def choose(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, obs: np.ndarray, episodes, k: int) -> np.ndarray:
     """(N,) the actions of the episodes `rows` of a lockstep at segment k (its `snapshot`, observations `obs`
-    (N, ...), their `episodes`): the surrogate's k best, each branched to the episode's end in C MuJoCo."""
+    (N, ...), their `episodes`): every candidate branched under every base to the episode's end in C MuJoCo,
+    the best branch's first action. An episode whose tool has fallen, or one candidate in all, takes the
+    surrogate's best without branching (nothing to choose)."""
     from gsp_jax.physics import c_backend
 
-    n, top = len(rows), min(policy.k, phys.space.n_actions)
+    t0 = time.perf_counter()
+    n, n_base, top = len(rows), len(policy.bases), min(policy.k, phys.space.n_actions)
     grasp = snapshot.grasp[rows]
     observe = c_backend.programs(phys, episodes).observe
-    q = root_q(phys, policy.root_axis, observe)(policy.root, jnp.asarray(obs), jnp.asarray(grasp), episodes, k)
-    q = np.asarray(q)
-    cand = np.argsort(-q, axis=1, kind="stable")[:, :top].astype(np.int32)  # (N, top): ties keep the lower action
-    branch_rows = np.repeat(rows, top)
-    branch_eps = jax.tree.map(lambda x: np.repeat(np.asarray(x), top, 0), episodes)
-    first = FirstThen(first=jnp.asarray(cand.ravel()), at=jnp.int32(k), base=_per_branch(policy.base,
-                                                                                     policy.base_axis, top))
-    axis = FirstThen(first=0, at=None, base=policy.base_axis)
-    res = c_backend.simulate(phys, [(first, axis)], branch_eps, cores=policy.cores, workers=policy.workers,
-                             start=snapshot.take(branch_rows))[0]
-    fell, err = np.asarray(res.fell).reshape(n, top), np.asarray(res.angle_error).reshape(n, top)
-    qk = np.take_along_axis(q, cand, 1)
-    chosen = np.empty(n, np.int32)
-    for i in range(n):  # held first, then the least angle error, then the surrogate's Q
-        best = np.lexsort((-qk[i], err[i], fell[i]))[0]
-        chosen[i] = cand[i, best]
-        policy.decisions.append(Decision(int(i), k, cand[i], q[i], fell[i], err[i], int(chosen[i])))
+    args = (jnp.asarray(obs), jnp.asarray(grasp), episodes, k)
+    q = np.asarray(root_q(phys, policy.root_axis, observe)(policy.root, *args))
+    best = np.argsort(-q, axis=1, kind="stable")[:, :top].astype(np.int32)  # (N, top): ties keep the lower action
+    cand = np.broadcast_to(best, (n_base, n, top))
+    if policy.base_actions and top < phys.space.n_actions:
+        own = np.stack([np.asarray(base_action(phys, axis, observe)(base, *args)) for base, axis in policy.bases])
+        cand = np.concatenate([cand, own[:, :, None]], 2)  # (B, N, slots)
+    slots = cand.shape[2]
+    chosen, chosen_base = best[:, 0].copy(), np.full(n, -1)
+    fell, err = np.full((n_base, n, slots), np.nan), np.full((n_base, n, slots), np.nan)
+    live = np.flatnonzero(~snapshot.fell[rows]) if n_base * slots > 1 else np.zeros(0, int)
+    if live.size:
+        # padded to a multiple of a quarter of the episodes (repeating a live one): the branches' programs are
+        # compiled per row count, and tools that fall would otherwise make a new count at every decision
+        quarter = -(-n // 4)
+        padded = np.concatenate([live, np.full(-(-live.size // quarter) * quarter - live.size, live[0])])[:n]
+        groups = [(FirstThen(first=jnp.asarray(cand[b, padded].ravel()), at=jnp.int32(k),
+                             base=_gather(policy, b, padded, slots)), FirstThen(first=0, at=None, base=axis))
+                  for b, (_, axis) in enumerate(policy.bases)]
+        branch_rows = np.tile(np.repeat(rows[padded], slots), n_base)  # the lockstep's rows: base-major
+        results = c_backend.simulate(phys, groups, jax.tree.map(lambda x: np.repeat(np.asarray(x)[padded], slots, 0),
+                                                                episodes),
+                                     cores=policy.cores, workers=policy.workers, start=snapshot.take(branch_rows))
+        for b, res in enumerate(results):
+            fell[b, live] = np.asarray(res.fell).reshape(-1, slots)[:live.size]
+            err[b, live] = np.asarray(res.angle_error).reshape(-1, slots)[:live.size]
+        for i in live:  # held first, then the least angle error, then the surrogate's Q (then base, slot order)
+            c = cand[:, i].ravel()
+            pick = np.lexsort((-q[i, c], err[:, i].ravel(), fell[:, i].ravel()))[0]
+            chosen[i], chosen_base[i] = c[pick], pick // slots
+    seconds, branched = time.perf_counter() - t0, set(live.tolist())
+    for i in range(n):
+        b = i in branched
+        policy.decisions.append(Decision(int(i), k, np.array(cand[:, i]), q[i], fell[:, i].astype(bool) if b else None,
+                                         err[:, i] if b else None, int(chosen[i]), int(chosen_base[i]), seconds))
     return chosen

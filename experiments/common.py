@@ -113,7 +113,7 @@ def add_lookahead_argument(p) -> None:
 def add_bases_argument(p) -> None:
     from gsp_jax import evaluation
 
-    p.add_argument("--bases", nargs="+", default=["rl"], choices=evaluation.BRANCH_BASES,
+    p.add_argument("--bases", nargs="+", default=list(evaluation.L1_PHYSICS["bases"]), choices=evaluation.BRANCH_BASES,
                    help="L1-physics: the policies its branches follow after their first action (each candidate is "
                         "branched under each; several: never worse than any of them)")
 

@@ -57,8 +57,9 @@ def _report() -> dict:
 
 def _gpu() -> str:
     """The GPU of the report's run as the README names it (H100, H200, ...); its Table 1 is docs/data/table1_<gpu>."""
-    found = re.search(r"\b([A-Z]\d{2,3})\b", _report()["device"])
-    assert found, f"report.json names no GPU: {_report()['device']!r}"
+    device = _report()["table1"].get("device", _report()["device"])  # Table 1's GPU (a partial run may be another's)
+    found = re.search(r"\b([A-Z]\d{2,3})\b", device)
+    assert found, f"report.json's Table 1 names no GPU: {device!r}"
     return found.group(1)
 
 

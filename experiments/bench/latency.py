@@ -35,14 +35,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--episodes", type=int, default=7, help="evaluation episodes (each gives up to 16 decisions)")
     p.add_argument("--policies", nargs="+", default=list(evaluation.POLICIES),
                    choices=evaluation.POLICIES + evaluation.VERIFIED)
-    p.add_argument("--k", nargs="+", type=int, default=[17],
-                   help="L1-physics: candidates branched in physics per decision (several: a row each)")
+    p.add_argument("--k", nargs="+", type=int, default=[evaluation.L1_PHYSICS["k"]],
+                   help="L1-physics: the surrogate's best k root actions are branched per decision (several: a row each)")
     common.add_bases_argument(p)
     p.add_argument("--policy-dir", default=None)
     common.add_lookahead_argument(p)
 
 
-def run(ctx: evaluation.Context, names: list[str], cached: bool, ks=(17,), bases=("rl",)) -> dict:
+def run(ctx: evaluation.Context, names: list[str], cached: bool, ks=(evaluation.L1_PHYSICS["k"],), bases=evaluation.L1_PHYSICS["bases"]) -> dict:
     sur = ctx.surrogate
     step = jax.jit(sur.step)
     act = jax.jit(lambda policy, state: policy.act(state))
@@ -53,8 +53,8 @@ def run(ctx: evaluation.Context, names: list[str], cached: bool, ks=(17,), bases
     # setup per episode, shared by the planners that need it: the table (cached L1/L2, DP optimal) and its backup
     jax.block_until_ready(backup(build(episodes[0]), episodes[0].start_grasp))  # compile both
     tables, t_build, t_backup = [], [], []
-    needs_table = "dp-opt" in names or (cached and any(n in evaluation.LOOKAHEAD_DEPTH + evaluation.VERIFIED
-                                                       for n in names))
+    needs_table = "dp-opt" in names or any(n in evaluation.VERIFIED for n in names) or (
+        cached and any(n in evaluation.LOOKAHEAD_DEPTH for n in names))
     for i, ep in enumerate(episodes if needs_table else []):
         tab, tb = timed(build, ep)
         sol, tk = timed(backup, tab, ep.start_grasp)
@@ -67,8 +67,9 @@ def run(ctx: evaluation.Context, names: list[str], cached: bool, ks=(17,), bases
         if name in evaluation.VERIFIED:
             for k in ks:
                 label = name if len(ks) == 1 else f"{name} k={k}"
-                rows[label] = physics_lookahead(ctx, name, k, bases, cached,
-                                                list(t_build) if cached else [0.0] * len(episodes))
+                table = cached or "dp-opt" in bases  # the root's table (cached L1), DP optimal's table and backup
+                setup = [table * tb + ("dp-opt" in bases) * tk for tb, tk in zip(t_build, t_backup)]
+                rows[label] = physics_lookahead(ctx, name, k, bases, cached, setup)
             continue
         base, _ = evaluation.make(ctx, name, cached=False)  # dp-base, rl, continuous lookahead: episode-independent
 
@@ -127,7 +128,8 @@ def physics_lookahead(ctx: evaluation.Context, name: str, k: int, bases, cached:
         d, wall, res = episode(i)
         decide += d
         per_episode.append(setup[i] + sum(d)), simulated.append(wall)
-        falls += int(np.sum(res.fell)), angles.append(float(np.asarray(res.angle_error)[0]))
+        falls += int(np.sum(res.fell))
+        angles.append(float(np.asarray(res.angle_error)[0]))
         print(f"  {name} k={k}, episode {i}: {len(d)} decisions, median {np.median(d):.3f} s, planning "
               f"{per_episode[-1]:.2f} s, simulated in {wall:.2f} s, {'FELL' if res.fell[0] else 'held'}", flush=True)
     d = np.asarray(decide)

@@ -38,17 +38,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--jobs", type=int, default=None,
                    help="MJX: policies run side by side (threads; default 1). C MuJoCo runs them all in one lockstep")
     p.add_argument("--warm", action="store_true", help="C MuJoCo: time the lockstep a second time (warm)")
-    p.add_argument("--k", type=int, default=17, help="L1-physics: candidates branched in physics per decision")
+    p.add_argument("--k", type=int, default=evaluation.L1_PHYSICS["k"],
+                   help="L1-physics: the surrogate's best k root actions are branched in physics at each decision")
     common.add_bases_argument(p)
     common.add_lookahead_argument(p)
 
 
 def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str = "mjx", cached: bool = True,
-        jobs: int | None = None, warm: bool = False, k: int = 17, bases=("rl",)) -> dict:
+        jobs: int | None = None, warm: bool = False, k: int = evaluation.L1_PHYSICS["k"], bases=evaluation.L1_PHYSICS["bases"]) -> dict:
     """Fig. 4b's result per policy (saved results reused); `jobs` policies at a time (default as `--jobs`)."""
     phys = physics.Physics(ctx.surrogate)
-    stamp = f"{common.fingerprint(ctx)}-{backend}" + ("" if cached else "-continuous") + (f"-k{k}" if k != 17 else "") + (
-        "-" + "+".join(bases) if tuple(bases) != ("rl",) else "")
+    stamp = f"{common.fingerprint(ctx)}-{backend}" + ("" if cached else "-continuous") + (
+        f"-k{k}-" + "+".join(bases) if any(n in evaluation.VERIFIED for n in names) else "")
     jobs = 1 if jobs is None else jobs
     if jobs < 1:
         raise ValueError(f"jobs (--jobs) must be >= 1, got {jobs}")
@@ -68,7 +69,7 @@ def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str =
         result = dict(policy=name, episodes=ctx.names, rl_policy=ctx.rl_source, mean_deg=mean, ci95_deg=ci,
                       falls=int(np.sum(res.fell)), held=[r for r in rows if not r["fell"]], per_episode=rows,
                       wall_s_incl_compile=wall, jobs=jobs, platform=jax.default_backend(), backend=backend,
-                      fingerprint=stamp)
+                      fingerprint=stamp, **(dict(k=k, bases=list(bases)) if name in evaluation.VERIFIED else {}))
         (out / f"{name}.json").write_text(json.dumps(result, indent=1))
         print(f"  {name:8s} mean angle error {mean:.1f} deg (+-{ci:.1f}), {result['falls']}/{len(ctx.names)} "
               f"fell ({wall:.1f} s incl. compile)", flush=True)

@@ -150,7 +150,7 @@ def main(args: argparse.Namespace) -> None:
     ctx = evaluation.context(args.set, args.episodes, args.policy_dir)
     sur, N, T = ctx.surrogate, len(ctx.names), ctx.batch.n_steps
     planners = list(PLANNERS) + (["L1-physics"] if args.physics_lookahead else [])
-    groups = [evaluation.make(ctx, name, k=args.physics_lookahead or 17, bases=args.bases)
+    groups = [evaluation.make(ctx, name, k=args.physics_lookahead or 1, bases=args.bases)
               for name in planners]
     keys = jax.random.split(jax.random.PRNGKey(args.seed), N * args.random).reshape(N, args.random, 2)
     holds = jnp.where(jnp.arange(args.random) % 2 == 0, 0.0, 0.8)

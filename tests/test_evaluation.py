@@ -28,6 +28,23 @@ def test_cached_lookahead_needs_the_tables_too(sur):
     assert axis is None and policy.inner is None
 
 
+def test_physics_lookahead_is_made_of_its_root_and_bases(sur):
+    """`L1-physics` (continuous L1, no tables needed): the root L1 and one (policy, axis) per base, in order; bases
+    that are not planners its branches can run are refused by name."""
+    from gsp_jax.physics.verified import PhysicsLookahead
+
+    ctx = _bare(sur, rl=object())
+    policy, axis = evaluation.make(ctx, "L1-physics", cached=False, k=3, bases=("four-tips", "rl"))
+    assert isinstance(policy, PhysicsLookahead) and axis is None and policy.k == 3
+    assert policy.root.depth == 1 and [b[0] for b in policy.bases][1] is ctx.rl
+    np.testing.assert_array_equal(policy.bases[0][0].actions, evaluation.four_tips(sur.space, ctx.batch.n_steps))
+    with pytest.raises(ValueError, match="policy 'dp-opt'"):  # the default's second base, DP optimal, needs tables
+        evaluation.make(ctx, "L1-physics", cached=False)
+    for bad in ("rl", (), ("L1-physics",), ("random",)):
+        with pytest.raises(ValueError, match="bases"):
+            evaluation.make(ctx, "L1-physics", cached=False, bases=bad)
+
+
 def test_reference_sequences_reach_their_grasps(sur):
     """four-tips adds the ring tip to the start grasp and keeps it; one-tip leaves the index tip alone."""
     space, start = sur.space, int(scenario.make_episode().start_grasp)

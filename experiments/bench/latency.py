@@ -36,13 +36,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--policies", nargs="+", default=list(evaluation.POLICIES),
                    choices=evaluation.POLICIES + evaluation.VERIFIED)
     p.add_argument("--k", nargs="+", type=int, default=[evaluation.L1_PHYSICS["k"]],
-                   help="L1-physics: the surrogate's best k root actions are branched per decision (several: a row each)")
+                   help="L1-physics: the surrogate's best k root actions are branched per decision (several: a row "
+                        "each)")
     common.add_bases_argument(p)
     p.add_argument("--policy-dir", default=None)
     common.add_lookahead_argument(p)
 
 
-def run(ctx: evaluation.Context, names: list[str], cached: bool, ks=(evaluation.L1_PHYSICS["k"],), bases=evaluation.L1_PHYSICS["bases"]) -> dict:
+def run(ctx: evaluation.Context, names: list[str], cached: bool, ks=(evaluation.L1_PHYSICS["k"],),
+        bases=evaluation.L1_PHYSICS["bases"]) -> dict:
     sur = ctx.surrogate
     step = jax.jit(sur.step)
     act = jax.jit(lambda policy, state: policy.act(state))

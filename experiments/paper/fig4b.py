@@ -45,7 +45,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str = "mjx", cached: bool = True,
-        jobs: int | None = None, warm: bool = False, k: int = evaluation.L1_PHYSICS["k"], bases=evaluation.L1_PHYSICS["bases"]) -> dict:
+        jobs: int | None = None, warm: bool = False, k: int = evaluation.L1_PHYSICS["k"],
+        bases=evaluation.L1_PHYSICS["bases"]) -> dict:
     """Fig. 4b's result per policy (saved results reused); `jobs` policies at a time (default as `--jobs`)."""
     phys = physics.Physics(ctx.surrogate)
     stamp = f"{common.fingerprint(ctx)}-{backend}" + ("" if cached else "-continuous") + (

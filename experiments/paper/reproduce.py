@@ -116,7 +116,7 @@ def main(args: argparse.Namespace) -> None:
         backend = getattr(args, "backend", "mjx")
         print(f"[3/3] Fig. 4b ({backend})", flush=True)
         ctx = everything.take(p["fig4b_episodes"])
-        # beyond the paper, in C MuJoCo: L1 verified in physics (its defaults: k = 17, branches under RL)
+        # beyond the paper, in C MuJoCo: L1 verified in physics (its defaults, `evaluation.L1_PHYSICS`)
         names = evaluation.POLICIES + (evaluation.VERIFIED if backend == "c" else ())
         res = fig4b.run(ctx, names, results_dir("fig4b"), backend=backend)
         fig4b.print_result(res)
@@ -255,7 +255,8 @@ def report(s: dict) -> str:
                   "|---|---|---|---|---|"]
         for name, r in b.items():
             if name in evaluation.VERIFIED:  # beyond the paper
-                name = f"{name} (k = {r.get('k', 17)}, branches under {' + '.join(r.get('bases', ['rl']))}; not in the paper)"
+                bases = " + ".join(r.get("bases", ["rl"]))  # results without them were k = 17 under RL
+                name = f"{name} (k = {r.get('k', 17)}, branches under {bases}; not in the paper)"
             ci = "–" if not np.isfinite(r["ci95_deg"]) else f"{r['ci95_deg']:.1f}"
             times = [e["fall_time_s"] for e in r["per_episode"] if e["fell"]]
             when = f"{np.mean(times):.2f}" if times else "–"

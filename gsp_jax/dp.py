@@ -58,10 +58,21 @@ def build_table(env: Surrogate, episode: Episode) -> Table:
 
 
 def realise_all(env: Surrogate, episode: Episode) -> Contacts:
-    """Every grasp realised by IK at every waypoint: leaves (G, T, ...)."""
+    """Every grasp realised by IK at every waypoint: leaves (G, T, ...). All G x T solves as one batch: on a CPU
+    in the batch-last form (`ik_lanes`, where `env.ik_config.lanes` allows), elsewhere `env.realise` vmapped."""
     grasps = jnp.arange(env.space.n_grasps, dtype=jnp.int32)
-    realise = jax.vmap(jax.vmap(env.realise, (None, 0, 0)), (0, None, None))
-    return realise(grasps, episode.waypoints, episode.quats)
+    vmapped = lambda: jax.vmap(jax.vmap(env.realise, (None, 0, 0)), (0, None, None))(  # noqa: E731
+        grasps, episode.waypoints, episode.quats)
+    lanes = env.ik_config.lanes
+    if lanes is False:
+        return vmapped()
+    batched = lambda: env.realise_batch(  # noqa: E731
+        jnp.broadcast_to(grasps[:, None], (len(grasps), episode.n_steps)),
+        jnp.broadcast_to(episode.waypoints, (len(grasps),) + episode.waypoints.shape),
+        jnp.broadcast_to(episode.quats, (len(grasps),) + episode.quats.shape))
+    if lanes:
+        return batched()
+    return jax.lax.platform_dependent(cpu=batched, default=vmapped)
 
 
 def grasp_terms(env: Surrogate, episode: Episode, contacts: Contacts) -> RewardTerms:

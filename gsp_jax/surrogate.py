@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from gsp_jax import grasps, ik, kinematics, wrench
+from gsp_jax import grasps, ik, ik_lanes, kinematics, wrench
 from gsp_jax import hand as hand_lib
 from gsp_jax.calibration import CALIBRATED
 from gsp_jax.scenario import M0, Episode
@@ -174,6 +174,17 @@ class Surrogate:
         res = ik.solve(self.hand, active, points, tool_pos, mat, self.ik_config)
         realised = active & (res.link_error < self.reward_config.contact_tol)
         return Contacts(ik=res, points=points, normals=normals, realised=realised)
+
+    def realise_batch(self, grasp: jax.Array, tool_pos: jax.Array, tool_quat: jax.Array) -> Contacts:
+        """`realise` of a whole batch at once in the batch-last form (`ik_lanes`: a CPU runs it several times
+        faster than `realise` vmapped): grasps (...), tool poses (..., 3), (..., 4) -> `Contacts` (...)."""
+        mat = kinematics.quat_to_mat(tool_quat)
+        active, points, normals = jax.vmap(lambda g, p, m: ik.grasp_targets(self.hand, self.space.decode(g), p, m))(
+            grasp.reshape(-1), tool_pos.reshape(-1, 3), mat.reshape(-1, 3, 3))
+        res = ik_lanes.solve(self.hand, active, points, tool_pos.reshape(-1, 3), mat.reshape(-1, 3, 3), self.ik_config)
+        realised = active & (res.link_error < self.reward_config.contact_tol)
+        out = Contacts(ik=res, points=points, normals=normals, realised=realised)
+        return jax.tree.map(lambda x: x.reshape(grasp.shape + x.shape[1:]), out)
 
     def wrench_error(
         self, contacts: Contacts, episode: Episode, tool_pos, tool_quat, required: jax.Array

@@ -1,23 +1,25 @@
-"""`python -m experiments table1 [--set eval] [--batch N] [--repeats K] [--policies NAME ...] [--ik-unroll K] [--ahead K]`: the
-paper's Table 1, online wall-clock time per unseen episode.
+"""`python -m experiments table1 [--set eval] [--batch N] [--repeats K] [--policies NAME ...] [--lookahead table|cached|continuous]
+[--before] [--ik-unroll K] [--ahead K]`: the paper's Table 1, online wall-clock time per unseen episode.
 
 For each policy, the time to plan and run one unseen episode through the surrogate from its start, as an online
 planner would: DP baseline and RL act per step (a sequence lookup, one network call) and run the surrogate's step
 for each decision, either stepping after each or, as the decisions fix every grasp the episode visits, all T
 transitions afterwards in one vmapped batch (`policies.rollout_batched`; both forms are timed, side by side, and
 the warm time is the form `default_batched` picks: batched for DP baseline, and for RL on a GPU, where RL's chain of
-decisions realises the states of `GPU_AHEAD` decisions in one batch: `--ahead`); L1 and
-L2 first build the episode's table (`--lookahead cached`, the default), then at every step search from the
-surrogate's state with the tree's interior and rollouts as lookups in it (`continuous`: all in the surrogate), and
-move the episode on to the searched root child of the chosen action (the search has already stepped the surrogate
-with every action: `lookahead.rollout_planned`); DP optimal first builds the episode's whole table and backs it up,
-then runs its policy in that table: from its start the surrogate visits only the table's discrete states, so the
-table steps the episode exactly as the surrogate would (`tests/test_env.py` checks the two step for step) and the
-surrogate's 16 steps would recompute what the table holds. Compilation (once per program, reused for every later
-episode of the same length) is shown apart from the warm time (fastest of `--repeats` calls). With `--batch N`, also
-the time per episode when N unseen episodes are planned in one vmapped call. On a GPU the surrogate's IK runs
-`GPU_IK_UNROLL` iterations per loop trip (the same result; `--ik-unroll 1` for the plain loop). Writes
-results/table1/<platform>.json; prints the table, beside the paper's, last.
+decisions realises the states of `GPU_AHEAD` decisions in one batch: `--ahead`). DP optimal first builds the
+episode's whole table and backs it up, then runs its policy in that table: from its start the surrogate visits only
+the table's discrete states, so the table steps the episode exactly as the surrogate would (`tests/test_env.py`
+checks the two step for step) and the surrogate's 16 steps would recompute what the table holds. L1 and L2 first
+build the episode's table too, then at every step search in it (`--lookahead table`, the default: the root's
+children are the table's, for the same reason), or step the root's actions in the surrogate and search below them
+in the table (`cached`, the form before issue 37), or search in the surrogate alone (`continuous`); the episode
+moves on to the searched root child of the chosen action (`lookahead.rollout_planned`). The table is built inside
+the timed call (the episode is unseen). `--before` also times DP optimal, L1 and L2 as the code stood before issue
+37 (the table's IK vmapped, L1/L2 `cached`), side by side in the same run. Compilation (once per program, reused for
+every later episode of the same length) is shown apart from the warm time (fastest of `--repeats` calls). With
+`--batch N`, also the time per episode when N unseen episodes are planned in one vmapped call. On a GPU the
+surrogate's IK runs `GPU_IK_UNROLL` iterations per loop trip (the same result; `--ik-unroll 1` for the plain loop).
+Writes results/table1/<platform>.json; prints the table, beside the paper's, last.
 """
 from __future__ import annotations
 
@@ -31,7 +33,8 @@ import jax
 
 from experiments import common
 from experiments.common import results_dir, table
-from gsp_jax import dp, evaluation, lookahead, policies
+from gsp_jax import dp, evaluation, policies
+from gsp_jax import lookahead as lookahead_lib
 from gsp_jax.env import TableModel
 from gsp_jax.surrogate import Surrogate
 
@@ -61,10 +64,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "every state)")
     p.add_argument("--policies", nargs="+", default=list(evaluation.POLICIES), choices=evaluation.POLICIES,
                    metavar="NAME", help=f"which rows to time (default: all of {', '.join(evaluation.POLICIES)})")
-    common.add_lookahead_argument(p)
+    p.add_argument("--lookahead", default="table", choices=LOOKAHEAD,
+                   help="L1/L2: the unseen episode's table for the whole search (exact from the episode's start; "
+                        "default), below the root only (cached), or none (continuous)")
+    p.add_argument("--before", action="store_true", help="also time DP optimal, L1 and L2 as the code stood before "
+                   "issue 37 (the table's IK vmapped, L1/L2's root in the surrogate), side by side in this run")
 
 
 BATCHED = ("dp-base", "rl")  # the policies whose episode can also run as one batch of transitions
+LOOKAHEAD = ("table", "cached", "continuous")  # L1 and L2: root and interior in the table; interior only; neither
 
 
 def default_batched(name: str) -> bool:
@@ -77,10 +85,13 @@ def default_ahead() -> int:
     return GPU_AHEAD if jax.default_backend() == "gpu" else 1
 
 
-def planner(ctx: evaluation.Context, name: str, cached: bool = True, batched: bool | None = None,
+def planner(ctx: evaluation.Context, name: str, lookahead: str = "table", batched: bool | None = None,
             ahead: int | None = None):
-    """episode -> return for policy `name`, planned online on the surrogate. With `cached`, L1 and L2 first
-    build the unseen episode's table (as DP optimal does) and search below the root by lookups in it. With
+    """episode -> return for policy `name`, planned online on the surrogate. L1 and L2 (`lookahead`): "table"
+    builds the unseen episode's table (as DP optimal does) and searches in it, root included: from its start the
+    surrogate visits only the table's discrete states, so the root's children are the table's (exact, as for DP
+    optimal); "cached" steps the root's actions in the surrogate and looks up below the root; "continuous" runs the
+    whole search in the surrogate. With
     `batched`, DP baseline and RL run their decisions first and then all the episode's transitions as one vmapped
     batch (`policies.rollout_batched`), instead of stepping the surrogate after each decision: on a GPU a step's
     cost is its chain of dependent solves, not its arithmetic, so T steps in one batch cost about one. DP
@@ -89,6 +100,8 @@ def planner(ctx: evaluation.Context, name: str, cached: bool = True, batched: bo
     cost, pays in full; `ahead` (default `default_ahead`) realises the states of that many decisions in one batch,
     shortening the chain to T / ahead batched IKs. Default (`default_batched`): batched for DP baseline, and for RL
     on a GPU."""
+    if lookahead not in LOOKAHEAD:
+        raise ValueError(f"lookahead: one of {LOOKAHEAD}, got {lookahead!r}")
     sur = ctx.surrogate
     if batched is None:
         batched = default_batched(name)
@@ -96,19 +109,30 @@ def planner(ctx: evaluation.Context, name: str, cached: bool = True, batched: bo
         def plan(ep):
             table, sol = dp.solve(sur, ep)
             model = TableModel(table, sur.space)  # from its start the surrogate only visits the table's states
-            return lookahead.rollout(model, policies.TablePolicy(sol.policy), model.reset(ep))[0]
+            return lookahead_lib.rollout(model, policies.TablePolicy(sol.policy), model.reset(ep))[0]
         return plan
     policy, _ = evaluation.make(ctx, name, cached=False)
     if name in evaluation.LOOKAHEAD_DEPTH:  # each decision's search has stepped every action: the episode moves on
         def plan(ep):                       # to its child (`rollout_planned`) instead of stepping the surrogate again
-            # cached: the unseen episode's table is built inside the timed call
-            searcher = policy.replace(inner=TableModel(dp.build_table(sur, ep), sur.space)) if cached else policy
-            return lookahead.rollout_planned(searcher, sur.reset(ep))[0]
+            if lookahead == "continuous":
+                return lookahead_lib.rollout_planned(policy, sur.reset(ep))[0]
+            model = TableModel(dp.build_table(sur, ep), sur.space)  # the unseen episode's table, inside the timed call
+            if lookahead == "table":
+                return lookahead_lib.rollout_planned(policy.replace(model=model, inner=model), model.reset(ep))[0]
+            return lookahead_lib.rollout_planned(policy.replace(inner=model), sur.reset(ep))[0]
         return plan
     if batched and name in BATCHED:
         ahead = default_ahead() if ahead is None else ahead
         return lambda ep: policies.rollout_batched(sur, policy, ep, ahead)[0]
-    return lambda ep: lookahead.rollout(sur, policy, sur.reset(ep))[0]
+    return lambda ep: lookahead_lib.rollout(sur, policy, sur.reset(ep))[0]
+
+
+def before(ctx: evaluation.Context) -> evaluation.Context:
+    """The context as the code stood before issue 37: the table's IK `ik.solve` vmapped on every platform (not the
+    CPU's batch-last form, `ik_lanes`); with `lookahead="cached"` its L1 and L2 are the planners of then."""
+    sur = ctx.surrogate
+    ik_config = dataclasses.replace(sur.ik_config, lanes=False)
+    return dataclasses.replace(ctx, surrogate=Surrogate(sur.hand, sur.reward_config, ik_config, sur.wrench_config))
 
 
 def measure(fn, arg, repeats: int) -> tuple[float, float]:
@@ -125,21 +149,24 @@ def measure(fn, arg, repeats: int) -> tuple[float, float]:
     return compile_s, min(warm)
 
 
-def run(ctx: evaluation.Context, batch: int, repeats: int, out, cached: bool = True,
-        names=evaluation.POLICIES, ahead: int | None = None) -> dict:
+def run(ctx: evaluation.Context, batch: int, repeats: int, out, lookahead: str = "table",
+        names=evaluation.POLICIES, ahead: int | None = None, compare_before: bool = False) -> dict:
     ahead = default_ahead() if ahead is None else ahead
     t_start = time.perf_counter()
     one = jax.tree.map(lambda x: x[0], ctx.batch)
     rows = {}
     for name in names:
         batched = default_batched(name)
-        fn = planner(ctx, name, cached, batched, ahead)
+        fn = planner(ctx, name, lookahead, batched, ahead)
         compile_s, warm = measure(fn, one, repeats)
         row = dict(warm_s=warm, compile_s=compile_s)
         if name in BATCHED:  # both forms, side by side; warm_s is the platform's default
-            other = measure(planner(ctx, name, cached, not batched, ahead), one, repeats)[1]
+            other = measure(planner(ctx, name, lookahead, not batched, ahead), one, repeats)[1]
             row |= dict(rollout="batched" if batched else "stepped", batched_warm_s=warm if batched else other,
                         stepped_warm_s=other if batched else warm)
+        if compare_before and name in ("dp-opt", *evaluation.LOOKAHEAD_DEPTH):  # the code before, in the same run
+            c_old, w_old = measure(planner(before(ctx), name, "cached", batched, ahead), one, repeats)
+            row |= dict(before_warm_s=w_old, before_compile_s=c_old, speedup=w_old / warm)
         if batch:
             n = min(batch, len(ctx.names))
             many = jax.tree.map(lambda x: x[:n], ctx.batch)
@@ -149,12 +176,14 @@ def run(ctx: evaluation.Context, batch: int, repeats: int, out, cached: bool = T
         print(f"  {name:8s} warm {warm:9.4f} s   compile {compile_s:7.1f} s" +
               (f"   (stepped {row['stepped_warm_s']:.4f} s, batched steps {row['batched_warm_s']:.4f} s)"
                if name in BATCHED else "") +
+              (f"   before: {row['before_warm_s']:.4f} s ({row['speedup']:.1f}x)" if "before_warm_s" in row else "") +
               (f"   batch of {row['batch']}: {row['batch_per_episode_s']:.4f} s per episode" if batch else ""), flush=True)
     device = jax.devices()[0]
     result = dict(platform=device.platform, device=str(device.device_kind), episode=ctx.names[0], repeats=repeats,
-                  ik_unroll=ctx.surrogate.ik_config.unroll, ahead=ahead,
-                  lookahead="cached" if cached else "continuous",
+                  ik_unroll=ctx.surrogate.ik_config.unroll, ahead=ahead, lookahead=lookahead,
                   policies=rows, paper=common.PAPER, wall_s=time.perf_counter() - t_start)
+    if jax.default_backend() == "cpu":
+        result["cores"] = os.cpu_count()
     if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
         result["note"] = "JAX's persistent compilation cache was on (JAX_COMPILATION_CACHE_DIR): compile times may be cache hits"
     (out / f"{device.platform}.json").write_text(json.dumps(result, indent=1))
@@ -170,17 +199,22 @@ def figures(result: dict) -> dict:
 
 def print_result(result: dict) -> None:
     batched = any("batch" in r for r in result["policies"].values())
+    before = any("before_warm_s" in r for r in result["policies"].values())
     headers = ["policy", "paper [s]", f"ours warm [s] ({result['platform']})", "stepped / batched steps [s]", "compile [s]"]
     headers += ["per episode, batched [s]"] if batched else []
+    headers += ["before issue 37 [s]", "speed-up"] if before else []
     rows = []
     for name, r in result["policies"].items():
         forms = f"{r['stepped_warm_s']:.4f} / {r['batched_warm_s']:.4f}" if "rollout" in r else "-"
         row = [name, common.PAPER["table1_s"][name], f"{r['warm_s']:.4f}", forms, f"{r['compile_s']:.1f}"]
-        rows.append(row + ([f"{r['batch_per_episode_s']:.4f} (of {r['batch']})"] if batched else []))
+        row += [f"{r['batch_per_episode_s']:.4f} (of {r['batch']})"] if batched else []
+        row += ([f"{r['before_warm_s']:.4f}", f"{r['speedup']:.1f}x"] if "before_warm_s" in r else ["-", "-"]) if before else []
+        rows.append(row)
     unroll = f"; IK unrolled {result['ik_unroll']}" if result.get("ik_unroll", 1) != 1 else ""
     unroll += f"; RL realises {result['ahead']} decisions' states a batch" if result.get("ahead", 1) != 1 else ""
-    print(f"Table 1: online wall-clock per unseen episode ({result['device']}{unroll}; "
-          f"paper: {common.PAPER['table1_machine']})")
+    cores = f", {result['cores']} cores" if "cores" in result else ""
+    print(f"Table 1: online wall-clock per unseen episode ({result['device']}{cores}{unroll}; L1/L2 search "
+          f"{result.get('lookahead', 'cached')}; paper: {common.PAPER['table1_machine']})")
     print(table(headers, rows, ".2f"))
 
 
@@ -201,7 +235,8 @@ def main(args: argparse.Namespace) -> None:
     ctx = with_ik_unroll(evaluation.context(args.set, 1 if not args.batch else args.batch, args.policy_dir),
                          args.ik_unroll)
     print(f"Table 1 on {jax.devices()[0].device_kind}: episode {ctx.names[0]} ...", flush=True)
-    result = run(ctx, args.batch, repeats, results_dir("table1"), cached=args.lookahead == "cached",
-                 names=tuple(n for n in evaluation.POLICIES if n in args.policies), ahead=args.ahead)
+    result = run(ctx, args.batch, repeats, results_dir("table1"), lookahead=args.lookahead,
+                 names=tuple(n for n in evaluation.POLICIES if n in args.policies), ahead=args.ahead,
+                 compare_before=args.before)
     common.record("table1", figures(result), per_device=True)
     print_result(result)

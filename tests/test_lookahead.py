@@ -345,6 +345,23 @@ def test_table1_dp_optimal_earns_its_dp_optimum_by_replaying_its_own_table(sur, 
     np.testing.assert_allclose(float(ret), float(sols.ret[0]), atol=tol.REWARD_ATOL * 6)
 
 
+def test_table1_lookahead_in_the_table_runs_the_cached_episode(sur, solved, network, stepped):
+    """`table1`'s L1 searching in the unseen episode's table, root included (`lookahead="table"`, the default), runs
+    the episode that the cached L1 runs with the root's actions stepped in the surrogate (from its start the
+    surrogate visits only the table's states): the same return, to the tolerance of a few rewards."""
+    from gsp_jax import evaluation
+    from experiments.paper import table1
+
+    eps, tables, sols = solved
+    one = jax.tree.map(lambda x: x[:1], (eps, tables, sols))
+    ctx = evaluation.Context(sur, "test", ["e0"], *one, sols.actions[0], network, "x")
+    _, decisions, ret, _ = stepped(1)
+    got = jax.jit(table1.planner(ctx, "L1", lookahead="table"))(_pick(eps, 0))
+    np.testing.assert_allclose(float(got), ret, atol=tol.REWARD_ATOL * len(decisions))
+    with pytest.raises(ValueError, match="lookahead"):
+        table1.planner(ctx, "L1", lookahead="tables")
+
+
 @pytest.mark.parametrize("depth", [1, 2])
 def test_rollout_planned_runs_the_episode_that_stepping_the_surrogate_runs(sur, solved, stepped, depth):
     """Moving on to each search's own root child instead of stepping the surrogate again gives the same episode.

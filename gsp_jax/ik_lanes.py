@@ -110,15 +110,6 @@ def _const_vec(x: np.ndarray, dtype) -> Vec:
     return tuple(_c(x[:, i], dtype) for i in range(3))
 
 
-def _sum0(x):
-    """Sum over the leading (static, short) axis as a chain of elementwise adds: XLA's CPU reduction over a major
-    axis goes to a library call that measured several times slower for these shapes."""
-    out = x[0]
-    for i in range(1, x.shape[0]):
-        out = out + x[i]
-    return out
-
-
 @struct.dataclass
 class Chain:
     """Body poses and joint frames over a batch, one entry per body or joint: each a Vec of (N,) arrays (or of
@@ -348,9 +339,11 @@ class _Problem:
                 if residual is not None:
                     add(jtr, j1, x, residual)
                 for y, j2 in zip(rows_b, jb):
-                    if y is not None and (j1 < j2 or (j1 == j2)) and not (rows_a is rows_b and j2 < j1):
+                    if y is None:
+                        continue
+                    if j1 <= j2:
                         add(jtj, (j1, j2), x, y)
-                    elif y is not None and j2 < j1 and rows_a is not rows_b:
+                    elif rows_a is not rows_b:  # within one block the lower triangle mirrors the upper
                         add(jtj, (j2, j1), x, y)
 
         # the links and spheres (rows on one block each)

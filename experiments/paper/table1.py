@@ -130,8 +130,13 @@ def planner(ctx: evaluation.Context, name: str, lookahead: str = "table", batche
 def before(ctx: evaluation.Context) -> evaluation.Context:
     """The context as the code stood before issue 37: the table's IK `ik.solve` vmapped on every platform (not the
     CPU's batch-last form, `ik_lanes`); with `lookahead="cached"` its L1 and L2 are the planners of then."""
+    return _with_ik_config(ctx, lanes=False)
+
+
+def _with_ik_config(ctx: evaluation.Context, **changes) -> evaluation.Context:
+    """The context with its surrogate's `IKConfig` fields replaced by `changes`."""
     sur = ctx.surrogate
-    ik_config = dataclasses.replace(sur.ik_config, lanes=False)
+    ik_config = dataclasses.replace(sur.ik_config, **changes)
     return dataclasses.replace(ctx, surrogate=Surrogate(sur.hand, sur.reward_config, ik_config, sur.wrench_config))
 
 
@@ -225,9 +230,7 @@ def with_ik_unroll(ctx: evaluation.Context, unroll: int | None) -> evaluation.Co
         unroll = GPU_IK_UNROLL if jax.default_backend() == "gpu" else ctx.surrogate.ik_config.unroll
     if unroll < 1:
         raise ValueError(f"ik_unroll: expected an integer >= 1, got {unroll}")
-    sur = ctx.surrogate
-    ik_config = dataclasses.replace(sur.ik_config, unroll=unroll)
-    return dataclasses.replace(ctx, surrogate=Surrogate(sur.hand, sur.reward_config, ik_config, sur.wrench_config))
+    return _with_ik_config(ctx, unroll=unroll)
 
 
 def main(args: argparse.Namespace) -> None:

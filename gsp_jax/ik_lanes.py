@@ -301,6 +301,11 @@ class _Problem:
         r_table, s_table = ik._hinge(cfg.w_collision, cfg.table_margin, geo["table_gap"])
         unit = _scale(_sub(geo["pi"], geo["pk"]), 1.0 / geo["pd"])
         r_self, s_self = ik._hinge(cfg.w_collision, cfg.self_margin, geo["self_gap"])
+        # the per-point quantities computed once: XLA would otherwise fuse them (the box distance above all) into
+        # every Jacobian row that reads them
+        twist, geo, r_link, unit_offset, r_tool, s_tool, r_table, s_table, unit, r_self, s_self = (
+            jax.lax.optimization_barrier((twist, geo, r_link, unit_offset, r_tool, s_tool, r_table, s_table, unit,
+                                          r_self, s_self)))
         order = self.pair_order
         pair_bodies = hand.capsule_body[hand.self_pairs[order, 0]], hand.capsule_body[hand.self_pairs[order, 1]]
 
@@ -447,7 +452,7 @@ def _solve(hand, cfg, active, targets, tool_pos, tool_mat) -> ik.IKResult:
         # copy of the evaluation, which is most of its compile time
         step = jnp.where(i > 0, _cholesky_solve(normal[0], lam, -normal[1]), 0.0)
         q_new = jnp.clip(q + step, lo, hi)
-        normal_new = prob.evaluate(q_new)
+        normal_new = jax.lax.optimization_barrier(prob.evaluate(q_new))
         better = (normal_new[2] < normal[2]) | (i == 0)
         keep = lambda new, old: jnp.where(better, new, old)  # noqa: E731
         lam = jnp.where(i > 0, jnp.clip(jnp.where(better, lam * cfg.damping_down, lam * cfg.damping_up), 1e-9, 1e2),

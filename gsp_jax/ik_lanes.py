@@ -424,14 +424,30 @@ def _cholesky_solve(packed: jax.Array, lam: jax.Array, b: jax.Array) -> jax.Arra
 
 def solve(hand: HandModel, active, targets, tool_pos, tool_mat, cfg: ik.IKConfig = ik.IKConfig()) -> ik.IKResult:
     """`ik.solve` for a batch: active (..., L), targets (..., L, 3), tool poses (..., 3), (..., 3, 3), any leading
-    batch axes -> an `ik.IKResult` with the same leading axes."""
+    batch axes -> an `ik.IKResult` with the same leading axes. The batch is solved `cfg.lanes_chunk` problems at a
+    time (see `ik.IKConfig`)."""
+    chunk = cfg.lanes_chunk
+    if isinstance(chunk, bool) or not isinstance(chunk, (int, np.integer)) or chunk < 1:
+        raise ValueError(f"IKConfig.lanes_chunk: must be an int >= 1 (problems per chunk), got {chunk!r}")
     lead = active.shape[:-1]
     n_l = hand.n_links
-    flat = lambda x, tail: jnp.moveaxis(x.reshape((-1,) + tail), 0, -1)  # noqa: E731  (..., tail) -> (tail, N)
+    n = int(np.prod(lead, dtype=np.int64))
+    n_c = max(-(-n // chunk), 1)  # chunks, as even as they can be; the last padded with copies of the first problem
+    size = -(-n // n_c)
+
+    def split(x, tail):  # (..., tail) -> (chunks, tail, size)
+        x = x.reshape((n,) + tail)
+        if n_c * size > n:
+            x = jnp.concatenate([x, jnp.broadcast_to(x[:1], (n_c * size - n,) + tail)])
+        return jnp.moveaxis(x.reshape((n_c, size) + tail), 1, -1)
+
+    args = (split(active.astype(bool), (n_l,)), split(targets, (n_l, 3)), split(tool_pos, (3,)),
+            split(tool_mat, (3, 3)))
     with jax.default_matmul_precision("highest"):
-        res = _solve(hand, cfg, flat(active.astype(bool), (n_l,)), flat(targets, (n_l, 3)), flat(tool_pos, (3,)),
-                     flat(tool_mat, (3, 3)))
-    return jax.tree.map(lambda x: jnp.moveaxis(x, -1, 0).reshape(lead + x.shape[:-1]), res)
+        res = jax.lax.map(lambda a: _solve(hand, cfg, *a), args) if n_c > 1 else jax.tree.map(
+            lambda x: x[None], _solve(hand, cfg, *(a[0] for a in args)))
+    return jax.tree.map(lambda x: jnp.moveaxis(x, -1, 1).reshape((n_c * size,) + x.shape[1:-1])[:n].reshape(
+        lead + x.shape[1:-1]), res)
 
 
 def _solve(hand, cfg, active, targets, tool_pos, tool_mat) -> ik.IKResult:

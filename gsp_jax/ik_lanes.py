@@ -102,7 +102,19 @@ def _cross(a: Vec, b: Vec) -> Vec:
 
 
 def _take(a: Vec, index) -> Vec:
-    return tuple(x[index] for x in a)
+    return tuple(_rows(x, index) for x in a)
+
+
+def _rows(x: jax.Array, index: np.ndarray) -> jax.Array:
+    """x[index] for a static index array: a slice where the index is a strided range, one row (broadcasting)
+    where it repeats one value, a gather (slow on a CPU) only otherwise."""
+    index = np.asarray(index)
+    if len(index) > 1 and np.all(index == index[0]):
+        return x[int(index[0]):int(index[0]) + 1]
+    step = int(index[1] - index[0]) if len(index) > 1 else 1
+    if len(index) and step > 0 and np.array_equal(index, index[0] + step * np.arange(len(index))):
+        return x[int(index[0]):int(index[-1]) + 1:step]
+    return x[index]
 
 
 def _const_vec(x: np.ndarray, dtype) -> Vec:
@@ -136,7 +148,7 @@ def chain(hand: HandModel, q: jax.Array) -> Chain:
             p = bp
             r = [[_c(rel[:, i, k], dtype) for k in range(3)] for i in range(3)]
         else:
-            pp, pr = _take(prev[0], parent_slot), [[x[parent_slot] for x in row] for row in prev[1]]
+            pp, pr = _take(prev[0], parent_slot), [[_rows(x, parent_slot) for x in row] for row in prev[1]]
             p = _add(pp, _rot(pr, bp))
             r = [[sum(pr[i][j] * _c(rel[:, j, k], dtype) for j in range(3)) for k in range(3)] for i in range(3)]
         j = hand.body_joint[bodies]
@@ -150,12 +162,14 @@ def chain(hand: HandModel, q: jax.Array) -> Chain:
             k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
             k = k - np.swapaxes(k, 1, 2)
             k2 = k @ k
-            angle = jnp.where(_c(has, bool), q[np.maximum(j, 0)], 0.0)  # (n, N)
+            angle = jnp.where(_c(has, bool), _rows(q, np.maximum(j, 0)), 0.0)  # (n, N)
             sin, vers = jnp.sin(angle), 1 - jnp.cos(angle)
             rot = [[float(i == m) + sin * _c(k[:, i, m], dtype) + vers * _c(k2[:, i, m], dtype) for m in range(3)]
                    for i in range(3)]  # Rodrigues, per body
             r = [[sum(r[i][j] * rot[j][m] for j in range(3)) for m in range(3)] for i in range(3)]
             p = _sub(p_anchor, _rot(r, anchor))
+        # each level's poses computed once (XLA would otherwise recompute the chain above inside every consumer)
+        p, r, p_anchor, axis_w = jax.lax.optimization_barrier((p, r, p_anchor, axis_w))
         for row, b in enumerate(bodies):
             pos[b] = tuple(x[row] for x in p)
             mat[b] = [[x[row] for x in line] for line in r]
@@ -186,7 +200,7 @@ def _points(ch: Chain, body: np.ndarray, local: np.ndarray, dtype, rotate_only: 
 
 
 def _slice(members: np.ndarray):
-    """A static index array as a slice where it is a contiguous range (a gather otherwise)."""
+    """A static index array as a slice where it is a strided range (a gather otherwise)."""
     if len(members) and np.array_equal(members, np.arange(members[0], members[0] + len(members))):
         return slice(int(members[0]), int(members[0]) + len(members))
     return members

@@ -163,7 +163,7 @@ def chain(hand: HandModel, q: jax.Array) -> Chain:
             k = k - np.swapaxes(k, 1, 2)
             k2 = k @ k
             angle = jnp.where(_c(has, bool), _rows(q, np.maximum(j, 0)), 0.0)  # (n, N)
-            sin, vers = jnp.sin(angle), 1 - jnp.cos(angle)
+            sin, vers = jax.lax.optimization_barrier((jnp.sin(angle), 1 - jnp.cos(angle)))  # once, not per entry
             rot = [[float(i == m) + sin * _c(k[:, i, m], dtype) + vers * _c(k2[:, i, m], dtype) for m in range(3)]
                    for i in range(3)]  # Rodrigues, per body
             r = [[sum(r[i][j] * rot[j][m] for j in range(3)) for m in range(3)] for i in range(3)]

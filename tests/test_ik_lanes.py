@@ -114,8 +114,9 @@ def test_solve_matches_vmapped_solve(hand, solved, problems):
 
 
 def test_leading_axes_and_one_start(hand, problems):
-    """Any leading batch axes come back as they went in, and a config without extra starts solves each problem
-    once (the result equals the first start's)."""
+    """Any leading batch axes come back as they went in, a config without extra starts solves each problem once
+    (the result equals the first start's), a batch solved in chunks is solved problem by problem as in one, and a
+    bad chunk size is named."""
     active, targets, pos, mat, _ = problems
     single = dataclasses.replace(CFG, extra_starts=(), iterations=10)
     solve = jax.jit(lambda a, t, p, m: ik_lanes.solve(hand, a, t, p, m, single), compiler_options=FAST)
@@ -127,6 +128,14 @@ def test_leading_axes_and_one_start(hand, problems):
     ref = jax.jit(jax.vmap(lambda a, t, p, m: ik.solve(hand, a, t, p, m, single)), compiler_options=FAST)
     tol.assert_close_with_rare_ties(flat.error, ref(active[:12], targets[:12], pos[:12], mat[:12]).error,
                                     tol.IK_ATOL, "one start", tie_fraction=0.0)
+    # in chunks of 5 (three chunks, the last padded): each problem's result as in one chunk
+    chunked = jax.jit(lambda a, t, p, m: ik_lanes.solve(hand, a, t, p, m, dataclasses.replace(single, lanes_chunk=5)),
+                      compiler_options=FAST)(active[:12], targets[:12], pos[:12], mat[:12])
+    assert chunked.q.shape == flat.q.shape
+    tol.assert_close_with_rare_ties(chunked.error, flat.error, tol.IK_ATOL, "chunked", tie_fraction=0.0)
+    for bad in (0, 2.5, True):
+        with pytest.raises(ValueError, match="IKConfig.lanes_chunk"):
+            ik_lanes.solve(hand, active[:2], targets[:2], pos[:2], mat[:2], dataclasses.replace(single, lanes_chunk=bad))
 
 
 def test_table_is_the_same_either_way(hand):

@@ -78,12 +78,13 @@ class IKConfig:
     collision_tol: float = 0.002  # penetration [m] beyond which the result counts as a collision
     lanes: bool | None = None  # an episode's table (`dp.realise_all`) solves its G x T problems in the batch-last
     # form (`ik_lanes`: the same solve, to float32 rounding; 2-core AMD, one episode's DP optimal, side by side:
-    # 1.8x faster, about 50 s to compile against 11 s): None on a CPU only, True everywhere, False never (`solve`
+    # 7.4x faster, about 45 s to compile against 11 s): None on a CPU only, True everywhere, False never (`solve`
     # vmapped)
     lanes_chunk: int = 288  # the batch-last form solves its batch this many problems at a time (`lax.map` over
     # chunks, each chunk's iterations run to the end before the next starts): a chunk's arrays stay in the CPU's
     # caches, where the whole batch at once goes to memory every operation (2-core AMD, one episode's 4,608
-    # problems: 4.4 s at once, 3.0-3.7 s in chunks of 72-1,152); the same result, lane by lane
+    # problems, before the chain's barriers: 4.4 s at once, 3.0-3.7 s in chunks of 72-1,152); the same result,
+    # lane by lane
 
 
 @struct.dataclass

@@ -206,7 +206,7 @@ def _points(ch: Chain, body: np.ndarray, local: np.ndarray, dtype, rotate_only: 
 
 
 def _slice(members: np.ndarray):
-    """A static index array as a slice where it is a strided range (a gather otherwise)."""
+    """A static index array as a slice where it is a contiguous range (a gather otherwise)."""
     if len(members) and np.array_equal(members, np.arange(members[0], members[0] + len(members))):
         return slice(int(members[0]), int(members[0]) + len(members))
     return members

@@ -33,20 +33,6 @@ COMMANDS = {  # command -> (module, one-line help)
 }
 
 
-def use_compilation_cache() -> str | None:
-    """Keep XLA's compiled programs on disk (jax's persistent compilation cache), so a second run of an experiment
-    skips most compiles: the MJX physics runner compiles for ~40 s on an H100. The folder is $GSP_JAX_CACHE
-    (default ~/.cache/gsp_jax/xla); GSP_JAX_CACHE=off turns it off."""
-    import jax
-
-    where = os.environ.get("GSP_JAX_CACHE", os.path.expanduser("~/.cache/gsp_jax/xla"))
-    if where.lower() in ("", "off", "0", "none"):
-        return None
-    jax.config.update("jax_compilation_cache_dir", where)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
-    return where
-
-
 AUTOTUNED = ("train", "bench-ppo")  # commands that keep XLA's GPU autotuner (see deterministic_gpu_kernels)
 
 
@@ -65,7 +51,8 @@ def deterministic_gpu_kernels(command: str | None) -> None:
 def main(argv: list[str] | None = None) -> None:
     words = sys.argv[1:] if argv is None else argv
     deterministic_gpu_kernels(next((w for w in words if not w.startswith("-")), None))
-    use_compilation_cache()
+    import gsp_jax  # noqa: F401  (turns on XLA's compilation cache on disk: gsp_jax.cache, GSP_JAX_CACHE)
+
     parser = argparse.ArgumentParser(prog="python -m experiments", description=__doc__)
     parser.add_argument("--record", action="store_true",
                         help="also write the result to docs/data/<name>.json and append it to docs/data/history/")

@@ -11,6 +11,10 @@ The surrogate step is `surrogate.Surrogate.step`: `realise` (IK) at the current 
 priced) -> reward.
 """
 
+from gsp_jax import cache as _cache
+
+CACHE_DIR = _cache.enable()  # XLA's compiled programs on disk (gsp_jax.cache; GSP_JAX_CACHE=off turns it off)
+
 
 def _import_mjx_quietly() -> None:
     """mujoco-mjx prints "Failed to import warp: ..." twice when it probes its optional NVIDIA Warp backend,

@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from gsp_jax import platform
 from gsp_jax.grasps import NULL, GraspSpace
 from gsp_jax.scenario import Episode
 from gsp_jax.surrogate import Contacts, RewardTerms, State, Surrogate
@@ -72,7 +73,7 @@ def realise_all(env: Surrogate, episode: Episode) -> Contacts:
         jnp.broadcast_to(episode.quats, (len(grasps),) + episode.quats.shape))
     if lanes:
         return batched()
-    return jax.lax.platform_dependent(cpu=batched, default=vmapped)
+    return platform.by_platform(cpu=batched, default=vmapped)
 
 
 def grasp_terms(env: Surrogate, episode: Episode, contacts: Contacts) -> RewardTerms:

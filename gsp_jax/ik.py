@@ -53,7 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from gsp_jax import kinematics
+from gsp_jax import kinematics, platform
 from gsp_jax.hand import HandModel
 
 
@@ -323,7 +323,7 @@ def _damped_step(jtj: jax.Array, jtr: jax.Array, lam: jax.Array) -> jax.Array:
     fast (one surrogate step, H100, side by side: 3.7 ms and 5.3 s to compile, against 4.5 ms and 8.3 s for a
     Cholesky written out entry by entry and 6.3 ms and 5.3 s with cuSOLVER's Cholesky)."""
     a = jtj + lam * jnp.eye(jtj.shape[-1], dtype=jtj.dtype)
-    return jax.lax.platform_dependent(
+    return platform.by_platform(
         a, -jtr, cpu=lambda a, b: jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(a), True), b),
         default=_gauss_jordan_solve,
     )
@@ -346,7 +346,7 @@ def _normal_equations(jac: jax.Array, r: jax.Array) -> tuple[jax.Array, jax.Arra
     """J^T J (J, J) and J^T r (J,) from the Jacobian (R, J) and residuals (R,). On a CPU as broadcast products and
     sums (2-core CPU: 3x faster than XLA's batched matmul for these sizes); on a GPU as matmuls (an episode's table
     of 13,824 IK problems, H100: 51 vs 72 ms; one step about the same)."""
-    return jax.lax.platform_dependent(
+    return platform.by_platform(
         jac, r,
         cpu=lambda jac, r: (jnp.sum(jac[:, :, None] * jac[:, None, :], 0), jnp.sum(jac * r[:, None], 0)),
         default=lambda jac, r: (jac.T @ jac, jac.T @ r),

@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from gsp_jax import platform
 from gsp_jax.hand import HandModel
 
 
@@ -106,7 +107,7 @@ def small_einsum(spec: str, a: jax.Array, b: jax.Array) -> jax.Array:
     kernel launch of its own, and the IK runs hundreds of them per iteration); the CPU keeps the matmul (there
     the broadcast form measured slower). Two operands; "..." stands for leading axes that broadcast as in numpy.
     Both forms agree to float32 rounding (tests/test_kinematics.py)."""
-    return jax.lax.platform_dependent(a, b, cpu=lambda a, b: jnp.einsum(spec, a, b),
+    return platform.by_platform(a, b, cpu=lambda a, b: jnp.einsum(spec, a, b),
                                       default=lambda a, b: _broadcast_einsum(spec, a, b))
 
 

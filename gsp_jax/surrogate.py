@@ -141,7 +141,9 @@ class Contacts:
 @jax.tree_util.register_static
 class Surrogate:
     """The surrogate model of a hand + tool scene. Stateless: all methods are pure functions of their inputs.
-    A static pytree (no leaves), so a policy that holds one (`lookahead.Lookahead`) passes through `jit`."""
+    A static pytree (no leaves), so a policy that holds one (`lookahead.Lookahead`) passes through `jit`. Two
+    surrogates of the same hand object and configs are equal (and hash alike), so a program traced for one is
+    reused for the other: `jax.jit`'s cache holds one program per (model, shapes, options) in a process."""
 
     def __init__(
         self,
@@ -156,6 +158,15 @@ class Surrogate:
         self.gravity = jnp.asarray(self.hand.gravity, jnp.float32)
         self.torque_limit = jnp.asarray(self.hand.joint_torque_limit, jnp.float32)  # (J,)
         self.link_joints = jnp.asarray(self.hand.joint_moves_body[self.hand.link_body] > 0)  # (L, J)
+
+    def _key(self):
+        return id(self.hand), self.reward_config, self.ik_config, self.wrench_config
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, Surrogate) and self.hand is other.hand and self._key() == other._key()
+
+    def __hash__(self) -> int:
+        return hash(self._key())
 
     @property
     def n_actions(self) -> int:
@@ -295,12 +306,16 @@ class Surrogate:
         return jnp.where(terms.collision | terms.fall, cfg.r_min, -jnp.minimum(cost, cfg.max_step_cost))
 
     # ----------------------------------------------------------------------------------------- env API
+    @jax.jit
     def reset(self, episode: Episode) -> State:
-        """The episode's start: its start grasp realised at waypoint 0, at rest."""
+        """The episode's start: its start grasp realised at waypoint 0, at rest. Compiled (once per model and
+        episode shapes): called from Python it runs as one program, not op by op."""
         return self.discrete_state(episode, episode.start_grasp, 0)
 
+    @jax.jit
     def discrete_state(self, episode: Episode, grasp: jax.Array, t: jax.Array) -> State:
-        """The DP state (grasp, t): the tool exactly on waypoint t, the grasp realised there by IK."""
+        """The DP state (grasp, t): the tool exactly on waypoint t, the grasp realised there by IK. Compiled, like
+        `reset`."""
         t = jnp.asarray(t, jnp.int32)
         pos, quat = episode.waypoints[t], episode.quats[t]
         prev = episode.waypoints[jnp.maximum(t - 1, 0)]

@@ -1,10 +1,9 @@
 """Shared fixtures. JAX is forced onto the CPU before anything imports it (tests are small and deterministic).
 
-Compiled programs are shared between the tests and the xdist workers of one run through jax's persistent
-compilation cache in a fresh folder of the run (many tests jit the same surrogate, table and lookahead programs;
-compiling them is most of the suite's time on a CPU). The folder is removed at the end of the run;
-GSP_JAX_TEST_CACHE=off turns the cache off. (Never reused across runs: its keys do not include XLA_FLAGS, and the
-suite also runs under --xla_cpu_max_isa=SSE4_2.)"""
+Compiled programs are shared between the tests and the xdist workers of one run through the package's persistent
+compilation cache (`gsp_jax.cache`), here in a fresh folder of the run (many tests jit the same surrogate, table and
+lookahead programs; compiling them is most of the suite's time on a CPU). The folder is removed at the end of the
+run, so a run never loads what another run compiled; GSP_JAX_TEST_CACHE=off turns the cache off."""
 import os
 import tempfile
 
@@ -13,6 +12,7 @@ CACHE_OFF = os.environ.get("GSP_JAX_TEST_CACHE", "").lower() in ("off", "0", "no
 # made here, in the process that starts the xdist workers, so they inherit one folder
 if not CACHE_OFF and "_GSP_JAX_TEST_CACHE_DIR" not in os.environ:
     os.environ["_GSP_JAX_TEST_CACHE_DIR"] = tempfile.mkdtemp(prefix="gsp_jax_test_xla_")
+os.environ["GSP_JAX_CACHE"] = "off" if CACHE_OFF else os.environ["_GSP_JAX_TEST_CACHE_DIR"]  # read by gsp_jax.cache
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
@@ -20,10 +20,6 @@ import pytest  # noqa: E402
 import jax  # noqa: E402
 
 from gsp_jax import hand as hand_lib  # noqa: E402
-
-if not CACHE_OFF:
-    jax.config.update("jax_compilation_cache_dir", os.environ["_GSP_JAX_TEST_CACHE_DIR"])
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
 # `make test` gives each xdist worker whole files (--dist loadfile), so a module's fixtures (the MJX runner, the

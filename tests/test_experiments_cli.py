@@ -54,7 +54,6 @@ def test_table1_rejects_a_count_below_one_by_name(monkeypatch, capsys, option, v
 def test_every_command_imports_and_describes_itself(monkeypatch, capsys, command):
     """`python -m experiments <command> --help` for every command: its module imports on a fresh clone, its options
     build, and its help names it (the CLI imports every module for every command, so one broken import breaks all)."""
-    monkeypatch.setattr(cli, "use_compilation_cache", lambda: None)  # keep the tests' own cache
     monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))
     with pytest.raises(SystemExit) as stop:
         cli.main([command, "--help"])
@@ -65,7 +64,6 @@ def test_every_command_imports_and_describes_itself(monkeypatch, capsys, command
 def test_the_command_list_describes_every_command(monkeypatch, capsys):
     """`python -m experiments --help` lists every command with its one-line help (a '%' in a help line, as in
     '95% CI', once broke it: argparse formats help strings)."""
-    monkeypatch.setattr(cli, "use_compilation_cache", lambda: None)
     monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", ""))
     monkeypatch.setenv("COLUMNS", "400")  # one line per command (argparse wraps at the terminal's width)
     with pytest.raises(SystemExit) as stop:

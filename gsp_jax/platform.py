@@ -1,0 +1,29 @@
+"""The platform a kernel is traced for, decided once at trace time.
+
+Some kernels have a CPU form and a GPU form of the same arithmetic (`kinematics.small_einsum`, the IK's normal
+equations and damped step, the table's IK). `jax.lax.platform_dependent` would trace and lower both forms into
+every program and let XLA drop one: the surrogate step then traced 2x and lowered 208 branch pairs. `by_platform`
+traces only the form of the platform the program will run on: the default device's (`jax.default_device`, when
+set) or else the default backend's. A program jitted explicitly for another backend still computes the same
+result (both forms agree to float32 rounding), in the other platform's form.
+"""
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import jax
+
+
+def current() -> str:
+    """'cpu', 'gpu', 'tpu', ...: the platform that programs traced now run on."""
+    device = jax.config.jax_default_device
+    if device is None:
+        return jax.default_backend()
+    if isinstance(device, str):
+        return "gpu" if device in ("cuda", "rocm") else device
+    return "gpu" if device.platform in ("cuda", "rocm") else device.platform
+
+
+def by_platform(*args: Any, cpu: Callable, default: Callable) -> Any:
+    """`cpu(*args)` when tracing for a CPU (`current`), else `default(*args)`."""
+    return (cpu if current() == "cpu" else default)(*args)

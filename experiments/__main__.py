@@ -9,6 +9,7 @@ import sys
 COMMANDS = {  # command -> (module, one-line help)
     "demo": ("experiments.demo", "the main job on one unseen episode: DP optimal and L1 plans, executed in C MuJoCo"),
     "surrogate": ("experiments.diagnostics.surrogate", "reward terms of a few meaningful grasps on one episode"),
+    "bench-startup": ("experiments.bench.startup", "the Quickstart from a fresh process: first decision and DP table, cache off / empty / on disk"),
     "bench-surrogate": ("experiments.bench.surrogate", "surrogate steps/s: vmapped vs one step at a time"),
     "bench-dp": ("experiments.bench.dp", "DP solve time: one episode, 27 batched, vs the step-at-a-time table"),
     "bench-gym": ("experiments.bench.gym", "Gymnasium vector env steps/s: the native vmapped one vs SyncVectorEnv"),

@@ -276,20 +276,24 @@ def _solve(hand, active, targets, tool_pos, tool_mat, cfg) -> IKResult:
         r, jac = residuals_and_jacobian(hand, cfg, q, active, targets, tool_pos, tool_mat)
         return *_normal_equations(jac, r), jnp.sum(r**2), jnp.sum(r[:-n] ** 2)
 
-    def iteration(carry, _):
+    def iteration(carry, i):
         q, normal, lam = carry
         jtj, jtr = normal[:2]
-        step = _damped_step(jtj, jtr, lam)
+        # iteration 0 evaluates the start (a zero step, always accepted, the damping kept): the program holds one
+        # copy of the evaluation, which is most of its compile time
+        step = jnp.where(i > 0, _damped_step(jtj, jtr, lam), 0.0)
         q_new = jnp.clip(q + step, lo, hi)
         normal_new = evaluate(q_new)
-        better = normal_new[2] < normal[2]
+        better = (normal_new[2] < normal[2]) | (i == 0)
         keep = lambda new, old: jnp.where(better, new, old)  # noqa: E731
-        lam = jnp.clip(jnp.where(better, lam * cfg.damping_down, lam * cfg.damping_up), 1e-9, 1e2)
+        lam = jnp.where(i > 0, jnp.clip(jnp.where(better, lam * cfg.damping_down, lam * cfg.damping_up), 1e-9, 1e2),
+                        lam)
         return (keep(q_new, q), jax.tree.map(keep, normal_new, normal), lam), None
 
     def run(q0):
-        init = (q0, evaluate(q0), jnp.asarray(cfg.damping0, dtype))
-        (q, normal, _), _ = jax.lax.scan(iteration, init, None, length=cfg.iterations, unroll=cfg.unroll)
+        blank = (jnp.zeros((n, n), dtype), jnp.zeros(n, dtype), jnp.zeros((), dtype), jnp.zeros((), dtype))
+        init = (q0, blank, jnp.asarray(cfg.damping0, dtype))
+        (q, normal, _), _ = jax.lax.scan(iteration, init, jnp.arange(cfg.iterations + 1), unroll=cfg.unroll)
         return q, normal[3]  # the cost without the pull towards the start
 
     starts = jnp.asarray(start_configurations(hand, cfg), dtype)

@@ -21,6 +21,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 QUICKEST = {
     "demo": [(["demo", "--no-gif"], ["results/demo/demo.png"])],
     "surrogate": [(["surrogate", "--episode", "nominal", "--waypoints", "0"], [])],
+    "bench-startup": [(["bench-startup", "--no-off", "--out", "s.json"], ["s.json"])],
     "bench-surrogate": [(["bench-surrogate", "--loop-steps", "17", "--repeats", "1", "--out", "b.json"], ["b.json"])],
     "bench-dp": [(["bench-dp", "--episodes", "2", "--loop-steps", "17", "--repeats", "1", "--out", "b.json"],
                   ["b.json"])],

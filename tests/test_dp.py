@@ -304,12 +304,12 @@ def test_batched_solve_equals_separate_solves(solved, episodes, fns):
 
 # ------------------------------------------------------------------------------------------ 6. IK count
 def _ik_problems(jaxpr, iterations: int, n_joints: int) -> int:
-    """Number of IK problems in a jaxpr: every `scan` of `iterations` steps is an IK solve (the iteration count is
-    set to a value nothing else uses); its first carry is q with shape (*batch, J), so it solves prod(batch)
-    problems. Recurses into sub-jaxprs (jit, cond, custom derivatives)."""
+    """Number of IK problems in a jaxpr: every `scan` of `iterations` + 1 steps is an IK solve (the iteration count
+    is set to a value nothing else uses; trip 0 evaluates the start); its first carry is q with shape (*batch, J),
+    so it solves prod(batch) problems. Recurses into sub-jaxprs (jit, cond, custom derivatives)."""
     count = 0
     for eqn in jaxpr.eqns:
-        if eqn.primitive.name == "scan" and eqn.params["length"] == iterations:
+        if eqn.primitive.name == "scan" and eqn.params["length"] == iterations + 1:
             q = eqn.outvars[0].aval
             assert q.shape[-1] == n_joints, f"IK scan carry {q.shape}"
             count += int(np.prod(q.shape[:-1]))
@@ -328,12 +328,13 @@ def test_table_costs_g_times_t_ik_solves(env, episodes, solved):
     Why the jaxpr: a Python counter around `ik.solve` only counts traces (a vmapped call traces once and sees
     unbatched shapes), so instead the traced program is inspected. The IK is a `lax.scan` of a fixed iteration
     count; with the count set to 37 (the wrench solver uses 150) every 37-step scan is an IK call, and its carry
-    q has shape (*batch, J): the number of problems is the product of the batch dims. The counter is checked on
+    q has shape (*batch, J): the number of problems is the product of the batch dims (the table in `ik.solve`'s
+    vmapped form, `IKConfig.lanes=False`: the batch-last form's carry is (J, batch)). The counter is checked on
     `env.reset` (1 solve) and `env.step` (3 solves: the new grasp at the current pose and at the next waypoint, and
     the shared grasp through a change; 2 without the change term) first, so a broken counter cannot pass."""
     iters = 37
     assert iters not in (env.ik_config.iterations, env.wrench_config.iterations)
-    env37 = surrogate.Surrogate(env.hand, ik_config=ik.IKConfig(iterations=iters))
+    env37 = surrogate.Surrogate(env.hand, ik_config=ik.IKConfig(iterations=iters, lanes=False))
     per = 1 + len(env37.ik_config.extra_starts)  # each IK problem runs from every start configuration
     ep = episodes["nominal"]
     n_g, n_j = env.space.n_grasps, env.hand.n_joints

@@ -98,16 +98,21 @@ def test_solve_matches_vmapped_solve(hand, solved, problems):
     converged problems within Q_ATOL, and the realised contacts and collision flags equal, all but rare ties."""
     (want, got), active = solved, np.asarray(problems[0])
     ok = tol.assert_close_with_rare_ties(got.error, want.error, tol.IK_ATOL, "IK error")
-    tol.assert_close_with_rare_ties(got.penetration, want.penetration, tol.IK_ATOL, "penetration")
+    same_pen = tol.assert_close_with_rare_ties(got.penetration, want.penetration, tol.IK_ATOL, "penetration")
     converged = ok & (np.asarray(want.error) < 1e-3)
     dq = np.max(np.abs(np.asarray(got.q) - np.asarray(want.q)), axis=1)
-    tol.assert_close_with_rare_ties(dq[converged], np.zeros(converged.sum()), tol.Q_ATOL, "q of converged problems")
+    # a few dozen converged problems: the tie allowance of so small a sample (two starts converging to equally good
+    # solutions of the redundant hand can swap on a rounding tie: q 0.16 rad apart at the same IK error)
+    tol.assert_close_with_rare_ties(dq[converged], np.zeros(converged.sum()), tol.Q_ATOL, "q of converged problems",
+                                    tie_fraction=tol.small_sample_tie_fraction(int(converged.sum())))
     tol_link = 0.005  # the surrogate's contact_tol: compare the realised flags where clear of it
     clear = np.all(np.abs(np.asarray(want.link_error) - tol_link) > 1e-4, axis=1)
     same = np.all((np.asarray(got.link_error) < tol_link) == (np.asarray(want.link_error) < tol_link), axis=1)
     assert np.mean(~same[ok & clear]) <= tol.TIE_FRACTION
     clear_c = np.abs(np.asarray(want.penetration) - CFG.collision_tol) > 1e-4
-    assert np.array_equal(np.asarray(got.collision)[ok & clear_c], np.asarray(want.collision)[ok & clear_c])
+    # compared where the penetration itself agrees (a tie there moves the flag with it) and is clear of the threshold
+    agree = ok & same_pen & clear_c
+    assert np.array_equal(np.asarray(got.collision)[agree], np.asarray(want.collision)[agree])
     # the result's other fields are those of its q
     assert np.all(np.asarray(got.link_error)[~active] == 0)
     assert np.allclose(np.asarray(got.error), np.max(np.asarray(got.link_error), axis=1))

@@ -34,6 +34,19 @@ FLIP_FRACTION = 1e-3  # at most this fraction of fail/survive outcomes may flip 
 UNMET_MARGIN = 5e-3  # a fall flag is compared only where unmet is this far from its threshold (>> its p99 3.6e-6)
 
 
+TIE_RATE = 0.013  # the largest measured rate of bifurcations (entries > 1e-3 apart), for small comparisons below
+
+
+def small_sample_tie_fraction(n: int, confidence: float = 0.99) -> float:
+    """A `tie_fraction` for a comparison of only n entries: the `confidence` quantile of the number of bifurcations
+    at the measured rate (Binomial(n, TIE_RATE)), as a fraction of n. floor(TIE_FRACTION * n) allows a single tie in
+    33 to 66 entries, which a CPU with other last bits exceeds by chance (59 converged IK problems of
+    tests/test_ik_lanes.py: 2 ties on an AMD EPYC with AVX-512, before issue 48's changes as after)."""
+    from scipy.stats import binom
+
+    return float(max(binom.ppf(confidence, n, TIE_RATE), np.floor(TIE_FRACTION * n))) / max(n, 1)
+
+
 def assert_close_with_rare_ties(actual, desired, atol: float, err_msg: str = "", tie_fraction: float = TIE_FRACTION):
     """Assert |actual - desired| <= atol except at no more than floor(tie_fraction * n) entries (bifurcations);
     returns the mask (same shape) of entries that agree, for comparing what depends on them."""

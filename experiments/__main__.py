@@ -34,7 +34,8 @@ COMMANDS = {  # command -> (module, one-line help)
 }
 
 
-AUTOTUNED = ("train", "bench-ppo")  # commands that keep XLA's GPU autotuner (see deterministic_gpu_kernels)
+AUTOTUNED = ("train", "bench-ppo", "bench-startup")  # commands that keep XLA's GPU autotuner (see
+# deterministic_gpu_kernels); bench-startup's processes run as a user's own script does, with XLA's defaults
 
 
 def deterministic_gpu_kernels(command: str | None) -> None:

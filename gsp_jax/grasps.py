@@ -99,6 +99,16 @@ class GraspSpace:
         grasp, null, opt, place, current = self._parts(grasp, action)
         return jnp.where(null, grasp, grasp + (opt - current) * place), ~null & (opt == current)
 
+    @functools.cached_property
+    def transitions(self) -> np.ndarray:
+        """(G, A) int32, numpy: `apply(g, a)`'s next grasp for every grasp and action, for static work at trace time
+        (e.g. the lookahead's distinct leaves) without running JAX operations."""
+        g, a = np.arange(self.n_grasps)[:, None], np.arange(self.n_actions)[None]
+        link = np.maximum(self.action_link[a], 0)
+        place = self.radix[link]
+        current = (g // place) % np.asarray(self.n_options)[link]
+        return np.where(a == NULL, g, g + (self.action_option[a] - current) * place).astype(np.int32)
+
     def shared(self, grasp: jax.Array, action: jax.Array) -> jax.Array:
         """The grasp that holds the tool while `action` is executed from `grasp` (broadcast): `grasp` with the
         link the action moves released (the contact controller unloads it, moves it, then loads it again). The

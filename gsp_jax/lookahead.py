@@ -152,9 +152,8 @@ def _ball_size(space: GraspSpace, depth: int) -> int:
     if key not in _BALL_CACHE:
         g = np.arange(space.n_grasps)
         adjacency = np.zeros((space.n_grasps, space.n_grasps), np.int64)
-        with jax.ensure_compile_time_eval():  # concrete even when first called under jit
-            for a in range(space.n_actions):
-                adjacency[g, np.asarray(space.apply(g, np.full_like(g, a))[0])] = 1
+        for a in range(space.n_actions):
+            adjacency[g, space.transitions[:, a]] = 1
         reach = np.eye(space.n_grasps, dtype=np.int64)
         for _ in range(depth):
             reach = np.minimum(reach @ adjacency, 1)

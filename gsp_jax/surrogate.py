@@ -178,6 +178,7 @@ class Surrogate:
         return self.reward_config.w_wrench_change != 0 or self.reward_config.change_falls
 
     # ------------------------------------------------------------------------------------------- kernels
+    @jax.jit
     def realise(self, grasp: jax.Array, tool_pos: jax.Array, tool_quat: jax.Array) -> Contacts:
         """IK of `grasp` (int) at a tool pose (3,), (4,)."""
         mat = kinematics.quat_to_mat(tool_quat)
@@ -349,6 +350,7 @@ class Surrogate:
         moved = self._move(episode, jnp.asarray(grasp, jnp.int32), t, episode.waypoints[t], episode.quats[t], action)
         return moved, moved.terms.reward, moved.done
 
+    @jax.jit
     def _move(self, ep: Episode, grasp, t, tool_pos, tool_quat, action) -> State:
         """The state after `action` from grasp `grasp` at waypoint `t` with the tool at (tool_pos, tool_quat)."""
         new_grasp, redundant = self.space.apply(grasp, action)

@@ -86,6 +86,13 @@ def test_apply_changes_at_most_one_link(space, all_options):
     assert np.all(redundant.reshape(288, 16).sum(1) == 6)
 
 
+def test_transitions_table_is_apply_for_every_grasp_and_action(space):
+    """The numpy table of next grasps (static work at trace time) is `apply`, entry by entry."""
+    g, a = np.meshgrid(np.arange(288), np.arange(17), indexing="ij")
+    np.testing.assert_array_equal(space.transitions, np.asarray(space.apply(g, a)[0]))
+    assert space.transitions.shape == (288, 17) and space.transitions.dtype == np.int32
+
+
 def test_shared_grasp_releases_exactly_the_moving_link(space, all_options):
     """`shared(g, a)`: the links that hold the tool while `a` executes -- `g` with the moved link released, and
     `g` itself when nothing moves (null or redundant). Against a per-link enumeration."""

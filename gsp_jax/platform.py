@@ -16,12 +16,14 @@ import jax
 
 def current() -> str:
     """'cpu', 'gpu', 'tpu', ...: the platform that programs traced now run on."""
-    device = jax.config.jax_default_device
-    if device is None:
-        return jax.default_backend()
-    if isinstance(device, str):
-        return "gpu" if device in ("cuda", "rocm") else device
-    return "gpu" if device.platform in ("cuda", "rocm") else device.platform
+    return platform_of(jax.config.jax_default_device)
+
+
+def platform_of(device) -> str:
+    """The platform of a default device as `jax.default_device` takes it (None: the default backend's; a platform
+    name; a `jax.Device`), with CUDA and ROCm both read as 'gpu'."""
+    name = jax.default_backend() if device is None else device if isinstance(device, str) else device.platform
+    return "gpu" if name in ("cuda", "rocm") else name
 
 
 def by_platform(*args: Any, cpu: Callable, default: Callable) -> Any:

@@ -69,6 +69,15 @@ def test_kernels_are_traced_in_the_platforms_form_alone(sur):
     assert platform.by_platform(2, cpu=lambda x: x + 1, default=lambda x: x - 1) == 3
 
 
+def test_by_platform_follows_the_platform_traced_for(monkeypatch):
+    """A GPU (or any other platform) gets the default form; the platform of a default device named by a string or
+    a device object is read as JAX names it ('cuda' and 'rocm' are GPUs)."""
+    monkeypatch.setattr(platform, "current", lambda: "gpu")
+    assert platform.by_platform(2, cpu=lambda x: x + 1, default=lambda x: x - 1) == 1
+    assert platform.platform_of("cuda") == platform.platform_of("rocm") == "gpu"
+    assert platform.platform_of(jax.devices("cpu")[0]) == "cpu" and platform.platform_of(None) == "cpu"
+
+
 def test_surrogates_of_one_model_share_their_programs(hand):
     """Two surrogates of the same hand and configs are equal and hash alike, so `reset` (compiled) builds one
     program for both; another reward config is another model."""

@@ -108,7 +108,7 @@ def small_einsum(spec: str, a: jax.Array, b: jax.Array) -> jax.Array:
     the broadcast form measured slower). Two operands; "..." stands for leading axes that broadcast as in numpy.
     Both forms agree to float32 rounding (tests/test_kinematics.py)."""
     return platform.by_platform(a, b, cpu=lambda a, b: jnp.einsum(spec, a, b),
-                                      default=lambda a, b: _broadcast_einsum(spec, a, b))
+                                default=lambda a, b: _broadcast_einsum(spec, a, b))
 
 
 def _broadcast_einsum(spec: str, a: jax.Array, b: jax.Array) -> jax.Array:

@@ -150,10 +150,8 @@ def _ball_size(space: GraspSpace, depth: int) -> int:
     key = (tuple(np.asarray(space.n_options).tolist()), tuple(np.asarray(space.action_link).tolist()),
            tuple(np.asarray(space.action_option).tolist()), depth)
     if key not in _BALL_CACHE:
-        g = np.arange(space.n_grasps)
         adjacency = np.zeros((space.n_grasps, space.n_grasps), np.int64)
-        for a in range(space.n_actions):
-            adjacency[g, space.transitions[:, a]] = 1
+        adjacency[np.arange(space.n_grasps)[:, None], space.transitions] = 1
         reach = np.eye(space.n_grasps, dtype=np.int64)
         for _ in range(depth):
             reach = np.minimum(reach @ adjacency, 1)

@@ -163,7 +163,7 @@ class Surrogate:
         return id(self.hand), self.reward_config, self.ik_config, self.wrench_config
 
     def __eq__(self, other) -> bool:
-        return isinstance(other, Surrogate) and self.hand is other.hand and self._key() == other._key()
+        return isinstance(other, Surrogate) and self._key() == other._key()
 
     def __hash__(self) -> int:
         return hash(self._key())

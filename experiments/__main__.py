@@ -8,6 +8,7 @@ import sys
 
 COMMANDS = {  # command -> (module, one-line help)
     "demo": ("experiments.demo", "the main job on one unseen episode: DP optimal and L1 plans, executed in C MuJoCo"),
+    "check-model": ("experiments.check_model", "every model convention a scene file breaks (your hand, your tool)"),
     "surrogate": ("experiments.diagnostics.surrogate", "reward terms of a few meaningful grasps on one episode"),
     "bench-startup": ("experiments.bench.startup", "the Quickstart from a fresh process: first decision and DP table, cache off / empty / on disk"),
     "bench-surrogate": ("experiments.bench.surrogate", "surrogate steps/s: vmapped vs one step at a time"),
@@ -63,11 +64,23 @@ def main(argv: list[str] | None = None) -> None:
     for name, (module, help_) in COMMANDS.items():
         mod = importlib.import_module(module)
         modules[name] = mod
-        mod.add_arguments(sub.add_parser(name, help=help_.replace("%", "%%"), description=mod.__doc__))
+        sp = sub.add_parser(name, help=help_.replace("%", "%%"), description=mod.__doc__)
+        mod.add_arguments(sp)
+        if name != "check-model":
+            sp.add_argument("--model", default=None, metavar="NAME_OR_PATH",
+                            help="the hand + tool scene: a shipped model (wrench, hammer, allegro) or a scene file "
+                                 "(default: wrench); checked first (check-model)")
     args = parser.parse_args(argv)
     from experiments import common
+    from gsp_jax import model as model_lib
 
     common.RECORD = args.record
+    if getattr(args, "model", None) is not None:
+        try:
+            chosen = model_lib.set_default(args.model)
+        except model_lib.ModelError as e:
+            raise SystemExit(f"--model: {e}") from None
+        print(f"model: {chosen.name} ({chosen.path})", flush=True)
     modules[args.command].main(args)
 
 

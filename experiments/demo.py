@@ -37,10 +37,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _context(name: str | None) -> evaluation.Context:
-    """The evaluation context of one episode (its table built here, timed by the caller)."""
+    """The evaluation context of one episode of the model (`--model`; its table built here, timed by the caller).
+    L1 looks ahead over the model's PPO policy where there is one, else over the DP baseline (the nominal
+    episode's optimal sequence)."""
     sur = Surrogate()
     if name is None:
-        name, episode = next(iter(scenario.episode_set("eval").items()))
+        name, episode = next(iter(scenario.episode_set("eval", sur.model).items()))
     else:
         from experiments.diagnostics.surrogate import find_episode
 
@@ -48,8 +50,21 @@ def _context(name: str | None) -> evaluation.Context:
     batch = scenario.stack([episode])
     tables = jax.block_until_ready(jax.jit(lambda b: dp.build_tables(sur, b))(batch))
     solutions = jax.jit(jax.vmap(dp.backup))(tables, batch.start_grasp)
-    rl, source = evaluation.load_rl(sur)
-    return evaluation.Context(sur, "demo", [name], batch, tables, solutions, None, rl, source)
+    try:
+        rl, source, base = *evaluation.load_rl(sur), None
+    except FileNotFoundError:
+        rl, base = None, evaluation.nominal_actions(sur)
+        source = f"none for model {sur.model.name!r}: L1 looks ahead over the DP baseline"
+    return evaluation.Context(sur, "demo", [name], batch, tables, solutions, base, rl, source)
+
+
+def infeasible(ctx: evaluation.Context, i: int = 0) -> str | None:
+    """Why no sequence holds episode i in the surrogate (`Surrogate.explain` of DP optimal's), None if one does."""
+    sur = ctx.surrogate
+    if float(ctx.solutions.ret[i]) > sur.reward_config.r_min:
+        return None
+    episode = jax.tree.map(lambda x: x[i], ctx.batch)
+    return sur.explain(episode, np.asarray(ctx.solutions.actions[i]))
 
 
 def _picture(phys: physics.Physics, ctx, grasps: dict, res: dict, path) -> None:
@@ -102,8 +117,10 @@ def _gif(qpos: np.ndarray, stem) -> list[str]:
     trace = f"{stem}_qpos.npy"
     np.save(trace, qpos)
     env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
-    run = subprocess.run([sys.executable, "-m", "experiments", "demo", "--gif-from", trace], env=env,
-                         capture_output=True, text=True)
+    from gsp_jax import model as model_lib
+
+    run = subprocess.run([sys.executable, "-m", "experiments", "demo", "--gif-from", trace, "--model",
+                          str(model_lib.load_model().path)], env=env, capture_output=True, text=True)
     if run.returncode != 0:
         print(f"  GIF skipped (no OpenGL backend for MuJoCo? set MUJOCO_GL=egl or osmesa): "
               f"{run.stderr.strip().splitlines()[-1:] or run.returncode}")
@@ -119,14 +136,20 @@ def main(args: argparse.Namespace) -> None:
         if not render_episode(physics.Physics(Surrogate()), np.load(args.gif_from), stem):
             raise SystemExit(1)
         return
-    out = results_dir("demo")
-    print(f"demo on JAX {jax.default_backend()}: one unseen episode, planned by DP optimal and L1, executed in "
-          "C MuJoCo", flush=True)
+    from gsp_jax import model as model_lib
+
+    model = model_lib.load_model()
+    out = results_dir("demo" if model.name == model_lib.DEFAULT else f"demo-{model.name}")
+    print(f"demo on JAX {jax.default_backend()}: one unseen episode of model {model.name!r}, planned by DP optimal and "
+          "L1, executed in C MuJoCo", flush=True)
     t0 = time.perf_counter()
     ctx = _context(args.episode)
     t_table = time.perf_counter() - t0
     print(f"  episode {ctx.names[0]}: DP table of {ctx.surrogate.space.n_grasps} grasps x {ctx.batch.n_steps} "
           f"waypoints built in {t_table:.1f} s (includes compiling)", flush=True)
+    why = infeasible(ctx)
+    if why:
+        print(f"  no grasp sequence holds this episode in the surrogate: {why}", flush=True)
     plans, wall = {}, {}
     for name in PLANNERS:
         t1 = time.perf_counter()
@@ -158,7 +181,8 @@ def main(args: argparse.Namespace) -> None:
                             plan_s=t_table + wall[name])
         rows.append([LABEL[name], " ".join(changes) or "keep", ret, "fell" if fell else "held",
                      float(r.angle_error[0]), t_table + wall[name]])
-    (out / "demo.json").write_text(json.dumps(dict(episode=ctx.names[0], platform=jax.default_backend(),
+    (out / "demo.json").write_text(json.dumps(dict(model=model.name, model_digest=model.digest, infeasible=why,
+                                                   episode=ctx.names[0], platform=jax.default_backend(),
                                                    rl_policy=ctx.rl_source, table_s=t_table, physics_s=t_phys,
                                                    planners=record, files=files), indent=1))
     print(f"wrote {', '.join(files + [str(out / 'demo.json')])}\n")

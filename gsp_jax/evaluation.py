@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gsp_jax import dp, grasps, hand, policies, scenario
+from gsp_jax import dp, grasps, model as model_lib, policies, scenario
 from gsp_jax.dp import TableModel
 from gsp_jax.surrogate import Surrogate
 
@@ -82,17 +82,26 @@ def subset(episodes: dict, n: int | None) -> dict:
     return dict(items[i] for i in keep)
 
 
+def trained_policy(sur: Surrogate) -> pathlib.Path:
+    """Where `python -m experiments train` writes the first seed's policy for the surrogate's model."""
+    name = sur.model.name
+    return TRAINED_POLICY if name == model_lib.DEFAULT else pathlib.Path(f"results/train-{name}/dp/seed0/policy")
+
+
 def load_rl(sur: Surrogate, policy_dir: str | pathlib.Path | None = None) -> tuple[policies.NetworkPolicy, str]:
-    """The PPO policy: `policy_dir` if given, else the one `train` wrote (results/train/dp/seed0), else the shipped
-    copy (`policies.SHIPPED_POLICY`); and where it was read from."""
-    candidates = [pathlib.Path(policy_dir)] if policy_dir else [TRAINED_POLICY, SHIPPED_POLICY]
+    """The PPO policy: `policy_dir` if given, else the one `train` wrote for the model (`trained_policy`), else, for
+    the shipped wrench, the shipped copy (`policies.SHIPPED_POLICY`); and where it was read from. A policy made
+    for another model is refused (`policies.load_network_policy`)."""
+    shipped = [SHIPPED_POLICY] if sur.model.name == model_lib.DEFAULT else []
+    candidates = [pathlib.Path(policy_dir)] if policy_dir else [trained_policy(sur), *shipped]
     for path in candidates:
         if path.exists():
             here = pathlib.Path.cwd()
             shown = path.resolve().relative_to(here) if path.resolve().is_relative_to(here) else path
             return policies.load_network_policy(sur, path), str(shown)
     raise FileNotFoundError(
-        f"policy_dir: no PPO policy at {', '.join(map(str, candidates))}; run `python -m experiments train --seeds 1`"
+        f"policy_dir: no PPO policy at {', '.join(map(str, candidates))}; run `python -m experiments train --seeds 1"
+        f"{'' if sur.model.name == model_lib.DEFAULT else ' --model ' + sur.model.name}`"
     )
 
 
@@ -105,8 +114,7 @@ def dp_tables(sur: Surrogate, set_name: str, episodes: dict, batch_size: int = 4
     h = hashlib.sha256()
     for leaf in jax.tree.leaves(batch):
         h.update(np.asarray(leaf).tobytes())
-    for path in sorted(pathlib.Path(hand.SCENE_XML).parent.glob("*.xml")):
-        h.update(path.read_bytes())
+    h.update(sur.model.digest.encode())  # the model's content (its files, includes resolved)
     for cfg in (sur.reward_config, sur.ik_config, sur.wrench_config):
         h.update(repr(dataclasses.asdict(cfg)).encode())
     path = None if cache is None else pathlib.Path(cache) / f"{set_name}_{h.hexdigest()[:12]}.npz"
@@ -128,14 +136,23 @@ def dp_tables(sur: Surrogate, set_name: str, episodes: dict, batch_size: int = 4
 
 def nominal_actions(sur: Surrogate) -> jax.Array:
     """The DP baseline's open-loop sequence: the nominal training episode's optimal actions (T,)."""
-    tables = dp_tables(sur, "nominal", scenario.nominal())
+    nominal = scenario.nominal(sur.model)
+    tables = dp_tables(sur, f"nominal-{sur.model.name}" if sur.model.name != model_lib.DEFAULT else "nominal", nominal)
     first = jax.tree.map(lambda x: x[0], tables)
-    return dp.backup(first, scenario.make_episode().start_grasp).actions
+    return dp.backup(first, nominal["nominal"].start_grasp).actions
 
 
 def four_tips(space: grasps.GraspSpace, n_steps: int = scenario.N_WAYPOINTS) -> np.ndarray:
-    """(T,) the constant four-tip grasp: add the ring tip at waypoint 0 (T1 I1 . M1 . R1), then keep the grasp."""
-    return np.full(n_steps, space.action("ring_distal", 1), np.int32)
+    """(T,) the constant all-tips grasp from the model's start grasp: every fingertip link on its first option
+    (`GraspSpace.tip_options`; the wrench's four tips T1 I1 . M1 . R1), reached one link per step, and that last
+    action repeated (the wrench: add the ring tip at waypoint 0, then repeat it: a redundant action, the grasp
+    kept)."""
+    start, tips = space.start_options, space.tip_options
+    if len(tips) != space.n_links or len(start) != space.n_links:
+        raise ValueError("four_tips: the grasp space has no start and tip options (build it with grasps.space_of)")
+    changes = [space.action(n, t) for n, s, t in zip(space.link_names, start, tips) if s != t]
+    seq = changes[:n_steps] + [changes[-1] if changes else grasps.NULL] * max(0, n_steps - len(changes))
+    return np.asarray(seq, np.int32)
 
 
 def one_tip(space: grasps.GraspSpace, n_steps: int = scenario.N_WAYPOINTS) -> np.ndarray:
@@ -162,13 +179,13 @@ def scripted_sequences(space: grasps.GraspSpace, n_steps: int = scenario.N_WAYPO
 
 
 def context(set_name: str = "eval", n_episodes: int | None = None, policy_dir=None, episodes: dict | None = None,
-            tables: bool = True, rl: bool = True, nominal: bool = True) -> Context:
-    """The context of an episode set (`scenario.episode_set(set_name)`, or the named `episodes` given), `n_episodes`
-    of it spread evenly (all if None): with their DP tables and solutions (`tables`), the PPO policy (`rl`,
-    `load_rl(policy_dir)`) and the DP baseline's sequence (`nominal`: the nominal episode's table, built once and
-    cached)."""
-    sur = Surrogate()
-    everything = scenario.episode_set(set_name) if episodes is None else episodes
+            tables: bool = True, rl: bool = True, nominal: bool = True, model=None) -> Context:
+    """The context of an episode set (`scenario.episode_set(set_name, model)`, or the named `episodes` given),
+    `n_episodes` of it spread evenly (all if None), for `model` (a name, path or `Model`; None: the default): with
+    their DP tables and solutions (`tables`), the PPO policy (`rl`, `load_rl(policy_dir)`) and the DP baseline's
+    sequence (`nominal`: the nominal episode's table, built once and cached)."""
+    sur = Surrogate(model)
+    everything = scenario.episode_set(set_name, sur.model) if episodes is None else episodes
     chosen = subset(everything, n_episodes)
     tag = set_name if len(chosen) == len(everything) else f"{set_name}{len(chosen)}"
     batch = scenario.stack(list(chosen.values()))
@@ -176,7 +193,16 @@ def context(set_name: str = "eval", n_episodes: int | None = None, policy_dir=No
     if tables:
         tabs = dp_tables(sur, tag, chosen)
         sols = jax.jit(jax.vmap(dp.backup))(tabs, batch.start_grasp)
-    net, source = load_rl(sur, policy_dir) if rl else (None, "")
+    net, source = None, ""
+    if rl:
+        try:
+            net, source = load_rl(sur, policy_dir)
+        except FileNotFoundError:
+            if policy_dir or sur.model.name == model_lib.DEFAULT or not nominal:
+                raise
+            source = (f"none for model {sur.model.name!r}: L1 and L2 look ahead over the DP baseline (train a PPO "
+                      f"policy with `python -m experiments train --model {sur.model.name}`)")
+            print(f"RL policy: {source}", flush=True)
     base = nominal_actions(sur) if nominal else None
     return Context(sur, set_name, list(chosen), batch, tabs, sols, base, net, source)
 
@@ -194,24 +220,25 @@ def make(ctx: Context, name: str, model=None, cached: bool = True, seed: int = 0
     each of `bases` (planner names of `BRANCH_BASES`, e.g. ("rl",) or ("four-tips", "dp-opt");
     `physics.verified.PhysicsLookahead`)."""
     sur = ctx.surrogate
+    base = ctx.rl if ctx.rl is not None or ctx.nominal_actions is None else policies.SequencePolicy(ctx.nominal_actions)
     needs = {"dp-base": [ctx.nominal_actions], "dp-opt": [ctx.solutions], "random": [ctx.tables], "rl": [ctx.rl],
-             **{n: [ctx.rl] + ([ctx.tables] if cached else []) for n in (*LOOKAHEAD_DEPTH, *VERIFIED)}}
+             **{n: [base] + ([ctx.tables] if cached else []) for n in (*LOOKAHEAD_DEPTH, *VERIFIED)}}
     if any(x is None for x in needs.get(name, [])):
         raise ValueError(f"policy {name!r}: the context was built without what it needs (tables, the RL policy or "
                          "the DP baseline)")
     T = ctx.batch.n_steps
     if name == "dp-base":
-        return policies.SequencePolicy(ctx.nominal_actions), None
+        return policies.SequencePolicy(ctx.nominal_actions, sur.space), None
     if name == "dp-opt":
-        return policies.TablePolicy(ctx.solutions.policy), 0
+        return policies.TablePolicy(ctx.solutions.policy, sur.space), 0
     if name == "rl":
         return ctx.rl, None
     if name in LOOKAHEAD_DEPTH:
         depth = LOOKAHEAD_DEPTH[name]
         if not cached:
-            return policies.Lookahead(ctx.rl, model or sur, depth=depth), None
+            return policies.Lookahead(base, model or sur, depth=depth), None
         inner = TableModel(ctx.tables, sur.space)
-        return (policies.Lookahead(ctx.rl, model or sur, depth=depth, inner=inner),
+        return (policies.Lookahead(base, model or sur, depth=depth, inner=inner),
                 policies.Lookahead(None, None, depth=depth, inner=0))
     if name in VERIFIED:
         from gsp_jax.physics.verified import PhysicsLookahead
@@ -221,9 +248,9 @@ def make(ctx: Context, name: str, model=None, cached: bool = True, seed: int = 0
         root, axis = make(ctx, "L1", model, cached)
         return PhysicsLookahead(root, axis, tuple(make(ctx, b, model, cached) for b in bases), k=k), None
     if name == "four-tips":
-        return policies.SequencePolicy(jnp.asarray(four_tips(sur.space, T))), None
+        return policies.SequencePolicy(jnp.asarray(four_tips(sur.space, T)), sur.space), None
     if name == "one-tip":
-        return policies.SequencePolicy(jnp.asarray(one_tip(sur.space, T))), None
+        return policies.SequencePolicy(jnp.asarray(one_tip(sur.space, T)), sur.space), None
     if name == "random":
         keys = jax.random.split(jax.random.PRNGKey(seed), len(ctx.names))
         actions = jax.vmap(dp.random_sequence, (0, 0, 0, None, None))(

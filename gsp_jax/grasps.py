@@ -32,6 +32,8 @@ NULL = 0  # the null action: keep the current grasp
 class GraspSpace:
     n_options: tuple[int, ...]  # (L,) options per link, "not in contact" included
     link_names: tuple[str, ...]
+    start_options: tuple[int, ...] = ()  # (L,) the model's default start grasp (`HandModel.start_options`)
+    tip_options: tuple[int, ...] = ()  # (L,) the constant all-tips grasp (`HandModel.tip_options`)
 
     @functools.cached_property
     def radix(self) -> np.ndarray:  # (L,) place value of each link's option in the grasp index
@@ -172,10 +174,18 @@ class GraspSpace:
 
 
 def space_of(hand: hand_lib.HandModel) -> GraspSpace:
-    return GraspSpace(n_options=tuple(hand.n_options), link_names=hand.link_names)
+    return _space(hand)
 
 
-@functools.lru_cache(maxsize=1)
+@functools.lru_cache(maxsize=16)
+def _space(hand: hand_lib.HandModel) -> GraspSpace:  # one per hand object (hashed by identity)
+    return GraspSpace(n_options=tuple(hand.n_options), link_names=hand.link_names, start_options=hand.start_options,
+                      tip_options=hand.tip_options)
+
+
 def default_space() -> GraspSpace:
-    """The grasp space of `models/scene.xml`."""
-    return space_of(hand_lib.load())
+    """The grasp space of the default model (`gsp_jax.model.load_model()`: the shipped wrench unless
+    `set_default` chose another)."""
+    from gsp_jax import model as model_lib
+
+    return model_lib.load_model().space

@@ -7,7 +7,8 @@ Registered on `import gsp_jax` as `gsp_jax/GraspSequence-v0`:
     obs, reward, terminated, truncated, info = env.step(action)
     envs = gymnasium.make_vec("gsp_jax/GraspSequence-v0", num_envs=1024, vectorization_mode="vector_entry_point")
 
-`episodes`: any name `scenario.episode_set` accepts (train, val, eval, evalA, evalB, nominal, all), a JSON file
+`model`: a shipped model's name or a scene file (`gsp_jax.load_model`; default: the shipped wrench). `episodes`:
+any name `scenario.episode_set` accepts (train, val, eval, evalA, evalB, nominal, all), a JSON file
 of episodes (`scenario.save`), or a dict of `Episode`s. `backend`: "table" (the episodes' DP tables, built once
 with a progress bar: exact lookups, fast) or "surrogate" (three IK and four wrench solves per step). Within one
 process, making the environment again with the same episodes, backend and surrogate reuses the built one (tables
@@ -49,7 +50,7 @@ _BUILT: collections.OrderedDict = collections.OrderedDict()  # (backend, episode
 _BUILT_MAX = 8  # built environments kept (a table-backed training set holds ~5 MB of tables)
 
 
-def _named_episodes(episodes) -> dict:
+def _named_episodes(episodes, model=None) -> dict:
     """The episodes argument of `make` as a dict name -> Episode (ValueError naming `episodes` otherwise)."""
     from gsp_jax import scenario
 
@@ -58,10 +59,10 @@ def _named_episodes(episodes) -> dict:
     elif isinstance(episodes, (str, pathlib.Path)) and str(episodes).endswith(".json"):
         if not pathlib.Path(episodes).is_file():
             raise ValueError(f"episodes: no such JSON file {str(episodes)!r}")
-        named = scenario.load(episodes)
+        named = scenario.load(episodes, model)
     elif isinstance(episodes, str):
         try:
-            named = scenario.episode_set(episodes)
+            named = scenario.episode_set(episodes, model)
         except ValueError as e:
             raise ValueError(f"episodes: {episodes!r} is neither an episode set nor a .json file ({e})") from None
     else:
@@ -90,18 +91,22 @@ def _fingerprint(sur) -> str:
     return _digest(np.frombuffer(configs.encode(), np.uint8), *hand)
 
 
-def make_grasp_env(episodes="train", backend: str = "table", surrogate=None, progress: bool = True) -> GraspEnv:
+def make_grasp_env(episodes="train", backend: str = "table", surrogate=None, progress: bool = True,
+                   model=None) -> GraspEnv:
     """The brax `GraspEnv` (no auto-reset) of an episode set; see the module docstring for the arguments.
     Memoised per (backend, the episodes' contents, the surrogate's hand and configurations; `None`: the default
     `Surrogate()`): `gymnasium.make` deep-copies the arguments of a spec, so an equal surrogate must hit too."""
-    from gsp_jax import dp, scenario
+    from gsp_jax import dp, model as model_lib, scenario
     from gsp_jax.surrogate import Surrogate
 
     if backend not in BACKENDS:
         raise ValueError(f"backend: {backend!r} is not one of {BACKENDS}")
-    named = _named_episodes(episodes)
+    if surrogate is not None and model is not None and surrogate.model is not model_lib.load_model(model):
+        raise model_lib.ModelError(f"model: {model_lib.load_model(model).label} differs from the surrogate's "
+                                   f"{surrogate.model.label}; give one of them")
+    sur = surrogate or Surrogate(model)
+    named = _named_episodes(episodes, sur.model)
     batch = scenario.stack(list(named.values()))
-    sur = surrogate or Surrogate()
     key = (backend, _digest(*jax.tree.leaves(batch)), _fingerprint(sur))
     if key in _BUILT:
         _BUILT.move_to_end(key)
@@ -131,9 +136,9 @@ class _Renderer:
 
         from gsp_jax import hand as hand_lib
 
-        self.model = hand_lib.load_mjmodel()
+        self.model = hand_lib.load_mjmodel(hand.source)  # the hand's own scene (ValueError if it has none)
         self.data = mujoco.MjData(self.model)
-        tool = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_BODY, hand_lib.TOOL_BODY)
+        tool = hand_lib.tool_body(self.model)
         joint = int(np.flatnonzero(self.model.jnt_bodyid == tool)[0])  # the tool's free joint: position, quaternion
         self.tool_adr, self.hand_adr, self.camera = int(self.model.jnt_qposadr[joint]), hand.qpos_adr, camera
         try:
@@ -313,13 +318,14 @@ class GraspVectorEnv(VectorEnv):
 
 
 def make(episodes="train", backend: str = "table", render_mode: str | None = None, surrogate=None,
-         progress: bool = True) -> GymGraspEnv:
-    """Entry point of `gymnasium.make(ENV_ID, ...)`; `progress`: the table-building progress bar."""
-    return GymGraspEnv(make_grasp_env(episodes, backend, surrogate, progress), render_mode=render_mode)
+         progress: bool = True, model=None) -> GymGraspEnv:
+    """Entry point of `gymnasium.make(ENV_ID, ...)`; `progress`: the table-building progress bar; `model`: a
+    shipped model's name or a scene path (None: the surrogate's, or the default model)."""
+    return GymGraspEnv(make_grasp_env(episodes, backend, surrogate, progress, model), render_mode=render_mode)
 
 
 def make_vector(num_envs: int = 1, episodes="train", backend: str = "table", surrogate=None, progress: bool = True,
-                render_mode: str | None = None, max_episode_steps: int | None = None) -> GraspVectorEnv:
+                render_mode: str | None = None, max_episode_steps: int | None = None, model=None) -> GraspVectorEnv:
     """Vector entry point of `gymnasium.make_vec(ENV_ID, num_envs, vectorization_mode="vector_entry_point")`."""
     if render_mode is not None:
         raise ValueError(f"render_mode: {render_mode!r}; the vector env does not render (use the single env)")
@@ -328,4 +334,4 @@ def make_vector(num_envs: int = 1, episodes="train", backend: str = "table", sur
             f"max_episode_steps: {max_episode_steps!r}; the vector env does not truncate (episodes end after their "
             "waypoints); use vectorization_mode='sync' for a TimeLimit"
         )
-    return GraspVectorEnv(make_grasp_env(episodes, backend, surrogate, progress), num_envs)
+    return GraspVectorEnv(make_grasp_env(episodes, backend, surrogate, progress, model), num_envs)

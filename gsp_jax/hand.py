@@ -1,16 +1,18 @@
-"""The model files -> the constant arrays the surrogate's kernels need.
+"""A scene file -> the constant arrays the surrogate's kernels need.
 
-`models/scene.xml` (hand + wrench + table) is the one source of geometry. This module reads it once with the
-MuJoCo compiler and exposes, as plain numpy arrays (compile-time constants for XLA):
+A scene (hand + tool + table, e.g. `models/scene.xml`) is the one source of geometry. This module reads it once
+with the MuJoCo compiler and exposes, as plain numpy arrays (compile-time constants for XLA):
 
 * the hand's kinematic tree (bodies, hinge joints, limits, the IK start configuration),
 * the contact links (site on each link, its radius) and their candidate contacts on the tool (sites
   ``opt_<link>_<k>``, whose z axis is the inward contact normal),
 * the hand's collision capsules, turned into chains of spheres (for the surrogate's distance checks),
-* the tool's collision boxes, and gravity.
+* the tool (the scene's one free body, any name): its collision primitives, mass, inertia, centre of mass, rest
+  pose, start supports and start grasp; the waypoints' reach box, and gravity.
 
-A new hand or tool is a new model file that follows the conventions written at the top of `models/hand.xml`
-and `models/wrench.xml`; nothing here names a finger.
+A new hand or tool is a new model file that follows the conventions of `docs/your-model.md` (written also at the
+top of `models/hand.xml` and `models/wrench.xml`); `gsp_jax.model.check_model` lists every convention a file breaks,
+and `load` runs it first. Nothing here names a finger, a body or a geom.
 """
 from __future__ import annotations
 
@@ -26,8 +28,12 @@ _PACKAGE = pathlib.Path(__file__).resolve().parent
 # The model files: `models/` of the source tree, which an installed wheel carries as package data gsp_jax/models/.
 MODELS_DIR = _PACKAGE / "models" if (_PACKAGE / "models" / "scene.xml").is_file() else _PACKAGE.parent / "models"
 SCENE_XML = MODELS_DIR / "scene.xml"
-TOOL_BODY = "wrench"
-PALM_BODY = "palm"
+_G = mujoco.mjtGeom
+ROUND_GEOMS = {int(_G.mjGEOM_SPHERE): "sphere", int(_G.mjGEOM_CAPSULE): "capsule", int(_G.mjGEOM_CYLINDER): "cylinder",
+               int(_G.mjGEOM_ELLIPSOID): "ellipsoid"}
+TOOL_GEOMS = {int(_G.mjGEOM_BOX): "box", **ROUND_GEOMS}  # the primitives a tool may be made of
+WORKSPACE = ((-0.05, -0.05, 0.005), (0.05, 0.05, 0.10))  # default reach box of the waypoints, table frame [m]
+SUPPORT_HALF = (0.012, 0.008, 0.004)  # half sizes of a start support derived from the tool's shape [m]
 SPHERE_SPACING = 1.5  # centre spacing of a capsule's spheres, in radii (gaps stay well under the collision margin)
 SELF_COLLISION_MIN_DEPTH = 3  # self-collision: capsules of bodies this deep below the palm (medial, distal)
 
@@ -73,13 +79,31 @@ class HandModel:
     capsule_ends: np.ndarray  # (C, 2, 3) the capsule's segment end points in the body frame [m]
     capsule_radius: np.ndarray  # (C,) [m]
     self_pairs: np.ndarray  # (P, 2) int, capsule pairs on different fingers checked for self-collision
-    finger_names: tuple[str, ...]
-    # tool collision boxes, in the tool frame
+    finger_names: tuple[str, ...]  # (F,) each finger's label: its first body's name up to "_" (labels only)
+    link_finger: np.ndarray  # (L,) int, finger of each contact link
+    link_is_tip: np.ndarray  # (L,) bool, the deepest contact link of its finger (where it parks)
+    start_options: tuple[int, ...]  # (L,) the default start grasp (custom numeric gsp_start_options; default: tips)
+    tip_options: tuple[int, ...]  # (L,) every tip link on its first option, the rest off: the constant all-tips grasp
+    touch_tool: tuple[str, ...]  # hand bodies whose geoms touch the tool in physics (custom text gsp_touch_tool)
+    touch_table: tuple[str, ...]  # hand bodies whose geoms touch the table in physics (gsp_touch_table)
+    workspace: np.ndarray  # (2, 3) the waypoints' reach box, table frame, lower and upper corner [m]
+    # the tool: its collision boxes and round primitives, in the tool frame
+    tool_name: str  # the tool body's name
     tool_box_pos: np.ndarray  # (NB, 3) [m]
     tool_box_mat: np.ndarray  # (NB, 3, 3) box axes as columns
     tool_box_half: np.ndarray  # (NB, 3) half sizes [m]
+    tool_round_type: tuple[str, ...]  # (NR,) "sphere", "capsule", "cylinder" or "ellipsoid"
+    tool_round_pos: np.ndarray  # (NR, 3) [m]
+    tool_round_mat: np.ndarray  # (NR, 3, 3) axes as columns (capsule and cylinder along z)
+    tool_round_size: np.ndarray  # (NR, 3) MuJoCo's geom size: radius (and half-length), or the 3 semi-axes [m]
     tool_mass: float  # nominal tool mass of the model file [kg]
+    tool_inertia: np.ndarray  # (3,) nominal principal moments of inertia about the CoM [kg m^2]
+    tool_com: np.ndarray  # (3,) nominal centre of mass, tool frame [m]
+    tool_rest: np.ndarray  # (3,) the tool frame's position in the file (at rest on the table) [m]
+    support_top: np.ndarray  # (P, 3) top centre of each start support, tool frame [m]
+    support_half: np.ndarray  # (P, 3) half sizes of each support (a box) [m]
     gravity: np.ndarray  # (3,) [m/s^2]
+    source: str = ""  # the scene file it was loaded from (`load`); "" if built from a compiled model alone
 
     @property
     def n_joints(self) -> int:
@@ -89,20 +113,49 @@ class HandModel:
     def n_links(self) -> int:
         return len(self.link_names)
 
+    def tool_hull(self) -> np.ndarray:
+        """(8 (NB + NR), 3) the corners of each tool geom's box (boxes exact, round primitives their enclosing
+        box), tool frame [m]: the lowest of them bounds the tool's lowest point from below."""
+        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float64)
+        pos = np.concatenate([self.tool_box_pos, self.tool_round_pos]).reshape(-1, 3)
+        mat = np.concatenate([self.tool_box_mat, self.tool_round_mat]).reshape(-1, 3, 3)
+        half = np.concatenate([self.tool_box_half, enclosing_half(self.tool_round_type, self.tool_round_size)])
+        return (pos[:, None] + np.einsum("bij,bcj->bci", mat, signs * half.reshape(-1, 1, 3))).reshape(-1, 3)
+
     def tool_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """The tool's axis-aligned bounding box in the tool frame, (3,) lower and upper corners [m]."""
-        signs = np.array(np.meshgrid(*[[-1.0, 1.0]] * 3, indexing="ij")).reshape(3, -1).T  # (8, 3) corners
-        corners = self.tool_box_pos[:, None] + np.einsum("bij,bcj->bci", self.tool_box_mat, signs * self.tool_box_half[:, None])
-        return corners.reshape(-1, 3).min(0), corners.reshape(-1, 3).max(0)
+        corners = self.tool_hull()
+        return corners.min(0), corners.max(0)
 
 
-def _text(model: mujoco.MjModel, name: str) -> str:
+def enclosing_half(kinds, size: np.ndarray) -> np.ndarray:
+    """(N, 3) half sizes, in the geom's frame, of the boxes enclosing round primitives of MuJoCo `size` (N, 3)."""
+    out = []
+    for kind, (a, b, c) in zip(kinds, np.asarray(size).reshape(-1, 3)):
+        out.append({"sphere": (a, a, a), "capsule": (a, a, b + a), "cylinder": (a, a, b), "ellipsoid": (a, b, c)}[kind])
+    return np.asarray(out, np.float64).reshape(-1, 3)
+
+
+def _text(model: mujoco.MjModel, name: str, default: str | None = None) -> str:
     i = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXT, name)
     if i < 0:
+        if default is not None:
+            return default
         raise ValueError(f"model: custom text {name!r} is missing")
     data = model.text_data
     raw = data.tobytes() if hasattr(data, "tobytes") else bytes(data, "latin1") if isinstance(data, str) else bytes(data)
     return raw[model.text_adr[i] : model.text_adr[i] + model.text_size[i]].split(b"\0")[0].decode()
+
+
+def _numeric(model: mujoco.MjModel, name: str) -> np.ndarray | None:
+    """A custom numeric's values, or None if the file has none of that name."""
+    if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_NUMERIC, name) < 0:
+        return None
+    return np.asarray(model.numeric(name).data, dtype=np.float64)
+
+
+def _site(model: mujoco.MjModel, name: str) -> int:
+    return mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, name)
 
 
 def _quat_to_mat(q: np.ndarray) -> np.ndarray:
@@ -149,15 +202,35 @@ class _Tree:
         return moves
 
 
+def tool_body(model: mujoco.MjModel) -> int:
+    """The tool: the scene's one body with a free joint (any name)."""
+    free = sorted({int(model.jnt_bodyid[j]) for j in range(model.njnt) if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE})
+    if len(free) != 1:
+        names = [model.body(b).name for b in free]
+        raise ValueError(f"model: the tool must be the scene's one free body (a body with <freejoint/>); found "
+                         f"{len(free)}{': ' + ', '.join(map(repr, names)) if names else ''}")
+    return free[0]
+
+
+def contact_links(model: mujoco.MjModel) -> tuple[str, ...]:
+    """The contact links in the grasp encoding's order (custom text ``gsp_contact_links``)."""
+    names = tuple(_text(model, "gsp_contact_links").split())
+    if not names:
+        raise ValueError("model: custom text 'gsp_contact_links' names no link")
+    return names
+
+
+def hand_root(model: mujoco.MjModel) -> int:
+    """The hand's root (its palm): the world's child body that holds the first contact link's site."""
+    s = _site(model, f"contact_{contact_links(model)[0]}")
+    if s < 0:
+        raise ValueError(f"model: site 'contact_{contact_links(model)[0]}' is missing")
+    return int(model.body_rootid[model.site_bodyid[s]])
+
+
 def _tree(model: mujoco.MjModel, palm: int) -> _Tree:
     """The bodies below the palm, each with at most one hinge joint."""
-
-    def root_below_world(b: int) -> int:
-        while model.body_parentid[b] != 0:
-            b = model.body_parentid[b]
-        return b
-
-    bodies = [b for b in range(1, model.nbody) if root_below_world(b) == palm]
+    bodies = [b for b in range(1, model.nbody) if model.body_rootid[b] == palm]
     index = {b: i for i, b in enumerate(bodies)}
     joints = [j for j in range(model.njnt) if model.jnt_bodyid[j] in index]
     for j in joints:
@@ -181,10 +254,10 @@ def _tree(model: mujoco.MjModel, palm: int) -> _Tree:
 
 def _links(model: mujoco.MjModel, tree: _Tree, tool: int) -> dict:
     """The contact links (sites ``contact_<link>``) and their candidate contacts on the tool (``opt_<link>_<k>``)."""
-    names = tuple(_text(model, "gsp_contact_links").split())
+    names = contact_links(model)
     body, site, axis, half, radius, n_options, opts = [], [], [], [], [], [], []
     for name in names:
-        s = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, f"contact_{name}")
+        s = _site(model, f"contact_{name}")
         if s < 0:
             raise ValueError(f"model: site 'contact_{name}' is missing")
         body.append(tree.index[model.site_bodyid[s]])
@@ -194,9 +267,9 @@ def _links(model: mujoco.MjModel, tree: _Tree, tool: int) -> dict:
         half.append(float(model.site_size[s][1]) if capsule else 0.0)
         radius.append(float(model.site_size[s][0]))
         k, link_opts = 1, []
-        while (o := mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, f"opt_{name}_{k}")) >= 0:
+        while (o := _site(model, f"opt_{name}_{k}")) >= 0:
             if model.site_bodyid[o] != tool:
-                raise ValueError(f"model: site 'opt_{name}_{k}' is not on the tool body {TOOL_BODY!r}")
+                raise ValueError(f"model: site 'opt_{name}_{k}' is not on the tool body {model.body(tool).name!r}")
             link_opts.append((model.site_pos[o].copy(), _quat_to_mat(model.site_quat[o])[:, 2]))
             k += 1
         if not link_opts:
@@ -208,9 +281,12 @@ def _links(model: mujoco.MjModel, tree: _Tree, tool: int) -> dict:
     for li, link_opts in enumerate(opts):
         for k, (p, n) in enumerate(link_opts, start=1):
             option_pos[li, k], option_normal[li, k] = p, n / np.linalg.norm(n)
+    link_finger = np.array([tree.finger_of(tree.bodies[b]) for b in body], np.int32)
+    depth = np.array([tree.depth(tree.bodies[b]) for b in body])
+    is_tip = np.array([depth[li] == depth[link_finger == link_finger[li]].max() for li in range(len(names))])
     return dict(link_names=names, link_body=np.array(body), link_site=np.array(site), link_axis=np.array(axis),
                 link_half=np.array(half), link_radius=np.array(radius), n_options=tuple(n_options),
-                option_pos=option_pos, option_normal=option_normal)
+                option_pos=option_pos, option_normal=option_normal, link_finger=link_finger, link_is_tip=is_tip)
 
 
 def _collision(model: mujoco.MjModel, tree: _Tree, link_body: np.ndarray) -> dict:
@@ -235,7 +311,7 @@ def _collision(model: mujoco.MjModel, tree: _Tree, link_body: np.ndarray) -> dic
         elif gtype == mujoco.mjtGeom.mjGEOM_SPHERE:
             r, offsets = model.geom_size[g][0], np.zeros(1)
         else:
-            raise ValueError(f"model: hand geom {model.geom(g).name!r} must be a capsule or sphere")
+            raise ValueError(f"model: hand geom {_geom_label(model, g)} must be a capsule or sphere")
         for z in offsets:
             sph_body.append(tree.index[b])
             sph_pos.append(model.geom_pos[g] + mat[:, 2] * z)
@@ -244,21 +320,74 @@ def _collision(model: mujoco.MjModel, tree: _Tree, link_body: np.ndarray) -> dic
             sph_link.append(body_link.get(tree.index[b], -1))
     pairs = np.array(
         [(i, j) for i in range(len(cap_body)) for j in range(i + 1, len(cap_body)) if cap_finger[i] != cap_finger[j]]
-    )
+    ).reshape(-1, 2)
     return dict(sphere_body=np.array(sph_body), sphere_pos=np.array(sph_pos), sphere_radius=np.array(sph_rad),
-                sphere_finger=np.array(sph_finger), sphere_link=np.array(sph_link), capsule_body=np.array(cap_body),
-                capsule_ends=np.array(cap_ends), capsule_radius=np.array(cap_rad), self_pairs=pairs)
+                sphere_finger=np.array(sph_finger), sphere_link=np.array(sph_link),
+                capsule_body=np.array(cap_body, np.int64), capsule_ends=np.array(cap_ends).reshape(-1, 2, 3),
+                capsule_radius=np.array(cap_rad), self_pairs=pairs)
+
+
+def _geom_label(model: mujoco.MjModel, g: int) -> str:
+    name = model.geom(g).name
+    return repr(name) if name else f"#{g} (unnamed, on body {model.body(model.geom_bodyid[g]).name!r})"
+
+
+def tool_geoms(model: mujoco.MjModel, tool: int) -> list[int]:
+    """The tool's collision geoms: those of its body that collide with something (contype or conaffinity)."""
+    return [g for g in range(model.ngeom) if model.geom_bodyid[g] == tool
+            and (model.geom_contype[g] or model.geom_conaffinity[g])]
 
 
 def _tool(model: mujoco.MjModel, tool: int) -> dict:
-    """The tool's collision boxes (its frame) and nominal mass."""
-    boxes = [g for g in range(model.ngeom) if model.geom_bodyid[g] == tool]
-    for g in boxes:
-        if model.geom_type[g] != mujoco.mjtGeom.mjGEOM_BOX:
-            raise ValueError(f"model: tool geom {model.geom(g).name!r} must be a box")
-    return dict(tool_box_pos=np.array([model.geom_pos[g] for g in boxes]),
-                tool_box_mat=np.array([_quat_to_mat(model.geom_quat[g]) for g in boxes]),
-                tool_box_half=np.array([model.geom_size[g] for g in boxes]), tool_mass=float(model.body_mass[tool]))
+    """The tool's collision primitives (its frame), nominal inertial properties, rest pose and start supports."""
+    geoms = tool_geoms(model, tool)
+    for g in geoms:
+        if int(model.geom_type[g]) not in TOOL_GEOMS:
+            raise ValueError(f"model: tool geom {_geom_label(model, g)} must be one of {sorted(TOOL_GEOMS.values())}")
+    boxes = [g for g in geoms if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX]
+    rounds = [g for g in geoms if int(model.geom_type[g]) in ROUND_GEOMS]
+    out = dict(tool_name=model.body(tool).name,
+               tool_box_pos=np.array([model.geom_pos[g] for g in boxes]).reshape(-1, 3),
+               tool_box_mat=np.array([_quat_to_mat(model.geom_quat[g]) for g in boxes]).reshape(-1, 3, 3),
+               tool_box_half=np.array([model.geom_size[g] for g in boxes]).reshape(-1, 3),
+               tool_round_type=tuple(ROUND_GEOMS[int(model.geom_type[g])] for g in rounds),
+               tool_round_pos=np.array([model.geom_pos[g] for g in rounds]).reshape(-1, 3),
+               tool_round_mat=np.array([_quat_to_mat(model.geom_quat[g]) for g in rounds]).reshape(-1, 3, 3),
+               tool_round_size=np.array([model.geom_size[g] for g in rounds]).reshape(-1, 3),
+               tool_mass=float(model.body_mass[tool]), tool_inertia=np.array(model.body_inertia[tool]),
+               tool_com=np.array(model.body_ipos[tool]), tool_rest=np.array(model.body_pos[tool]))
+    return {**out, **_supports(model, tool, out)}
+
+
+def _supports(model: mujoco.MjModel, tool: int, shape: dict) -> dict:
+    """The start supports: the tool's box sites ``support_<k>`` (top centre, half sizes) if it has any; else two,
+    under the tool's lowest point near either end of its longest horizontal extent (from its geoms' boxes)."""
+    k, top, half = 1, [], []
+    while (s := _site(model, f"support_{k}")) >= 0:
+        if model.site_bodyid[s] != tool or model.site_type[s] != mujoco.mjtGeom.mjGEOM_BOX:
+            raise ValueError(f"model: site 'support_{k}' must be a box site on the tool body")
+        top.append(model.site_pos[s].copy())
+        half.append(model.site_size[s].copy())
+        k += 1
+    if top:
+        return dict(support_top=np.array(top), support_half=np.array(half))
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float64)
+    pos = np.concatenate([shape["tool_box_pos"], shape["tool_round_pos"]])
+    mat = np.concatenate([shape["tool_box_mat"], shape["tool_round_mat"]])
+    hs = np.concatenate([shape["tool_box_half"], enclosing_half(shape["tool_round_type"], shape["tool_round_size"])])
+    corners = pos[:, None] + np.einsum("bij,bcj->bci", mat, signs * hs[:, None])  # (G, 8, 3)
+    lo, hi = corners.min(1), corners.max(1)  # (G, 3) each geom's box
+    axis = 0 if np.ptp(corners[..., 0]) >= np.ptp(corners[..., 1]) else 1
+    a0, a1 = lo[:, axis].min(), hi[:, axis].max()
+    top = []
+    for x in (a0 + 0.2 * (a1 - a0), a1 - 0.2 * (a1 - a0)):
+        over = (lo[:, axis] <= x) & (hi[:, axis] >= x)
+        p = np.zeros(3)
+        p[axis], p[1 - axis] = x, 0.5 * (lo[over, 1 - axis].min() + hi[over, 1 - axis].max())
+        p[2] = lo[over, 2].min()
+        top.append(p)
+    half = np.tile(np.array(SUPPORT_HALF)[[axis, 1 - axis, 2]], (2, 1))  # the long side along the tool
+    return dict(support_top=np.array(top), support_half=half)
 
 
 def _torque_limits(model: mujoco.MjModel, joints) -> np.ndarray:
@@ -275,15 +404,56 @@ def _torque_limits(model: mujoco.MjModel, joints) -> np.ndarray:
     return np.array([limit[int(j)] for j in joints])
 
 
+def _bodies_text(model: mujoco.MjModel, name: str, default: list[int], tree: _Tree) -> tuple[str, ...]:
+    """Hand body names from custom text `name`, or the `default` bodies."""
+    names = _text(model, name, "").split()
+    for n in names:
+        b = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, n)
+        if b not in tree.index:
+            raise ValueError(f"model: custom text {name!r} names {n!r}, which is not a body of the hand")
+    return tuple(names) if names else tuple(model.body(b).name for b in default)
+
+
+def _conventions(model: mujoco.MjModel, tree: _Tree, links: dict) -> dict:
+    """Start grasp, the all-tips grasp, the bodies that touch the tool and the table, the reach box."""
+    n_links = len(links["link_names"])
+    tips = tuple(int(t) for t in links["link_is_tip"])
+    start = _numeric(model, "gsp_start_options")
+    if start is None:
+        start = np.array(tips)
+    if len(start) != n_links or np.any(start != np.round(start)) or np.any(start < 0) or np.any(start >= links["n_options"]):
+        raise ValueError(f"model: gsp_start_options {start.tolist()} must give each of the {n_links} links an option "
+                         f"in [0, n_options) = {list(links['n_options'])}")
+    below = {b for b in tree.bodies for lb in links["link_body"] if _is_below(model, b, tree.bodies[lb])}
+    leaves = [b for b in tree.bodies if b != tree.palm and not any(model.body_parentid[c] == b for c in tree.bodies)]
+    box = _numeric(model, "gsp_workspace")
+    box = np.array(WORKSPACE).ravel() if box is None else box
+    if box.size != 6 or np.any(box[:3] >= box[3:]):
+        raise ValueError(f"model: gsp_workspace {box.tolist()} must be 6 values, lower corner below upper corner")
+    return dict(start_options=tuple(int(o) for o in start), tip_options=tips,
+                touch_tool=_bodies_text(model, "gsp_touch_tool", sorted(below), tree),
+                touch_table=_bodies_text(model, "gsp_touch_table", leaves, tree), workspace=box.reshape(2, 3))
+
+
+def _is_below(model: mujoco.MjModel, b: int, ancestor: int) -> bool:
+    while b > 0:
+        if b == ancestor:
+            return True
+        b = model.body_parentid[b]
+    return False
+
+
 def from_mjmodel(model: mujoco.MjModel) -> HandModel:
-    """Extract a `HandModel` from a compiled scene (hand + tool body named ``wrench``)."""
-    palm = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, PALM_BODY)
-    tool = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, TOOL_BODY)
-    if palm < 0 or tool < 0:
-        raise ValueError(f"model: needs bodies {PALM_BODY!r} and {TOOL_BODY!r}")
+    """Extract a `HandModel` from a compiled scene (hand + one free body, the tool); raise ValueError naming the
+    first convention it breaks (`gsp_jax.model.check_model` lists them all)."""
+    tool = tool_body(model)
+    palm = hand_root(model)
     tree = _tree(model, palm)
     links = _links(model, tree, tool)
     bodies, joints = tree.bodies, tree.joints
+    q_start = _numeric(model, "gsp_ik_start")
+    if q_start is None:
+        raise ValueError("model: custom numeric 'gsp_ik_start' is missing")
     return HandModel(
         joint_moves_body=tree.joint_moves_body(),
         body_names=tuple(model.body(b).name for b in bodies),
@@ -296,11 +466,12 @@ def from_mjmodel(model: mujoco.MjModel) -> HandModel:
         joint_pos=np.array([model.jnt_pos[j] for j in joints]),
         joint_range=np.array([model.jnt_range[j] for j in joints]),
         joint_torque_limit=_torque_limits(model, joints),
-        q_start=np.asarray(model.numeric("gsp_ik_start").data, dtype=np.float64),
+        q_start=q_start,
         qpos_adr=np.array([model.jnt_qposadr[j] for j in joints]),
         finger_names=tuple(model.body(f).name.split("_")[0] for f in tree.fingers),
         gravity=np.array(model.opt.gravity),
         **links, **_collision(model, tree, links["link_body"]), **_tool(model, tool),
+        **_conventions(model, tree, links),
     )
 
 
@@ -311,8 +482,12 @@ def load_mjmodel(path: str | pathlib.Path = SCENE_XML) -> mujoco.MjModel:
 
 @functools.lru_cache(maxsize=8)
 def load(path: str | pathlib.Path = SCENE_XML) -> HandModel:
-    """The `HandModel` of a scene file (cached: one object per path)."""
-    hand = from_mjmodel(load_mjmodel(path))
+    """The `HandModel` of a scene file (cached: one object per path). Checks the file first
+    (`gsp_jax.model.check_model`) and raises `gsp_jax.model.ModelError` listing every convention it breaks."""
+    from gsp_jax import model as model_lib  # the checks read this module's conventions
+
+    model_lib.require(path)
+    hand = dataclasses.replace(from_mjmodel(load_mjmodel(path)), source=str(path))
     if len(hand.q_start) != hand.n_joints:
         raise ValueError(f"model: gsp_ik_start has {len(hand.q_start)} values for {hand.n_joints} joints")
     return hand

@@ -100,35 +100,77 @@ class IKResult:
 
 
 def box_sdf(points: jax.Array, tool_pos: jax.Array, tool_mat: jax.Array, hand: HandModel) -> jax.Array:
-    """Signed distance (N,) from world points (N, 3) to the tool's union of boxes (negative inside).
+    """Signed distance (N,) from world points (N, 3) to the tool's union of primitives (negative inside).
 
-    Exact outside the tool. Inside, it is minus the deepest penetration into any single box: exact wherever
-    that box's nearest face is on the tool's surface, and otherwise (near where boxes meet) a shallower bound.
-    The wrench model overlaps its boxes so that no point of the tool is shallow in every box."""
+    Boxes, spheres, capsules and cylinders: exact outside the tool. Inside, it is minus the deepest penetration into
+    any single primitive: exact wherever that primitive's nearest face is on the tool's surface, and otherwise (near
+    where primitives meet) a shallower bound; the wrench model overlaps its boxes so that no point of the tool is
+    shallow in every box. Ellipsoids: the scaled-sphere estimate (k0 - 1) x the shortest semi-axis (`round_sdf`)."""
     return box_sdf_and_grad(points, tool_pos, tool_mat, hand)[0]
+
+
+def round_sdf(kind: str, size, x, y, z):
+    """Signed distance and its gradient (dist, gx, gy, gz) of points (x, y, z) (arrays of any one shape, in the
+    primitive's frame) to a round MuJoCo primitive of `size` (3,): "sphere" (radius), "capsule" (radius,
+    half-length along z), "cylinder" (the same) or "ellipsoid" (semi-axes; an estimate: (k0 - 1) min(size) with
+    k0 = |p / size|, exact for a sphere, gradient the normal of the scaled sphere)."""
+    a, b, c = (float(v) for v in size)
+    eps = 1e-12
+    if kind in ("sphere", "capsule"):
+        dz = z - jnp.clip(z, -b, b) if kind == "capsule" else z
+        r = jnp.sqrt(x * x + y * y + dz * dz + eps)
+        return r - a, x / r, y / r, dz / r
+    if kind == "cylinder":
+        rho = jnp.sqrt(x * x + y * y + eps)
+        dr, dz = rho - a, jnp.abs(z) - b
+        o_r, o_z = jnp.maximum(dr, 0.0), jnp.maximum(dz, 0.0)
+        outside = jnp.sqrt(o_r * o_r + o_z * o_z + eps)
+        side = dr >= dz  # inside: the nearer of the side and the caps
+        w_r = jnp.where(outside > 1e-6, o_r / outside, side.astype(x.dtype))
+        w_z = jnp.where(outside > 1e-6, o_z / outside, (~side).astype(x.dtype))
+        return outside + jnp.minimum(jnp.maximum(dr, dz), 0.0), w_r * x / rho, w_r * y / rho, w_z * jnp.sign(z)
+    if kind == "ellipsoid":
+        k0 = jnp.sqrt((x / a) ** 2 + (y / b) ** 2 + (z / c) ** 2 + eps)
+        nx, ny, nz = x / a**2, y / b**2, z / c**2
+        n = jnp.sqrt(nx * nx + ny * ny + nz * nz + eps)
+        return (k0 - 1.0) * min(a, b, c), nx / n, ny / n, nz / n
+    raise ValueError(f"round_sdf: kind {kind!r} is not sphere, capsule, cylinder or ellipsoid")
 
 
 def box_sdf_and_grad(points: jax.Array, tool_pos: jax.Array, tool_mat: jax.Array, hand: HandModel):
     """`box_sdf` (N,) and its gradient (N, 3) with respect to the world points, the latter in closed form (the
     IK evaluates it for every sphere every iteration; autodiff of the distance costs several times the distance).
-    Where it is not unique it takes one box's (a point equidistant from two boxes) and, inside, the sum of the
-    tied faces' normals (a point exactly equidistant from two faces of a box)."""
+    Where it is not unique it takes one primitive's (a point equidistant from two: the earlier box, boxes before
+    round primitives) and, inside a box, the sum of the tied faces' normals (a point exactly equidistant from two
+    faces)."""
     local = kinematics.small_einsum("nj,ji->ni", points - tool_pos, tool_mat)  # (N, 3) in the tool frame
     dt = points.dtype
-    box_mat = jnp.asarray(hand.tool_box_mat, dt)  # (NB, 3, 3) box frames in the tool frame
-    rel = kinematics.small_einsum("nbj,bji->nbi", local[:, None, :] - hand.tool_box_pos[None].astype(dt), box_mat)
-    d = jnp.abs(rel) - hand.tool_box_half.astype(dt)  # (N, NB, 3)
-    out = jnp.maximum(d, 0.0)
-    outside = jnp.sqrt(jnp.sum(out**2, -1) + 1e-12)
-    deepest = jnp.max(d, -1)
-    dist = outside + jnp.minimum(deepest, 0.0)  # (N, NB)
-    # d(dist)/d(rel): along the outward offset outside; inside, along the normal of the nearest face
-    face = (d == deepest[..., None]) & (deepest[..., None] < 0.0)
-    g_rel = jnp.sign(rel) * (out / outside[..., None] + face.astype(dt))  # (N, NB, 3)
-    nearest = jnp.argmin(dist, -1)  # (N,)
-    g_rel = jnp.take_along_axis(g_rel, nearest[:, None, None], 1)[:, 0]  # (N, 3)
-    g_local = kinematics.small_einsum("nij,nj->ni", box_mat[nearest], g_rel)
-    return jnp.min(dist, -1), kinematics.small_einsum("ij,nj->ni", tool_mat, g_local)
+    best = None
+    if len(hand.tool_box_half):
+        box_mat = jnp.asarray(hand.tool_box_mat, dt)  # (NB, 3, 3) box frames in the tool frame
+        rel = kinematics.small_einsum("nbj,bji->nbi", local[:, None, :] - hand.tool_box_pos[None].astype(dt), box_mat)
+        d = jnp.abs(rel) - hand.tool_box_half.astype(dt)  # (N, NB, 3)
+        out = jnp.maximum(d, 0.0)
+        outside = jnp.sqrt(jnp.sum(out**2, -1) + 1e-12)
+        deepest = jnp.max(d, -1)
+        dist = outside + jnp.minimum(deepest, 0.0)  # (N, NB)
+        # d(dist)/d(rel): along the outward offset outside; inside, along the normal of the nearest face
+        face = (d == deepest[..., None]) & (deepest[..., None] < 0.0)
+        g_rel = jnp.sign(rel) * (out / outside[..., None] + face.astype(dt))  # (N, NB, 3)
+        nearest = jnp.argmin(dist, -1)  # (N,)
+        g_rel = jnp.take_along_axis(g_rel, nearest[:, None, None], 1)[:, 0]  # (N, 3)
+        best = jnp.min(dist, -1), kinematics.small_einsum("nij,nj->ni", box_mat[nearest], g_rel)
+    for kind, pos, mat, size in zip(hand.tool_round_type, hand.tool_round_pos, hand.tool_round_mat,
+                                    hand.tool_round_size):
+        rel = kinematics.small_einsum("nj,ji->ni", local - pos.astype(dt), jnp.asarray(mat, dt))
+        dist, *g = round_sdf(kind, size, rel[:, 0], rel[:, 1], rel[:, 2])
+        grad = kinematics.small_einsum("ij,nj->ni", jnp.asarray(mat, dt), jnp.stack(g, -1))
+        if best is None:
+            best = dist, grad
+        else:
+            closer = dist < best[0]
+            best = jnp.where(closer, dist, best[0]), jnp.where(closer[:, None], grad, best[1])
+    return best[0], kinematics.small_einsum("ij,nj->ni", tool_mat, best[1])
 
 
 def segment_closest(p0, p1, q0, q1):

@@ -225,32 +225,38 @@ def _segment_closest(p0: Vec, p1: Vec, q0: Vec, q1: Vec):
     return s, jnp.clip(t, 0.0, 1.0)
 
 
+def _frame(tool_pos, tool_mat, mat: np.ndarray, pos: np.ndarray):
+    """A primitive's axes in the world (3 x 3 nested (1, N) arrays, axes as columns) and centre (Vec (1, N))."""
+    rot = [[sum(tool_mat[i, j] * float(mat[j, k]) for j in range(3))[None] for k in range(3)] for i in range(3)]
+    centre = tuple((tool_pos[i] + sum(tool_mat[i, j] * float(pos[j]) for j in range(3)))[None] for i in range(3))
+    return rot, centre
+
+
 def _box_frames(hand: HandModel, tool_pos, tool_mat):
-    """Per tool box: its axes in the world (3 x 3 nested (1, N) arrays, axes as columns) and centre (Vec (1, N))."""
-    frames = []
-    for b in range(len(hand.tool_box_half)):
-        bm, bp = hand.tool_box_mat[b], hand.tool_box_pos[b]
-        rot = [[sum(tool_mat[i, j] * float(bm[j, k]) for j in range(3))[None] for k in range(3)] for i in range(3)]
-        centre = tuple((tool_pos[i] + sum(tool_mat[i, j] * float(bp[j]) for j in range(3)))[None] for i in range(3))
-        frames.append((rot, centre))
-    return frames
+    """Per tool box, then per round primitive: its world frame (`_frame`)."""
+    return ([_frame(tool_pos, tool_mat, m, p) for m, p in zip(hand.tool_box_mat, hand.tool_box_pos)]
+            + [_frame(tool_pos, tool_mat, m, p) for m, p in zip(hand.tool_round_mat, hand.tool_round_pos)])
 
 
-def _box_sdf_and_grad(points: Vec, frames, half: np.ndarray):
-    """`ik.box_sdf_and_grad` over a batch: distance (n, N) from points to the union of boxes, and its gradient
-    (Vec; the nearest box's, ties to the earlier box, as there)."""
+def _box_sdf_and_grad(points: Vec, frames, hand: HandModel):
+    """`ik.box_sdf_and_grad` over a batch: distance (n, N) from points to the union of the tool's primitives, and
+    its gradient (Vec; the nearest primitive's, ties to the earlier one, as there)."""
     dtype = points[0].dtype
     best = None
-    for (rot, centre), h in zip(frames, half):
+    shapes = [("box", h) for h in hand.tool_box_half] + list(zip(hand.tool_round_type, hand.tool_round_size))
+    for (rot, centre), (kind, h) in zip(frames, shapes):
         dx = _sub(points, centre)
         rel = [dx[0] * rot[0][i] + dx[1] * rot[1][i] + dx[2] * rot[2][i] for i in range(3)]
-        d = [jnp.abs(rel[i]) - float(h[i]) for i in range(3)]
-        o = [jnp.maximum(di, 0.0) for di in d]
-        outside = jnp.sqrt(o[0] * o[0] + o[1] * o[1] + o[2] * o[2] + 1e-12)
-        deepest = jnp.maximum(jnp.maximum(d[0], d[1]), d[2])
-        dist = outside + jnp.minimum(deepest, 0.0)
-        inside = deepest < 0.0
-        g = [jnp.sign(rel[i]) * (o[i] / outside + ((d[i] == deepest) & inside).astype(dtype)) for i in range(3)]
+        if kind == "box":
+            d = [jnp.abs(rel[i]) - float(h[i]) for i in range(3)]
+            o = [jnp.maximum(di, 0.0) for di in d]
+            outside = jnp.sqrt(o[0] * o[0] + o[1] * o[1] + o[2] * o[2] + 1e-12)
+            deepest = jnp.maximum(jnp.maximum(d[0], d[1]), d[2])
+            dist = outside + jnp.minimum(deepest, 0.0)
+            inside = deepest < 0.0
+            g = [jnp.sign(rel[i]) * (o[i] / outside + ((d[i] == deepest) & inside).astype(dtype)) for i in range(3)]
+        else:
+            dist, *g = ik.round_sdf(kind, h, *rel)
         grad = tuple(g[0] * rot[k][0] + g[1] * rot[k][1] + g[2] * rot[k][2] for k in range(3))
         if best is None:
             best = (dist, grad)
@@ -292,7 +298,7 @@ class _Problem:
         offset = _sub(self.targets, axis_pt)
         dist = jnp.sqrt(_dot(offset, offset) + 1e-12)
         spheres = _points(ch, hand.sphere_body, hand.sphere_pos, dtype)
-        sdf, sdf_grad = _box_sdf_and_grad(spheres, self.frames, hand.tool_box_half)
+        sdf, sdf_grad = _box_sdf_and_grad(spheres, self.frames, hand)
         radius = _c(hand.sphere_radius, dtype)
         order = self.pair_order
         i, k = hand.self_pairs[order, 0], hand.self_pairs[order, 1]

@@ -11,6 +11,7 @@ policy the same way. A policy may read any field of the state except `terms` (th
 """
 from __future__ import annotations
 
+import json
 import pathlib
 
 import jax
@@ -18,12 +19,12 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from gsp_jax import hand as hand_lib, scenario as scenario_lib
+from gsp_jax import hand as hand_lib, model as model_lib, scenario as scenario_lib
 from gsp_jax.observation import observation, observation_size
-from gsp_jax.grasps import GraspSpace, default_space
+from gsp_jax.grasps import GraspSpace
 from gsp_jax.lookahead import Lookahead  # re-exported: the Ll policies
 from gsp_jax.ppo import networks as nets
-from gsp_jax.ppo.train import PPOConfig, load_policy
+from gsp_jax.ppo.train import PPOConfig, load_policy, save_policy
 from gsp_jax.scenario import Episode
 from gsp_jax.surrogate import State, Surrogate
 
@@ -36,9 +37,14 @@ class TablePolicy:
     solved on the evaluation episode itself."""
 
     table: jax.Array  # (G, T) int32
+    space: GraspSpace | None = struct.field(pytree_node=False, default=None)  # checks the actions if given
 
     def __post_init__(self):
-        _check_concrete(self.table, "TablePolicy.table")
+        _check_concrete(self.table, "TablePolicy.table", self.space)
+        if self.space is not None and not isinstance(self.table, jax.core.Tracer) and np.ndim(self.table) == 2 \
+                and np.shape(self.table)[0] != self.space.n_grasps:
+            raise ValueError(f"TablePolicy.table: {np.shape(self.table)[0]} rows for the model's {self.space.n_grasps} "
+                             "grasps (a table of another model?)")
 
     def act(self, state: State) -> jax.Array:
         return self.table[state.grasp, jnp.minimum(state.t, self.table.shape[1] - 1)]
@@ -50,9 +56,10 @@ class SequencePolicy:
     episode, replayed on an unseen one."""
 
     actions: jax.Array  # (T,) int32
+    space: GraspSpace | None = struct.field(pytree_node=False, default=None)  # checks the actions if given
 
     def __post_init__(self):
-        _check_concrete(self.actions, "SequencePolicy.actions")
+        _check_concrete(self.actions, "SequencePolicy.actions", self.space)
 
     def act(self, state: State) -> jax.Array:
         return self.actions[jnp.minimum(state.t, self.actions.shape[0] - 1)]
@@ -76,25 +83,61 @@ class NetworkPolicy:
         return self.networks.value(self.params, observation(self.space, state)) / self.reward_scale
 
 
-SHIPPED_POLICY = hand_lib.MODELS_DIR / "policies/ppo_dp_seed0"  # PPO with DP pretraining, a full GPU run
+SHIPPED_POLICY = hand_lib.MODELS_DIR / "policies/ppo_dp_seed0"  # PPO with DP pretraining for the wrench, a GPU run
 
 
 def load_network_policy(sur: Surrogate, path: str | pathlib.Path | None = None) -> NetworkPolicy:
-    """The PPO policy saved at `path` (`ppo.train`'s `policy` folder; default: the one shipped with the package,
-    `SHIPPED_POLICY`) as a deterministic `NetworkPolicy` of the surrogate's grasp space, with its critic."""
+    """The PPO policy saved at `path` (`ppo.train`'s `policy` folder; default: the one shipped with the package for
+    the shipped wrench, `SHIPPED_POLICY`) as a deterministic `NetworkPolicy` of the surrogate's grasp space, with
+    its critic. A policy made for another model (its `<path>.model.json`, written by `save_policy`), or whose
+    networks do not fit this model's observation and actions, is refused with a `ModelError` naming both."""
     path = pathlib.Path(SHIPPED_POLICY if path is None else path)
     if not path.exists():
         raise FileNotFoundError(f"load_network_policy: path: no PPO policy at {path}")
+    model = model_lib.of_hand(sur.hand) if sur.hand.source else None
+    made = model_tag(path)
+    if made is not None and model is not None and made.get("digest") != model.digest:
+        raise model_lib.ModelError(f"policy {path} was trained for model {made.get('name')!r} (digest "
+                                   f"{made.get('digest')}), not for {model.label}; train one with "
+                                   f"`python -m experiments train --model {model.name}`")
     obs = observation_size(sur.space, scenario_lib.N_WAYPOINTS, sur.hand.n_joints)
     networks = nets.make_networks(obs, sur.n_actions, nets.NetworkConfig())
-    return NetworkPolicy(load_policy(path, networks), networks, sur.space)
+    try:
+        params = load_policy(path, networks)
+    except ValueError as e:
+        raise model_lib.ModelError(f"policy {path}: its networks do not fit {model.label if model else 'this model'} "
+                                   f"(observation {obs}, {sur.n_actions} actions): it was trained for another model "
+                                   f"({str(e).splitlines()[0][:200]})") from e
+    return NetworkPolicy(params, networks, sur.space)
 
 
-def _check_concrete(actions, field: str) -> None:
-    """Actions given to a policy from Python are checked against the model's action space (values that JAX
-    passes through when it rebuilds the policy inside a transformation are not: see `grasps`)."""
+def model_tag(path: str | pathlib.Path) -> dict | None:
+    """The model a saved policy was trained for ({name, digest, ...} from `<path>.model.json`), None if untagged."""
+    tag = pathlib.Path(path).parent / f"{pathlib.Path(path).name}.model.json"
+    return json.loads(tag.read_text()) if tag.is_file() else None
+
+
+def save_network_policy(path: str | pathlib.Path, params: nets.Params, sur: Surrogate) -> None:
+    """Write a policy (`ppo.train.save_policy`) and, beside it, the model it is for (`model_tag`)."""
+    save_policy(path, params)
+    m = sur.model
+    tag = pathlib.Path(path).parent / f"{pathlib.Path(path).name}.model.json"
+    tag.write_text(json.dumps({"name": m.name, "digest": m.digest, "n_grasps": sur.space.n_grasps,
+                               "n_actions": sur.n_actions}, indent=1))
+
+
+def _check_concrete(actions, field: str, space: GraspSpace | None) -> None:
+    """Actions given to a policy from Python are checked against the model's action space (`space`; without one,
+    that they are non-negative integers); values that JAX passes through when it rebuilds the policy inside a
+    transformation are not: see `grasps`."""
     if isinstance(actions, (np.ndarray, jax.Array)) and not isinstance(actions, jax.core.Tracer):
-        default_space().check_actions(actions, field)
+        if space is not None:
+            space.check_actions(actions, field)
+        else:
+            a = np.asarray(actions)
+            bad = (a < 0) | (a != np.round(a))
+            if np.any(bad):
+                raise ValueError(f"{field}: {a[bad].ravel()[0]} is not an action (a non-negative integer)")
 
 
 def rollout(env, policy, episode) -> tuple[jax.Array, State]:

@@ -22,15 +22,16 @@ import pathlib
 import mujoco
 import numpy as np
 
-# Okabe-Ito colours, one per finger (the prefix of its bodies' names).
-FINGER_RGB = {"thumb": (0.835, 0.369, 0.0),  # vermillion
-              "index": (0.0, 0.447, 0.698),  # blue
-              "middle": (0.0, 0.620, 0.451),  # bluish green
-              "ring": (0.800, 0.475, 0.655)}  # reddish purple
+# Okabe-Ito colours, one per finger in the hand's order (the palm's children), cycled beyond four.
+FINGER_PALETTE = ((0.835, 0.369, 0.0),  # vermillion (the wrench's hand: thumb)
+                  (0.0, 0.447, 0.698),  # blue (index)
+                  (0.0, 0.620, 0.451),  # bluish green (middle)
+                  (0.800, 0.475, 0.655),  # reddish purple (ring)
+                  (0.902, 0.624, 0.0),  # orange
+                  (0.337, 0.706, 0.914))  # sky blue
 PALM_RGB = (0.40, 0.40, 0.43)
 TOOL_RGB = (0.45, 0.50, 0.58)  # steel
 PEDESTAL_RGB = (0.80, 0.76, 0.68)
-TOOL_BODY = "wrench"
 TABLE_SCALE = 50.0  # the table is drawn this much larger (no black sky behind the hand)
 # Free cameras: lookat [m] (the tool lies at about (0.02, 0, 0.014 .. 0.06), the palm at z = 0.15),
 # distance [m], azimuth and elevation [deg].
@@ -39,24 +40,43 @@ VIEWS = {"closeup": dict(lookat=(0.01, 0.0, 0.045), distance=0.30, azimuth=20.0,
          "side": dict(lookat=(0.01, 0.0, 0.075), distance=0.32, azimuth=90.0, elevation=-25.0)}  # thumb side
 
 
-def finger_colours() -> dict[str, tuple[float, float, float]]:
-    """{finger: (r, g, b) in [0, 1]}, the colours the frames give each finger (for a legend)."""
-    return dict(FINGER_RGB)
+def _fingers(model: mujoco.MjModel) -> tuple[int, list[int]]:
+    """(the hand's root body, its children: one per finger), from the model's conventions (`gsp_jax.hand`)."""
+    from gsp_jax import hand as hand_lib
+
+    palm = hand_lib.hand_root(model)
+    return palm, [b for b in range(model.nbody) if model.body_parentid[b] == palm and b != palm]
+
+
+def finger_colours(model: mujoco.MjModel | None = None) -> dict[str, tuple[float, float, float]]:
+    """{finger: (r, g, b) in [0, 1]}, the colours the frames give each finger (for a legend), named by the finger's
+    first body's name up to "_" (default model: the shipped wrench's scene)."""
+    from gsp_jax import hand as hand_lib
+
+    model = hand_lib.load_mjmodel() if model is None else model
+    _, fingers = _fingers(model)
+    return {model.body(f).name.split("_")[0]: FINGER_PALETTE[i % len(FINGER_PALETTE)] for i, f in enumerate(fingers)}
 
 
 def styled(model: mujoco.MjModel, size: tuple[int, int] = (0, 0)) -> mujoco.MjModel:
     """A copy of `model` restyled for pictures (colours, lights, an offscreen buffer of at least `size` (H, W))."""
+    from gsp_jax import hand as hand_lib
+    from gsp_jax.physics.scene import SUPPORT
+
     m = copy.deepcopy(model)
+    palm, fingers = _fingers(m)
+    tool = hand_lib.tool_body(m)
     for g in range(m.ngeom):
-        body = m.body(m.geom_bodyid[g]).name
-        finger = body.split("_")[0]
-        if finger in FINGER_RGB:
-            m.geom_rgba[g, :3] = FINGER_RGB[finger]
-        elif body == "palm":
+        b = int(m.geom_bodyid[g])
+        while b and m.body_parentid[b] not in (palm, 0):
+            b = int(m.body_parentid[b])
+        if b in fingers:
+            m.geom_rgba[g, :3] = FINGER_PALETTE[fingers.index(b) % len(FINGER_PALETTE)]
+        elif m.geom_bodyid[g] == palm:
             m.geom_rgba[g, :3] = PALM_RGB
-        elif body == TOOL_BODY:
+        elif m.geom_bodyid[g] == tool:
             m.geom_rgba[g, :3] = TOOL_RGB
-        elif m.geom(g).name.startswith("pedestal"):
+        elif m.geom(g).name.startswith(SUPPORT):
             m.geom_rgba[g, :3] = PEDESTAL_RGB
     for g in np.flatnonzero(m.geom_type == mujoco.mjtGeom.mjGEOM_PLANE):  # the table: out to the horizon
         m.geom_size[g, :2] *= TABLE_SCALE

@@ -16,8 +16,8 @@ from flax import struct
 
 N_WAYPOINTS = 16  # T: waypoints = decision steps of an episode
 DT = 0.25  # nominal time between waypoints [s]
-M0 = 0.35  # nominal tool mass [kg]
-INERTIA0 = (2.5e-5, 1.1e-3, 1.12e-3)  # nominal principal inertia about the centre of mass [kg m^2]
+M0 = 0.35  # the shipped wrench's nominal mass [kg] (episodes take their tool's from its model file)
+INERTIA0 = (2.5e-5, 1.1e-3, 1.12e-3)  # the shipped wrench's principal inertia about the CoM [kg m^2]
 FRICTION0 = 0.8  # nominal finger-tool Coulomb friction coefficient
 FRICTION_MAX = 3.0  # a plausible friction coefficient is in (0, FRICTION_MAX] (rubber on metal is ~1-2)
 Z_START, Z_END = 0.014, 0.06  # nominal start and end heights of the tool frame [m]
@@ -28,12 +28,9 @@ COM_Y_OFFSETS_CM = (-2, -1, 0, 1, 2)
 VALIDATION_SHIFTS_MM = (-5, -3, -1, 1, 3, 5, 7)
 VALIDATION_MASS_FACTORS = (0.5, 0.75, 1.75, 2.0)
 VALIDATION_COM_Y_CM = (-1.5, 1.5)
-# Reach of the hand in the table frame: every waypoint must lie in this box [m].
-WORKSPACE_LO = (-0.05, -0.05, 0.005)
-WORKSPACE_HI = (0.05, 0.05, 0.10)
 # Default start grasp (options per contact link, model order): thumb, index and middle distal on their first
 # candidate contacts -- a three-fingertip grasp realised at waypoint 0.
-START_OPTIONS = (1, 1, 0, 1, 0, 0)
+START_OPTIONS = (1, 1, 0, 1, 0, 0)  # the shipped wrench's (models/wrench.xml: gsp_start_options)
 
 
 @struct.dataclass
@@ -74,73 +71,120 @@ def make_episode(
     start_grasp: int | None = None,
     com_x_cm: float = 0.0,
     lateral_mm: tuple[float, float] = (0.0, 0.0),
-    torque_axis: str = "z",
+    torque_axis="z",
+    *,
+    model=None,
+    start=None,
+    mass: float | None = None,
+    inertia=None,
+    com=None,
 ) -> Episode:
-    """The nominal lift with the paper's variations: start and end heights shifted, torque, mass, CoM y-offset;
-    and beyond them (the stress set): a CoM x-offset, a lateral end point (dx, dy) [mm] reached on the same
-    minimum-jerk profile as the height, the final torque about x, y or z (`torque_axis`)."""
-    if torque_axis not in ("x", "y", "z"):
-        raise EpisodeError(f"episode.torque_axis: {torque_axis!r} (must be 'x', 'y' or 'z')")
-    from gsp_jax import grasps  # local: grasps reads the model file
+    """The nominal lift of `model`'s tool (a name, path or `gsp_jax.model.Model`; None: the shipped wrench) with the
+    paper's variations: start and end heights shifted, torque, mass, CoM y-offset; and beyond them (the stress set):
+    a CoM x-offset, a lateral end point (dx, dy) [mm] reached on the same minimum-jerk profile as the height, the
+    final torque about x, y, z or any axis (`torque_axis`: a name or a 3-vector, normalised).
 
+    The tool starts where the scene file rests it and rises `Z_END - Z_START` (4.6 cm). Mass, inertia and centre
+    of mass are the file's, the first two times `mass_factor`, the last offset by (com_x_cm, com_y_cm, 0); `mass`
+    [kg], `inertia` (3,) [kg m^2] and `com` (3,) [m, tool frame] set them absolutely instead. The start grasp is the
+    model's default (`HandModel.start_options`), or `start` (a {link: option} dict or one option per link), or the
+    grasp index `start_grasp`."""
+    from gsp_jax import model as model_lib  # local: the model reads the files
+
+    model = model_lib.load_model(model)
+    hand, space = model.hand, model.space
+    if isinstance(torque_axis, str):
+        if torque_axis not in ("x", "y", "z"):
+            raise EpisodeError(f"episode.torque_axis: {torque_axis!r} (must be 'x', 'y', 'z' or a 3-vector)")
+        axis = np.eye(3)["xyz".index(torque_axis)]
+    else:
+        axis = np.asarray(torque_axis, np.float64)
+        if axis.shape != (3,) or not np.all(np.isfinite(axis)) or np.linalg.norm(axis) == 0:
+            raise EpisodeError(f"episode.torque_axis: {torque_axis!r} (must be 'x', 'y', 'z' or a nonzero 3-vector)")
+        axis = axis / np.linalg.norm(axis)
+    if start is not None and start_grasp is not None:
+        raise EpisodeError("episode.start: give `start` (link options) or `start_grasp` (an index), not both")
+    g0 = space.encode(start_options(space, hand.start_options if start is None else start)) if start_grasp is None \
+        else start_grasp
     dz = shift_mm * 1e-3
-    z = min_jerk(Z_START + dz, Z_END + dz)
-    x, y = (min_jerk(0.0, d * 1e-3) for d in lateral_mm)
+    rest = hand.tool_rest
+    z = min_jerk(rest[2] + dz, Z_END + (rest[2] - Z_START) + dz)
+    x, y = (min_jerk(r, r + d * 1e-3) for r, d in zip(rest[:2], lateral_mm))
     waypoints = np.stack([x, y, z], -1)
     w_ext = np.zeros(6)
-    w_ext[3 + "xyz".index(torque_axis)] = torque
-    g0 = grasps.default_space().encode(START_OPTIONS) if start_grasp is None else start_grasp
+    w_ext[3:] = torque * axis
+    com = hand.tool_com + np.array([com_x_cm * 1e-2, com_y_cm * 1e-2, 0.0]) if com is None else com
     ep = Episode(
         waypoints=jnp.asarray(waypoints, jnp.float32),
         quats=jnp.tile(jnp.asarray([1.0, 0.0, 0.0, 0.0], jnp.float32), (N_WAYPOINTS, 1)),
         dt=jnp.asarray(DT, jnp.float32),
         w_ext=jnp.asarray(w_ext, jnp.float32),
-        mass=jnp.asarray(M0 * mass_factor, jnp.float32),
-        inertia=jnp.asarray(np.asarray(INERTIA0) * mass_factor, jnp.float32),
-        com=jnp.asarray([com_x_cm * 1e-2, com_y_cm * 1e-2, 0.0], jnp.float32),
+        mass=jnp.asarray(hand.tool_mass * mass_factor if mass is None else mass, jnp.float32),
+        inertia=jnp.asarray(np.asarray(hand.tool_inertia) * mass_factor if inertia is None else inertia, jnp.float32),
+        com=jnp.asarray(com, jnp.float32),
         friction=jnp.asarray(friction, jnp.float32),
         start_grasp=jnp.asarray(g0, jnp.int32),
     )
-    return validate(ep)
+    return validate(ep, model=model)
+
+
+def start_options(space, start) -> np.ndarray:
+    """(L,) per-link options of a start grasp given as a {link: option} dict (links not named: off) or one
+    option per link; raise EpisodeError naming the link or value that does not exist."""
+    if isinstance(start, dict):
+        options = np.zeros(space.n_links, np.int64)
+        for link, opt in start.items():
+            if link not in space.link_names:
+                raise EpisodeError(f"episode.start: link {link!r} is not one of {space.link_names}")
+            options[space.link_names.index(link)] = opt
+    else:
+        options = np.asarray(start)
+        if options.shape != (space.n_links,):
+            raise EpisodeError(f"episode.start: {list(np.ravel(start))} must give one option for each of the "
+                               f"{space.n_links} links {space.link_names}")
+    for link, opt, n in zip(space.link_names, options, space.n_options):
+        if not (float(opt).is_integer() and 0 <= opt < n):
+            raise EpisodeError(f"episode.start: option {opt} of link {link!r} is not in 0..{n - 1}")
+    return options.astype(np.int32)
 
 
 def _fmt_mm(mm: float) -> str:
     return f"{mm:+d}mm" if float(mm).is_integer() else f"{mm:+g}mm"
 
 
-def nominal() -> dict[str, Episode]:
-    return {"nominal": make_episode()}
+def nominal(model=None) -> dict[str, Episode]:
+    return {"nominal": make_episode(model=model, )}
 
 
-def training_set() -> dict[str, Episode]:
+def training_set(model=None) -> dict[str, Episode]:
     """The paper's 9 training episodes: nominal (+1 N m), nominal with -1 N m, and the seven height shifts with
     -1 N m for negative shifts and +1 N m for positive ones."""
-    eps = {"nominal": make_episode(), "nominal_-1Nm": make_episode(torque=-TORQUE0)}
+    eps = {"nominal": make_episode(model=model, ), "nominal_-1Nm": make_episode(model=model, torque=-TORQUE0)}
     for s in HEIGHT_SHIFTS_MM:
         tau = -TORQUE0 if s < 0 else TORQUE0
-        eps[f"shift{_fmt_mm(s)}_{tau:+g}Nm"] = make_episode(shift_mm=s, torque=tau)
+        eps[f"shift{_fmt_mm(s)}_{tau:+g}Nm"] = make_episode(model=model, shift_mm=s, torque=tau)
     return eps
 
 
-def eval_set_a() -> dict[str, Episode]:
+def eval_set_a(model=None) -> dict[str, Episode]:
     """Evaluation set A, path deviation (7): the height shifts with the torque sign flipped."""
     eps = {}
     for s in HEIGHT_SHIFTS_MM:
         tau = TORQUE0 if s < 0 else -TORQUE0
-        eps[f"shift{_fmt_mm(s)}_{tau:+g}Nm"] = make_episode(shift_mm=s, torque=tau)
+        eps[f"shift{_fmt_mm(s)}_{tau:+g}Nm"] = make_episode(model=model, shift_mm=s, torque=tau)
     return eps
 
 
-def eval_set_b() -> dict[str, Episode]:
+def eval_set_b(model=None) -> dict[str, Episode]:
     """Evaluation set B, mass and centre of mass (20): mass x {0.5..2} m0 crossed with CoM y-offset -2..+2 cm."""
     return {
-        f"mass{f:g}m0_comy{c:+d}cm": make_episode(mass_factor=f, com_y_cm=c)
+        f"mass{f:g}m0_comy{c:+d}cm": make_episode(model=model, mass_factor=f, com_y_cm=c)
         for f in MASS_FACTORS
         for c in COM_Y_OFFSETS_CM
     }
 
 
-def validation_set() -> dict[str, Episode]:
+def validation_set(model=None) -> dict[str, Episode]:
     """Validation set (ours; the paper does not list one) for PPO's early stop, disjoint from training and
     evaluation: the odd height shifts with set A's torque convention (positive shifts -1 N m), and mass
     0.5 / 0.75 / 1.75 / 2 m0 crossed with CoM y-offset -1.5 / +1.5 cm -- unseen variations of both evaluation kinds
@@ -148,10 +192,10 @@ def validation_set() -> dict[str, Episode]:
     eps = {}
     for s in VALIDATION_SHIFTS_MM:
         tau = TORQUE0 if s < 0 else -TORQUE0
-        eps[f"shift{_fmt_mm(s)}_{tau:+g}Nm"] = make_episode(shift_mm=s, torque=tau)
+        eps[f"shift{_fmt_mm(s)}_{tau:+g}Nm"] = make_episode(model=model, shift_mm=s, torque=tau)
     for f in VALIDATION_MASS_FACTORS:
         for c in VALIDATION_COM_Y_CM:
-            eps[f"mass{f:g}m0_comy{c:+g}cm"] = make_episode(mass_factor=f, com_y_cm=c)
+            eps[f"mass{f:g}m0_comy{c:+g}cm"] = make_episode(model=model, mass_factor=f, com_y_cm=c)
     return eps
 
 
@@ -159,7 +203,7 @@ STRESS_SEED = 20261125  # the stress set's draws: fixed, so the set is the same 
 STRESS_SIZE = 120
 
 
-def stress_set(n: int = STRESS_SIZE, seed: int = STRESS_SEED, prefix: str = "stress") -> dict[str, Episode]:
+def stress_set(n: int = STRESS_SIZE, seed: int = STRESS_SEED, prefix: str = "stress", model=None) -> dict[str, Episode]:
     """The stress set (ours, beyond the paper): `n` unseen episodes spanning the envelope the planners must hold
     in, fixed and seeded, never used for calibration or training. Per episode, stratified over the set (each range
     cut into n strata, one draw per stratum, strata shuffled per parameter): mass 0.25-3 m0 (log-uniform), friction
@@ -181,34 +225,34 @@ def stress_set(n: int = STRESS_SIZE, seed: int = STRESS_SEED, prefix: str = "str
         axis = "xyz"[i % 3]
         m = float(np.exp(log_mass[i]))
         name = f"{prefix}{i:03d}_{m:.2f}m0_mu{mu[i]:.2f}_{axis}{torque[i]:+.1f}Nm_{path}"
-        eps[name] = make_episode(shift_mm=round(float(shift[i]), 1), torque=round(float(torque[i]), 2), mass_factor=m,
+        eps[name] = make_episode(model=model, shift_mm=round(float(shift[i]), 1), torque=round(float(torque[i]), 2), mass_factor=m,
                                  com_y_cm=round(float(com_y[i]), 2), friction=round(float(mu[i]), 3),
                                  com_x_cm=round(float(com_x[i]), 2), lateral_mm=(round(float(dx), 1), round(float(dy), 1)),
                                  torque_axis=axis)
     return eps
 
 
-def stress_calibration_set() -> dict[str, Episode]:
+def stress_calibration_set(model=None) -> dict[str, Episode]:
     """A calibration slice of the envelope: 60 episodes drawn as the stress set's, with another seed (disjoint from
     it), for choosing controller and surrogate settings that the stress set then tests."""
-    return stress_set(60, STRESS_SEED + 1, prefix="envcal")
+    return stress_set(60, STRESS_SEED + 1, prefix="envcal", model=model)
 
 
 SETS = {"nominal": nominal, "train": training_set, "val": validation_set, "evalA": eval_set_a, "evalB": eval_set_b,
         "stress": stress_set, "stress-cal": stress_calibration_set}
 
 
-def episode_set(name: str) -> dict[str, Episode]:
+def episode_set(name: str, model=None) -> dict[str, Episode]:
     """A named set: nominal, train, val, evalA, evalB, eval (A then B), all (train then eval), stress (the
     envelope; never part of "all": not for calibration or training) or stress-cal (the envelope's calibration
     slice, disjoint from stress)."""
     if name == "eval":
-        return {**eval_set_a(), **eval_set_b()}
+        return {**eval_set_a(model), **eval_set_b(model)}
     if name == "all":
-        return {**training_set(), **eval_set_a(), **eval_set_b()}
+        return {**training_set(model), **eval_set_a(model), **eval_set_b(model)}
     if name not in SETS:
         raise ValueError(f"episode set: unknown name {name!r}; choose from {sorted([*SETS, 'eval', 'all'])}")
-    return SETS[name]()
+    return SETS[name](model=model)
 
 
 def stack(episodes: Sequence[Episode]) -> Episode:
@@ -240,12 +284,13 @@ class EpisodeError(ValueError):
     """An episode's input is invalid; the message names the field and the value."""
 
 
-def validate(ep: Episode, name: str = "episode", n_grasps: int | None = None, hand=None) -> Episode:
-    """Check one episode against the hand model (default: `models/scene.xml`): raise `EpisodeError` naming the
-    field and value on the first problem found. `n_grasps` defaults to the model's grasp count."""
-    from gsp_jax import grasps, hand as hand_lib  # local: both read the model file
+def validate(ep: Episode, name: str = "episode", n_grasps: int | None = None, hand=None, model=None) -> Episode:
+    """Check one episode against its model (`model`: a name, path or `Model`, or its `hand`; default: the shipped
+    wrench): raise `EpisodeError` naming the field and value on the first problem found. `n_grasps` defaults to
+    the model's grasp count."""
+    from gsp_jax import grasps, model as model_lib  # local: both read the model file
 
-    hand = hand or hand_lib.load()
+    hand = hand or model_lib.load_model(model).hand
     n_grasps = grasps.space_of(hand).n_grasps if n_grasps is None else n_grasps
     t = None
     for field, (shape, per_wp) in _FIELDS.items():
@@ -280,7 +325,7 @@ def validate(ep: Episode, name: str = "episode", n_grasps: int | None = None, ha
         i = int(np.argmax(np.abs(norms - 1)))
         raise EpisodeError(f"{name}.quats[{i}]: norm {norms[i]:.4f} (must be a unit quaternion)")
     wp = np.asarray(ep.waypoints)
-    lo, hi = np.asarray(WORKSPACE_LO), np.asarray(WORKSPACE_HI)
+    lo, hi = hand.workspace
     out = np.any((wp < lo) | (wp > hi), axis=-1)
     if np.any(out):
         i = int(np.argmax(out))
@@ -324,19 +369,31 @@ def _is_numeric(x) -> bool:
     return isinstance(x, (int, float, np.number)) and not isinstance(x, bool)
 
 
-def save(path: str | pathlib.Path, episodes: dict[str, Episode]) -> None:
-    """Write named episodes to a human-readable JSON file."""
-    doc = {"format": "gsp_jax.episodes/1", "episodes": {k: to_dict(v) for k, v in episodes.items()}}
+def save(path: str | pathlib.Path, episodes: dict[str, Episode], model=None) -> None:
+    """Write named episodes to a human-readable JSON file, with the model they are for (name and digest; None:
+    the shipped wrench), which `load` checks."""
+    from gsp_jax import model as model_lib
+
+    m = model_lib.load_model(model)
+    doc = {"format": "gsp_jax.episodes/1", "model": {"name": m.name, "digest": m.digest},
+           "episodes": {k: to_dict(v) for k, v in episodes.items()}}
     pathlib.Path(path).write_text(json.dumps(doc, indent=1))
 
 
-def load(path: str | pathlib.Path) -> dict[str, Episode]:
-    """Read and validate named episodes from a JSON file written by `save` (or by hand)."""
+def load(path: str | pathlib.Path, model=None) -> dict[str, Episode]:
+    """Read and validate named episodes from a JSON file written by `save` (or by hand) for `model` (None: the
+    shipped wrench). A file that names another model (its digest) is refused with an error naming both."""
+    from gsp_jax import model as model_lib
+
+    m = model_lib.load_model(model)
     try:
         doc = json.loads(pathlib.Path(path).read_text())
     except json.JSONDecodeError as e:
         raise EpisodeError(f"{path}: not valid JSON ({e})") from e
     if not isinstance(doc, dict) or not isinstance(doc.get("episodes"), dict):
         raise EpisodeError(f"{path}: expected an object with an 'episodes' object")
-    return {k: validate(from_dict(v, k), k) for k, v in doc["episodes"].items()}
-
+    made = doc.get("model")
+    if isinstance(made, dict) and made.get("digest") not in (None, m.digest):
+        raise model_lib.ModelError(f"{path}: these episodes were made for model {made.get('name')!r} (digest "
+                                   f"{made.get('digest')}), not for {m.label}")
+    return {k: validate(from_dict(v, k), k, model=m) for k, v in doc["episodes"].items()}

@@ -33,10 +33,11 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from gsp_jax import grasps, ik, ik_lanes, kinematics, wrench
-from gsp_jax import hand as hand_lib
+from gsp_jax import hand as hand_lib, model as model_lib
 from gsp_jax.calibration import CALIBRATED
 from gsp_jax.scenario import M0, Episode
 
@@ -147,12 +148,14 @@ class Surrogate:
 
     def __init__(
         self,
-        hand: hand_lib.HandModel | None = None,
+        hand=None,
         reward: RewardConfig = RewardConfig(),
         ik_config: ik.IKConfig = ik.IKConfig(),
         wrench_config: wrench.WrenchConfig = wrench.WrenchConfig(),
     ):
-        self.hand = hand or hand_lib.load()
+        """`hand`: the model, as a shipped name, a scene path, a `gsp_jax.model.Model` or a loaded `HandModel`
+        (None: the shipped wrench, `gsp_jax.model.DEFAULT`)."""
+        self.hand = hand if isinstance(hand, hand_lib.HandModel) else model_lib.load_model(hand).hand
         self.space = grasps.space_of(self.hand)
         self.reward_config, self.ik_config, self.wrench_config = reward, ik_config, wrench_config
         self.gravity = jnp.asarray(self.hand.gravity, jnp.float32)
@@ -171,6 +174,11 @@ class Surrogate:
     @property
     def n_actions(self) -> int:
         return self.space.n_actions
+
+    @property
+    def model(self) -> model_lib.Model:
+        """The `Model` (scene file, digest) the hand was loaded from; ModelError for a hand built otherwise."""
+        return model_lib.of_hand(self.hand)
 
     @property
     def prices_changes(self) -> bool:
@@ -221,7 +229,7 @@ class Surrogate:
     def grip_of(self, episode: Episode) -> jax.Array:
         """() [N] the grip of `episode`'s wrench solves: `RewardConfig.grip`, times m / m0 if it scales with mass."""
         cfg = self.reward_config
-        scale = episode.mass / M0 if cfg.grip_scales_with_mass else jnp.ones((), jnp.float32)
+        scale = episode.mass / self.hand.tool_mass if cfg.grip_scales_with_mass else jnp.ones((), jnp.float32)
         return jnp.asarray(cfg.grip, jnp.float32) * scale
 
     def score(
@@ -341,6 +349,25 @@ class Surrogate:
         reward = jnp.where(state.done, 0.0, moved.terms.reward)
         return out, reward, out.done
 
+    def explain(self, episode: Episode, actions) -> str | None:
+        """Why a sequence fails in the surrogate, in words, or None if it does not: the first step (from the start
+        grasp, actions (T,)) that collides or drops the tool, the term and how far off, e.g. "t=0: the hold at the
+        next waypoint is 167% unmet (> 30%) with grasp T1 I1 . M1 . .". For a plan whose return is `r_min` or less
+        (DP's optimum then says: no sequence holds)."""
+        actions = np.asarray(actions, np.int32)
+        self.space.check_actions(actions, "actions")
+        states, terms = _replay(self, episode, jnp.asarray(actions))
+        for t in range(min(len(actions), episode.n_steps)):
+            if bool(terms.collision[t]) or bool(terms.fall[t]):
+                grasp = self.space.label(int(self.space.transitions[int(states.grasp[t]), actions[t]]))
+                if bool(terms.collision[t]):
+                    return f"t={t}: the hand collides (with the tool, the table or itself) holding {grasp}"
+                unmet = np.asarray(terms.unmet[t])
+                k = int(np.argmax(unmet - self.reward_config.fall_unmet > 0))
+                return (f"t={t}: {UNMET_TERMS[k]} is {100 * unmet[k]:.0f}% unmet (> {100 * self.reward_config.fall_unmet:.0f}%)"
+                        f" with grasp {grasp}")
+        return None
+
     def transition(self, episode: Episode, grasp: jax.Array, t: jax.Array, action: jax.Array):
         """`step(discrete_state(episode, grasp, t), action)` without realising the state it starts from (a step reads
         only the state's grasp, waypoint and tool pose, not its joint angles): (next state, reward, done). `vmap` it
@@ -378,3 +405,17 @@ class Surrogate:
             done=done,
             terms=terms,
         )
+
+
+UNMET_TERMS = ("the wrench while moving (a)", "the hold at the next waypoint (c)",
+               "the external wrench at the final pose (d)", "the shared grasp during the change (f)")
+
+
+@jax.jit
+def _replay(sur: Surrogate, episode: Episode, actions: jax.Array):
+    """(the state each step starts from, its terms) along `actions` from the episode's start."""
+    def step(state, a):
+        nxt, _, _ = sur.step(state, a)
+        return nxt, (state, nxt.terms)
+
+    return jax.lax.scan(step, sur.reset(episode), actions)[1]

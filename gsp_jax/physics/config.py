@@ -30,7 +30,6 @@ class PhysicsConfig:
     # falls 49 / 53 / 67 / 61 / 82 -> 44 / 49 / 64 / 58 / 84, four-tip controller falls 27 -> 22; the engine's
     # step 1.3-2.1x slower (the runner on all cores the same: the controller sets its time)
     spheres_per_capsule: int = 4  # contact spheres replacing each hand capsule (MJX misses tilted capsule-box)
-    tool_contact_links: tuple[str, ...] = ("medial", "distal")  # hand capsules (name suffixes) that touch the tool
     table_friction: float = 0.6
     pedestal_speed: float = 0.02  # [m/s] the start pedestals sink away after the first segment at this speed:
     # dropped at once, a tool the fingers hold by friction sags ~2 mm before the grip takes its weight (measured)

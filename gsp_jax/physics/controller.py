@@ -160,10 +160,9 @@ class Controller:
         self.ctrl_range = tuple(jnp.asarray(r, jnp.float32) for r in ctrl_range)
         self.motor_limit = config.motor_margin * jnp.minimum(-self.ctrl_range[0], self.ctrl_range[1])  # (J,)
         self.gravity = jnp.asarray(gravity, jnp.float32)
-        fingers = [n.split("_")[0] for n in hand.link_names]
-        self.finger_names = tuple(dict.fromkeys(fingers))
-        self.link_finger = np.array([self.finger_names.index(f) for f in fingers])  # (L,)
-        self.is_tip = np.array([n.endswith("distal") for n in hand.link_names])  # (L,) the finger's parking link
+        self.finger_names = hand.finger_names
+        self.link_finger = np.asarray(hand.link_finger)  # (L,) finger of each contact link
+        self.is_tip = np.asarray(hand.link_is_tip)  # (L,) the finger's deepest contact link: where it parks
         radius = hand.link_radius[:, None, None]
         self.targets_tool = (hand.option_pos - radius * hand.option_normal).astype(np.float32)  # (L, K, 3)
         self.wrench_config = wrench.WrenchConfig(method="apg", iterations=config.force_iterations)

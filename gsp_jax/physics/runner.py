@@ -57,10 +57,12 @@ class _Carry:
 class Physics:
     """Scene + contact controller + episode runner for one hand/tool model. Stateless after construction."""
 
-    def __init__(self, surrogate: Surrogate | None = None, config: PhysicsConfig = PhysicsConfig(), path=None):
+    def __init__(self, surrogate: Surrogate | None = None, config: PhysicsConfig = PhysicsConfig()):
+        """The physics of the surrogate's model (its scene file, `HandModel.source`; None: `Surrogate()`, the
+        default model)."""
         self.surrogate = surrogate or Surrogate()
         self.hand, self.space, self.config = self.surrogate.hand, self.surrogate.space, config
-        self.scene = Scene(self.hand, config, path)
+        self.scene = Scene(self.hand, config)
         self.model = self.scene.model
         self.controller = Controller(self.hand, self.space, config, self.scene.ctrl_range, self.hand.gravity,
                                      self.scene.joint_inertia())

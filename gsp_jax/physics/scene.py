@@ -29,61 +29,85 @@ from gsp_jax import kinematics, scenario
 from gsp_jax.physics.config import PhysicsConfig
 from gsp_jax.scenario import Episode
 
-TOOL_BODY = hand_lib.TOOL_BODY
-TABLE_GEOM = "table"
-# Start supports: name -> (tool geom it carries, x of its centre in the tool frame [m], half sizes [m]); clear of
-# every candidate contact of the fingers (the head's sides, the handle's sides and underside at x = 0).
-PEDESTALS = {"pedestal_head": ("head", 0.075, (0.012, 0.012, 0.004)),
-             "pedestal_handle": ("handle", -0.07, (0.012, 0.008, 0.004))}
-AWAY = -1.0  # [m] pedestals are moved this far down when they drop away
+AWAY = -1.0  # [m] the start supports are moved this far down when they drop away
+SUPPORT = "gsp_support"  # the start supports' geom names: gsp_support1, gsp_support2, ...
 
 
-def physics_model(path=hand_lib.SCENE_XML, config: PhysicsConfig = PhysicsConfig()) -> mujoco.MjModel:
-    """The physics model of a scene file: contact spheres for the hand capsules and an explicit contact list
-    (see the module docstring); solver settings from `config`."""
-    base = hand_lib.load_mjmodel(path)
+def _named_spec(path) -> mujoco.MjSpec:
+    """The scene's spec with every unnamed geom named ``gsp_geom<i>`` (contact pairs name their geoms)."""
     spec = mujoco.MjSpec.from_file(str(path))
+    for i, g in enumerate(spec.geoms):
+        if not g.name:
+            g.name = f"gsp_geom{i}"
+    return spec
+
+
+def table_geom(model: mujoco.MjModel) -> int:
+    """The table: the world's plane geom."""
+    planes = [g for g in range(model.ngeom)
+              if model.geom_bodyid[g] == 0 and int(model.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_PLANE)]
+    if len(planes) != 1:
+        raise ValueError(f"physics: the scene needs one plane geom in the worldbody (the table), found {len(planes)}")
+    return planes[0]
+
+
+def physics_model(hand: hand_lib.HandModel, config: PhysicsConfig = PhysicsConfig()) -> mujoco.MjModel:
+    """The physics model of the scene a hand was loaded from (`hand.source`): contact spheres for the hand's capsules
+    and spheres, and an explicit contact list (see the module docstring): the tool with the table, with the geoms
+    of the hand's `touch_tool` bodies (friction set per episode) and with its start supports; the geoms of the
+    `touch_table` bodies with the table. Solver settings from `config`."""
+    if not hand.source:
+        raise ValueError("physics: the hand was not loaded from a scene file (hand.source is empty): load it with "
+                         "gsp_jax.load_model(path)")
+    spec = _named_spec(hand.source)
+    base = spec.compile()
     name = lambda obj, i: mujoco.mj_id2name(base, obj, i)  # noqa: E731
-    tool = mujoco.mj_name2id(base, mujoco.mjtObj.mjOBJ_BODY, TOOL_BODY)
-    tool_geoms = [name(mujoco.mjtObj.mjOBJ_GEOM, g) for g in range(base.ngeom) if base.geom_bodyid[g] == tool]
+    tool = hand_lib.tool_body(base)
+    tool_geoms = [name(mujoco.mjtObj.mjOBJ_GEOM, g) for g in hand_lib.tool_geoms(base, tool)]
     tool_geom0 = mujoco.mj_name2id(base, mujoco.mjtObj.mjOBJ_GEOM, tool_geoms[0])
+    table = name(mujoco.mjtObj.mjOBJ_GEOM, table_geom(base))
     to_tool, to_table = [], []
     for g in range(base.ngeom):
-        if base.geom_type[g] != mujoco.mjtGeom.mjGEOM_CAPSULE:
+        if int(base.geom_type[g]) not in (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_SPHERE)) or \
+                base.body_rootid[base.geom_bodyid[g]] == tool or base.geom_bodyid[g] == 0:
             continue
         gname, bname = name(mujoco.mjtObj.mjOBJ_GEOM, g), name(mujoco.mjtObj.mjOBJ_BODY, base.geom_bodyid[g])
         radius, half = base.geom_size[g][:2]
+        if int(base.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_SPHERE):
+            half = 0.0
         mat = np.zeros(9)
         mujoco.mju_quat2Mat(mat, base.geom_quat[g])
         axis = mat.reshape(3, 3)[:, 2]
         body = spec.body(bname)
-        n_s = config.spheres_per_capsule
+        n_s = config.spheres_per_capsule if half > 0 else 1
         for k, z in enumerate(np.linspace(-half, half, n_s) if n_s > 1 else [0.0]):
             sname = f"{gname}_sphere{k}"
             body.add_geom(name=sname, type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[radius, 0, 0],
                           pos=base.geom_pos[g] + axis * z, contype=0, conaffinity=0, density=0.0, group=3)
-            if gname.endswith(config.tool_contact_links):
+            if bname in hand.touch_tool:
                 to_tool.append(sname)
-            if gname.endswith("distal"):
+            if bname in hand.touch_table:
                 to_table.append(sname)
-    for pname, (tg, x, half) in PEDESTALS.items():
-        spec.worldbody.add_geom(name=pname, type=mujoco.mjtGeom.mjGEOM_BOX, size=list(half), pos=[x, 0, AWAY],
+    supports = [f"{SUPPORT}{k + 1}" for k in range(len(hand.support_top))]
+    for sname, top, half in zip(supports, hand.support_top, hand.support_half):
+        spec.worldbody.add_geom(name=sname, type=mujoco.mjtGeom.mjGEOM_BOX, size=list(half), pos=[top[0], top[1], AWAY],
                                 rgba=[0.45, 0.35, 0.25, 1])
     for g in spec.geoms:
         g.contype, g.conaffinity = 0, 0
     solref, solimp = base.geom_solref[tool_geom0].copy(), base.geom_solimp[tool_geom0].copy()
     fric = lambda mu: [mu, mu, 0.005, 0.0001, 0.0001]  # noqa: E731
     for tg in tool_geoms:
-        spec.add_pair(name=f"{tg}-{TABLE_GEOM}", geomname1=tg, geomname2=TABLE_GEOM, condim=3,
+        spec.add_pair(name=f"{tg}-{table}", geomname1=tg, geomname2=table, condim=3,
                       friction=fric(config.table_friction), solref=solref, solimp=solimp)
         for s in to_tool:  # friction set per episode (Scene.mjx_model_for / c_model_for)
             spec.add_pair(name=f"{tg}-{s}", geomname1=tg, geomname2=s, condim=3, friction=fric(scenario.FRICTION0),
                           solref=solref, solimp=solimp)
-    for pname, (tg, _, _) in PEDESTALS.items():
-        spec.add_pair(name=f"{tg}-{pname}", geomname1=tg, geomname2=pname, condim=3,
+    for k, sname in enumerate(supports):
+        tg = tool_geoms[_support_geom(hand, base, tool, k)]
+        spec.add_pair(name=f"{tg}-{sname}", geomname1=tg, geomname2=sname, condim=3,
                       friction=fric(config.table_friction), solref=solref, solimp=solimp)
     for s in to_table:
-        spec.add_pair(name=f"{s}-{TABLE_GEOM}", geomname1=s, geomname2=TABLE_GEOM, condim=3,
+        spec.add_pair(name=f"{s}-{table}", geomname1=s, geomname2=table, condim=3,
                       friction=fric(config.table_friction), solref=solref, solimp=solimp)
     model = spec.compile()
     model.opt.timestep = config.timestep
@@ -92,6 +116,20 @@ def physics_model(path=hand_lib.SCENE_XML, config: PhysicsConfig = PhysicsConfig
         model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_EULERDAMP
     model.opt.noslip_iterations = config.noslip_iterations
     return model
+
+
+def _support_geom(hand, base: mujoco.MjModel, tool: int, k: int) -> int:
+    """Index (into the tool's collision geoms) of the geom support k carries: the one whose box, at the support's
+    top centre, is nearest above it."""
+    hull = hand.tool_hull().reshape(-1, 8, 3)  # boxes first, then round geoms: the order of `tool_geoms`
+    order = [g for g in hand_lib.tool_geoms(base, tool) if int(base.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_BOX)]
+    order += [g for g in hand_lib.tool_geoms(base, tool) if int(base.geom_type[g]) in hand_lib.ROUND_GEOMS]
+    top = hand.support_top[k]
+    lo, hi = hull.min(1), hull.max(1)
+    inside = np.all((lo[:, :2] <= top[:2] + 1e-9) & (hi[:, :2] >= top[:2] - 1e-9), -1)
+    gap = np.where(inside, np.abs(lo[:, 2] - top[2]), np.inf)
+    best = int(np.argmin(gap)) if np.isfinite(gap).any() else 0
+    return hand_lib.tool_geoms(base, tool).index(order[best])
 
 
 @struct.dataclass
@@ -120,10 +158,10 @@ class EpisodeFields:
 class Scene:
     """The physics model and its index arrays, shared by the MJX and the C MuJoCo backend."""
 
-    def __init__(self, hand: hand_lib.HandModel, config: PhysicsConfig = PhysicsConfig(), path=None):
+    def __init__(self, hand: hand_lib.HandModel, config: PhysicsConfig = PhysicsConfig()):
         self.hand, self.config = hand, config
-        self.model = m = physics_model(path or hand_lib.SCENE_XML, config)
-        self.tool_body = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, TOOL_BODY)
+        self.model = m = physics_model(hand, config)
+        self.tool_body = hand_lib.tool_body(m)
         tool_joint = int(np.flatnonzero(m.jnt_bodyid == self.tool_body)[0])
         self.tool_qpos, self.tool_dof = int(m.jnt_qposadr[tool_joint]), int(m.jnt_dofadr[tool_joint])
         joint_ids = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n) for n in hand.joint_names]
@@ -135,17 +173,16 @@ class Scene:
             raise ValueError(f"hand joints without a motor in the scene: {missing}")
         self.hand_act = np.array([act_of[j] for j in joint_ids])
         self.ctrl_range = tuple(np.asarray(m.actuator_ctrlrange[self.hand_act].T, np.float32))  # motor limits (J,) x 2
-        gname = lambda g: mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g)  # noqa: E731
+        n_sup = len(hand.support_top)
+        self.pedestal_geoms = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, f"{SUPPORT}{k + 1}")
+                                        for k in range(n_sup)])
+        others = {table_geom(m), *self.pedestal_geoms.tolist()}
         self.finger_tool_pairs = np.array(
             [p for p in range(m.npair) if self.tool_body in (m.geom_bodyid[m.pair_geom1[p]], m.geom_bodyid[m.pair_geom2[p]])
-             and not {TABLE_GEOM, *PEDESTALS} & {gname(m.pair_geom1[p]), gname(m.pair_geom2[p])}])
-        box_names = [gname(g) for g in range(m.ngeom) if m.geom_bodyid[g] == self.tool_body]
-        self.pedestal_geoms = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, n) for n in PEDESTALS])
-        self.pedestal_specs = [(box_names.index(tg), x, half) for tg, x, half in PEDESTALS.values()]
-        corners = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float32)
-        self.tool_corners = np.concatenate([  # (8 NB, 3) box corners in the tool frame
-            hand.tool_box_pos[b] + (corners * hand.tool_box_half[b]) @ hand.tool_box_mat[b].T
-            for b in range(len(hand.tool_box_half))]).astype(np.float32)
+             and not others & {int(m.pair_geom1[p]), int(m.pair_geom2[p])}])
+        self.support_top = hand.support_top.astype(np.float32)  # (P, 3) tool frame
+        self.support_drop = (hand.support_half[:, 2]).astype(np.float32)  # (P,) centre below the top
+        self.tool_corners = hand.tool_hull().astype(np.float32)  # (8 G, 3) the geoms' box corners, tool frame
         self.mx = mjx.put_model(m)
 
     def joint_inertia(self) -> np.ndarray:
@@ -163,10 +200,9 @@ class Scene:
         """The model fields of one episode (pure JAX; vmap over episodes)."""
         mat0 = kinematics.quat_to_mat(episode.quats[0])
         ped = []
-        for box, x, half in self.pedestal_specs:
-            corners = (self.tool_corners[8 * box : 8 * box + 8] @ mat0.T) + episode.waypoints[0]
-            top = jnp.min(corners[:, 2])
-            ped.append(jnp.stack([episode.waypoints[0, 0] + x, episode.waypoints[0, 1], top - half[2]]))
+        for top, drop in zip(self.support_top, self.support_drop):
+            p = mat0 @ top + episode.waypoints[0]
+            ped.append(jnp.stack([p[0], p[1], p[2] - drop]))
         return EpisodeFields(mass=episode.mass, inertia=episode.inertia, com=episode.com,
                              friction=jnp.asarray(episode.friction, jnp.float32), pedestal_pos=jnp.stack(ped))
 

@@ -1,0 +1,272 @@
+"""A model: one hand, one tool and their grasp space, loaded once from an MJCF scene and carried everywhere.
+
+`load_model(name_or_path)` is the one door: a shipped model by name (`SHIPPED`: ``wrench``, the default, ``hammer``,
+``allegro``) or any scene file that follows the conventions of `docs/your-model.md`. The surrogate, the physics
+scene (both backends), episodes, policies, DP tables and their cache, the environments and every
+``python -m experiments`` command (``--model NAME_OR_PATH``) are built from it, and nothing falls back to the
+shipped files: what was made for one model (an episode, a table, a policy) is refused by another with an error
+naming both.
+
+`check_model(path)` lists, in plain words, every convention a scene file breaks (an empty list: none); every
+loading path runs it first (`require`), so a broken file is refused before MuJoCo or XLA sees it.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+import pathlib
+
+import mujoco
+import numpy as np
+
+from gsp_jax import grasps, hand as hand_lib
+
+SHIPPED = {"wrench": hand_lib.MODELS_DIR / "scene.xml",  # the paper's tool and our four-fingered hand
+           "hammer": hand_lib.MODELS_DIR / "hammer" / "scene.xml",  # round handle, heavy head: CoM far off the grip
+           "allegro": hand_lib.MODELS_DIR / "allegro" / "scene.xml"}  # the Allegro hand's kinematics, the wrench
+DEFAULT = "wrench"
+
+
+class ModelError(ValueError):
+    """A scene file breaks the model conventions, or something made for one model met another."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Model:
+    """A hand + tool scene: where it came from, its content hash, its constant arrays and its grasp space."""
+
+    name: str  # a shipped name, or the scene file's stem
+    path: pathlib.Path  # the scene file
+    digest: str  # hash of the compiled scene's content (includes resolved), 16 hex digits
+    hand: hand_lib.HandModel
+
+    @property
+    def space(self) -> grasps.GraspSpace:
+        return grasps.space_of(self.hand)
+
+    @property
+    def mjmodel(self) -> mujoco.MjModel:
+        return hand_lib.load_mjmodel(self.path)
+
+    @property
+    def label(self) -> str:
+        """How messages name it: 'hammer (models/hammer/scene.xml, 1a2b...)'."""
+        return f"{self.name!r} ({self.path}, {self.digest})"
+
+    def describe(self) -> str:
+        """A few lines for a person: links, options, grasps, actions, tool."""
+        h, s = self.hand, self.space
+        return (f"model {self.name}: {self.path}\n  hand: {h.n_joints} joints, fingers {', '.join(h.finger_names)}\n"
+                f"  contact links: {', '.join(f'{n} ({k - 1})' for n, k in zip(h.link_names, h.n_options))}\n"
+                f"  grasps {s.n_grasps}, actions {s.n_actions}\n  tool {h.tool_name!r}: {h.tool_mass:g} kg, "
+                f"{len(h.tool_box_half)} boxes, {len(h.tool_round_type)} round geoms {list(h.tool_round_type)}")
+
+    def expect(self, other: "Model | str", what: str) -> None:
+        """Raise `ModelError` if `what` was made for a model of digest `other` (a Model or a digest)."""
+        digest = other.digest if isinstance(other, Model) else str(other)
+        if digest != self.digest:
+            made = other.label if isinstance(other, Model) else f"a model of digest {digest}"
+            raise ModelError(f"{what} was made for {made}, not for {self.label}")
+
+
+def resolve(name_or_path) -> pathlib.Path:
+    """The scene file of a shipped name or a path (a folder means its scene.xml)."""
+    if isinstance(name_or_path, str) and name_or_path in SHIPPED:
+        return SHIPPED[name_or_path]
+    path = pathlib.Path(name_or_path).expanduser()
+    if path.is_dir():
+        path = path / "scene.xml"
+    if not path.is_file():
+        raise ModelError(f"model: {str(name_or_path)!r} is neither a shipped model ({', '.join(SHIPPED)}) nor a scene "
+                         "file")
+    return path.resolve()
+
+
+_default: list = [DEFAULT]  # what `load_model(None)` gives: `set_default` (the CLI's --model) changes it
+
+
+def load_model(name_or_path=None) -> Model:
+    """The `Model` of a shipped name or a scene file (None: the default model, ``wrench`` unless `set_default`
+    chose another; a `Model` or a loaded `HandModel` is returned as its `Model`). One object per file in a
+    process."""
+    if isinstance(name_or_path, Model):
+        return name_or_path
+    if isinstance(name_or_path, hand_lib.HandModel):
+        return of_hand(name_or_path)
+    if name_or_path is None:
+        return load_model(_default[0])
+    return _load(str(resolve(name_or_path)))
+
+
+def set_default(name_or_path) -> Model:
+    """Make a model the one that `load_model(None)` -- and so `Surrogate()`, the episode sets and everything built
+    without a model named -- gives in this process (the CLI's ``--model``); returns it, checked and loaded."""
+    model = load_model(DEFAULT if name_or_path is None else name_or_path)
+    _default[0] = model
+    return model
+
+
+@functools.lru_cache(maxsize=16)
+def _load(path: str) -> Model:
+    shipped = {str(p.resolve()): n for n, p in SHIPPED.items()}
+    name = shipped.get(str(pathlib.Path(path).resolve()), pathlib.Path(path).parent.name
+                       if pathlib.Path(path).stem == "scene" else pathlib.Path(path).stem)
+    return Model(name, pathlib.Path(path), digest(path), hand_lib.load(path))
+
+
+def of_hand(hand: hand_lib.HandModel) -> Model:
+    """The `Model` a `HandModel` was loaded from (its `source`); one built otherwise has none."""
+    if not hand.source:
+        raise ModelError("model: this HandModel was not loaded from a scene file (hand.source is empty); load it with "
+                         "gsp_jax.load_model(path)")
+    model = _load(str(resolve(hand.source)))
+    return model if model.hand is hand else dataclasses.replace(model, hand=hand)
+
+
+@functools.lru_cache(maxsize=16)
+def digest(path) -> str:
+    """16 hex digits of sha256 over the scene as MuJoCo reads it (its includes resolved, comments dropped)."""
+    xml = mujoco.MjSpec.from_file(str(path)).to_xml()
+    return hashlib.sha256(xml.encode()).hexdigest()[:16]
+
+
+# --------------------------------------------------------------------------------------------------- checks
+
+def require(path) -> None:
+    """Raise `ModelError` listing every convention the scene file at `path` breaks (`check_model`)."""
+    problems = check_model(path)
+    if problems:
+        raise ModelError(f"model {path} breaks {len(problems)} convention(s) (see docs/your-model.md):\n  - "
+                         + "\n  - ".join(problems))
+
+
+@functools.lru_cache(maxsize=16)
+def _check(path: str) -> tuple[str, ...]:
+    try:
+        m = hand_lib.load_mjmodel(path)
+    except Exception as e:  # noqa: BLE001 -- MuJoCo's own message, passed on
+        return (f"MuJoCo cannot compile the file: {e}".strip(),)
+    problems = [*_check_tool(m), *_check_table(m)]
+    links = _check_links(m, problems)
+    if links is not None:
+        problems += _check_hand(m, links)
+    if not problems:
+        try:
+            hand_lib.from_mjmodel(m)
+        except ValueError as e:
+            problems.append(str(e).removeprefix("model: "))
+    return tuple(problems)
+
+
+def check_model(path) -> list[str]:
+    """Every model convention the scene file at `path` breaks, in plain words ([] when it follows them all): the
+    tool (one free body of supported primitives, with mass), the table (a plane), the contact links (site
+    ``contact_<link>``, at least one option ``opt_<link>_<k>`` on the tool), the hand (hinges, a motor each,
+    capsule or sphere geoms, the IK start) and the optional conventions (start options, touch lists, reach box,
+    supports)."""
+    return list(_check(str(path)))
+
+
+def _name(m, obj, i) -> str:
+    return mujoco.mj_id2name(m, obj, i) or f"#{i}"
+
+
+def _check_tool(m) -> list[str]:
+    free = sorted({int(m.jnt_bodyid[j]) for j in range(m.njnt) if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE})
+    if len(free) != 1:
+        names = ", ".join(repr(_name(m, mujoco.mjtObj.mjOBJ_BODY, b)) for b in free)
+        return [f"the tool must be the scene's one free body (a body with <freejoint/>): found {len(free)}"
+                + (f" ({names})" if names else "")]
+    tool, out = free[0], []
+    geoms = hand_lib.tool_geoms(m, tool)
+    if not geoms:
+        out.append(f"tool body {_name(m, mujoco.mjtObj.mjOBJ_BODY, tool)!r} has no collision geom")
+    for g in geoms:
+        if int(m.geom_type[g]) not in hand_lib.TOOL_GEOMS:
+            kind = mujoco.mjtGeom(m.geom_type[g]).name.removeprefix("mjGEOM_").lower()
+            out.append(f"tool geom {_name(m, mujoco.mjtObj.mjOBJ_GEOM, g)!r} is a {kind}: a tool geom must be one of "
+                       f"{', '.join(sorted(hand_lib.TOOL_GEOMS.values()))}")
+    if not m.body_mass[tool] > 0:
+        out.append(f"tool body {_name(m, mujoco.mjtObj.mjOBJ_BODY, tool)!r} has no mass (give it an <inertial> or geoms "
+                   "with density)")
+    return out
+
+
+def _check_table(m) -> list[str]:
+    planes = [g for g in range(m.ngeom) if m.geom_bodyid[g] == 0 and m.geom_type[g] == mujoco.mjtGeom.mjGEOM_PLANE]
+    return [] if len(planes) == 1 else [f"the scene needs one plane geom in the worldbody (the table); found {len(planes)}"]
+
+
+def _check_links(m, problems: list[str]):
+    """Check the contact links and their options; the link names if the hand can be checked further."""
+    if mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_TEXT, "gsp_contact_links") < 0:
+        problems.append("custom text 'gsp_contact_links' is missing: <custom><text name=\"gsp_contact_links\" "
+                        "data=\"link1 link2 ...\"/></custom> lists the contact links in grasp order")
+        return None
+    links = hand_lib._text(m, "gsp_contact_links").split()
+    if not links:
+        problems.append("custom text 'gsp_contact_links' names no link")
+        return None
+    try:
+        tool = hand_lib.tool_body(m)
+    except ValueError:
+        tool = -1
+    ok = True
+    for link in links:
+        s = hand_lib._site(m, f"contact_{link}")
+        if s < 0:
+            problems.append(f"link {link!r} has no site 'contact_{link}' (a sphere or capsule site on the link's body)")
+            ok = False
+        elif int(m.site_type[s]) not in (int(mujoco.mjtGeom.mjGEOM_SPHERE), int(mujoco.mjtGeom.mjGEOM_CAPSULE)):
+            problems.append(f"site 'contact_{link}' must be a sphere or capsule site")
+        elif m.site_bodyid[s] in (0, tool):
+            problems.append(f"site 'contact_{link}' must be on a body of the hand, not the world or the tool")
+            ok = False
+        if hand_lib._site(m, f"opt_{link}_1") < 0:
+            problems.append(f"link {link!r} has no contact option on the tool: add site 'opt_{link}_1' (its z axis the "
+                            "inward normal) to the tool body")
+        k = 1
+        while (o := hand_lib._site(m, f"opt_{link}_{k}")) >= 0:
+            if m.site_bodyid[o] != tool:
+                problems.append(f"site 'opt_{link}_{k}' is not on the tool body")
+            k += 1
+    for s in range(m.nsite):
+        name = _name(m, mujoco.mjtObj.mjOBJ_SITE, s)
+        if name.startswith("opt_") and name[4:].rsplit("_", 1)[0] not in links:
+            problems.append(f"site {name!r} names no contact link (gsp_contact_links: {' '.join(links)})")
+    roots = {int(m.body_rootid[m.site_bodyid[hand_lib._site(m, f'contact_{n}')]]) for n in links} if ok else set()
+    if len(roots) > 1:
+        problems.append("the contact links' sites are on more than one hand (bodies under different world children)")
+        return None
+    return links if ok else None
+
+
+def _check_hand(m, links) -> list[str]:
+    out = []
+    palm = hand_lib.hand_root(m)
+    bodies = [b for b in range(1, m.nbody) if m.body_rootid[b] == palm]
+    joints = [j for j in range(m.njnt) if m.jnt_bodyid[j] in bodies]
+    for j in joints:
+        if m.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE:
+            out.append(f"hand joint {_name(m, mujoco.mjtObj.mjOBJ_JOINT, j)!r} is not a hinge")
+    per_body = np.bincount(m.jnt_bodyid[joints], minlength=m.nbody) if joints else np.zeros(m.nbody, int)
+    out += [f"hand body {_name(m, mujoco.mjtObj.mjOBJ_BODY, b)!r} has {per_body[b]} joints (at most one hinge)"
+            for b in bodies if per_body[b] > 1]
+    driven = {int(m.actuator_trnid[a, 0]) for a in range(m.nu) if m.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT
+              and (not m.actuator_ctrllimited[a] or m.actuator_ctrlrange[a, 0] < 0 < m.actuator_ctrlrange[a, 1])}
+    out += [f"hand joint {_name(m, mujoco.mjtObj.mjOBJ_JOINT, j)!r} has no motor with a control range around 0"
+            for j in joints if j not in driven]
+    for g in range(m.ngeom):
+        if m.geom_bodyid[g] in bodies and m.geom_bodyid[g] != palm and int(m.geom_type[g]) not in (
+                int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_SPHERE)):
+            kind = mujoco.mjtGeom(m.geom_type[g]).name.removeprefix("mjGEOM_").lower()
+            out.append(f"hand geom {_name(m, mujoco.mjtObj.mjOBJ_GEOM, g)!r} (body "
+                       f"{_name(m, mujoco.mjtObj.mjOBJ_BODY, m.geom_bodyid[g])!r}) is a {kind}: below the palm a hand "
+                       "geom must be a capsule or a sphere")
+    start = hand_lib._numeric(m, "gsp_ik_start")
+    if start is None:
+        out.append(f"custom numeric 'gsp_ik_start' is missing (the IK's start: {len(joints)} joint angles)")
+    elif len(start) != len(joints):
+        out.append(f"custom numeric 'gsp_ik_start' has {len(start)} values for the hand's {len(joints)} joints")
+    return out

@@ -33,6 +33,7 @@ ROUND_GEOMS = {int(_G.mjGEOM_SPHERE): "sphere", int(_G.mjGEOM_CAPSULE): "capsule
                int(_G.mjGEOM_ELLIPSOID): "ellipsoid"}
 TOOL_GEOMS = {int(_G.mjGEOM_BOX): "box", **ROUND_GEOMS}  # the primitives a tool may be made of
 WORKSPACE = ((-0.05, -0.05, 0.005), (0.05, 0.05, 0.10))  # default reach box of the waypoints, table frame [m]
+TASK_TORQUE = 1.0  # default final external torque of a model's episodes [N m] (the paper's; gsp_torque sets it)
 SUPPORT_HALF = (0.012, 0.008, 0.004)  # half sizes of a start support derived from the tool's shape [m]
 SPHERE_SPACING = 1.5  # centre spacing of a capsule's spheres, in radii (gaps stay well under the collision margin)
 SELF_COLLISION_MIN_DEPTH = 3  # self-collision: capsules of bodies this deep below the palm (medial, distal)
@@ -80,6 +81,7 @@ class HandModel:
     capsule_radius: np.ndarray  # (C,) [m]
     self_pairs: np.ndarray  # (P, 2) int, capsule pairs on different fingers checked for self-collision
     finger_names: tuple[str, ...]  # (F,) each finger's label: its first body's name up to "_" (labels only)
+    joint_finger: np.ndarray  # (J,) int, finger of each joint
     link_finger: np.ndarray  # (L,) int, finger of each contact link
     link_is_tip: np.ndarray  # (L,) bool, the deepest contact link of its finger (where it parks)
     start_options: tuple[int, ...]  # (L,) the default start grasp (custom numeric gsp_start_options; default: tips)
@@ -87,6 +89,7 @@ class HandModel:
     touch_tool: tuple[str, ...]  # hand bodies whose geoms touch the tool in physics (custom text gsp_touch_tool)
     touch_table: tuple[str, ...]  # hand bodies whose geoms touch the table in physics (gsp_touch_table)
     workspace: np.ndarray  # (2, 3) the waypoints' reach box, table frame, lower and upper corner [m]
+    torque: float  # the magnitude of the final external torque of the model's episodes [N m] (gsp_torque)
     # the tool: its collision boxes and round primitives, in the tool frame
     tool_name: str  # the tool body's name
     tool_box_pos: np.ndarray  # (NB, 3) [m]
@@ -430,7 +433,11 @@ def _conventions(model: mujoco.MjModel, tree: _Tree, links: dict) -> dict:
     box = np.array(WORKSPACE).ravel() if box is None else box
     if box.size != 6 or np.any(box[:3] >= box[3:]):
         raise ValueError(f"model: gsp_workspace {box.tolist()} must be 6 values, lower corner below upper corner")
-    return dict(start_options=tuple(int(o) for o in start), tip_options=tips,
+    torque = _numeric(model, "gsp_torque")
+    torque = np.array([TASK_TORQUE]) if torque is None else torque
+    if torque.size != 1 or not 0 < torque[0] < np.inf:
+        raise ValueError(f"model: gsp_torque {torque.tolist()} must be one positive value [N m]")
+    return dict(start_options=tuple(int(o) for o in start), tip_options=tips, torque=float(torque[0]),
                 touch_tool=_bodies_text(model, "gsp_touch_tool", sorted(below), tree),
                 touch_table=_bodies_text(model, "gsp_touch_table", leaves, tree), workspace=box.reshape(2, 3))
 
@@ -469,6 +476,7 @@ def from_mjmodel(model: mujoco.MjModel) -> HandModel:
         q_start=q_start,
         qpos_adr=np.array([model.jnt_qposadr[j] for j in joints]),
         finger_names=tuple(model.body(f).name.split("_")[0] for f in tree.fingers),
+        joint_finger=np.array([tree.finger_of(int(model.jnt_bodyid[j])) for j in joints], np.int32),
         gravity=np.array(model.opt.gravity),
         **links, **_collision(model, tree, links["link_body"]), **_tool(model, tool),
         **_conventions(model, tree, links),

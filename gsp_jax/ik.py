@@ -404,15 +404,19 @@ def start_configurations(hand: HandModel, cfg: IKConfig) -> np.ndarray:
     extra start's per-finger offsets added to every finger (the model's joints come finger by finger, each finger's
     in the same order; clipped to the joint limits)."""
     q0 = np.asarray(hand.q_start, np.float64)
-    fingers = list(dict.fromkeys(n.split("_")[0] for n in hand.joint_names))
-    per_finger = hand.n_joints // len(fingers)
+    finger = np.asarray(hand.joint_finger)
+    rank = np.array([np.sum(finger[:j] == finger[j]) for j in range(hand.n_joints)])  # joint's place in its finger
+    counts = np.bincount(finger)
     starts = [q0]
     for offset in cfg.extra_starts:
         offset = np.asarray(offset, np.float64)
-        if offset.shape != (per_finger,) or not np.all(np.isfinite(offset)):
+        if len(set(counts[counts > 0])) != 1:
+            raise ValueError(f"IKConfig.extra_starts: per-finger offsets need fingers of equal joint counts, the "
+                             f"model's have {counts.tolist()}")
+        if offset.shape != (counts.max(),) or not np.all(np.isfinite(offset)):
             raise ValueError(f"IKConfig.extra_starts: each offset needs one finite value per joint of a finger "
-                             f"({per_finger}), got {tuple(np.ravel(offset).tolist())}")
-        starts.append(np.clip(q0 + np.tile(offset, len(fingers)), *hand.joint_range.T))
+                             f"({counts.max()}), got {tuple(np.ravel(offset).tolist())}")
+        starts.append(np.clip(q0 + offset[rank], *hand.joint_range.T))
     return np.stack(starts)
 
 

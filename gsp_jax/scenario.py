@@ -14,6 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from gsp_jax import hand as hand_lib
+
 N_WAYPOINTS = 16  # T: waypoints = decision steps of an episode
 DT = 0.25  # nominal time between waypoints [s]
 M0 = 0.35  # the shipped wrench's nominal mass [kg] (episodes take their tool's from its model file)
@@ -21,7 +23,8 @@ INERTIA0 = (2.5e-5, 1.1e-3, 1.12e-3)  # the shipped wrench's principal inertia a
 FRICTION0 = 0.8  # nominal finger-tool Coulomb friction coefficient
 FRICTION_MAX = 3.0  # a plausible friction coefficient is in (0, FRICTION_MAX] (rubber on metal is ~1-2)
 Z_START, Z_END = 0.014, 0.06  # nominal start and end heights of the tool frame [m]
-TORQUE0 = 1.0  # magnitude of the final external torque about +z through the centre of mass [N m]
+TORQUE0 = hand_lib.TASK_TORQUE  # the wrench's final external torque about +z through the CoM [N m] (a model's
+# file may set its own, `HandModel.torque`: the episode sets scale their torques by it)
 HEIGHT_SHIFTS_MM = (-6, -4, -2, 2, 4, 6, 8)
 MASS_FACTORS = (0.5, 1.0, 1.5, 2.0)
 COM_Y_OFFSETS_CM = (-2, -1, 0, 1, 2)
@@ -64,7 +67,7 @@ def min_jerk(z0: float, z1: float, n: int = N_WAYPOINTS) -> np.ndarray:
 
 def make_episode(
     shift_mm: float = 0.0,
-    torque: float = TORQUE0,
+    torque: float | None = None,
     mass_factor: float = 1.0,
     com_y_cm: float = 0.0,
     friction: float = FRICTION0,
@@ -80,7 +83,8 @@ def make_episode(
     com=None,
 ) -> Episode:
     """The nominal lift of `model`'s tool (a name, path or `gsp_jax.model.Model`; None: the shipped wrench) with the
-    paper's variations: start and end heights shifted, torque, mass, CoM y-offset; and beyond them (the stress set):
+    paper's variations: start and end heights shifted, torque (None: the model's, `HandModel.torque`), mass, CoM
+    y-offset; and beyond them (the stress set):
     a CoM x-offset, a lateral end point (dx, dy) [mm] reached on the same minimum-jerk profile as the height, the
     final torque about x, y, z or any axis (`torque_axis`: a name or a 3-vector, normalised).
 
@@ -112,7 +116,7 @@ def make_episode(
     x, y = (min_jerk(r, r + d * 1e-3) for r, d in zip(rest[:2], lateral_mm))
     waypoints = np.stack([x, y, z], -1)
     w_ext = np.zeros(6)
-    w_ext[3:] = torque * axis
+    w_ext[3:] = (hand.torque if torque is None else torque) * axis
     com = hand.tool_com + np.array([com_x_cm * 1e-2, com_y_cm * 1e-2, 0.0]) if com is None else com
     ep = Episode(
         waypoints=jnp.asarray(waypoints, jnp.float32),
@@ -152,6 +156,13 @@ def _fmt_mm(mm: float) -> str:
     return f"{mm:+d}mm" if float(mm).is_integer() else f"{mm:+g}mm"
 
 
+def _torque(model) -> float:
+    """The final torque magnitude of a model's episodes [N m] (`HandModel.torque`; the wrench's: TORQUE0)."""
+    from gsp_jax import model as model_lib
+
+    return model_lib.load_model(model).hand.torque
+
+
 def nominal(model=None) -> dict[str, Episode]:
     return {"nominal": make_episode(model=model, )}
 
@@ -159,18 +170,19 @@ def nominal(model=None) -> dict[str, Episode]:
 def training_set(model=None) -> dict[str, Episode]:
     """The paper's 9 training episodes: nominal (+1 N m), nominal with -1 N m, and the seven height shifts with
     -1 N m for negative shifts and +1 N m for positive ones."""
-    eps = {"nominal": make_episode(model=model, ), "nominal_-1Nm": make_episode(model=model, torque=-TORQUE0)}
+    t0 = _torque(model)
+    eps = {"nominal": make_episode(model=model), f"nominal_{-t0:+g}Nm": make_episode(model=model, torque=-t0)}
     for s in HEIGHT_SHIFTS_MM:
-        tau = -TORQUE0 if s < 0 else TORQUE0
+        tau = -t0 if s < 0 else t0
         eps[f"shift{_fmt_mm(s)}_{tau:+g}Nm"] = make_episode(model=model, shift_mm=s, torque=tau)
     return eps
 
 
 def eval_set_a(model=None) -> dict[str, Episode]:
     """Evaluation set A, path deviation (7): the height shifts with the torque sign flipped."""
-    eps = {}
+    eps, t0 = {}, _torque(model)
     for s in HEIGHT_SHIFTS_MM:
-        tau = TORQUE0 if s < 0 else -TORQUE0
+        tau = t0 if s < 0 else -t0
         eps[f"shift{_fmt_mm(s)}_{tau:+g}Nm"] = make_episode(model=model, shift_mm=s, torque=tau)
     return eps
 
@@ -189,9 +201,9 @@ def validation_set(model=None) -> dict[str, Episode]:
     evaluation: the odd height shifts with set A's torque convention (positive shifts -1 N m), and mass
     0.5 / 0.75 / 1.75 / 2 m0 crossed with CoM y-offset -1.5 / +1.5 cm -- unseen variations of both evaluation kinds
     (15 episodes; the CoM offsets are not evaluation set B's, so the lightest and heaviest tools are in both)."""
-    eps = {}
+    eps, t0 = {}, _torque(model)
     for s in VALIDATION_SHIFTS_MM:
-        tau = TORQUE0 if s < 0 else -TORQUE0
+        tau = t0 if s < 0 else -t0
         eps[f"shift{_fmt_mm(s)}_{tau:+g}Nm"] = make_episode(model=model, shift_mm=s, torque=tau)
     for f in VALIDATION_MASS_FACTORS:
         for c in VALIDATION_COM_Y_CM:
@@ -215,7 +227,8 @@ def stress_set(n: int = STRESS_SIZE, seed: int = STRESS_SEED, prefix: str = "str
         return lo + (hi - lo) * (rng.permutation(n) + rng.uniform(size=n)) / n
 
     log_mass = strata(np.log(0.25), np.log(3.0))
-    mu, torque, com_x, com_y = strata(0.3, 2.0), strata(-2.0, 2.0), strata(-2.0, 2.0), strata(-2.0, 2.0)
+    t0 = _torque(model)
+    mu, torque, com_x, com_y = strata(0.3, 2.0), strata(-2.0, 2.0) * t0, strata(-2.0, 2.0), strata(-2.0, 2.0)
     shift, lat = strata(-6.0, 12.0), strata(-15.0, 15.0)
     eps = {}
     for i in range(n):

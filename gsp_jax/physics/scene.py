@@ -16,6 +16,7 @@ then on the fingers alone hold the tool.
 from __future__ import annotations
 
 import copy
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -183,7 +184,16 @@ class Scene:
         self.support_top = hand.support_top.astype(np.float32)  # (P, 3) tool frame
         self.support_drop = (hand.support_half[:, 2]).astype(np.float32)  # (P,) centre below the top
         self.tool_corners = hand.tool_hull().astype(np.float32)  # (8 G, 3) the geoms' box corners, tool frame
-        self.mx = mjx.put_model(m)
+
+    @functools.cached_property
+    def mx(self) -> mjx.Model:
+        """The MJX model (built on first use: the C backend needs none). MJX collides fewer primitive pairs than C
+        MuJoCo (no cylinder with a box, for one): a scene with such a pair gets a ValueError naming it."""
+        try:
+            return mjx.put_model(self.model)
+        except NotImplementedError as e:
+            raise ValueError(f"physics: MJX cannot simulate this scene ({e}); use the C MuJoCo backend "
+                             "(backend='c', the default of the physics check)") from None
 
     def joint_inertia(self) -> np.ndarray:
         """(J,) [kg m^2] the hand joints' inertia: the diagonal of the joint-space inertia (armature included, 80-100%

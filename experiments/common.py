@@ -61,6 +61,7 @@ def fingerprint(ctx) -> str:
     sources += [ROOT / "experiments" / f for f in ("physics/check.py", "paper/fig4b.py")]
     for path in sorted(sources):
         h.update(path.read_bytes())
+    h.update(ctx.surrogate.model.digest.encode())  # the model (its scene, includes resolved)
     h.update(repr(ctx.names).encode())
     for leaf in jax.tree.leaves(ctx.rl.params):
         h.update(np.asarray(leaf).tobytes())

@@ -224,11 +224,11 @@ def contact_links(model: mujoco.MjModel) -> tuple[str, ...]:
 
 
 def hand_root(model: mujoco.MjModel) -> int:
-    """The hand's root (its palm): the world's child body that holds the first contact link's site."""
-    s = _site(model, f"contact_{contact_links(model)[0]}")
-    if s < 0:
-        raise ValueError(f"model: site 'contact_{contact_links(model)[0]}' is missing")
-    return int(model.body_rootid[model.site_bodyid[s]])
+    """The hand's root (its palm): the world's child body that holds the contact links' sites."""
+    sites = [s for n in contact_links(model) if (s := _site(model, f"contact_{n}")) >= 0]
+    if not sites:
+        raise ValueError("model: no contact link has its site 'contact_<link>'")
+    return int(model.body_rootid[model.site_bodyid[sites[0]]])
 
 
 def _tree(model: mujoco.MjModel, palm: int) -> _Tree:

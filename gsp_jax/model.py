@@ -212,17 +212,14 @@ def _check_links(m, problems: list[str]):
         tool = hand_lib.tool_body(m)
     except ValueError:
         tool = -1
-    ok = True
     for link in links:
         s = hand_lib._site(m, f"contact_{link}")
         if s < 0:
             problems.append(f"link {link!r} has no site 'contact_{link}' (a sphere or capsule site on the link's body)")
-            ok = False
         elif int(m.site_type[s]) not in (int(mujoco.mjtGeom.mjGEOM_SPHERE), int(mujoco.mjtGeom.mjGEOM_CAPSULE)):
             problems.append(f"site 'contact_{link}' must be a sphere or capsule site")
         elif m.site_bodyid[s] in (0, tool):
             problems.append(f"site 'contact_{link}' must be on a body of the hand, not the world or the tool")
-            ok = False
         if hand_lib._site(m, f"opt_{link}_1") < 0:
             problems.append(f"link {link!r} has no contact option on the tool: add site 'opt_{link}_1' (its z axis the "
                             "inward normal) to the tool body")
@@ -235,11 +232,12 @@ def _check_links(m, problems: list[str]):
         name = _name(m, mujoco.mjtObj.mjOBJ_SITE, s)
         if name.startswith("opt_") and name[4:].rsplit("_", 1)[0] not in links:
             problems.append(f"site {name!r} names no contact link (gsp_contact_links: {' '.join(links)})")
-    roots = {int(m.body_rootid[m.site_bodyid[hand_lib._site(m, f'contact_{n}')]]) for n in links} if ok else set()
+    placed = [s for n in links if (s := hand_lib._site(m, f"contact_{n}")) >= 0 and m.site_bodyid[s] not in (0, tool)]
+    roots = {int(m.body_rootid[m.site_bodyid[s]]) for s in placed}
     if len(roots) > 1:
         problems.append("the contact links' sites are on more than one hand (bodies under different world children)")
         return None
-    return links if ok else None
+    return links if roots else None  # the hand is checked further wherever one of its links has its site
 
 
 def _check_hand(m, links) -> list[str]:

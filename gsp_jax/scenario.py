@@ -211,6 +211,20 @@ def validation_set(model=None) -> dict[str, Episode]:
     return eps
 
 
+def variations_set(model=None) -> dict[str, Episode]:
+    """A model's episode set (ours, for comparing models): the nominal lift and one variation at a time -- mass
+    0.5 / 1.5 / 2 m0, friction 0.5 / 1.2, the torque reversed, halved and 1.5 times (9 episodes)."""
+    t0 = _torque(model)
+    eps = {"nominal": make_episode(model=model)}
+    for f in (0.5, 1.5, 2.0):
+        eps[f"mass{f:g}m0"] = make_episode(model=model, mass_factor=f)
+    for mu in (0.5, 1.2):
+        eps[f"mu{mu:g}"] = make_episode(model=model, friction=mu)
+    for k in (-1.0, 0.5, 1.5):
+        eps[f"torque{k * t0:+g}Nm"] = make_episode(model=model, torque=k * t0)
+    return eps
+
+
 STRESS_SEED = 20261125  # the stress set's draws: fixed, so the set is the same everywhere
 STRESS_SIZE = 120
 
@@ -251,12 +265,13 @@ def stress_calibration_set(model=None) -> dict[str, Episode]:
     return stress_set(60, STRESS_SEED + 1, prefix="envcal", model=model)
 
 
-SETS = {"nominal": nominal, "train": training_set, "val": validation_set, "evalA": eval_set_a, "evalB": eval_set_b,
+SETS = {"nominal": nominal, "variations": variations_set, "train": training_set, "val": validation_set, "evalA": eval_set_a, "evalB": eval_set_b,
         "stress": stress_set, "stress-cal": stress_calibration_set}
 
 
 def episode_set(name: str, model=None) -> dict[str, Episode]:
-    """A named set: nominal, train, val, evalA, evalB, eval (A then B), all (train then eval), stress (the
+    """A named set: nominal, variations (`variations_set`), train, val, evalA, evalB, eval (A then B), all (train
+    then eval), stress (the
     envelope; never part of "all": not for calibration or training) or stress-cal (the envelope's calibration
     slice, disjoint from stress)."""
     if name == "eval":

@@ -20,6 +20,8 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 # (command line, files it must write, relative to the working directory); the groups run in one directory each
 QUICKEST = {
     "demo": [(["demo", "--no-gif"], ["results/demo/demo.png"])],
+    "your-model": [(["check-model", "hammer"], []),
+                   (["demo", "--no-gif", "--model", "hammer"], ["results/demo-hammer/demo.png"])],
     "surrogate": [(["surrogate", "--episode", "nominal", "--waypoints", "0"], [])],
     "bench-startup": [(["bench-startup", "--no-off", "--out", "s.json"], ["s.json"])],
     "bench-surrogate": [(["bench-surrogate", "--loop-steps", "17", "--repeats", "1", "--out", "b.json"], ["b.json"])],

@@ -36,7 +36,7 @@ PLANNERS = ("four-tips", "dp-opt", "L1", "L2", "rl")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--set", default="stress", choices=["stress", "stress-cal", "eval", "val", "train"])
+    p.add_argument("--set", default="stress", choices=["stress", "stress-cal", "eval", "val", "train", "variations"])
     p.add_argument("--episodes", type=int, default=None, help="only N episodes, spread over the set")
     p.add_argument("--random", type=int, default=8, help="random surrogate-feasible sequences per episode")
     p.add_argument("--seed", type=int, default=0)
@@ -149,7 +149,8 @@ def main(args: argparse.Namespace) -> None:
         raise SystemExit(f"envelope: --physics-lookahead must be >= 0, got {args.physics_lookahead}")
     ctx = evaluation.context(args.set, args.episodes, args.policy_dir)
     sur, N, T = ctx.surrogate, len(ctx.names), ctx.batch.n_steps
-    planners = list(PLANNERS) + (["L1-physics"] if args.physics_lookahead else [])
+    planners = [p for p in PLANNERS if p != "rl" or ctx.rl is not None]  # a model without a PPO policy: no RL row
+    planners += ["L1-physics"] if args.physics_lookahead else []
     groups = [evaluation.make(ctx, name, k=args.physics_lookahead or 1, bases=args.bases)
               for name in planners]
     keys = jax.random.split(jax.random.PRNGKey(args.seed), N * args.random).reshape(N, args.random, 2)

@@ -16,7 +16,6 @@ then on the fingers alone hold the tool.
 from __future__ import annotations
 
 import copy
-import functools
 
 import jax
 import jax.numpy as jnp
@@ -185,15 +184,18 @@ class Scene:
         self.support_drop = (hand.support_half[:, 2]).astype(np.float32)  # (P,) centre below the top
         self.tool_corners = hand.tool_hull().astype(np.float32)  # (8 G, 3) the geoms' box corners, tool frame
 
-    @functools.cached_property
-    def mx(self) -> mjx.Model:
-        """The MJX model (built on first use: the C backend needs none). MJX collides fewer primitive pairs than C
-        MuJoCo (no cylinder with a box, for one): a scene with such a pair gets a ValueError naming it."""
         try:
-            return mjx.put_model(self.model)
-        except NotImplementedError as e:
-            raise ValueError(f"physics: MJX cannot simulate this scene ({e}); use the C MuJoCo backend "
-                             "(backend='c', the default of the physics check)") from None
+            self._mx, self._mx_error = mjx.put_model(m), None
+        except NotImplementedError as e:  # MJX collides fewer primitive pairs than C MuJoCo (a cylinder and a box)
+            self._mx, self._mx_error = None, str(e)
+
+    @property
+    def mx(self) -> mjx.Model:
+        """The MJX model; a scene with a primitive pair MJX cannot collide gets a ValueError naming it."""
+        if self._mx is None:
+            raise ValueError(f"physics: MJX cannot simulate this scene ({self._mx_error}); use the C MuJoCo backend "
+                             "(backend='c', the default of the physics check)")
+        return self._mx
 
     def joint_inertia(self) -> np.ndarray:
         """(J,) [kg m^2] the hand joints' inertia: the diagonal of the joint-space inertia (armature included, 80-100%

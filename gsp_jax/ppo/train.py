@@ -340,6 +340,10 @@ def _manager(directory, trainer: Trainer, seed: int) -> ocp.CheckpointManager:
     directory = pathlib.Path(directory).absolute()
     directory.mkdir(parents=True, exist_ok=True)
     meta = {"seed": seed, "config": _jsonable(dataclasses.asdict(trainer.config)), "networks": _jsonable(dataclasses.asdict(trainer.networks.config))}
+    hand = trainer.env.surrogate.hand
+    if hand.source:  # the model it trains for: a run is never resumed for another one
+        model = trainer.env.surrogate.model
+        meta["model"] = {"name": model.name, "digest": model.digest}
     meta_file = directory / "run.json"
     if meta_file.exists():
         old = json.loads(meta_file.read_text())

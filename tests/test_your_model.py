@@ -1,0 +1,229 @@
+"""Your hand, your tool: a model written outside the package -- a three-finger hand (the shipped hand without its ring
+finger, every geom renamed) and a round-handled tool of its own (not named "wrench", a capsule and a sphere, its own
+mass) -- goes surrogate -> DP -> physics with nothing read from the shipped files; every convention a file breaks is
+named by `check_model`, and what was made for one model is refused by another."""
+from __future__ import annotations
+
+import json
+import pathlib
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+
+from gsp_jax import dp, evaluation, hand as hand_lib, ik, model as model_lib, physics, policies, scenario
+from gsp_jax.surrogate import Surrogate
+
+TOOL = """<mujoco model="screwdriver">
+  <default><default class="t">
+    <geom contype="2" conaffinity="1" condim="3" friction="1.0 0.01 0.001" solref="0.004 1" solimp="0.95 0.99 0.001"/>
+    <site type="sphere" size="0.003" group="4"/>
+  </default></default>
+  <custom><numeric name="gsp_start_options" data="1 1 0 1 0"/></custom>
+  <worldbody>
+    <body name="screwdriver" pos="0 0 0.02" childclass="t">
+      <freejoint/>
+      <geom name="grip" type="capsule" fromto="-0.07 0 0  0.06 0 0" size="0.0125" mass="0.2"/>
+      <geom name="knob" type="sphere" pos="0.075 0 0" size="0.016" mass="0.05"/>
+      <site name="opt_thumb_distal_1" pos="0.015 -0.0125 0" zaxis="0 1 0"/>
+      <site name="opt_thumb_distal_2" pos="0.03 -0.0125 0" zaxis="0 1 0"/>
+      <site name="opt_index_distal_1" pos="0.03 0.0125 0" zaxis="0 -1 0"/>
+      <site name="opt_index_medial_1" pos="0.035 0.0125 0" zaxis="0 -1 0"/>
+      <site name="opt_middle_distal_1" pos="0.0 0.0125 0" zaxis="0 -1 0"/>
+      <site name="opt_middle_distal_2" pos="-0.03 0.0125 0" zaxis="0 -1 0"/>
+      <site name="opt_middle_medial_1" pos="0.0 0.0125 0" zaxis="0 -1 0"/>
+    </body>
+  </worldbody>
+</mujoco>"""
+
+SCENE = """<mujoco model="user_scene">
+  <include file="hand3.xml"/>
+  <include file="tool.xml"/>
+  <option timestep="0.002" gravity="0 0 -9.81" cone="elliptic" impratio="10"/>
+  <worldbody><geom name="floor" type="plane" size="0.3 0.3 0.01" contype="3" conaffinity="3" condim="3"/></worldbody>
+</mujoco>"""
+
+
+def three_finger_hand() -> str:
+    """The shipped hand without its ring finger, every geom renamed (so nothing can find a link by its name)."""
+    spec = mujoco.MjSpec.from_file(str(hand_lib.MODELS_DIR / "hand.xml"))
+    spec.delete(spec.body("ring_knuckle"))
+    for a in list(spec.actuators):
+        if a.target.startswith("ring"):
+            spec.delete(a)
+    texts = {t.name: t for t in spec.texts}
+    texts["gsp_contact_links"].data = "thumb_distal index_distal index_medial middle_distal middle_medial"
+    texts["gsp_touch_tool"].data = "thumb_medial thumb_distal index_medial index_distal middle_medial middle_distal"
+    start = next(n for n in spec.numerics if n.name == "gsp_ik_start")
+    start.data, start.size = list(start.data)[:12], 12
+    for i, g in enumerate(spec.geoms):
+        g.name = f"part{i}"
+    return spec.to_xml()
+
+
+@pytest.fixture(scope="module")
+def user_scene(tmp_path_factory) -> pathlib.Path:
+    folder = tmp_path_factory.mktemp("my_model")
+    (folder / "hand3.xml").write_text(three_finger_hand())
+    (folder / "tool.xml").write_text(TOOL)
+    (folder / "scene.xml").write_text(SCENE)
+    return folder / "scene.xml"
+
+
+@pytest.fixture(scope="module")
+def user_model(user_scene) -> model_lib.Model:
+    return model_lib.load_model(user_scene)
+
+
+def test_a_users_scene_follows_the_conventions(user_scene, user_model):
+    assert model_lib.check_model(user_scene) == []
+    h, space = user_model.hand, user_model.space
+    assert user_model.name == "my_model0" and user_model.path == user_scene.resolve()
+    assert h.tool_name == "screwdriver" and h.tool_round_type == ("capsule", "sphere") and len(h.tool_box_half) == 0
+    assert space.n_options == (3, 2, 2, 3, 2) and space.n_grasps == 72 and space.n_actions == 13
+    assert h.finger_names == ("thumb", "index", "middle") and h.n_joints == 12
+    # the tool's inertial properties are the file's (MuJoCo's, from the geoms' masses), not the wrench's constants
+    m = mujoco.MjModel.from_xml_path(str(user_scene))
+    b = hand_lib.tool_body(m)
+    assert h.tool_mass == pytest.approx(0.25) and np.allclose(h.tool_com, m.body_ipos[b])
+    assert h.tool_com[0] > 0.01  # the knob pulls the centre of mass towards +x
+    ep = scenario.make_episode(model=user_model, mass_factor=2.0)
+    assert float(ep.mass) == pytest.approx(0.5) and np.allclose(ep.inertia, 2 * m.body_inertia[b], rtol=1e-6)
+    assert np.allclose(ep.com, h.tool_com, atol=1e-7) and float(ep.waypoints[0, 2]) == pytest.approx(0.02)
+    assert np.asarray(space.decode(ep.start_grasp)).tolist() == [1, 1, 0, 1, 0]
+    assert scenario.make_episode(model=user_model, start={"thumb_distal": 2}).start_grasp == space.encode([2, 0, 0, 0, 0])
+    absolute = scenario.make_episode(model=user_model, mass=0.3, inertia=(1e-4, 2e-4, 2e-4), com=(0.01, 0, 0),
+                                     torque=0.5, torque_axis=(1, 1, 0))
+    assert float(absolute.mass) == pytest.approx(0.3) and np.allclose(absolute.com, (0.01, 0, 0))
+    assert np.allclose(absolute.w_ext[3:], 0.5 * np.array([1, 1, 0]) / np.sqrt(2), atol=1e-6)
+
+
+def test_supports_come_from_the_tools_shape(user_model):
+    """No support sites: two supports near either end of the tool's length, each at the bottom of the geoms above
+    it (here the capsule grip's: the sphere knob is past the second one)."""
+    h = user_model.hand
+    assert h.support_top.shape == (2, 3)
+    lo, hi = h.tool_bounds()
+    assert np.allclose(h.support_top[:, 2], -0.0125) and np.allclose(h.support_top[:, 1], 0.0)
+    assert lo[0] < h.support_top[0, 0] < h.support_top[1, 0] < hi[0]
+
+
+def test_surrogate_dp_physics_on_a_users_model(user_model):
+    """The user's model end to end: DP finds a sequence that holds in the surrogate, and C MuJoCo -- its physics
+    built from the user's scene, contact pairs from the file's conventions, not geom names -- holds it too."""
+    sur = Surrogate(user_model)
+    assert sur.model is user_model
+    ep = scenario.make_episode(model=user_model, torque=0.3).head(4)
+    table = jax.jit(dp.build_table)(sur, ep)
+    sol = dp.backup(table, ep.start_grasp)
+    assert float(sol.ret) > sur.reward_config.r_min and sur.explain(ep, np.asarray(sol.actions)) is None
+    phys = physics.Physics(sur)
+    m = phys.model
+    names = {m.body(b).name for b in range(m.nbody)}
+    assert "screwdriver" in names and "wrench" not in names and "ring_knuckle" not in names  # no shipped file read
+    # every contact pair of a finger with the tool: the six touch_tool bodies' capsules, 4 spheres each, x 2 geoms
+    assert phys.scene.finger_tool_pairs.size == 2 * 6 * 4
+    res = phys.simulate_batch(policies.TablePolicy(sol.policy, sur.space), scenario.stack([ep]), backend="c")
+    assert not bool(res.fell[0]), float(res.fall_time[0])
+
+
+def test_what_was_made_for_another_model_is_refused(user_model, tmp_path):
+    sur = Surrogate(user_model)
+    with pytest.raises(model_lib.ModelError, match=r"'wrench'.*not for 'my_model0'"):
+        policies.load_network_policy(sur)  # the shipped PPO policy is the wrench's
+    path = tmp_path / "eps.json"
+    scenario.save(path, {"n": scenario.make_episode()})  # the wrench's
+    with pytest.raises(model_lib.ModelError, match=r"made for model 'wrench'.*not for 'my_model0'"):
+        scenario.load(path, user_model)
+    assert set(scenario.load(path)) == {"n"}
+    with pytest.raises(ValueError, match=r"288 rows for the model's 72 grasps"):
+        policies.TablePolicy(jnp.zeros((288, 16), jnp.int32), sur.space)
+    with pytest.raises(ValueError, match=r"13 is not in \[0, 13\)"):
+        policies.SequencePolicy(jnp.full(16, 13, jnp.int32), sur.space)
+    bare = hand_lib.from_mjmodel(user_model.mjmodel)  # a HandModel with no scene file behind it
+    with pytest.raises(ValueError, match="not loaded from a scene file"):
+        physics.Physics(Surrogate(bare))
+
+
+def _write(folder: pathlib.Path, tool: str, hand: str | None = None) -> pathlib.Path:
+    (folder / "hand3.xml").write_text(hand or three_finger_hand())
+    (folder / "tool.xml").write_text(tool)
+    (folder / "scene.xml").write_text(SCENE)
+    return folder / "scene.xml"
+
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda t: t.replace('<site name="opt_index_medial_1" pos="0.035 0.0125 0" zaxis="0 -1 0"/>', ""),
+     "link 'index_medial' has no contact option on the tool: add site 'opt_index_medial_1'"),
+    (lambda t: t.replace("<freejoint/>", ""), "the tool must be the scene's one free body"),
+    (lambda t: t.replace('type="sphere" pos="0.075 0 0" size="0.016"', 'type="mesh" mesh="knob" pos="0.075 0 0"')
+     .replace("<worldbody>", '<asset><mesh name="knob" vertex="0 0 0  0.02 0 0  0 0.02 0  0 0 0.02"/></asset><worldbody>'),
+     "tool geom 'knob' is a mesh: a tool geom must be one of box, capsule, cylinder, ellipsoid, sphere"),
+    (lambda t: t.replace('name="opt_middle_medial_1"', 'name="opt_pinky_distal_1"'),
+     "site 'opt_pinky_distal_1' names no contact link"),
+    (lambda t: t.replace('data="1 1 0 1 0"', 'data="1 1 0 1"'), "gsp_start_options"),
+])
+def test_check_model_names_what_is_broken(tmp_path, edit, message):
+    scene = _write(tmp_path, edit(TOOL))
+    problems = model_lib.check_model(scene)
+    assert any(message in p for p in problems), problems
+    with pytest.raises(model_lib.ModelError, match="breaks"):
+        model_lib.load_model(scene)
+
+
+def test_check_model_names_the_hands_problems(tmp_path):
+    hand = three_finger_hand().replace('name="contact_index_medial"', 'name="contact_elsewhere"')
+    hand = hand.replace('<geom name="part1" class="link" size="0.012 0.0075"',
+                        '<geom name="part1" class="link" type="box" size="0.012 0.012 0.0075"')
+    problems = model_lib.check_model(_write(tmp_path, TOOL, hand))
+    assert any("link 'index_medial' has no site 'contact_index_medial'" in p for p in problems), problems
+    assert any("hand geom 'part1' (body 'thumb_knuckle') is a box: below the palm a hand geom must be a capsule or a "
+               "sphere" in p for p in problems), problems
+
+
+def test_check_model_command_exits_nonzero(tmp_path, capsys):
+    from experiments import check_model
+
+    scene = _write(tmp_path, TOOL.replace("<freejoint/>", ""))
+    with pytest.raises(SystemExit) as e:
+        check_model.main(type("Args", (), {"scene": str(scene)}))
+    assert e.value.code == 1 and "one free body" in capsys.readouterr().out
+
+
+def test_shipped_models_follow_the_conventions():
+    for name in model_lib.SHIPPED:
+        assert model_lib.check_model(model_lib.SHIPPED[name]) == [], name
+    shipped = json.loads((hand_lib.MODELS_DIR / "policies" / "ppo_dp_seed0.model.json").read_text())
+    assert shipped["digest"] == model_lib.load_model("wrench").digest  # the shipped policy is tagged for the wrench
+
+
+def test_round_primitives_distance_against_mujoco():
+    """`ik.round_sdf` (via the tool's SDF) against MuJoCo's own geom distance of a point-sized sphere, outside the
+    primitives; its gradient against central differences."""
+    xml = """<mujoco><worldbody>
+      <geom name="cyl" type="cylinder" size="0.02 0.03" pos="0.1 0 0" euler="0.3 0.2 0.1"/>
+      <geom name="cap" type="capsule" size="0.015 0.04" pos="-0.1 0 0" euler="0 1.2 0"/>
+      <geom name="sph" type="sphere" size="0.025" pos="0 0.1 0"/>
+      <body mocap="true" name="probe"><geom name="p" type="sphere" size="1e-5"/></body>
+    </worldbody></mujoco>"""
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    rng = np.random.default_rng(0)
+    for g, kind in ((0, "cylinder"), (1, "capsule"), (2, "sphere")):
+        mat = np.zeros(9)
+        mujoco.mju_quat2Mat(mat, m.geom_quat[g])
+        mat = mat.reshape(3, 3)
+        distance = lambda x, g=g, kind=kind: ik.round_sdf(kind, m.geom_size[g], x[0], x[1], x[2])[0]  # noqa: E731
+        for _ in range(20):
+            p = m.geom_pos[g] + rng.normal(size=3) * 0.05
+            d.mocap_pos[0] = p
+            mujoco.mj_forward(m, d)
+            ref = mujoco.mj_geomDistance(m, d, g, 3, 1.0, None) + 1e-5
+            local = jnp.asarray((p - m.geom_pos[g]) @ mat, jnp.float32)
+            dist, *grad = ik.round_sdf(kind, m.geom_size[g], *local)
+            if ref > 1e-3:
+                assert float(dist) == pytest.approx(ref, abs=2e-5), (kind, p)
+            np.testing.assert_allclose(np.array([float(x) for x in grad]), np.asarray(jax.grad(distance)(local)),
+                                       atol=1e-4)

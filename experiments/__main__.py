@@ -8,7 +8,7 @@ import sys
 
 COMMANDS = {  # command -> (module, one-line help)
     "demo": ("experiments.demo", "the main job on one unseen episode: DP optimal and L1 plans, executed in C MuJoCo"),
-    "check-model": ("experiments.check_model", "every model convention a scene file breaks (your hand, your tool)"),
+    "check-model": ("experiments.diagnostics.check_model", "every model convention a scene file breaks (your hand, your tool)"),
     "surrogate": ("experiments.diagnostics.surrogate", "reward terms of a few meaningful grasps on one episode"),
     "bench-startup": ("experiments.bench.startup", "the Quickstart from a fresh process: first decision and DP table, cache off / empty / on disk"),
     "bench-surrogate": ("experiments.bench.surrogate", "surrogate steps/s: vmapped vs one step at a time"),

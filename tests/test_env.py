@@ -237,7 +237,7 @@ def test_bad_input_raises_naming_the_field(sur, episodes, tables):
 @pytest.mark.parametrize("bad", [-1, 17, 1000])
 def test_out_of_range_actions_raise_at_every_python_entry_point(sur, episodes, tables, table_env, bad):
     """A concrete action outside [0, 17) raises a ValueError naming the value: the brax env, the table model,
-    the surrogate step and transition, the DP policies. Inside jit it is clipped (documented in gsp_jax.grasps)."""
+    the surrogate step and transition, the DP policies given the model's space. Inside jit it is clipped (documented in gsp_jax.grasps)."""
     from gsp_jax import env as env_lib, policies
 
     state = table_env.reset_to(0)
@@ -252,9 +252,9 @@ def test_out_of_range_actions_raise_at_every_python_entry_point(sur, episodes, t
     with pytest.raises(ValueError, match=msg):
         sur.transition(state.pipeline_state.episode, state.pipeline_state.grasp, 0, bad)
     with pytest.raises(ValueError, match=rf"SequencePolicy\.actions: {bad} "):
-        policies.SequencePolicy(jnp.asarray([0, bad, 2], jnp.int32))
+        policies.SequencePolicy(jnp.asarray([0, bad, 2], jnp.int32), sur.space)
     with pytest.raises(ValueError, match=rf"TablePolicy\.table: {bad} "):
-        policies.TablePolicy(jnp.full((288, T), bad, jnp.int32))
+        policies.TablePolicy(jnp.full((288, T), bad, jnp.int32), sur.space)
     # traced: clipped into range, the documented behaviour
     clipped = jax.jit(model.step)(state.pipeline_state, jnp.int32(bad))
     expect = model.step(state.pipeline_state, min(max(bad, 0), sur.space.n_actions - 1))

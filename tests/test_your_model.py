@@ -184,7 +184,7 @@ def test_check_model_names_the_hands_problems(tmp_path):
 
 
 def test_check_model_command_exits_nonzero(tmp_path, capsys):
-    from experiments import check_model
+    from experiments.diagnostics import check_model
 
     scene = _write(tmp_path, TOOL.replace("<freejoint/>", ""))
     with pytest.raises(SystemExit) as e:

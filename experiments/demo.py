@@ -31,7 +31,8 @@ LABEL = {"dp-opt": "DP optimal", "L1": "L1 lookahead"}
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--episode", default=None, help="an episode name from any set (default: the first of 'eval')")
+    p.add_argument("--episode", default=None, help="an episode name from any set (default: the first of 'eval', "
+                   "shift-6mm: the lift 6 mm lower, the torque +1 N m or the model's)")
     p.add_argument("--no-gif", action="store_true", help="skip the GIF even where OpenGL is available")
     p.add_argument("--gif-from", default=None, help=argparse.SUPPRESS)  # (internal) render a saved trace, then stop
 
@@ -42,7 +43,7 @@ def _context(name: str | None) -> evaluation.Context:
     episode's optimal sequence)."""
     sur = Surrogate()
     if name is None:
-        name, episode = next(iter(scenario.episode_set("eval", sur.model).items()))
+        name, episode = next(iter(scenario.episode_set("evalA", sur.model).items()))  # the first of 'eval'
     else:
         from experiments.diagnostics.surrogate import find_episode
 

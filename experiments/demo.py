@@ -140,7 +140,7 @@ def main(args: argparse.Namespace) -> None:
     from gsp_jax import model as model_lib
 
     model = model_lib.load_model()
-    out = results_dir("demo" if model.name == model_lib.DEFAULT else f"demo-{model.name}")
+    out = results_dir("demo")  # results/demo-<model> for another model
     print(f"demo on JAX {jax.default_backend()}: one unseen episode of model {model.name!r}, planned by DP optimal and "
           "L1, executed in C MuJoCo", flush=True)
     t0 = time.perf_counter()

@@ -2,7 +2,8 @@
 
 Data flows one way:
 
-    models/*.xml -> hand.py (constant arrays) -> kinematics.py, ik.py, wrench.py (kernels)
+    a scene (models/*.xml or yours) -> model.py (load_model, check_model) -> hand.py (constant arrays)
+                                     -> kinematics.py, ik.py, wrench.py (kernels)
     scenario.py (Episode) -> surrogate.py (reset/step, reward terms) -> dp.py (table, Bellman backup)
                                                                      -> policies.py (one `act(state)` interface)
 
@@ -47,3 +48,7 @@ def _register_gymnasium() -> None:
 
 
 _register_gymnasium()
+
+from gsp_jax.model import Model, ModelError, check_model, load_model  # noqa: E402  (the one door to a model)
+
+__all__ = ["CACHE_DIR", "Model", "ModelError", "check_model", "load_model"]

@@ -227,3 +227,26 @@ def test_round_primitives_distance_against_mujoco():
                 assert float(dist) == pytest.approx(ref, abs=2e-5), (kind, p)
             np.testing.assert_allclose(np.array([float(x) for x in grad]), np.asarray(jax.grad(distance)(local)),
                                        atol=1e-4)
+
+
+def test_environments_and_references_of_a_users_model(user_model):
+    from gsp_jax import gym_env
+
+    env = gym_env.make(episodes="nominal", backend="surrogate", model=user_model, progress=False)
+    assert env.action_space.n == 13 and env.env.surrogate.model is user_model
+    with pytest.raises(model_lib.ModelError, match="differs from the surrogate's"):
+        gym_env.make(episodes="nominal", backend="surrogate", model="hammer", surrogate=Surrogate(user_model))
+    # the all-tips reference from the model's start grasp: the start already has every tip, so it keeps it
+    space = user_model.space
+    assert space.tip_options == (1, 1, 0, 1, 0) and evaluation.four_tips(space, 4).tolist() == [0, 0, 0, 0]
+    wrench_space = model_lib.load_model().space  # the wrench: add the ring tip, then repeat that (redundant) action
+    assert evaluation.four_tips(wrench_space, 3).tolist() == [wrench_space.action("ring_distal", 1)] * 3
+
+
+def test_explain_names_the_first_failing_step(sur):
+    """A sequence that must drop the tool (the index tip alone) is explained at its first failing step, a held one
+    is not."""
+    ep = scenario.make_episode().head(4)
+    why = sur.explain(ep, evaluation.one_tip(sur.space, ep.n_steps))
+    assert why is not None and why.startswith(("t=0:", "t=1:", "t=2:")) and "unmet" in why, why
+    assert sur.explain(ep, evaluation.four_tips(sur.space, ep.n_steps)) is None

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments.common import results_dir, table
-from gsp_jax import dp, evaluation, policies, pretrain, scenario
+from gsp_jax import dp, policies, pretrain, scenario
 from gsp_jax.env import GraspEnv
 from gsp_jax.evaluation import dp_tables
 from gsp_jax.ppo import networks as nets
@@ -39,8 +39,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--iterations", type=int, default=None, help="PPO iterations (overrides the preset)")
     p.add_argument("--envs", type=int, default=None, help="parallel environments (overrides the preset)")
     p.add_argument("--patience", type=int, default=None, help="validations without improvement before stopping")
-    p.add_argument("--out", default=None, help="folder under results/ (default: train, or train-<model> for another "
-                   "--model, where `evaluation.load_rl` looks)")
+    p.add_argument("--out", default="train", help="folder under results/ (<folder>-<model> for another --model)")
 
 
 @dataclasses.dataclass
@@ -130,7 +129,7 @@ def run_seed(s: Setup, seed: int, mode: str, out_dir, progress: bool = True) -> 
 def main(args: argparse.Namespace) -> None:
     preset = args.preset or ("full" if jax.default_backend() == "gpu" else "quick")
     s = setup(preset, args.iterations, args.envs, args.patience)
-    root = results_dir(args.out or evaluation.trained_policy(s.surrogate).parents[2].name)
+    root = results_dir(args.out)  # results/train-<model> for another model: where evaluation.load_rl looks
     (root / "reference.json").write_text(json.dumps({**s.reference, "preset": preset}, indent=1))
     print(
         f"preset {preset}: {s.ppo_config.n_envs} envs x {s.ppo_config.unroll} steps per iteration, "

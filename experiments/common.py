@@ -21,12 +21,12 @@ RESULTS = pathlib.Path("results")
 
 def results_dir(*parts: str) -> pathlib.Path:
     """results/<parts> (created); a command run for another model than the wrench (`--model`) writes to
-    results/<first part>-<model>/... instead, so no model's results overwrite another's."""
+    results/<first part>-<model>/... (results/<model> for no parts) instead: no model's results overwrite another's."""
     from gsp_jax import model as model_lib
 
     name = model_lib.load_model().name
-    if parts and name != model_lib.DEFAULT:
-        parts = (f"{parts[0]}-{name}", *parts[1:])
+    if name != model_lib.DEFAULT:
+        parts = (f"{parts[0]}-{name}", *parts[1:]) if parts else (name,)
     path = RESULTS.joinpath(*parts)
     path.mkdir(parents=True, exist_ok=True)
     return path

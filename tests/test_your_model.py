@@ -110,9 +110,29 @@ def test_supports_come_from_the_tools_shape(user_model):
     assert lo[0] < h.support_top[0, 0] < h.support_top[1, 0] < hi[0]
 
 
-def test_surrogate_dp_physics_on_a_users_model(user_model):
-    """The user's model end to end: DP finds a sequence that holds in the surrogate, and C MuJoCo -- its physics
-    built from the user's scene, contact pairs from the file's conventions, not geom names -- holds it too."""
+@pytest.fixture
+def shipped_files_unreadable(monkeypatch):
+    """Every way the library reads a model file raises for the shipped folder: a silent fallback to the shipped
+    wrench fails the test that uses this."""
+    shipped = str(hand_lib.MODELS_DIR.resolve())
+
+    def guard(fn):
+        def guarded(path=hand_lib.SCENE_XML, *args, **kwargs):
+            if str(pathlib.Path(str(path)).resolve()).startswith(shipped):
+                raise AssertionError(f"read a shipped model file: {path}")
+            return fn(path, *args, **kwargs)
+        return guarded
+
+    monkeypatch.setattr(hand_lib, "load_mjmodel", guard(hand_lib.load_mjmodel))
+    monkeypatch.setattr(hand_lib, "load", guard(hand_lib.load))
+    monkeypatch.setattr(mujoco.MjSpec, "from_file", staticmethod(guard(mujoco.MjSpec.from_file)))
+    monkeypatch.setattr(model_lib, "_default", [None])  # load_model(None) fails instead of giving the wrench
+
+
+def test_surrogate_dp_physics_on_a_users_model(user_model, shipped_files_unreadable):
+    """The user's model end to end, with the shipped files unreadable: DP finds a sequence that holds in the
+    surrogate, and C MuJoCo -- its physics built from the user's scene, contact pairs from the file's conventions,
+    not geom names -- holds it too."""
     sur = Surrogate(user_model)
     assert sur.model is user_model
     ep = scenario.make_episode(model=user_model, torque=0.3).head(4)
@@ -127,6 +147,23 @@ def test_surrogate_dp_physics_on_a_users_model(user_model):
     assert phys.scene.finger_tool_pairs.size == 2 * 6 * 4
     res = phys.simulate_batch(policies.TablePolicy(sol.policy, sur.space), scenario.stack([ep]), backend="c")
     assert not bool(res.fell[0]), float(res.fall_time[0])
+    with pytest.raises(Exception):  # the guard itself works: the default model is now unreachable
+        Surrogate()
+
+
+def test_a_training_run_is_not_resumed_for_another_model(user_model, tmp_path):
+    """A PPO run's checkpoint folder records its model; the same folder with another model is refused naming it."""
+    import types
+
+    from gsp_jax.ppo import networks as nets, train as ppo
+
+    def trainer(model):
+        return types.SimpleNamespace(env=types.SimpleNamespace(surrogate=Surrogate(model)), config=ppo.PPOConfig(),
+                                     networks=types.SimpleNamespace(config=nets.NetworkConfig()))
+
+    ppo._manager(tmp_path, trainer(user_model), 0).close()
+    with pytest.raises(ValueError, match=r"different model .*'my_model0'.*'wrench'"):
+        ppo._manager(tmp_path, trainer("wrench"), 0)
 
 
 def test_what_was_made_for_another_model_is_refused(user_model, tmp_path):

@@ -95,6 +95,9 @@ def main(args: argparse.Namespace) -> None:
         changes = [f"{t}:[{out[i]['grasp_labels'][t + 1]}]" for t in range(len(sols.actions[i]))
                    if t == 0 or sols.grasps[i][t + 1] != sols.grasps[i][t]]
         print(f"{name}: start [{out[i]['grasp_labels'][0]}] -> " + " ".join(changes))
+        if float(sols.ret[i]) <= env.reward_config.r_min:  # every sequence fails: say where and why
+            out[i]["infeasible"] = env.explain(episodes[name], np.asarray(sols.actions[i]))
+            print(f"  no grasp sequence holds {name} in the surrogate: {out[i]['infeasible']}")
     folder = results_dir()
     path = folder / f"dp_{args.set}.json"
     path.write_text(json.dumps(dict(set=args.set, seconds=elapsed, mean_grasp_changes=float(n_changes.mean()),

@@ -4,13 +4,14 @@ of a simulated state.
 
 Contact model: MJX (mujoco-mjx 3.17) misses tilted capsule-box contacts that C MuJoCo finds, so the physics model
 replaces every hand capsule, for contact, by `spheres_per_capsule` spheres along its axis (sphere-box and
-sphere-plane are exact in MJX) and lists the contacts explicitly: tool x table, tool x medial/distal-link spheres
-(friction = the episode's), distal spheres x table, tool x start pedestals. The surrogate's geometry (the same
-model file) is unchanged.
+sphere-plane are exact in MJX) and lists the contacts explicitly: tool x table, tool x the spheres of the hand's
+`touch_tool` bodies (friction = the episode's), the `touch_table` bodies' spheres x table, tool x start supports
+(`HandModel.touch_tool`, `touch_table`, `support_top`: conventions of the model file, no geom names). The
+surrogate's geometry (the same model file) is unchanged.
 
-The start: the tool rests at waypoint 0 on two small pedestals (support by contact, standing in for the table the
-scene starts it on: at the table's height the fingertips cannot reach the side faces); they sink away after the
-first segment (at at `pedestal_speed`: the fingers take the weight over a few tens of milliseconds), and from
+The start: the tool rests at waypoint 0 on small pedestals (the model's start supports: support by contact, standing
+in for the table the scene starts it on: at the table's height the fingertips cannot reach the side faces); they sink
+away after the first segment (at `pedestal_speed`: the fingers take the weight over a few tens of milliseconds), and from
 then on the fingers alone hold the tool.
 """
 from __future__ import annotations

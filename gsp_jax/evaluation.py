@@ -89,10 +89,10 @@ def trained_policy(sur: Surrogate) -> pathlib.Path:
 
 
 def load_rl(sur: Surrogate, policy_dir: str | pathlib.Path | None = None) -> tuple[policies.NetworkPolicy, str]:
-    """The PPO policy: `policy_dir` if given, else the one `train` wrote for the model (`trained_policy`), else, for
-    the shipped wrench, the shipped copy (`policies.SHIPPED_POLICY`); and where it was read from. A policy made
-    for another model is refused (`policies.load_network_policy`)."""
-    shipped = [SHIPPED_POLICY] if sur.model.name == model_lib.DEFAULT else []
+    """The PPO policy: `policy_dir` if given, else the one `train` wrote for the model (`trained_policy`), else the
+    one shipped for a shipped model (`policies.SHIPPED_POLICIES`); and where it was read from. A policy made for
+    another model is refused (`policies.load_network_policy`)."""
+    shipped = [p] if (p := policies.shipped_policy(sur)) is not None else []
     candidates = [pathlib.Path(policy_dir)] if policy_dir else [trained_policy(sur), *shipped]
     for path in candidates:
         if path.exists():

@@ -84,17 +84,33 @@ class NetworkPolicy:
 
 
 SHIPPED_POLICY = hand_lib.MODELS_DIR / "policies/ppo_dp_seed0"  # PPO with DP pretraining for the wrench, a GPU run
+SHIPPED_POLICIES = {  # each shipped model's: `train --model NAME --seeds 1` on an H100 (docs/your-model.md)
+    "wrench": SHIPPED_POLICY, "hammer": hand_lib.MODELS_DIR / "policies/hammer_ppo_dp_seed0",
+    "allegro": hand_lib.MODELS_DIR / "policies/allegro_ppo_dp_seed0"}
+
+
+def shipped_policy(sur: Surrogate) -> pathlib.Path | None:
+    """The PPO policy shipped for the surrogate's model, None if there is none (a model of your own)."""
+    model = model_lib.of_hand(sur.hand) if sur.hand.source else None
+    path = SHIPPED_POLICIES.get(model.name) if model is not None else None
+    return path if path is not None and model.path == model_lib.SHIPPED[model.name].resolve() else None
 
 
 def load_network_policy(sur: Surrogate, path: str | pathlib.Path | None = None) -> NetworkPolicy:
     """The PPO policy saved at `path` (`ppo.train`'s `policy` folder; default: the one shipped with the package for
-    the shipped wrench, `SHIPPED_POLICY`) as a deterministic `NetworkPolicy` of the surrogate's grasp space, with
-    its critic. A policy made for another model (its `<path>.model.json`, written by `save_policy`), or whose
-    networks do not fit this model's observation and actions, is refused with a `ModelError` naming both."""
-    path = pathlib.Path(SHIPPED_POLICY if path is None else path)
+    the surrogate's model, `SHIPPED_POLICIES`) as a deterministic `NetworkPolicy` of the surrogate's grasp space,
+    with its critic. A policy made for another model (its `<path>.model.json`, written by `save_network_policy`),
+    or whose networks do not fit this model's observation and actions, is refused with a `ModelError` naming
+    both."""
+    model = model_lib.of_hand(sur.hand) if sur.hand.source else None
+    if path is None:
+        path = shipped_policy(sur)
+        if path is None:
+            raise FileNotFoundError(f"load_network_policy: no PPO policy ships for {model.label if model else 'this model'};"
+                                    " train one with `python -m experiments train --model ...` and give its path")
+    path = pathlib.Path(path)
     if not path.exists():
         raise FileNotFoundError(f"load_network_policy: path: no PPO policy at {path}")
-    model = model_lib.of_hand(sur.hand) if sur.hand.source else None
     made = model_tag(path)
     if made is not None and model is not None and made.get("digest") != model.digest:
         raise model_lib.ModelError(f"policy {path} was trained for model {made.get('name')!r} (digest "

@@ -169,7 +169,9 @@ def test_a_training_run_is_not_resumed_for_another_model(user_model, tmp_path):
 def test_what_was_made_for_another_model_is_refused(user_model, tmp_path):
     sur = Surrogate(user_model)
     with pytest.raises(model_lib.ModelError, match=r"'wrench'.*not for 'my_model0'"):
-        policies.load_network_policy(sur)  # the shipped PPO policy is the wrench's
+        policies.load_network_policy(sur, policies.SHIPPED_POLICY)  # the shipped PPO policy is the wrench's
+    with pytest.raises(FileNotFoundError, match="no PPO policy ships for 'my_model0'"):
+        policies.load_network_policy(sur)  # nothing ships for a model of your own: no fallback to the wrench's
     path = tmp_path / "eps.json"
     scenario.save(path, {"n": scenario.make_episode()})  # the wrench's
     with pytest.raises(model_lib.ModelError, match=r"made for model 'wrench'.*not for 'my_model0'"):
@@ -232,8 +234,8 @@ def test_check_model_command_exits_nonzero(tmp_path, capsys):
 def test_shipped_models_follow_the_conventions():
     for name in model_lib.SHIPPED:
         assert model_lib.check_model(model_lib.SHIPPED[name]) == [], name
-    shipped = json.loads((hand_lib.MODELS_DIR / "policies" / "ppo_dp_seed0.model.json").read_text())
-    assert shipped["digest"] == model_lib.load_model("wrench").digest  # the shipped policy is tagged for the wrench
+    for name, path in policies.SHIPPED_POLICIES.items():  # each shipped policy is tagged for its model as it is now
+        assert policies.model_tag(path)["digest"] == model_lib.load_model(name).digest, name
 
 
 def test_round_primitives_distance_against_mujoco():

@@ -4,7 +4,6 @@ mass) -- goes surrogate -> DP -> physics with nothing read from the shipped file
 named by `check_model`, and what was made for one model is refused by another."""
 from __future__ import annotations
 
-import json
 import pathlib
 
 import jax

@@ -14,7 +14,7 @@ import time
 import jax
 import numpy as np
 
-from gsp_jax import hand
+from gsp_jax import files, hand
 
 RESULTS = pathlib.Path("results")
 
@@ -106,7 +106,7 @@ def record(name: str, figures: dict, per_device: bool = False, data: pathlib.Pat
                command="python -m experiments " + " ".join(sys.argv[1:]), figures=figures)
     text = json.dumps(row, default=float)
     (data / "history").mkdir(parents=True, exist_ok=True)
-    (data / f"{name}.json").write_text(json.dumps(json.loads(text), indent=1) + "\n")
+    files.write_json(data / f"{name}.json", json.loads(text))
     with open(data / "history" / f"{name}.jsonl", "a") as f:
         f.write(text + "\n")
     print(f"recorded {name}: {data / (name + '.json')}", flush=True)

@@ -13,7 +13,6 @@ Writes results/demo/ (demo.json, demo.png, demo_L1.gif); prints the table last. 
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import jax
@@ -22,7 +21,7 @@ import numpy as np
 
 from experiments.common import results_dir, table
 from experiments.paper import fig4a
-from gsp_jax import dp, evaluation, physics, scenario
+from gsp_jax import dp, evaluation, files, physics, scenario
 from gsp_jax.grasps import NULL
 from gsp_jax.surrogate import Surrogate
 
@@ -182,10 +181,10 @@ def main(args: argparse.Namespace) -> None:
                             plan_s=t_table + wall[name])
         rows.append([LABEL[name], " ".join(changes) or "keep", ret, "fell" if fell else "held",
                      float(r.angle_error[0]), t_table + wall[name]])
-    (out / "demo.json").write_text(json.dumps(dict(model=model.name, model_digest=model.digest, infeasible=why,
+    files.write_json(out / "demo.json", dict(model=model.name, model_digest=model.digest, infeasible=why,
                                                    episode=ctx.names[0], platform=jax.default_backend(),
                                                    rl_policy=ctx.rl_source, table_s=t_table, physics_s=t_phys,
-                                                   planners=record, files=files), indent=1))
+                                                   planners=record, files=files))
     print(f"wrote {', '.join(files + [str(out / 'demo.json')])}\n")
     print(f"{ctx.names[0]}: the grasp changes executed in C MuJoCo (closed loop: each decision on the simulated "
           "state), their return in the surrogate, the outcome")

@@ -13,12 +13,14 @@ import dataclasses
 import hashlib
 import pathlib
 import time
+import warnings
+import zipfile
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gsp_jax import dp, grasps, model as model_lib, policies, scenario
+from gsp_jax import dp, files, grasps, model as model_lib, policies, scenario
 from gsp_jax.dp import TableModel
 from gsp_jax.surrogate import Surrogate
 
@@ -119,18 +121,18 @@ def dp_tables(sur: Surrogate, set_name: str, episodes: dict, batch_size: int = 4
         h.update(repr(dataclasses.asdict(cfg)).encode())
     path = None if cache is None else pathlib.Path(cache) / f"{set_name}_{h.hexdigest()[:12]}.npz"
     if path is not None and path.exists():
-        with np.load(path) as d:
-            return dp.Table(**{k: jnp.asarray(d[k]) for k in d.files})
+        try:
+            with np.load(path) as d:
+                return dp.Table(**{k: jnp.asarray(d[k]) for k in d.files})
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile, TypeError) as e:  # truncated by a crash
+            warnings.warn(f"{path}: the cached DP tables cannot be read ({e}): rebuilding them", stacklevel=2)
     print(f"building DP tables for {len(episodes)} episodes of '{set_name}'"
           + (f" (cached in {path})" if path else "") + " ...", flush=True)
     t0 = time.perf_counter()
     tables = jax.block_until_ready(jax.jit(lambda b: dp.build_tables(sur, b, batch_size))(batch))
     print(f"  {time.perf_counter() - t0:.1f} s", flush=True)
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(".tmp.npz")
-        np.savez(tmp, **{k: np.asarray(v) for k, v in vars(tables).items()})
-        tmp.replace(path)
+        files.savez(path, **{k: np.asarray(v) for k, v in vars(tables).items()})  # atomic: a unique temporary
     return tables
 
 

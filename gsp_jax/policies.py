@@ -11,7 +11,6 @@ policy the same way. A policy may read any field of the state except `terms` (th
 """
 from __future__ import annotations
 
-import json
 import pathlib
 
 import jax
@@ -19,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from gsp_jax import hand as hand_lib, model as model_lib, scenario as scenario_lib
+from gsp_jax import files, hand as hand_lib, model as model_lib, scenario as scenario_lib
 from gsp_jax.observation import observation, observation_size
 from gsp_jax.grasps import GraspSpace
 from gsp_jax.lookahead import Lookahead  # re-exported: the Ll policies
@@ -130,7 +129,7 @@ def load_network_policy(sur: Surrogate, path: str | pathlib.Path | None = None) 
 def model_tag(path: str | pathlib.Path) -> dict | None:
     """The model a saved policy was trained for ({name, digest, ...} from `<path>.model.json`), None if untagged."""
     tag = pathlib.Path(path).parent / f"{pathlib.Path(path).name}.model.json"
-    return json.loads(tag.read_text()) if tag.is_file() else None
+    return files.read_json(tag) if tag.is_file() else None
 
 
 def save_network_policy(path: str | pathlib.Path, params: nets.Params, sur: Surrogate) -> None:
@@ -138,8 +137,8 @@ def save_network_policy(path: str | pathlib.Path, params: nets.Params, sur: Surr
     save_policy(path, params)
     m = sur.model
     tag = pathlib.Path(path).parent / f"{pathlib.Path(path).name}.model.json"
-    tag.write_text(json.dumps({"name": m.name, "digest": m.digest, "n_grasps": sur.space.n_grasps,
-                               "n_actions": sur.n_actions}, indent=1))
+    files.write_json(tag, {"name": m.name, "digest": m.digest, "n_grasps": sur.space.n_grasps,
+                           "n_actions": sur.n_actions})
 
 
 def _check_concrete(actions, field: str, space: GraspSpace | None) -> None:

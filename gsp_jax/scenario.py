@@ -5,7 +5,6 @@ An `Episode` is a pytree of arrays, so a batch of episodes is one `Episode` whos
 """
 from __future__ import annotations
 
-import json
 import pathlib
 from typing import Sequence
 
@@ -14,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from gsp_jax import hand as hand_lib
+from gsp_jax import files, hand as hand_lib
 
 N_WAYPOINTS = 16  # T: waypoints = decision steps of an episode
 DT = 0.25  # nominal time between waypoints [s]
@@ -405,7 +404,7 @@ def save(path: str | pathlib.Path, episodes: dict[str, Episode], model=None) -> 
     m = model_lib.load_model(model)
     doc = {"format": "gsp_jax.episodes/1", "model": {"name": m.name, "digest": m.digest},
            "episodes": {k: to_dict(v) for k, v in episodes.items()}}
-    pathlib.Path(path).write_text(json.dumps(doc, indent=1))
+    files.write_json(pathlib.Path(path), doc)
 
 
 def load(path: str | pathlib.Path, model=None) -> dict[str, Episode]:
@@ -415,9 +414,9 @@ def load(path: str | pathlib.Path, model=None) -> dict[str, Episode]:
 
     m = model_lib.load_model(model)
     try:
-        doc = json.loads(pathlib.Path(path).read_text())
-    except json.JSONDecodeError as e:
-        raise EpisodeError(f"{path}: not valid JSON ({e})") from e
+        doc = files.read_json(path)
+    except files.UnreadableFile as e:  # missing, truncated, not JSON or not UTF-8
+        raise EpisodeError(str(e)) from None
     if not isinstance(doc, dict) or not isinstance(doc.get("episodes"), dict):
         raise EpisodeError(f"{path}: expected an object with an 'episodes' object")
     made = doc.get("model")

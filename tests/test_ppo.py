@@ -20,7 +20,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from scipy import stats  # noqa: E402
 
-from gsp_jax import dp, scenario, surrogate  # noqa: E402
+from gsp_jax import dp, files, scenario, surrogate  # noqa: E402
 from gsp_jax.env import GraspEnv  # noqa: E402
 from gsp_jax.ppo import losses  # noqa: E402
 from gsp_jax.ppo import networks as nets  # noqa: E402
@@ -397,6 +397,46 @@ def test_resume_after_kill_between_checkpoints_is_bit_exact(trainer, uninterrupt
     _assert_same_run(resumed, uninterrupted)
 
 
+@pytest.mark.parametrize("damage", ["array", "history"])
+def test_resume_falls_back_past_a_truncated_checkpoint_step(trainer, uninterrupted, tmp_path, damage):
+    """A crash that truncated the latest checkpoint step (an array file, or its history JSON) is reported with the
+    step's path, and the run resumes from the step before it: nothing intact is lost, and it ends bit-exactly where
+    the uninterrupted run does."""
+    ppo.train(trainer, seed=SEED, checkpoint_dir=tmp_path, progress=False, stop_after=20)  # steps 10 and 20
+    step = tmp_path / "checkpoints" / "20"
+    if damage == "history":
+        victims = [p for p in step.rglob("*") if p.is_file() and p.parent.name == "history"]
+    else:
+        victims = [p for p in step.rglob("*") if p.is_file() and "state" in p.parts and p.stat().st_size > 64
+                   and "d" in p.parent.name]
+        victims = victims or [max((p for p in step.rglob("*") if p.is_file() and "state" in p.parts),
+                                  key=lambda p: p.stat().st_size)]
+    for v in victims:
+        v.write_bytes(v.read_bytes()[: v.stat().st_size // 3])
+    with pytest.warns(UserWarning, match=rf"checkpoint {step} cannot be read .*resuming from the step before it"):
+        resumed = ppo.train(trainer, seed=SEED, checkpoint_dir=tmp_path, progress=False)
+    _assert_same_run(resumed, uninterrupted)
+
+
+def test_a_second_run_on_the_same_folder_is_refused(trainer, tmp_path):
+    """Two runs on one checkpoint folder at once: the second is refused naming the folder and the first's process
+    (the folder's lock); the first's checkpoints are untouched."""
+    import subprocess
+    import sys
+
+    holder = subprocess.Popen([sys.executable, "-c", "import sys, time\nfrom gsp_jax import files\n"
+                               "with files.folder_lock(sys.argv[1]):\n    print('locked', flush=True)\n"
+                               "    time.sleep(60)", str(tmp_path)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "locked"
+        with pytest.raises(files.FolderInUse, match=rf"{tmp_path}: in use by process {holder.pid}"):
+            ppo.train(trainer, seed=SEED, checkpoint_dir=tmp_path, progress=False, stop_after=1)
+        assert not (tmp_path / "checkpoints").exists()
+    finally:
+        holder.kill()
+        holder.wait()
+
+
 # ------------------------------------------------------------------------------------------ 6. config checks
 def test_different_run_in_the_same_checkpoint_dir_is_refused(trainer, probe, tmp_path):
     """A checkpoint_dir holding a run refuses a different config, seed or network config (ValueError naming the
@@ -404,7 +444,7 @@ def test_different_run_in_the_same_checkpoint_dir_is_refused(trainer, probe, tmp
     ppo.train(trainer, seed=SEED, checkpoint_dir=tmp_path, progress=False, stop_after=1)
     other_cfg = dataclasses.replace(CONFIG, learning_rate=2e-3)
     other = ppo.Trainer(probe["env"], trainer.networks, other_cfg, eval_envs={"val": probe["eval_env"]})
-    with pytest.raises(ValueError, match="different config"):
+    with pytest.raises(ValueError, match=r"different config \(config\.learning_rate: 0\.003 -> 0\.002\)"):
         ppo.train(other, seed=SEED, checkpoint_dir=tmp_path, progress=False)
     with pytest.raises(ValueError, match="different seed"):
         ppo.train(trainer, seed=SEED + 1, checkpoint_dir=tmp_path, progress=False, stop_after=1)

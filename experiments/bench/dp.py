@@ -4,7 +4,6 @@ the 27 evaluation episodes in one batch, beside the paper's way of building the 
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import jax
@@ -12,7 +11,7 @@ import numpy as np
 
 from experiments import common
 from experiments.common import best_time, results_dir, table, timed
-from gsp_jax import dp, scenario, surrogate
+from gsp_jax import dp, files, scenario, surrogate
 
 PAPER_DP_SECONDS = 151.79  # DP optimal per unseen episode, 32-core Xeon (paper Table 1)
 
@@ -65,8 +64,7 @@ def main(args: argparse.Namespace) -> None:
         speedup_batched=t_loop / (t_many / len(evals)), paper_s=PAPER_DP_SECONDS,
     )
     out = args.out or str(results_dir() / "bench_dp.json")
-    with open(out, "w") as f:
-        json.dump(result, f, indent=1)
+    files.write_json(out, result)
     print(f"wrote {out}\n")
     common.record("bench_dp", result, per_device=True)
     print(table(

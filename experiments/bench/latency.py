@@ -20,14 +20,13 @@ episode setup + decisions. The episode's own simulation, which a robot would liv
 from __future__ import annotations
 
 import argparse
-import json
 
 import jax
 import numpy as np
 
 from experiments import common
 from experiments.common import results_dir, table, timed
-from gsp_jax import dp, evaluation, policies
+from gsp_jax import dp, evaluation, files, policies
 from gsp_jax.env import TableModel
 
 
@@ -160,7 +159,7 @@ def main(args: argparse.Namespace) -> None:
         raise SystemExit(f"bench-latency: --k must be >= 1, got {args.k}")
     result = run(ctx, args.policies, cached=args.lookahead == "cached", ks=args.k, bases=args.bases)
     out = results_dir("bench_latency") / f"{result['platform']}.json"
-    out.write_text(json.dumps(result, indent=1))
+    files.write_json(out, result)
     print(f"wrote {out}\n")
     common.record("bench_latency", dict(episodes=len(result["episodes"]), lookahead=result["lookahead"], policies={
         n: {k: v for k, v in r.items() if k != "returns"} for n, r in result["policies"].items()}), per_device=True)

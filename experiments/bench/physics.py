@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import time
 
 import jax
@@ -26,7 +25,7 @@ import numpy as np
 
 from experiments import common
 from experiments.common import results_dir, table, timed
-from gsp_jax import evaluation, physics, policies, scenario, surrogate
+from gsp_jax import evaluation, files, physics, policies, scenario, surrogate
 from gsp_jax.physics import c_backend
 
 
@@ -124,8 +123,7 @@ def main(args: argparse.Namespace) -> None:
                engine_steps_per_s_one_core_by_variant=engine, engine_one_core_s=steps / engine["default"],
                rows=[dict(zip(keys, r)) for r in rows])
     path = args.out or results_dir("bench") / f"physics_{device.platform}.json"
-    with open(path, "w") as f:
-        json.dump(out, f, indent=1)
+    files.write_json(path, out)
     print(f"wrote {path}\n")
     print(f"engine alone (mj_step, one core, the same states): {engine['default']:,.0f} steps/s, "
           f"{steps / engine['default']:.2f} s for the batch's {steps:,} steps")

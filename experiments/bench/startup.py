@@ -17,6 +17,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from gsp_jax import files
 
 T0 = time.perf_counter()
 CHILD_FLAG = "--child"
@@ -84,8 +85,7 @@ def main(args: argparse.Namespace) -> None:
     first = next(iter(rows.values()))
     result = dict(platform=first["platform"], device=first["device"], rows=rows)
     out = args.out or str(common.results_dir("bench") / f"startup_{first['platform']}.json")
-    with open(out, "w") as f:
-        json.dump(result, f, indent=1)
+    files.write_json(out, result)
     print(f"wrote {out}\n")
     common.record("bench_startup", result, per_device=True)
     print(f"the Quickstart from a fresh process, {first['device']} ({first['platform']}), seconds")

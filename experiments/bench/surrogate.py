@@ -4,7 +4,6 @@ loop, the paper's execution model), measured side by side in one run."""
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import time
 
@@ -14,7 +13,7 @@ import numpy as np
 
 from experiments import common
 from experiments.common import best_time, results_dir, table, timed
-from gsp_jax import scenario, surrogate
+from gsp_jax import files, scenario, surrogate
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -68,8 +67,7 @@ def main(args: argparse.Namespace) -> None:
         full_table_batched_s=t_b * ep.n_steps, max_reward_diff=agree,
     )
     out = args.out or str(results_dir() / "bench_surrogate.json")
-    with open(out, "w") as f:
-        json.dump(result, f, indent=1)
+    files.write_json(out, result)
     print(f"wrote {out}")
     common.record("bench_surrogate", result, per_device=True)
     print()

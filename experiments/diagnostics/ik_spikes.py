@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments.common import results_dir, table
-from gsp_jax import ik, scenario, surrogate
+from gsp_jax import files, ik, scenario, surrogate
 
 SPIKE, NEIGHBOUR = 2e-3, 1e-3  # [m]
 
@@ -74,8 +74,8 @@ def main(args: argparse.Namespace) -> None:
                      o["median_error_mm"], err.size, wall])
         print(f"{name}: {o['spikes']} spikes over {len(episodes)} episodes", flush=True)
     path = results_dir("ik") / f"{args.set}_spikes.json"
-    path.write_text(json.dumps(dict(set=args.set, episodes=list(episodes), device=jax.devices()[0].device_kind,
-                                    variants=out), indent=1))
+    files.write_json(path, dict(set=args.set, episodes=list(episodes), device=jax.devices()[0].device_kind,
+                                    variants=out))
     print(f"wrote {path}\n")
     print(table(["IK", "starts", "spikes", "< 1 mm, collision-free", "collisions", "median error [mm]", "problems",
                  "first call [s]"], rows, ".2f"))

@@ -23,12 +23,12 @@ how many entries flip between failing and not. Raw runs are kept in results/prec
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import subprocess
 import sys
 
 import numpy as np
+from gsp_jax import files
 
 EPISODES = {"nominal": ("nominal", "nominal"), "evalB": ("evalB", "mass1.5m0_comy+2cm")}
 
@@ -168,7 +168,7 @@ def main(args) -> None:
     ref = data.pop("native")
     result = {runs[k][0]: _compare(ref, other, args.episodes) for k, other in data.items()}
     out = results_dir("precision") / "precision.json"
-    out.write_text(json.dumps(dict(episodes=args.episodes, vs_native_float32=result), indent=1))
+    files.write_json(out, dict(episodes=args.episodes, vs_native_float32=result))
     rows = [[label, f"{c['reward_median']:.1e}", f"{c['reward_p99']:.1e}", f"{100 * c['reward_above_1e3']:.2f}%",
              f"{c['reward_max']:.2e}", f"{c['wrench_p99']:.1e}", f"{c['ik_p99_um']:.2f}", f"{c['ik_max_um']:.0f}",
              f"{c['value_max']:.1e}", f"{c['flips']}/{c['entries']}"] for label, c in result.items()]

@@ -4,7 +4,6 @@ sequence replayed), and the optimal grasp sequence; writes results/dp_<set>.json
 from __future__ import annotations
 
 import argparse
-import json
 import re
 import time
 
@@ -14,7 +13,7 @@ import numpy as np
 from tqdm import tqdm
 
 from experiments.common import results_dir, table
-from gsp_jax import dp, scenario, surrogate
+from gsp_jax import dp, files, scenario, surrogate
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -100,8 +99,8 @@ def main(args: argparse.Namespace) -> None:
             print(f"  no grasp sequence holds {name} in the surrogate: {out[i]['infeasible']}")
     folder = results_dir()
     path = folder / f"dp_{args.set}.json"
-    path.write_text(json.dumps(dict(set=args.set, seconds=elapsed, mean_grasp_changes=float(n_changes.mean()),
-                                    episodes=out), indent=1))
+    files.write_json(path, dict(set=args.set, seconds=elapsed, mean_grasp_changes=float(n_changes.mean()),
+                                    episodes=out))
     plot = args.plot or names[0]
     png = folder / f"dp_timeline_{re.sub(r'[^A-Za-z0-9._-]', '_', plot)}.png"
     i = names.index(plot)

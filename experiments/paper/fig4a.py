@@ -12,7 +12,6 @@ the cost (the CPU default). Writes results/fig4a/returns.json and fig4a.png; pri
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import jax
@@ -20,7 +19,7 @@ import numpy as np
 
 from experiments import common
 from experiments.common import bar_png, results_dir, table
-from gsp_jax import evaluation, lookahead, policies, stats
+from gsp_jax import evaluation, files, lookahead, policies, stats
 from gsp_jax.env import TableModel
 
 COMPARED = ("dp-base", "rl", "L1", "L2")  # relative to dp-opt
@@ -60,7 +59,7 @@ def run(ctx: evaluation.Context, backend: str, out, cached: bool = True) -> dict
                   returns={n: r.tolist() for n, r in rets.items()}, dp_opt_rollout_vs_table_max_abs=gap, wall_s=wall,
                   r_min=ctx.surrogate.reward_config.r_min)
     result |= analyse(result)
-    (out / "returns.json").write_text(json.dumps(result, indent=1))
+    files.write_json(out / "returns.json", result)
     plot(result["relative"], len(ctx.names), out / "fig4a.png")
     return result
 

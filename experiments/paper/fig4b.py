@@ -13,7 +13,6 @@ fig4b.png; prints the table last.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -23,7 +22,7 @@ import numpy as np
 from experiments import common
 from experiments.common import bar_png, results_dir, table
 from experiments.physics.check import result_rows
-from gsp_jax import evaluation, physics, stats
+from gsp_jax import evaluation, files, physics, stats
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -57,7 +56,8 @@ def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str =
     results, todo = {}, []
     for name in names:
         path = out / f"{name}.json"
-        saved = json.loads(path.read_text()) if path.exists() and not fresh else {}
+        saved = (files.reuse_json(path, lambda r: isinstance(r, dict)) or {}) if not fresh else {}  # a truncated
+        # file (a crash while writing it, before writes were atomic) is named in a warning and recomputed
         if saved.get("fingerprint") == stamp:
             results[name] = saved
             print(f"  {name:8s} (saved) mean angle error {saved['mean_deg']:.1f} deg", flush=True)
@@ -71,7 +71,7 @@ def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str =
                       falls=int(np.sum(res.fell)), held=[r for r in rows if not r["fell"]], per_episode=rows,
                       wall_s_incl_compile=wall, jobs=jobs, platform=jax.default_backend(), backend=backend,
                       fingerprint=stamp, **(dict(k=k, bases=list(bases)) if name in evaluation.VERIFIED else {}))
-        (out / f"{name}.json").write_text(json.dumps(result, indent=1))
+        files.write_json(out / f"{name}.json", result)
         print(f"  {name:8s} mean angle error {mean:.1f} deg (+-{ci:.1f}), {result['falls']}/{len(ctx.names)} "
               f"fell ({wall:.1f} s incl. compile)", flush=True)
         return result
@@ -97,7 +97,7 @@ def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str =
                   f"(falls {'the same' if same else 'DIFFERENT'})", flush=True)
             for name in todo:
                 done[name]["lockstep_warm_s"] = warm_s
-                (out / f"{name}.json").write_text(json.dumps(done[name], indent=1))
+                files.write_json(out / f"{name}.json", done[name])
     else:
         with ThreadPoolExecutor(max_workers=jobs) as pool:
             done = dict(zip(todo, pool.map(simulate, todo)))

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import pathlib
 import shutil
 import time
@@ -30,7 +29,7 @@ from experiments.common import results_dir
 from experiments.paper import fig4a
 from experiments.paper import fig4b
 from experiments.paper import table1
-from gsp_jax import evaluation
+from gsp_jax import evaluation, files
 
 PRESETS = {
     "quick": dict(fig4a_episodes=9, backend="table", batch=0, repeats=1, fig4b_episodes=2, train=False),
@@ -80,7 +79,7 @@ def main(args: argparse.Namespace) -> None:
                     date=datetime.datetime.now().isoformat(timespec="minutes"))
     saved = out / "report.json"
     if args.skip and saved.exists():  # a partial run adds to the stages already reported in `out`
-        previous = json.loads(saved.read_text())
+        previous = files.reuse_json(saved, lambda r: isinstance(r, dict)) or {}
         if previous.get("preset") == preset:
             kept = [n for key, n in (("fig4a", "Fig. 4a"), ("table1", "Table 1"), ("fig4b", "Fig. 4b"))
                     if key in args.skip and key in previous]
@@ -123,8 +122,8 @@ def main(args: argparse.Namespace) -> None:
         shutil.copy(results_dir("fig4b") / "fig4b.png", out / "fig4b.png")
         sections["fig4b"] = res
         common.record("fig4b", fig4b.figures(res))
-    (out / "report.json").write_text(json.dumps(sections, indent=1, default=str))
-    (out / "REPORT.md").write_text(report(sections))
+    files.write_json(out / "report.json", sections, default=str)
+    files.write_text(out / "REPORT.md", report(sections))
     print(f"wrote {out / 'REPORT.md'} ({(time.perf_counter() - t_start) / 60:.1f} min)")
 
 
@@ -133,14 +132,14 @@ def rebuild(out: pathlib.Path) -> None:
     if not (out / "report.json").exists():
         raise SystemExit(f"--report-only: no {out / 'report.json'} (run the stages first, or --out docs/report for the "
                          "committed GPU run)")
-    sections = json.loads((out / "report.json").read_text())
+    sections = files.read_json(out / "report.json")
     if "fig4a" in sections:
         sections["fig4a"] |= fig4a.analyse(sections["fig4a"])
         fig4a.plot(sections["fig4a"]["relative"], len(sections["fig4a"]["episodes"]), out / "fig4a.png")
     if "fig4b" in sections:
         fig4b.plot(sections["fig4b"], len(next(iter(sections["fig4b"].values()))["episodes"]), out / "fig4b.png")
-    (out / "report.json").write_text(json.dumps(sections, indent=1, default=str))
-    (out / "REPORT.md").write_text(report(sections))
+    files.write_json(out / "report.json", sections, default=str)
+    files.write_text(out / "REPORT.md", report(sections))
     print(f"wrote {out / 'REPORT.md'}")
 
 

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import os
 import time
 
@@ -33,7 +32,7 @@ import jax
 
 from experiments import common
 from experiments.common import results_dir, table
-from gsp_jax import dp, evaluation, policies
+from gsp_jax import dp, evaluation, files, policies
 from gsp_jax import lookahead as lookahead_lib
 from gsp_jax.env import TableModel
 from gsp_jax.surrogate import Surrogate
@@ -191,7 +190,7 @@ def run(ctx: evaluation.Context, batch: int, repeats: int, out, lookahead: str =
         result["cores"] = os.cpu_count()
     if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
         result["note"] = "JAX's persistent compilation cache was on (JAX_COMPILATION_CACHE_DIR): compile times may be cache hits"
-    (out / f"{device.platform}.json").write_text(json.dumps(result, indent=1))
+    files.write_json(out / f"{device.platform}.json", result)
     return result
 
 

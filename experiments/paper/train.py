@@ -11,14 +11,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from experiments.common import results_dir, table
-from gsp_jax import dp, policies, pretrain, scenario
+from gsp_jax import dp, files, policies, pretrain, scenario
 from gsp_jax.env import GraspEnv
 from gsp_jax.evaluation import dp_tables
 from gsp_jax.ppo import networks as nets
@@ -118,10 +117,10 @@ def run_seed(s: Setup, seed: int, mode: str, out_dir, progress: bool = True) -> 
     params = None
     if mode == "dp":
         params, bc_log = pretrained(s, seed, progress)
-        (out_dir / "bc_history.json").write_text(json.dumps(bc_log))
+        files.write_json(out_dir / "bc_history.json", bc_log, indent=None)
     trainer = ppo.Trainer(s.env, s.networks, ppo_config(s, mode), s.eval_envs)
     result = ppo.train(trainer, seed, params=params, checkpoint_dir=out_dir, progress=progress)
-    (out_dir / "history.json").write_text(json.dumps(result.history))
+    files.write_json(out_dir / "history.json", result.history, indent=None)
     policies.save_network_policy(out_dir / "policy", result.policy, s.surrogate)  # with the model it is for
     return result
 
@@ -130,7 +129,7 @@ def main(args: argparse.Namespace) -> None:
     preset = args.preset or ("full" if jax.default_backend() == "gpu" else "quick")
     s = setup(preset, args.iterations, args.envs, args.patience)
     root = results_dir(args.out)  # results/train-<model> for another model: where evaluation.load_rl looks
-    (root / "reference.json").write_text(json.dumps({**s.reference, "preset": preset}, indent=1))
+    files.write_json(root / "reference.json", {**s.reference, "preset": preset})
     print(
         f"preset {preset}: {s.ppo_config.n_envs} envs x {s.ppo_config.unroll} steps per iteration, "
         f"networks {tuple(s.networks.config.hidden)}, up to {s.ppo_config.max_iterations} iterations"

@@ -11,6 +11,7 @@ import json
 import numpy as np
 
 from experiments.common import results_dir, table
+from gsp_jax import files as files_lib
 
 MODES = {"dp": "with DP pretraining", "none": "without pretraining"}
 
@@ -24,7 +25,7 @@ def load_runs(root) -> dict[str, list[list[dict]]]:
     for mode in MODES:
         files = sorted((root / mode).glob("seed*/history.json"))
         if files:
-            runs[mode] = [json.loads(f.read_text()) for f in files]
+            runs[mode] = [files_lib.read_json(f) for f in files]
     return runs
 
 
@@ -114,9 +115,9 @@ def main(args: argparse.Namespace) -> None:
     if not runs:
         raise SystemExit(f"train-curves: no runs under {root}/{{dp,none}}/seed*/history.json; run `python -m experiments train` first")
     ref_file = root / "reference.json"
-    reference = json.loads(ref_file.read_text()) if ref_file.exists() else {}
+    reference = files_lib.read_json(ref_file) if ref_file.exists() else {}
     summary = {"raw": summarise(runs), "best_so_far": summarise(runs, best_so_far=True), "reference": reference}
-    (root / "curves.json").write_text(json.dumps(summary, indent=1))
+    files_lib.write_json(root / "curves.json", summary)
     plot(runs, reference, root / "curves.png")
     if reference:
         print(f"validation set: DP optimal {reference['val']['dp_optimal']:.3f}, DP baseline {reference['val']['dp_baseline']:.3f}")

@@ -11,6 +11,7 @@ import json
 import numpy as np
 
 from experiments.common import results_dir, table
+from gsp_jax import files
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -22,8 +23,8 @@ def main(args: argparse.Namespace) -> None:
     out = results_dir("physics")
     rows, fell_a, fell_b, diffs = [], [], [], []
     for policy in args.policies:
-        a = json.loads((out / f"{args.set}_{policy}.json").read_text())["episodes"]
-        b = json.loads((out / f"{args.set}_{policy}_c.json").read_text())["episodes"]
+        a = files.read_json(out / f"{args.set}_{policy}.json")["episodes"]
+        b = files.read_json(out / f"{args.set}_{policy}_c.json")["episodes"]
         assert [r["episode"] for r in a] == [r["episode"] for r in b], policy
         fa, fb = np.array([r["fell"] for r in a]), np.array([r["fell"] for r in b])
         both = ~fa & ~fb
@@ -38,5 +39,5 @@ def main(args: argparse.Namespace) -> None:
     rows.append(["all", len(fa), int(np.sum(fa & fb)), int(np.sum(~fa & ~fb)), int(np.sum(fa != fb)),
                  100 * float(np.mean(fa == fb)), float(d.max()) if d.size else float("nan"), int(np.sum(d > 2.0))])
     head = ["policy", "sequences", "both fell", "both held", "disagree", "agree [%]", "max |d angle| [deg]", "> 2 deg"]
-    (out / f"{args.set}_agreement.json").write_text(json.dumps([dict(zip(head, r)) for r in rows], indent=1))
+    files.write_json(out / f"{args.set}_agreement.json", [dict(zip(head, r)) for r in rows])
     print(table(head, rows, ".1f"))

@@ -27,7 +27,6 @@ import argparse
 import dataclasses
 import datetime
 import itertools
-import json
 import pathlib
 import time
 
@@ -37,7 +36,7 @@ import numpy as np
 
 from experiments.common import results_dir, table
 from experiments.physics.correlation import spearman
-from gsp_jax import calibration, dp, evaluation, physics, policies, scenario, surrogate
+from gsp_jax import calibration, dp, evaluation, files, physics, policies, scenario, surrogate
 
 GRID = dict(  # the candidates: every combination. (A first sweep on the nominal episode: fall thresholds of 0.1
     # and below, or mu x0.6, leave no sequence feasible, not even the four tips that hold in physics -- the wrench
@@ -107,7 +106,7 @@ def candidate_tables(configs, episodes: scenario.Episode) -> list[dp.Table]:
 
 def _from_sweep(path: str, write: bool) -> None:
     """`--from-sweep`: choose (and with `write`, write) from a saved sweep."""
-    summary = json.loads(pathlib.Path(path).read_text())
+    summary = files.read_json(path)
     if "rows" not in summary:
         summary["rows"] = [[r["label"], r["spearman"], r["feasible"], r["feasible_held"], r["dp_opt_falls"],
                             r["dp_opt_angle"], r["dp_opt_changes"]] for r in summary["sweep"]]
@@ -115,7 +114,7 @@ def _from_sweep(path: str, write: bool) -> None:
         r["spearman"], nan=-1.0))["label"])
     cache_path = results_dir("calibrate") / f"physics_{summary['backend']}.json"
     if cache_path.exists():  # sweeps written before the per-episode falls were kept: read them off the cache
-        cache = json.loads(cache_path.read_text())
+        cache = files.reuse_json(cache_path, lambda c: isinstance(c, dict)) or {}
         names = summary["episodes"]
         for r in summary["sweep"]:
             if "dp_opt_fell" in r or "dp_opt_sequences" not in r:
@@ -169,7 +168,7 @@ def simulate_pool(pool, episodes: dict, backend: str, chunk_size: int, t0: float
     after each chunk): {"<episode>|<actions>": [angle error, fell]}."""
     names = list(episodes)
     cache_path = results_dir("calibrate") / f"physics_{backend}.json"
-    cache = json.loads(cache_path.read_text()) if cache_path.exists() else {}
+    cache = files.reuse_json(cache_path, lambda c: isinstance(c, dict)) or {}  # unreadable: warned, resimulated
     todo = [(e, seq) for e in range(len(names)) for _, seq in pool[e] if pool_key(names, e, seq) not in cache]
     n_pool = sum(len(p) for p in pool)
     print(f"  pool: {n_pool} distinct (episode, sequence) pairs, {len(todo)} to simulate ({backend})", flush=True)
@@ -184,9 +183,7 @@ def simulate_pool(pool, episodes: dict, backend: str, chunk_size: int, t0: float
         res = phys.simulate_batch(policies.SequencePolicy(acts), eps, 0, backend=backend)
         for j, (e, seq) in enumerate(part):
             cache[pool_key(names, e, seq)] = [float(res.angle_error[j]), bool(res.fell[j])]
-        tmp = cache_path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(cache))
-        tmp.replace(cache_path)
+        files.write_json(cache_path, cache, indent=None)
         print(f"  simulated {min(i + chunk, len(todo))}/{len(todo)}, {time.perf_counter() - t0:.0f} s", flush=True)
     return cache
 
@@ -260,7 +257,7 @@ def main(args: argparse.Namespace) -> None:
     print(f"\n{len(flat)} sequences on {len(names)} episodes ({'+'.join(sets)}), {int(fell.sum())} fell in physics "
           f"({args.backend}); {time.perf_counter() - t0:.0f} s")
     choose_and_write(summary, args.write)  # sets summary["chosen"]
-    (results_dir("calibrate") / "sweep.json").write_text(json.dumps(summary, indent=1))
+    files.write_json(results_dir("calibrate") / "sweep.json", summary)
 
 
 def choose_and_write(summary: dict, write: bool) -> dict:
@@ -330,7 +327,7 @@ def write_calibration(res: dict, summary: dict) -> None:
     keys = ("friction_scale", "grip", "grip_scales_with_mass", "squeeze", "motors", "fall_unmet", "w_wrench_change",
             "change_falls")
     body = ",\n".join(f"    {k}={cfg.get(k, getattr(surrogate.RewardConfig(), k))!r}" for k in keys)
-    CALIBRATION_PY.write_text(f'''"""The reward's calibrated defaults, read by `surrogate.RewardConfig`. Written by `python -m experiments calibrate
+    files.write_text(CALIBRATION_PY, f'''"""The reward's calibrated defaults, read by `surrogate.RewardConfig`. Written by `python -m experiments calibrate
 --write` ({datetime.date.today().isoformat()}); rerun it rather than editing by hand."""
 
 CALIBRATED = dict(

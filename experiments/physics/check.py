@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import time
 
 import jax
@@ -27,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments.common import results_dir, table
-from gsp_jax import evaluation, physics, policies, scenario, surrogate, wrench
+from gsp_jax import evaluation, files, physics, policies, scenario, surrogate, wrench
 from gsp_jax.stats import mean_ci
 
 POLICIES = ("dp-opt", "dp-base", "rl", "random", "four-tips", "scripted", "one-tip")
@@ -172,8 +171,8 @@ def main(args: argparse.Namespace) -> None:
             summary["sequences"][k] = dict(actions=[int(a) for a in seqs[k]], least_friction_needed=need,
                                            episode_friction=sorted({float(e.friction) for e in episodes.values()}),
                                            **_summary(names, part))
-    stem.with_suffix(".json").write_text(json.dumps(dict(summary=summary, episodes=rows), indent=1))
-    np.savez_compressed(f"{stem}_trace.npz", angle=np.asarray(res.angle), qpos=np.asarray(res.qpos), names=labels)
+    files.write_json(stem.with_suffix(".json"), dict(summary=summary, episodes=rows))
+    files.savez(f"{stem}_trace.npz", compressed=True, angle=np.asarray(res.angle), qpos=np.asarray(res.qpos), names=labels)
     trace_png(phys, labels, res, f"{stem}_angle.png", f"{args.policy} on {args.set} ({args.backend})")
     files = [stem.with_suffix(".json"), f"{stem}_trace.npz", f"{stem}_angle.png"]
     if args.render:

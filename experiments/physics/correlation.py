@@ -6,7 +6,6 @@ results/physics/corr_<set>.json and a scatter PNG."""
 from __future__ import annotations
 
 import argparse
-import json
 import time
 
 import jax
@@ -15,7 +14,7 @@ import numpy as np
 
 from experiments import common
 from experiments.common import results_dir, table
-from gsp_jax import dp, physics, policies, scenario, surrogate
+from gsp_jax import dp, files, physics, policies, scenario, surrogate
 from gsp_jax.evaluation import dp_tables, nominal_actions
 
 
@@ -93,7 +92,7 @@ def main(args: argparse.Namespace) -> None:
     out = results_dir("physics")
     rows = [dict(episode=names[e], kind=kinds[j], surrogate_return=float(ret[e, j]), angle_error_deg=float(angle[e, j]),
                  fell=bool(fell[e, j]), actions=[int(a) for a in actions[e, j]]) for e in range(n_e) for j in range(k)]
-    (out / f"corr_{args.set}.json").write_text(json.dumps(dict(summary=summary, sequences=rows), indent=1))
+    files.write_json(out / f"corr_{args.set}.json", dict(summary=summary, sequences=rows))
     common.record(f"physics_corr_{args.set}", summary)
     scatter_png(ret, angle, kinds, out / f"corr_{args.set}.png", summary)
     print(table(["episode", "DP opt ret", "angle", "DP base ret", "angle", "rho within"],

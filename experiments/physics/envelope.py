@@ -19,7 +19,6 @@ errors (Spearman). Writes results/envelope/<set>.json; prints the table last.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -30,7 +29,7 @@ import numpy as np
 
 from experiments import common
 from experiments.common import results_dir, table
-from gsp_jax import dp, evaluation, physics, policies, scenario
+from gsp_jax import dp, evaluation, files, physics, policies, scenario
 
 PLANNERS = ("four-tips", "dp-opt", "L1", "L2", "rl")
 
@@ -203,7 +202,7 @@ def main(args: argparse.Namespace) -> None:
                platform=jax.default_backend(), rl_policy=ctx.rl_source, summary=summary,
                sequences=[row(g, e) for g in range(len(kinds)) for e in range(N)])
     path = results_dir("envelope") / f"{args.set}.json"
-    path.write_text(json.dumps(out, indent=1))
+    files.write_json(path, out)
     print(f"wrote {path}\n")
     common.record(f"envelope_{args.set}", dict(episodes=N, random=args.random, summary=summary))
     p = summary["pool"]

@@ -27,7 +27,7 @@ import numpy as np
 
 from experiments.common import ROOT, results_dir, table
 from experiments.physics.envelope import summarise
-from gsp_jax import ik, scenario, surrogate
+from gsp_jax import files, ik, scenario, surrogate
 
 DEFAULT_POOL = ROOT / "docs" / "data" / "archive" / "envelope" / "stress_reached_h100.json"
 
@@ -71,7 +71,7 @@ def load_pool(path: str, n_episodes: int | None):
     file = pathlib.Path(path)
     if not file.is_file():
         raise SystemExit(f"--pool: no envelope result at {path!r} (python -m experiments envelope writes one)")
-    data = json.loads(file.read_text())
+    data = files.read_json(file)
     missing = {"set", "episodes", "kinds", "sequences"} - set(data)
     if missing:
         raise SystemExit(f"--pool: {path!r} is not an envelope result (missing {sorted(missing)})")
@@ -163,8 +163,8 @@ def main(args: argparse.Namespace) -> None:
                      pool["auc_within_mean"], pool["spearman_pooled"]])
         print(f"  {label}: {time.perf_counter() - t1:.0f} s", flush=True)
     path = results_dir("rescore") / f"{set_name}.json"
-    path.write_text(json.dumps(dict(pool=str(args.pool), set=set_name, episodes=names, sequences=int(fell.size),
-                                    physics_falls=int(fell.sum()), rewards=out), indent=1))
+    files.write_json(path, dict(pool=str(args.pool), set=set_name, episodes=names, sequences=int(fell.size),
+                                    physics_falls=int(fell.sum()), rewards=out))
     print(f"wrote {path}\n")
     print(f"{fell.size} sequences of '{set_name}', {int(fell.sum())} fell in the recorded physics")
     print(table(["reward", "feasible", "of them held", "AUC pooled", "AUC within", "Spearman rho"], rows))

@@ -19,6 +19,7 @@ import dataclasses
 import json
 import pathlib
 import time
+import warnings
 from typing import Any
 
 import jax
@@ -29,6 +30,7 @@ import orbax.checkpoint as ocp
 from flax import struct
 from tqdm.auto import tqdm
 
+from gsp_jax import files
 from gsp_jax.ppo import losses
 from gsp_jax.ppo import networks as nets
 
@@ -279,16 +281,19 @@ def train(
     `checkpoint_every` iterations and, started again, resumes from its latest checkpoint. `stop_after` ends this
     call after that many iterations in total (with a checkpoint there; for time-sliced jobs); `stop_when(record)`
 ends it after the first iteration whose history record satisfies it (e.g. a target return)."""
+    if checkpoint_dir is None:
+        return _train(trainer, seed, params, None, progress, stop_after, stop_when)
+    with files.folder_lock(checkpoint_dir):  # a second run on the same folder is refused, naming it
+        return _train(trainer, seed, params, checkpoint_dir, progress, stop_after, stop_when)
+
+
+def _train(trainer, seed, params, checkpoint_dir, progress, stop_after, stop_when) -> TrainResult:
     cfg = trainer.config
     ts = trainer.init(jax.random.PRNGKey(seed), params)
     history: list[dict] = []
     manager = _manager(checkpoint_dir, trainer, seed) if checkpoint_dir is not None else None
     if manager is not None and manager.latest_step() is not None:
-        restored = manager.restore(
-            manager.latest_step(),
-            args=ocp.args.Composite(state=ocp.args.StandardRestore(ts), history=ocp.args.JsonRestore()),
-        )
-        ts, history = _uncommitted(restored.state), list(restored.history)
+        ts, history = _restore(manager, ts)
     wall0 = history[-1]["wall_s"] if history else 0.0
     t0 = time.perf_counter()
     env_steps_per_iter = cfg.n_envs * cfg.unroll
@@ -336,6 +341,33 @@ def _validate(trainer: Trainer, ts: TrainState, record: dict) -> tuple[TrainStat
     return ts, record
 
 
+def _restore(manager: ocp.CheckpointManager, ts: TrainState) -> tuple[TrainState, list[dict]]:
+    """The latest intact checkpoint: a step that cannot be read (a crash truncated it) is reported with its path and
+    the previous step is tried; ValueError naming the folder if none can be read."""
+    args = ocp.args.Composite(state=ocp.args.StandardRestore(ts), history=ocp.args.JsonRestore())
+    for step in sorted(manager.all_steps(), reverse=True):
+        try:
+            restored = manager.restore(step, args=args)
+            history = list(restored.history)
+            if not history or history[-1].get("iteration") != step:
+                raise ValueError(f"its history ends at {history[-1].get('iteration') if history else None}")
+        except Exception as e:  # noqa: BLE001 -- any unreadable step: orbax, tensorstore or JSON errors
+            warnings.warn(f"checkpoint {manager.directory / str(step)} cannot be read ({type(e).__name__}: "
+                          f"{str(e).splitlines()[0][:200]}); resuming from the step before it", stacklevel=3)
+            continue
+        return _uncommitted(restored.state), history
+    raise ValueError(f"checkpoint_dir {manager.directory}: no step can be read ({sorted(manager.all_steps())}); "
+                     "move the folder away to start again")
+
+
+def _differences(old, new, prefix: str = "") -> list[str]:
+    """'field: old -> new' for every leaf where two JSON-like configs differ."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        return [d for k in sorted(set(old) | set(new))
+                for d in _differences(old.get(k), new.get(k), f"{prefix}.{k}" if prefix else k)]
+    return [] if old == new else [f"{prefix}: {old!r} -> {new!r}"]
+
+
 def _manager(directory, trainer: Trainer, seed: int) -> ocp.CheckpointManager:
     directory = pathlib.Path(directory).absolute()
     directory.mkdir(parents=True, exist_ok=True)
@@ -346,15 +378,14 @@ def _manager(directory, trainer: Trainer, seed: int) -> ocp.CheckpointManager:
         meta["model"] = {"name": model.name, "digest": model.digest}
     meta_file = directory / "run.json"
     if meta_file.exists():
-        old = json.loads(meta_file.read_text())
+        old = files.read_json(meta_file)
         for field in meta:
             if old.get(field) != meta[field]:
-                raise ValueError(
-                    f"checkpoint_dir {directory}: holds a run with a different {field} ({old.get(field)!r}, now "
-                    f"{meta[field]!r}); use another directory to start a new run"
-                )
+                diff = "; ".join(_differences(old.get(field), meta[field], field))
+                raise ValueError(f"checkpoint_dir {directory}: holds a run with a different {field} ({diff}); use "
+                                 "another directory to start a new run")
     else:
-        meta_file.write_text(json.dumps(meta, indent=1))
+        files.write_json(meta_file, meta)
     options = ocp.CheckpointManagerOptions(max_to_keep=2, create=True, enable_async_checkpointing=False)
     return ocp.CheckpointManager(directory / "checkpoints", options=options)
 

@@ -165,9 +165,9 @@ def main(args: argparse.Namespace) -> None:
     space = ctx.surrogate.space
     grasps = {n: [int(x) for x in np.asarray(r.grasps[0])] for n, r in res.items()}
     _picture(phys, ctx, grasps, res, out / "demo.png")
-    files = [str(out / "demo.png")]
+    written = [str(out / "demo.png")]
     if not args.no_gif:
-        files += _gif(np.asarray(res["L1"].qpos[0]), out / "demo_L1")
+        written += _gif(np.asarray(res["L1"].qpos[0]), out / "demo_L1")
     rows, record = [], {}
     for name in PLANNERS:
         r = res[name]
@@ -184,8 +184,8 @@ def main(args: argparse.Namespace) -> None:
     files.write_json(out / "demo.json", dict(model=model.name, model_digest=model.digest, infeasible=why,
                                                    episode=ctx.names[0], platform=jax.default_backend(),
                                                    rl_policy=ctx.rl_source, table_s=t_table, physics_s=t_phys,
-                                                   planners=record, files=files))
-    print(f"wrote {', '.join(files + [str(out / 'demo.json')])}\n")
+                                                   planners=record, files=written))
+    print(f"wrote {', '.join(written + [str(out / 'demo.json')])}\n")
     print(f"{ctx.names[0]}: the grasp changes executed in C MuJoCo (closed loop: each decision on the simulated "
           "state), their return in the surrogate, the outcome")
     print(table(["planner", "changes", "return", "physics", "angle error [deg]", "plan time incl. compile [s]"], rows,

@@ -74,6 +74,10 @@ class GraspSpace:
         if isinstance(actions, jax.core.Tracer):
             return
         a = np.asarray(actions)
+        if a.dtype.kind not in "iuf" or isinstance(actions, (bool, np.bool_)):  # a bool, a string, None, objects
+            raise ValueError(f"{field}: {actions!r} is not an integer action (an int in [0, {self.n_actions}))")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{field}: {a[~np.isfinite(a)].ravel()[0]} is not an integer action")
         if not np.issubdtype(a.dtype, np.integer) and not np.all(a == np.round(a)):
             raise ValueError(f"{field}: {a.ravel()[a.ravel() != np.round(a.ravel())][0]} is not an integer action")
         bad = (a < 0) | (a >= self.n_actions)

@@ -55,7 +55,7 @@ def _named_episodes(episodes, model=None) -> dict:
     from gsp_jax import scenario
 
     if isinstance(episodes, dict):
-        named = episodes
+        named = {k: scenario.validate(v, str(k), model=model) for k, v in episodes.items()}
     elif isinstance(episodes, (str, pathlib.Path)) and str(episodes).endswith(".json"):
         if not pathlib.Path(episodes).is_file():
             raise ValueError(f"episodes: no such JSON file {str(episodes)!r}")

@@ -96,6 +96,13 @@ def make_episode(
 
     model = model_lib.load_model(model)
     hand, space = model.hand, model.space
+    for name, value in (("shift_mm", shift_mm), ("torque", torque), ("mass_factor", mass_factor),
+                        ("com_y_cm", com_y_cm), ("friction", friction), ("com_x_cm", com_x_cm), ("mass", mass)):
+        _number(name, value, none=name in ("torque", "mass"))
+    for k, value in enumerate(np.ravel(np.asarray(lateral_mm, dtype=object))):
+        _number(f"lateral_mm[{k}]", value)
+    if start_grasp is not None and not (isinstance(start_grasp, (int, np.integer)) and not isinstance(start_grasp, bool)):
+        raise EpisodeError(f"episode.start_grasp: {start_grasp!r} (must be an int grasp index)")
     if isinstance(torque_axis, str):
         if torque_axis not in ("x", "y", "z"):
             raise EpisodeError(f"episode.torque_axis: {torque_axis!r} (must be 'x', 'y', 'z' or a 3-vector)")
@@ -129,6 +136,16 @@ def make_episode(
         start_grasp=jnp.asarray(g0, jnp.int32),
     )
     return validate(ep, model=model)
+
+
+def _number(name: str, value, none: bool = False) -> None:
+    """EpisodeError naming `name` unless `value` is a finite real number (None too where `none`): no bool, no
+    string converted silently."""
+    if value is None and none:
+        return
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)) \
+            or not np.isfinite(value):
+        raise EpisodeError(f"episode.{name}: {value!r} (must be a finite number)")
 
 
 def start_options(space, start) -> np.ndarray:
@@ -352,7 +369,7 @@ def validate(ep: Episode, name: str = "episode", n_grasps: int | None = None, ha
         i = int(np.argmax(np.abs(norms - 1)))
         raise EpisodeError(f"{name}.quats[{i}]: norm {norms[i]:.4f} (must be a unit quaternion)")
     wp = np.asarray(ep.waypoints)
-    lo, hi = hand.workspace
+    lo, hi = hand.workspace.astype(np.float32)  # the waypoints are float32: a point on the edge is in the box
     out = np.any((wp < lo) | (wp > hi), axis=-1)
     if np.any(out):
         i = int(np.argmax(out))
@@ -376,6 +393,9 @@ def from_dict(d: dict, name: str = "episode") -> Episode:
     unknown = sorted(set(d) - set(_FIELDS))
     if unknown:
         raise EpisodeError(f"{name}.{unknown[0]}: unknown field")
+    g = d["start_grasp"]
+    if not (_is_numeric(g) and np.ndim(g) == 0 and np.isfinite(g) and g == np.round(g) and 0 <= g < 2**31):
+        raise EpisodeError(f"{name}.start_grasp: {g!r} (must be an integer grasp index)")
     arrays = {}
     for f in _FIELDS:
         if not _is_numeric(d[f]):
@@ -384,8 +404,6 @@ def from_dict(d: dict, name: str = "episode") -> Episode:
             arrays[f] = jnp.asarray(d[f], jnp.int32 if f == "start_grasp" else jnp.float32)
         except (TypeError, ValueError) as e:  # ragged nesting
             raise EpisodeError(f"{name}.{f}: {d[f]!r} is not a rectangular array") from e
-    if float(np.asarray(d["start_grasp"])) != int(np.asarray(d["start_grasp"])):
-        raise EpisodeError(f"{name}.start_grasp: {d['start_grasp']!r} (must be an integer)")
     return Episode(**arrays)
 
 

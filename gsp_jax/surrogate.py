@@ -39,7 +39,7 @@ from flax import struct
 from gsp_jax import grasps, ik, ik_lanes, kinematics, wrench
 from gsp_jax import hand as hand_lib, model as model_lib
 from gsp_jax.calibration import CALIBRATED
-from gsp_jax.scenario import M0, Episode
+from gsp_jax.scenario import M0, Episode, validate
 
 
 @dataclasses.dataclass(frozen=True)
@@ -315,10 +315,17 @@ class Surrogate:
         return jnp.where(terms.collision | terms.fall, cfg.r_min, -jnp.minimum(cost, cfg.max_step_cost))
 
     # ----------------------------------------------------------------------------------------- env API
-    @jax.jit
     def reset(self, episode: Episode) -> State:
-        """The episode's start: its start grasp realised at waypoint 0, at rest. Compiled (once per model and
-        episode shapes): called from Python it runs as one program, not op by op."""
+        """The episode's start: its start grasp realised at waypoint 0, at rest. Called from Python with a concrete
+        episode, it first checks it against the model (`scenario.validate`: an EpisodeError names the field and the
+        value); traced (inside `jit` / `vmap`) it cannot raise. Compiled (once per model and episode shapes): it runs
+        as one program, not op by op."""
+        if not isinstance(episode.mass, jax.core.Tracer):
+            validate(episode, hand=self.hand)
+        return self._reset(episode)
+
+    @jax.jit
+    def _reset(self, episode: Episode) -> State:
         return self.discrete_state(episode, episode.start_grasp, 0)
 
     @jax.jit

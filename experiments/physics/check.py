@@ -132,11 +132,17 @@ def _summary(names, res, **extra) -> dict:
 
 
 def main(args: argparse.Namespace) -> None:
+    if args.episodes is not None and args.episodes < 1:
+        raise SystemExit(f"--episodes: {args.episodes} (must be >= 1)")
     env = surrogate.Surrogate()
     episodes = scenario.episode_set(args.set)
     if args.episodes:
         episodes = dict(list(episodes.items())[: args.episodes])
     names = list(episodes)
+    known = [f"{k}/{n}" for k in evaluation.scripted_sequences(env.space) for n in names] \
+        if args.policy == "scripted" else names
+    if args.render_episode is not None and args.render_episode not in known:  # before any work, not after it
+        raise SystemExit(f"--render-episode: {args.render_episode!r} is not one of {', '.join(known)}")
     phys = physics.Physics(env)
     if args.policy == "scripted":  # every sequence on every episode, one batch
         seqs = evaluation.scripted_sequences(env.space)
@@ -174,11 +180,11 @@ def main(args: argparse.Namespace) -> None:
     files.write_json(stem.with_suffix(".json"), dict(summary=summary, episodes=rows))
     files.savez(f"{stem}_trace.npz", compressed=True, angle=np.asarray(res.angle), qpos=np.asarray(res.qpos), names=labels)
     trace_png(phys, labels, res, f"{stem}_angle.png", f"{args.policy} on {args.set} ({args.backend})")
-    files = [stem.with_suffix(".json"), f"{stem}_trace.npz", f"{stem}_angle.png"]
+    written = [stem.with_suffix(".json"), f"{stem}_trace.npz", f"{stem}_angle.png"]
     if args.render:
         i = labels.index(args.render_episode) if args.render_episode else 0
         key = int(round(float(res.fall_time[i]) / phys.config.tick)) - 2 if bool(res.fell[i]) else -1
-        files += render_episode(phys, np.asarray(res.qpos[i]), f"{stem}_{labels[i].replace('/', '_')}",
+        written += render_episode(phys, np.asarray(res.qpos[i]), f"{stem}_{labels[i].replace('/', '_')}",
                                 args.render_window, key)
     print(table(["episode", "angle err [deg]", "pos err [mm]", "max lift tilt", "fell at [s]"],
                 [[r["episode"], r["angle_error_deg"], r["position_error_mm"], r["max_lift_angle_deg"],
@@ -190,4 +196,4 @@ def main(args: argparse.Namespace) -> None:
               + ("; its hardest grasp needs mu > {:.4f} (bracket {:.4f}-{:.4f}; episodes: {})".format(
                   part["least_friction_needed"][0], *part["least_friction_needed"], part["episode_friction"])
                  if "least_friction_needed" in part else ""))
-    print(f"{wall:.1f} s including compile\nwrote " + ", ".join(map(str, files)))
+    print(f"{wall:.1f} s including compile\nwrote " + ", ".join(map(str, written)))

@@ -210,6 +210,7 @@ class Physics:
         `simulate_batch`); one `Result` per pair. In C MuJoCo every policy's episodes run in one lockstep on
         `cores` cores, as `workers` chunks side by side (`c_backend.simulate`; defaults: all cores, a chunk per ~32
         episodes); in MJX one batch per policy."""
+        self._check_batch(policies, episodes)
         check_episodes(episodes, self.config)
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
@@ -233,6 +234,30 @@ class Physics:
                 self._jitted[key] = jax.jit(lambda policy, episodes, a=policy_axis: self._run(policy, episodes, a, True))
             out.append(self._jitted[key](policy, episodes))
         return out
+
+
+    def _check_batch(self, policies, episodes: Episode) -> None:
+        """Named errors for a batch the runner cannot take: episodes without a batch axis, an invalid episode of the
+        model (`scenario.validate`), a per-episode policy (axis 0) whose batch is not the episodes'."""
+        from gsp_jax import scenario
+
+        if isinstance(episodes.mass, jax.core.Tracer):
+            return
+        if np.ndim(episodes.mass) != 1:
+            raise ValueError(f"episodes: expected a batch (a leading axis on every field: scenario.stack([...])), got "
+                             f"mass of shape {np.shape(episodes.mass)}")
+        n = int(np.shape(episodes.mass)[0])
+        for i, ep in enumerate(scenario.unstack(episodes)):
+            scenario.validate(ep, f"episodes[{i}]", hand=self.hand)
+        for k, (policy, axis) in enumerate(policies):
+            if axis is None:
+                continue
+            if axis != 0:
+                raise ValueError(f"policies[{k}]: policy_axis must be 0 or None, got {axis!r}")
+            sizes = {np.shape(x)[0] if np.ndim(x) else None for x in jax.tree.leaves(policy)}
+            if sizes != {n}:
+                raise ValueError(f"policies[{k}]: a per-episode policy (policy_axis=0) needs a leading axis of {n} (the "
+                                 f"episodes) on every array, got {sorted(sizes, key=str)}")
 
 
 def check_episodes(episodes: Episode, config: PhysicsConfig) -> None:

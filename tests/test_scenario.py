@@ -248,7 +248,7 @@ def test_json_null_value_is_rejected_with_episode_error(tmp_path):
 def test_malformed_documents_are_rejected(tmp_path):
     p = tmp_path / "x.json"
     p.write_text("{not json")
-    with pytest.raises(sc.EpisodeError, match="not valid JSON"):
+    with pytest.raises(sc.EpisodeError, match="not readable JSON"):
         sc.load(p)
     p.write_text(json.dumps({"episodes": []}))
     with pytest.raises(sc.EpisodeError, match="episodes"):

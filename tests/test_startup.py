@@ -79,19 +79,19 @@ def test_by_platform_follows_the_platform_traced_for(monkeypatch):
 
 
 def test_surrogates_of_one_model_share_their_programs(hand):
-    """Two surrogates of the same hand and configs are equal and hash alike, so `reset` (compiled) builds one
-    program for both; another reward config is another model."""
+    """Two surrogates of the same hand and configs are equal and hash alike, so `reset` (compiled: `_reset`) builds
+    one program for both; another reward config is another model."""
     a, b = surrogate.Surrogate(hand), surrogate.Surrogate(hand)
     other = surrogate.Surrogate(hand, reward=surrogate.RewardConfig(w_redundant=0.1))
     assert a == b and hash(a) == hash(b) and a != other
     episode = scenario.make_episode().head(5)  # a shape no other test resets
-    before = surrogate.Surrogate.reset._cache_size()
+    before = surrogate.Surrogate._reset._cache_size()
     sa, sb = a.reset(episode), b.reset(episode)
-    assert surrogate.Surrogate.reset._cache_size() == before + 1
+    assert surrogate.Surrogate._reset._cache_size() == before + 1
     for x, y in zip(jax.tree.leaves(sa), jax.tree.leaves(sb)):
         assert bool(jnp.all(x == y))
     other.reset(episode)
-    assert surrogate.Surrogate.reset._cache_size() == before + 2
+    assert surrogate.Surrogate._reset._cache_size() == before + 2
 
 
 def test_reset_from_python_equals_reset_inside_a_program(sur):

@@ -107,11 +107,12 @@ class RewardTerms:
     collision: jax.Array  # () bool
     fall: jax.Array  # () bool
     reward: jax.Array  # () the step's reward
+    invalid: jax.Array  # () bool, the episode's inputs are out of range (`episode_ok`): reward r_min, done
 
     @classmethod
     def zeros(cls) -> "RewardTerms":
         z = jnp.zeros((), jnp.float32)
-        return cls(z, z, z, z, z, z, jnp.zeros(4, jnp.float32), jnp.array(False), jnp.array(False), z)
+        return cls(z, z, z, z, z, z, jnp.zeros(4, jnp.float32), jnp.array(False), jnp.array(False), z, jnp.array(False))
 
 
 @struct.dataclass
@@ -272,6 +273,7 @@ class Surrogate:
             collision=now.ik.collision | nxt.ik.collision,
             fall=jnp.array(False),
             reward=jnp.zeros(()),
+            invalid=jnp.array(False),
         )
         return self.finish(terms, redundant, changed, change_error, change_unmet, t)
 
@@ -399,7 +401,9 @@ class Surrogate:
         during = rest[0] if rest else None
         changed = new_grasp != grasp
         terms = self.score(ep, t, tool_pos, tool_quat, now, nxt, redundant, during, changed)
-        done = terms.collision | terms.fall | (t + 1 >= ep.n_steps)
+        invalid = ~episode_ok(ep, self.space.n_grasps)  # traced inputs cannot raise: r_min and a flag, never NaN
+        terms = terms.replace(invalid=invalid, reward=jnp.where(invalid, self.reward_config.r_min, terms.reward))
+        done = terms.collision | terms.fall | (t + 1 >= ep.n_steps) | invalid
         vel = jnp.concatenate([(pos_n - tool_pos) / ep.dt, jnp.zeros(3, jnp.float32)])
         return State(
             grasp=new_grasp,
@@ -412,6 +416,17 @@ class Surrogate:
             done=done,
             terms=terms,
         )
+
+
+def episode_ok(episode: Episode, n_grasps: int) -> jax.Array:
+    """() bool, traceable: the episode's inputs are in range -- every field finite, dt, mass, inertia and friction
+    positive, the start grasp a grasp of the model. `scenario.validate` checks the same and more from Python, naming
+    the field; inside `jit` a step of an episode that fails this gives r_min, done and `RewardTerms.invalid`."""
+    leaves = [episode.waypoints, episode.quats, episode.dt, episode.w_ext, episode.mass, episode.inertia, episode.com,
+              episode.friction]
+    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
+    positive = (episode.dt > 0) & (episode.mass > 0) & jnp.all(episode.inertia > 0) & (episode.friction > 0)
+    return finite & positive & (episode.start_grasp >= 0) & (episode.start_grasp < n_grasps)
 
 
 UNMET_TERMS = ("the wrench while moving (a)", "the hold at the next waypoint (c)",

@@ -93,3 +93,19 @@ def test_the_physics_command_refuses_bad_options_before_any_work(argv, message):
     check.add_arguments(parser)
     with pytest.raises(SystemExit, match=message):
         check.main(parser.parse_args(["--set", "nominal", *argv]))
+
+
+@pytest.mark.parametrize("field, value", [("waypoints", NOMINAL.waypoints.at[3, 0].set(jnp.nan)), ("dt", 0.0),
+                                          ("mass", 0.0), ("start_grasp", 288)])
+def test_inside_jit_an_invalid_episode_gives_r_min_and_a_flag_never_nan(sur, field, value):
+    """Traced, nothing can raise: every step of an invalid episode is r_min, done and flagged invalid (the probes
+    gave NaN rewards, or for mass 0 a better reward than the nominal); a valid one is unflagged."""
+    import jax
+
+    step = jax.jit(lambda ep: sur.step(sur._reset(ep), jnp.int32(0)))
+    bad = NOMINAL.replace(**{field: jnp.asarray(value, NOMINAL.start_grasp.dtype if field == "start_grasp"
+                                                else jnp.float32)})
+    state, reward, done = step(bad)
+    assert float(reward) == sur.reward_config.r_min and bool(done) and bool(state.terms.invalid)
+    state, reward, done = step(NOMINAL)  # (keeping the three-tip start grasp falls there: r_min, but valid)
+    assert not bool(state.terms.invalid) and np.isfinite(float(reward))

@@ -250,10 +250,8 @@ class Physics:
         for i, ep in enumerate(scenario.unstack(episodes)):
             scenario.validate(ep, f"episodes[{i}]", hand=self.hand)
         for k, (policy, axis) in enumerate(policies):
-            if axis is None:
+            if not (isinstance(axis, int) and axis == 0):  # None, or a pytree of in_axes (e.g. a `Lookahead`'s)
                 continue
-            if axis != 0:
-                raise ValueError(f"policies[{k}]: policy_axis must be 0 or None, got {axis!r}")
             sizes = {np.shape(x)[0] if np.ndim(x) else None for x in jax.tree.leaves(policy)}
             if sizes != {n}:
                 raise ValueError(f"policies[{k}]: a per-episode policy (policy_axis=0) needs a leading axis of {n} (the "

@@ -119,16 +119,22 @@ class HandModel:
     def tool_hull(self) -> np.ndarray:
         """(8 (NB + NR), 3) the corners of each tool geom's box (boxes exact, round primitives their enclosing
         box), tool frame [m]: the lowest of them bounds the tool's lowest point from below."""
-        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float64)
-        pos = np.concatenate([self.tool_box_pos, self.tool_round_pos]).reshape(-1, 3)
-        mat = np.concatenate([self.tool_box_mat, self.tool_round_mat]).reshape(-1, 3, 3)
-        half = np.concatenate([self.tool_box_half, enclosing_half(self.tool_round_type, self.tool_round_size)])
-        return (pos[:, None] + np.einsum("bij,bcj->bci", mat, signs * half.reshape(-1, 1, 3))).reshape(-1, 3)
+        return geom_corners(self.tool_box_pos, self.tool_box_mat, self.tool_box_half, self.tool_round_type,
+                            self.tool_round_pos, self.tool_round_mat, self.tool_round_size).reshape(-1, 3)
 
     def tool_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """The tool's axis-aligned bounding box in the tool frame, (3,) lower and upper corners [m]."""
         corners = self.tool_hull()
         return corners.min(0), corners.max(0)
+
+
+def geom_corners(box_pos, box_mat, box_half, round_type, round_pos, round_mat, round_size) -> np.ndarray:
+    """(G, 8, 3) the corners of each tool geom's box, boxes first, then round primitives' enclosing boxes [m]."""
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float64)
+    pos = np.concatenate([box_pos, round_pos]).reshape(-1, 3)
+    mat = np.concatenate([box_mat, round_mat]).reshape(-1, 3, 3)
+    half = np.concatenate([box_half, enclosing_half(round_type, round_size)]).reshape(-1, 1, 3)
+    return pos[:, None] + np.einsum("bij,bcj->bci", mat, signs * half)
 
 
 def enclosing_half(kinds, size: np.ndarray) -> np.ndarray:
@@ -203,6 +209,15 @@ class _Tree:
                     moves[bi, self.body_joint[self.index[b]]] = 1.0
                 b = self.model.body_parentid[b]
         return moves
+
+
+def table_geom(model: mujoco.MjModel) -> int:
+    """The table: the world's one plane geom."""
+    planes = [g for g in range(model.ngeom)
+              if model.geom_bodyid[g] == 0 and int(model.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_PLANE)]
+    if len(planes) != 1:
+        raise ValueError(f"model: the scene needs one plane geom in the worldbody (the table); found {len(planes)}")
+    return planes[0]
 
 
 def tool_body(model: mujoco.MjModel) -> int:
@@ -374,11 +389,8 @@ def _supports(model: mujoco.MjModel, tool: int, shape: dict) -> dict:
         k += 1
     if top:
         return dict(support_top=np.array(top), support_half=np.array(half))
-    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float64)
-    pos = np.concatenate([shape["tool_box_pos"], shape["tool_round_pos"]])
-    mat = np.concatenate([shape["tool_box_mat"], shape["tool_round_mat"]])
-    hs = np.concatenate([shape["tool_box_half"], enclosing_half(shape["tool_round_type"], shape["tool_round_size"])])
-    corners = pos[:, None] + np.einsum("bij,bcj->bci", mat, signs * hs[:, None])  # (G, 8, 3)
+    corners = geom_corners(*(shape[f"tool_{k}"] for k in ("box_pos", "box_mat", "box_half", "round_type", "round_pos",
+                                                           "round_mat", "round_size")))  # (G, 8, 3)
     lo, hi = corners.min(1), corners.max(1)  # (G, 3) each geom's box
     axis = 0 if np.ptp(corners[..., 0]) >= np.ptp(corners[..., 1]) else 1
     a0, a1 = lo[:, axis].min(), hi[:, axis].max()

@@ -173,12 +173,11 @@ def _name(m, obj, i) -> str:
 
 
 def _check_tool(m) -> list[str]:
-    free = sorted({int(m.jnt_bodyid[j]) for j in range(m.njnt) if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE})
-    if len(free) != 1:
-        names = ", ".join(repr(_name(m, mujoco.mjtObj.mjOBJ_BODY, b)) for b in free)
-        return [f"the tool must be the scene's one free body (a body with <freejoint/>): found {len(free)}"
-                + (f" ({names})" if names else "")]
-    tool, out = free[0], []
+    try:
+        tool = hand_lib.tool_body(m)
+    except ValueError as e:
+        return [str(e).removeprefix("model: ")]
+    out = []
     geoms = hand_lib.tool_geoms(m, tool)
     if not geoms:
         out.append(f"tool body {_name(m, mujoco.mjtObj.mjOBJ_BODY, tool)!r} has no collision geom")
@@ -194,8 +193,11 @@ def _check_tool(m) -> list[str]:
 
 
 def _check_table(m) -> list[str]:
-    planes = [g for g in range(m.ngeom) if m.geom_bodyid[g] == 0 and m.geom_type[g] == mujoco.mjtGeom.mjGEOM_PLANE]
-    return [] if len(planes) == 1 else [f"the scene needs one plane geom in the worldbody (the table); found {len(planes)}"]
+    try:
+        hand_lib.table_geom(m)
+    except ValueError as e:
+        return [str(e).removeprefix("model: ")]
+    return []
 
 
 def _check_links(m, problems: list[str]):

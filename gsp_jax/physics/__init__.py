@@ -15,8 +15,8 @@ reference), batched over episodes and policies.
 from gsp_jax.physics.config import PhysicsConfig
 from gsp_jax.physics.controller import Controller, ControllerState, Motion, reference_motion
 from gsp_jax.physics.runner import BACKENDS, Physics, Result, check_episodes
-from gsp_jax.physics.scene import SUPPORT, Observation, Scene, physics_model, table_geom
+from gsp_jax.physics.scene import SUPPORT, Observation, Scene, physics_model
 
 __all__ = ["BACKENDS", "Controller", "ControllerState", "Motion", "Observation", "Physics",
-           "PhysicsConfig", "Result", "Scene", "SUPPORT", "check_episodes", "physics_model", "table_geom",
+           "PhysicsConfig", "Result", "Scene", "SUPPORT", "check_episodes", "physics_model",
            "reference_motion"]

@@ -43,15 +43,6 @@ def _named_spec(path) -> mujoco.MjSpec:
     return spec
 
 
-def table_geom(model: mujoco.MjModel) -> int:
-    """The table: the world's plane geom."""
-    planes = [g for g in range(model.ngeom)
-              if model.geom_bodyid[g] == 0 and int(model.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_PLANE)]
-    if len(planes) != 1:
-        raise ValueError(f"physics: the scene needs one plane geom in the worldbody (the table), found {len(planes)}")
-    return planes[0]
-
-
 def physics_model(hand: hand_lib.HandModel, config: PhysicsConfig = PhysicsConfig()) -> mujoco.MjModel:
     """The physics model of the scene a hand was loaded from (`hand.source`): contact spheres for the hand's capsules
     and spheres, and an explicit contact list (see the module docstring): the tool with the table, with the geoms
@@ -66,7 +57,7 @@ def physics_model(hand: hand_lib.HandModel, config: PhysicsConfig = PhysicsConfi
     tool = hand_lib.tool_body(base)
     tool_geoms = [name(mujoco.mjtObj.mjOBJ_GEOM, g) for g in hand_lib.tool_geoms(base, tool)]
     tool_geom0 = mujoco.mj_name2id(base, mujoco.mjtObj.mjOBJ_GEOM, tool_geoms[0])
-    table = name(mujoco.mjtObj.mjOBJ_GEOM, table_geom(base))
+    table = name(mujoco.mjtObj.mjOBJ_GEOM, hand_lib.table_geom(base))
     to_tool, to_table = [], []
     for g in range(base.ngeom):
         if int(base.geom_type[g]) not in (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_SPHERE)) or \
@@ -177,7 +168,7 @@ class Scene:
         n_sup = len(hand.support_top)
         self.pedestal_geoms = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, f"{SUPPORT}{k + 1}")
                                         for k in range(n_sup)])
-        others = {table_geom(m), *self.pedestal_geoms.tolist()}
+        others = {hand_lib.table_geom(m), *self.pedestal_geoms.tolist()}
         self.finger_tool_pairs = np.array(
             [p for p in range(m.npair) if self.tool_body in (m.geom_bodyid[m.pair_geom1[p]], m.geom_bodyid[m.pair_geom2[p]])
              and not others & {int(m.pair_geom1[p]), int(m.pair_geom2[p])}])

@@ -59,12 +59,14 @@ def _context(name: str | None) -> evaluation.Context:
 
 
 def infeasible(ctx: evaluation.Context, i: int = 0) -> str | None:
-    """Why no sequence holds episode i in the surrogate (`Surrogate.explain` of DP optimal's), None if one does."""
+    """Why no sequence holds episode i in the surrogate (`Surrogate.explain` of the sequence that holds longest,
+    `dp.longest_surviving`), None if one does."""
     sur = ctx.surrogate
     if float(ctx.solutions.ret[i]) > sur.reward_config.r_min:
         return None
-    episode = jax.tree.map(lambda x: x[i], ctx.batch)
-    return sur.explain(episode, np.asarray(ctx.solutions.actions[i]))
+    episode, table = (jax.tree.map(lambda x: x[i], tree) for tree in (ctx.batch, ctx.tables))
+    longest = dp.longest_surviving(table, episode.start_grasp, sur.reward_config.r_min)
+    return sur.explain(episode, np.asarray(longest.actions))
 
 
 def _picture(phys: physics.Physics, ctx, grasps: dict, res: dict, path) -> None:

@@ -140,6 +140,14 @@ def backup(table: Table, start_grasp: jax.Array) -> Solution:
     )
 
 
+def longest_surviving(table: Table, start_grasp: jax.Array, r_min: float) -> Solution:
+    """The sequence that holds the tool longest (most steps before one whose reward is `r_min` or less), from the
+    start grasp: where every sequence fails (the optimum's return is `r_min`), the optimum fails at once (a failure
+    ends the costs), while this one shows where the tool is lost at the latest and why (`Surrogate.explain`)."""
+    survived = (table.reward > r_min).astype(table.reward.dtype)
+    return backup(table.replace(reward=survived), start_grasp)
+
+
 def solve(env: Surrogate, episode: Episode) -> tuple[Table, Solution]:
     """Table + backup for one episode (`vmap` it for a batch)."""
     table = build_table(env, episode)

@@ -21,6 +21,11 @@ M0 = 0.35  # the shipped wrench's nominal mass [kg] (episodes take their tool's 
 INERTIA0 = (2.5e-5, 1.1e-3, 1.12e-3)  # the shipped wrench's principal inertia about the CoM [kg m^2]
 FRICTION0 = 0.8  # nominal finger-tool Coulomb friction coefficient
 FRICTION_MAX = 3.0  # a plausible friction coefficient is in (0, FRICTION_MAX] (rubber on metal is ~1-2)
+SCALE_MAX = 100.0  # an episode's mass is within this factor of its model's tool mass either way (its inertia within
+# SCALE_MAX^2: a tool 100x as heavy and 10x as long); beyond that the model's hand is the wrong hand for the tool
+DT_RANGE = (0.01, 10.0)  # [s] time between waypoints the surrogate accepts (the physics check runs its own `segment`)
+MAX_WAYPOINTS = 19  # T at most: the default reward's failure (r_min -200) must cost more than any T steps held at
+# its largest step cost (10), so that no plan prefers a fall (`RewardConfig.max_waypoints`)
 Z_START, Z_END = 0.014, 0.06  # nominal start and end heights of the tool frame [m]
 TORQUE0 = hand_lib.TASK_TORQUE  # the wrench's final external torque about +z through the CoM [N m] (a model's
 # file may set its own, `HandModel.torque`: the episode sets scale their torques by it)
@@ -328,10 +333,11 @@ class EpisodeError(ValueError):
     """An episode's input is invalid; the message names the field and the value."""
 
 
-def validate(ep: Episode, name: str = "episode", n_grasps: int | None = None, hand=None, model=None) -> Episode:
+def validate(ep: Episode, name: str = "episode", n_grasps: int | None = None, hand=None, model=None,
+             max_waypoints: int = MAX_WAYPOINTS) -> Episode:
     """Check one episode against its model (`model`: a name, path or `Model`, or its `hand`; default: the shipped
     wrench): raise `EpisodeError` naming the field and value on the first problem found. `n_grasps` defaults to
-    the model's grasp count."""
+    the model's grasp count; `max_waypoints` is the reward's (`RewardConfig.max_waypoints`)."""
     from gsp_jax import grasps, model as model_lib  # local: both read the model file
 
     hand = hand or model_lib.load_model(model).hand
@@ -344,17 +350,28 @@ def validate(ep: Episode, name: str = "episode", n_grasps: int | None = None, ha
             if x.ndim != 2 or x.shape[1] != shape[1] or x.shape[0] < 2:
                 raise EpisodeError(f"{name}.{field}: shape {x.shape}, expected (T >= 2, {shape[1]})")
             t = x.shape[0]
+            if t > max_waypoints:
+                raise EpisodeError(f"{name}.{field}: {t} waypoints (at most {max_waypoints}: the reward's failure "
+                                   f"must cost more than any run of held steps)")
         elif x.shape != want:
             raise EpisodeError(f"{name}.{field}: shape {x.shape}, expected {want}")
         if not np.all(np.isfinite(x)):
             bad = x[~np.isfinite(x)].flat[0]
             raise EpisodeError(f"{name}.{field}: contains {bad} (values must be finite)")
-    if float(ep.dt) <= 0:
-        raise EpisodeError(f"{name}.dt: {float(ep.dt)} (must be > 0)")
-    if float(ep.mass) <= 0:
-        raise EpisodeError(f"{name}.mass: {float(ep.mass)} (must be > 0)")
-    if np.any(np.asarray(ep.inertia) <= 0):
-        raise EpisodeError(f"{name}.inertia: {np.asarray(ep.inertia).tolist()} (must be > 0)")
+    if not DT_RANGE[0] <= float(ep.dt) <= DT_RANGE[1]:
+        raise EpisodeError(f"{name}.dt: {str(np.float32(float(ep.dt)))} s (must be in [{DT_RANGE[0]}, {DT_RANGE[1]}] s)")
+    m0 = hand.tool_mass
+    if not m0 / SCALE_MAX <= float(ep.mass) <= m0 * SCALE_MAX:
+        raise EpisodeError(f"{name}.mass: {str(np.float32(float(ep.mass)))} kg (must be within {SCALE_MAX:g}x of the model's tool "
+                           f"mass {m0:.4g} kg: [{m0 / SCALE_MAX:.4g}, {m0 * SCALE_MAX:.4g}] kg)")
+    inertia = np.asarray(ep.inertia, np.float64)
+    lo, hi = hand.tool_inertia.min() / SCALE_MAX**2, hand.tool_inertia.max() * SCALE_MAX**2
+    if np.any((inertia < lo) | (inertia > hi)):
+        raise EpisodeError(f"{name}.inertia: {inertia.tolist()} kg m^2 (each must be in [{lo:.3g}, {hi:.3g}]: within "
+                           f"{SCALE_MAX**2:g}x of the model's tool's {hand.tool_inertia.round(8).tolist()})")
+    if np.any(2 * inertia > inertia.sum() * (1 + 1e-4)):
+        raise EpisodeError(f"{name}.inertia: {inertia.tolist()} kg m^2 (no body has these principal moments: each "
+                           f"must be at most the sum of the other two)")
     if not 0 < float(ep.friction) <= FRICTION_MAX:
         raise EpisodeError(f"{name}.friction: {float(ep.friction)} (must be in (0, {FRICTION_MAX:g}])")
     lo, hi = hand.tool_bounds()

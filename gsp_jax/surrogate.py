@@ -42,6 +42,7 @@ from gsp_jax.calibration import CALIBRATED
 from gsp_jax.scenario import M0, Episode, validate
 
 
+
 @dataclasses.dataclass(frozen=True)
 class RewardConfig:
     """Weights and thresholds of the shaped reward (one place for each)."""
@@ -69,6 +70,10 @@ class RewardConfig:
     wrench_scale: float = (M0 * 9.81) ** 2  # [N^2]: wrench errors are divided by (m0 g)^2
     contact_tol: float = 0.005  # [m]: a link within this of its contact point carries force
     fall_unmet: float = CALIBRATED["fall_unmet"]  # unmet fraction of a required wrench above which the tool falls
+    motor_fall_unmet: float = 0.3  # ... and of the final wrench (d) under the hand's motors (`RewardTerms.motor_unmet`),
+    # above which the tool falls: a weight plus external wrench beyond the actuators is a fall, as in physics (inf: off)
+    motor_iterations: int = 150  # iterations of that motor-limited solve (`wrench.solve(method="apg", motors=...)`):
+    # fewer leave it unconverged and call holdable grasps falls
     max_step_cost: float = 10.0  # cap on a non-failing step's cost ...
     r_min: float = -200.0  # ... so that failing costs more than any T non-failing steps: r_min < -max_step_cost * T
 
@@ -76,7 +81,8 @@ class RewardConfig:
         for name in ("w_wrench_move", "w_ik", "w_wrench_hold", "w_wrench_ext", "w_redundant", "w_wrench_change"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"RewardConfig.{name}: a weight must be >= 0, got {getattr(self, name)}")
-        for name in ("ik_scale", "wrench_scale", "contact_tol", "friction_scale", "fall_unmet", "max_step_cost"):
+        for name in ("ik_scale", "wrench_scale", "contact_tol", "friction_scale", "fall_unmet", "motor_fall_unmet",
+                     "max_step_cost"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"RewardConfig.{name}: must be > 0, got {getattr(self, name)}")
         if not self.grip >= 0:
@@ -87,10 +93,17 @@ class RewardConfig:
             raise ValueError(f"RewardConfig.motors: must be a bool, got {self.motors!r}")
         if not isinstance(self.grip_scales_with_mass, bool):
             raise ValueError(f"RewardConfig.grip_scales_with_mass: must be a bool, got {self.grip_scales_with_mass!r}")
+        if not (isinstance(self.motor_iterations, int) and self.motor_iterations >= 1):
+            raise ValueError(f"RewardConfig.motor_iterations: must be an int >= 1, got {self.motor_iterations!r}")
         if not (isinstance(self.supported_steps, int) and self.supported_steps >= 0):
             raise ValueError(f"RewardConfig.supported_steps: must be an int >= 0, got {self.supported_steps!r}")
-        if not self.r_min < 0:
-            raise ValueError(f"RewardConfig.r_min: must be < 0, got {self.r_min}")
+        if not self.r_min < -self.max_step_cost:
+            raise ValueError(f"RewardConfig.r_min: must be < -max_step_cost = {-self.max_step_cost}, got {self.r_min}")
+
+    @property
+    def max_waypoints(self) -> int:
+        """The most waypoints T an episode may have: failing (r_min) costs more than any T held steps."""
+        return int(np.ceil(-self.r_min / self.max_step_cost)) - 1
 
 
 @struct.dataclass
@@ -104,6 +117,8 @@ class RewardTerms:
     redundant: jax.Array  # () (e) 0 or 1
     wrench_change: jax.Array  # () (f) / wrench_scale; 0 when the grasp does not change
     unmet: jax.Array  # (4,) unmet wrench fractions of (a), (c), (d), (f)
+    motor_unmet: jax.Array  # () unmet fraction of (d) (0 before the last step) with forces within the motors' torque
+    # limits: solved with the limits, then each contact scaled down where its joints' limits still bind
     collision: jax.Array  # () bool
     fall: jax.Array  # () bool
     reward: jax.Array  # () the step's reward
@@ -112,7 +127,8 @@ class RewardTerms:
     @classmethod
     def zeros(cls) -> "RewardTerms":
         z = jnp.zeros((), jnp.float32)
-        return cls(z, z, z, z, z, z, jnp.zeros(4, jnp.float32), jnp.array(False), jnp.array(False), z, jnp.array(False))
+        f = jnp.array(False)
+        return cls(z, z, z, z, z, z, jnp.zeros(4, jnp.float32), z, f, f, z, f)
 
 
 @struct.dataclass
@@ -258,6 +274,11 @@ class Surrogate:
         solved = jax.vmap(lambda c, p, q, w: self.wrench_error(c, episode, p, q, w))(*stacked)
         move, hold, ext = (jax.tree.map(lambda x, i=i: x[i], solved) for i in range(3))
         is_last = t >= last
+        if np.isfinite(cfg.motor_fall_unmet):
+            motor_unmet = self.motor_unmet(nxt, episode, pos_n, quat_n, ext.forces, hold_wrench - episode.w_ext)
+            motor_unmet = jnp.where(is_last, motor_unmet, 0.0)
+        else:
+            motor_unmet = jnp.zeros((), jnp.float32)
         if during is None:
             change_error = change_unmet = jnp.zeros((), jnp.float32)
         else:
@@ -270,6 +291,7 @@ class Surrogate:
             redundant=jnp.zeros((), jnp.float32),
             wrench_change=jnp.zeros((), jnp.float32),
             unmet=jnp.stack([move.unmet, hold.unmet, jnp.where(is_last, ext.unmet, 0.0), jnp.zeros(())]),
+            motor_unmet=motor_unmet,
             collision=now.ik.collision | nxt.ik.collision,
             fall=jnp.array(False),
             reward=jnp.zeros(()),
@@ -292,9 +314,24 @@ class Surrogate:
             redundant=jnp.broadcast_to(jnp.asarray(redundant, jnp.float32), shape),
             wrench_change=change_error,
             unmet=unmet,
-            fall=jnp.any(counted > cfg.fall_unmet, axis=-1),
+            fall=jnp.any(counted > cfg.fall_unmet, axis=-1) | (terms.motor_unmet > cfg.motor_fall_unmet),
         )
         return terms.replace(reward=self.reward(terms))
+
+    def motor_unmet(self, contacts: Contacts, episode: Episode, tool_pos, tool_quat, init, required) -> jax.Array:
+        """() unmet fraction of a wrench `required` (6,) with forces the hand's motors can give at the contacts' IK
+        configuration: the wrench solved with the joints' torque limits (`wrench.MotorLimits`, warm-started from
+        `init` (L, 3), no grip floor), then each contact scaled down where its joints' limits still bind
+        (`wrench.saturate`). Near 1 where no force the motors give supplies the wrench."""
+        com = tool_pos + kinematics.quat_to_mat(tool_quat) @ episode.com
+        _, jac = kinematics.closest_on_links_and_jacobians(self.hand, contacts.ik.q, contacts.points)
+        motors = wrench.MotorLimits(jacobians=jac, offset=jnp.zeros_like(self.torque_limit), limit=self.torque_limit)
+        cfg = dataclasses.replace(self.wrench_config, method="apg", iterations=self.reward_config.motor_iterations)
+        mu = episode.friction * self.reward_config.friction_scale
+        res = wrench.solve(contacts.points, contacts.normals, contacts.realised, mu, required, com, cfg, init=init,
+                           motors=motors)
+        delivered = wrench.saturate(res.forces, jac, self.torque_limit, self.link_joints)
+        return wrench.assess(delivered, contacts.points, contacts.realised, required, com, self.wrench_config).unmet
 
     def move_wrench(self, episode: Episode, t: jax.Array) -> jax.Array:
         """(6,) wrench the contacts must supply while moving on from waypoint t: m (a - g), with the desired
@@ -323,7 +360,7 @@ class Surrogate:
         value); traced (inside `jit` / `vmap`) it cannot raise. Compiled (once per model and episode shapes): it runs
         as one program, not op by op."""
         if not isinstance(episode.mass, jax.core.Tracer):
-            validate(episode, hand=self.hand)
+            validate(episode, hand=self.hand, max_waypoints=self.reward_config.max_waypoints)
         return self._reset(episode)
 
     @jax.jit
@@ -371,7 +408,11 @@ class Surrogate:
                 grasp = self.space.label(int(self.space.transitions[int(states.grasp[t]), actions[t]]))
                 if bool(terms.collision[t]):
                     return f"t={t}: the hand collides (with the tool, the table or itself) holding {grasp}"
-                unmet = np.asarray(terms.unmet[t])
+                unmet, cfg = np.asarray(terms.unmet[t]), self.reward_config
+                if float(terms.motor_unmet[t]) > cfg.motor_fall_unmet:
+                    return (f"t={t}: {UNMET_TERMS[2]} is beyond the hand's motors: "
+                            f"{100 * float(terms.motor_unmet[t]):.0f}% unmet with forces within their torque limits "
+                            f"(> {100 * cfg.motor_fall_unmet:.0f}%) with grasp {grasp}")
                 k = int(np.argmax(unmet - self.reward_config.fall_unmet > 0))
                 return (f"t={t}: {UNMET_TERMS[k]} is {100 * unmet[k]:.0f}% unmet (> {100 * self.reward_config.fall_unmet:.0f}%)"
                         f" with grasp {grasp}")

@@ -17,8 +17,14 @@ NOMINAL = scenario.make_episode()
 
 @pytest.mark.parametrize("field, value, message", [
     ("waypoints", NOMINAL.waypoints.at[3, 0].set(jnp.nan), r"episode\.waypoints: contains nan"),
-    ("dt", jnp.float32(0.0), r"episode\.dt: 0\.0 \(must be > 0\)"),
-    ("mass", jnp.float32(0.0), r"episode\.mass: 0\.0 \(must be > 0\)"),
+    ("dt", jnp.float32(0.0), r"episode\.dt: 0\.0 s \(must be in \[0\.01, 10\.0\] s\)"),
+    ("dt", jnp.float32(1e6), r"episode\.dt: 1e\+06 s \(must be in"),
+    ("mass", jnp.float32(0.0), r"episode\.mass: 0\.0 kg \(must be within 100x of the model's tool mass 0\.35 kg"),
+    ("mass", jnp.float32(1e6), r"episode\.mass: 1e\+06 kg \(must be within 100x"),
+    ("mass", jnp.float32(1e-9), r"episode\.mass: 1e-09 kg \(must be within 100x"),
+    ("inertia", jnp.float32([1e9, 1e9, 1e9]), r"episode\.inertia: \[1000000000\.0, .* \(each must be in"),
+    ("inertia", jnp.float32([1e-3, 1e-3, 3e-3]), r"episode\.inertia: .* \(no body has these principal moments"),
+    ("waypoints", jnp.zeros((200, 3), jnp.float32), r"episode\.waypoints: 200 waypoints \(at most 19"),
     ("start_grasp", jnp.int32(288), r"episode\.start_grasp: 288 \(must be in 0\.\.287\)"),
 ])
 def test_the_surrogate_refuses_a_bad_episode_from_python(sur, field, value, message):

@@ -37,11 +37,11 @@ def test_valid_episodes_and_actions_are_accepted_and_finite(sur, first_step, kwa
 
 
 BAD = {  # field -> values that are never valid
-    "dt": [0.0, -0.25, np.nan, np.inf],
-    "mass": [0.0, -1.0, np.nan],
+    "dt": [0.0, -0.25, np.nan, np.inf, 1e-3, 1e6],
+    "mass": [0.0, -1.0, np.nan, 1e-9, 1e6],
     "friction": [0.0, -0.5, 3.5, np.nan],
     "start_grasp": [-1, 288, 10**6],
-    "inertia": [[0.0, 1e-3, 1e-3], [1e-5, -1e-3, 1e-3], [np.nan, 1e-3, 1e-3]],
+    "inertia": [[0.0, 1e-3, 1e-3], [1e-5, -1e-3, 1e-3], [np.nan, 1e-3, 1e-3], [1e9, 1e9, 1e9], [1e-3, 1e-3, 3e-3]],
     "com": [[0.5, 0.0, 0.0], [0.0, np.inf, 0.0]],
     "w_ext": [[0, 0, 0, 0, 0, np.nan]],
 }

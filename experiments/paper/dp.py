@@ -95,7 +95,9 @@ def main(args: argparse.Namespace) -> None:
                    if t == 0 or sols.grasps[i][t + 1] != sols.grasps[i][t]]
         print(f"{name}: start [{out[i]['grasp_labels'][0]}] -> " + " ".join(changes))
         if float(sols.ret[i]) <= env.reward_config.r_min:  # every sequence fails: say where and why
-            out[i]["infeasible"] = env.explain(episodes[name], np.asarray(sols.actions[i]))
+            table = jax.tree.map(lambda x: x[i], tabs)
+            longest = dp.longest_surviving(table, episodes[name].start_grasp, env.reward_config.r_min)
+            out[i]["infeasible"] = env.explain(episodes[name], np.asarray(longest.actions))
             print(f"  no grasp sequence holds {name} in the surrogate: {out[i]['infeasible']}")
     folder = results_dir()
     path = folder / f"dp_{args.set}.json"

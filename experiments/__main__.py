@@ -81,7 +81,12 @@ def main(argv: list[str] | None = None) -> None:
         except model_lib.ModelError as e:
             raise SystemExit(f"--model: {e}") from None
         print(f"model: {chosen.name} ({chosen.path})", flush=True)
-    modules[args.command].main(args)
+    from gsp_jax import files, scenario
+
+    try:
+        modules[args.command].main(args)
+    except (files.FolderInUse, scenario.EpisodeError) as e:  # a user's input or a busy folder: the message, no trace
+        raise SystemExit(f"{args.command}: {e}") from None
 
 
 if __name__ == "__main__":

@@ -20,7 +20,7 @@ RESULTS = pathlib.Path("results")
 
 
 def results_dir(*parts: str) -> pathlib.Path:
-    """results/<parts> (created); a command run for another model than the wrench (`--model`) writes to
+    """results/<parts> (created, and locked for this process); a command run for another model than the wrench (`--model`) writes to
     results/<first part>-<model>/... (results/<model> for no parts) instead: no model's results overwrite another's."""
     from gsp_jax import model as model_lib
 
@@ -29,6 +29,7 @@ def results_dir(*parts: str) -> pathlib.Path:
         parts = (f"{parts[0]}-{name}", *parts[1:]) if parts else (name,)
     path = RESULTS.joinpath(*parts)
     path.mkdir(parents=True, exist_ok=True)
+    files.hold(path)  # one command at a time writes a results folder (`files.FolderInUse` for a second)
     return path
 
 

@@ -53,7 +53,9 @@ class Solution:
 
 
 def build_table(env: Surrogate, episode: Episode) -> Table:
-    """The reward/transition table of one episode from G x T IK solves (see the module docstring)."""
+    """The reward/transition table of one episode from G x T IK solves (see the module docstring). A concrete
+    episode is checked first (`Surrogate.check`)."""
+    episode = env.check(episode)
     contacts = realise_all(env, episode)
     return table_from_terms(env, episode, grasp_terms(env, episode, contacts), contacts)
 
@@ -111,7 +113,8 @@ def table_from_terms(env: Surrogate, episode: Episode, plain: RewardTerms, conta
 
 def build_tables(env: Surrogate, episodes: Episode, batch_size: int | None = None) -> Table:
     """Tables of a stacked episode set (leaves (N, ...)), `batch_size` episodes at a time (`lax.map`: one
-    compilation, bounded memory; None = all at once)."""
+    compilation, bounded memory; None = all at once). Concrete episodes are checked first (`Surrogate.check`)."""
+    episodes = env.check(episodes)
     return jax.lax.map(lambda ep: build_table(env, ep), episodes, batch_size=batch_size)
 
 

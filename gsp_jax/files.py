@@ -11,6 +11,7 @@
 """
 from __future__ import annotations
 
+import atexit
 import contextlib
 import io
 import json
@@ -142,3 +143,25 @@ def folder_lock(folder):
                 lock.unlink()
         return
     raise FolderInUse(f"{folder}: could not take its lock {lock}")
+
+
+_HELD = contextlib.ExitStack()  # the folders this process holds until it exits (`hold`)
+
+
+def hold(folder) -> pathlib.Path:
+    """Take `folder`'s lock (`folder_lock`) for the rest of this process (released at exit; a crash leaves a stale
+    lock that the next run takes over): `FolderInUse` if another live process holds it. Returns the folder."""
+    folder = pathlib.Path(folder)
+    if not (folder / LOCK_NAME).is_file() or _owner_pid(folder) != os.getpid():
+        if not _HELD._exit_callbacks:
+            atexit.register(_HELD.close)
+        _HELD.enter_context(folder_lock(folder))
+    return folder
+
+
+def _owner_pid(folder: pathlib.Path) -> int:
+    try:
+        return int(json.loads((folder / LOCK_NAME).read_text())["pid"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return -1
+

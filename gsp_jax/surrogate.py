@@ -39,7 +39,7 @@ from flax import struct
 from gsp_jax import grasps, ik, ik_lanes, kinematics, wrench
 from gsp_jax import hand as hand_lib, model as model_lib
 from gsp_jax.calibration import CALIBRATED
-from gsp_jax.scenario import M0, Episode, validate
+from gsp_jax.scenario import M0, Episode, unstack, validate
 
 
 
@@ -359,9 +359,21 @@ class Surrogate:
         episode, it first checks it against the model (`scenario.validate`: an EpisodeError names the field and the
         value); traced (inside `jit` / `vmap`) it cannot raise. Compiled (once per model and episode shapes): it runs
         as one program, not op by op."""
-        if not isinstance(episode.mass, jax.core.Tracer):
-            validate(episode, hand=self.hand, max_waypoints=self.reward_config.max_waypoints)
-        return self._reset(episode)
+        return self._reset(self.check(episode))
+
+    def check(self, episodes: Episode, name: str = "episode") -> Episode:
+        """`episodes` (one, or a stack with leading axis N) checked against this surrogate's model and reward
+        (`scenario.validate`; an EpisodeError names the field, e.g. "episodes[3].mass"). Traced inputs (inside
+        `jit` / `vmap`) pass unchecked: their steps flag themselves (`RewardTerms.invalid`)."""
+        if isinstance(episodes.mass, jax.core.Tracer):
+            return episodes
+        kw = dict(hand=self.hand, max_waypoints=self.reward_config.max_waypoints)
+        if np.ndim(episodes.mass) == 0:
+            validate(episodes, name, **kw)
+        else:
+            for i, ep in enumerate(unstack(episodes)):
+                validate(ep, f"{name}s[{i}]", **kw)
+        return episodes
 
     @jax.jit
     def _reset(self, episode: Episode) -> State:

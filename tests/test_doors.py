@@ -123,3 +123,14 @@ def test_the_physics_batch_check_takes_a_pytree_of_policy_axes(sur):
     axis = policies.Lookahead(None, None, depth=1, inner=0)
     two = scenario.stack([NOMINAL, scenario.make_episode(shift_mm=2)])
     physics.Physics(sur)._check_batch([(policies.SequencePolicy(jnp.zeros(16, jnp.int32)), axis)], two)
+
+
+def test_dp_checks_concrete_episodes_before_any_work(sur):
+    """`dp.solve` / `dp.build_tables` called from Python name the bad episode of a batch and its field."""
+    from gsp_jax import dp
+
+    with pytest.raises(EpisodeError, match=r"episode\.mass: 0\.0 kg"):
+        dp.solve(sur, NOMINAL.replace(mass=jnp.float32(0.0)))
+    batch = scenario.stack([NOMINAL, NOMINAL.replace(dt=jnp.float32(-1.0))])
+    with pytest.raises(EpisodeError, match=r"episodes\[1\]\.dt: -1\.0 s"):
+        dp.build_tables(sur, batch)

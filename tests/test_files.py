@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import pathlib
 import subprocess
 import sys
 import time
@@ -105,3 +106,33 @@ def test_a_truncated_table_cache_is_rebuilt_and_a_broken_episode_file_named(tmp_
     bad.write_bytes(b"\xff\xfe{")
     with pytest.raises(scenario.EpisodeError, match=r"eps\.json: not readable JSON"):
         scenario.load(bad)
+
+
+RESULTS_HOLD = """
+import time
+from experiments.common import results_dir
+results_dir("fig4b")
+print("holding", flush=True)
+time.sleep(60)
+"""
+
+
+def test_a_results_folder_is_one_commands_at_a_time(tmp_path):
+    """A command's results folder (`experiments.common.results_dir`) is held until the process ends: a second
+    process is refused naming the folder and the owner; the lock goes when the owner exits normally."""
+    env = {**os.environ, "PYTHONPATH": str(pathlib.Path(__file__).resolve().parents[1]), "JAX_PLATFORMS": "cpu"}
+    owner = subprocess.Popen([sys.executable, "-c", RESULTS_HOLD], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                             text=True)
+    try:
+        assert owner.stdout.readline().strip() == "holding"
+        second = subprocess.run([sys.executable, "-c", "from experiments.common import results_dir; results_dir('fig4b')"],
+                                cwd=tmp_path, env=env, capture_output=True, text=True)
+        assert second.returncode != 0
+        assert f"results/fig4b: in use by process {owner.pid}" in second.stderr, second.stderr
+    finally:
+        owner.kill()
+        owner.wait()
+    done = subprocess.run([sys.executable, "-c", "from experiments.common import results_dir; results_dir('fig4b')"],
+                          cwd=tmp_path, env=env, capture_output=True, text=True)  # takes over the stale lock
+    assert done.returncode == 0 and "stale lock" in done.stderr, done.stderr
+    assert not (tmp_path / "results" / "fig4b" / files.LOCK_NAME).exists()  # released at exit

@@ -19,8 +19,9 @@ sets one contact link to one option), then scores the new grasp g' with the pape
                    the tool still rests on its start support (`supported_steps`).
 
 reward = -(weighted sum), or R_MIN when either IK collides (tool, table, self) or any wrench term leaves more
-than `fall_unmet` of its wrench unmet (the tool would fall; (f) counts when `change_falls`); R_MIN ends the
-episode. The wrench solves use `friction_scale` times the tool's friction coefficient (a margin: the physics'
+than `fall_unmet` of its wrench unmet (the tool would fall; (f) counts when `change_falls`), or at the last step
+the forces the hand's motors can give leave more than `motor_fall_unmet` of (d) unmet (no grasp holds a wrench
+beyond its actuators: `motor_unmet`); R_MIN ends the episode. The wrench solves use `friction_scale` times the tool's friction coefficient (a margin: the physics'
 contact controller plans its forces inside 0.7 mu). Every IK starts from the
 model's fixed start configuration, so the next joint state is the IK result at the next desired pose (the
 paper's transition). Rotational inertia is not modelled here (the paper's trajectories are pure

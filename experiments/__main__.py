@@ -9,6 +9,7 @@ import sys
 COMMANDS = {  # command -> (module, one-line help)
     "demo": ("experiments.demo", "the main job on one unseen episode: DP optimal and L1 plans, executed in C MuJoCo"),
     "check-model": ("experiments.diagnostics.check_model", "every model convention a scene file breaks (your hand, your tool)"),
+    "planners": ("experiments.diagnostics.planners", "every registered planner (yours too, with --plugin): options, needs"),
     "surrogate": ("experiments.diagnostics.surrogate", "reward terms of a few meaningful grasps on one episode"),
     "bench-startup": ("experiments.bench.startup", "the Quickstart from a fresh process: first decision and DP table, cache off / empty / on disk"),
     "bench-surrogate": ("experiments.bench.surrogate", "surrogate steps/s: vmapped vs one step at a time"),
@@ -51,9 +52,31 @@ def deterministic_gpu_kernels(command: str | None) -> None:
         os.environ["XLA_FLAGS"] = f"{flags} --xla_gpu_autotune_level=0".strip()
 
 
+def load_plugin(name: str) -> None:
+    """Import a user's module by name (on sys.path, the working directory first) or from a .py file."""
+    import importlib.util
+    import pathlib
+
+    path = pathlib.Path(name)
+    try:
+        if name.endswith(".py") or path.is_file():
+            if not path.is_file():
+                raise SystemExit(f"--plugin: no file {name!r}")
+            spec = importlib.util.spec_from_file_location(path.stem, path)
+            module = importlib.util.module_from_spec(spec)
+            sys.modules[path.stem] = module
+            spec.loader.exec_module(module)
+        else:
+            if "" not in sys.path and os.getcwd() not in sys.path:
+                sys.path.insert(0, os.getcwd())
+            importlib.import_module(name)
+    except ModuleNotFoundError as e:
+        raise SystemExit(f"--plugin: cannot import {name!r} ({e})") from None
+
+
 def main(argv: list[str] | None = None) -> None:
     words = sys.argv[1:] if argv is None else argv
-    deterministic_gpu_kernels(next((w for w in words if not w.startswith("-")), None))
+    deterministic_gpu_kernels(next((w for w in words if w in COMMANDS), None))
     import gsp_jax  # noqa: F401  (turns on XLA's compilation cache on disk: gsp_jax.cache, GSP_JAX_CACHE)
 
     parser = argparse.ArgumentParser(prog="python -m experiments", description=__doc__)
@@ -66,6 +89,9 @@ def main(argv: list[str] | None = None) -> None:
         modules[name] = mod
         sp = sub.add_parser(name, help=help_.replace("%", "%%"), description=mod.__doc__)
         mod.add_arguments(sp)
+        sp.add_argument("--plugin", action="append", default=[], metavar="MODULE",
+                        help="import this module (a name on the path, or a .py file) first: its planners register "
+                             "themselves (`gsp_jax.planners.register`); repeatable")
         if name != "check-model":
             sp.add_argument("--model", default=None, metavar="NAME_OR_PATH",
                             help="the hand + tool scene: a shipped model (wrench, hammer, allegro) or a scene file "
@@ -75,6 +101,8 @@ def main(argv: list[str] | None = None) -> None:
     from gsp_jax import model as model_lib
 
     common.RECORD = args.record
+    for plugin in args.plugin:
+        load_plugin(plugin)
     if getattr(args, "model", None) is not None:
         try:
             chosen = model_lib.set_default(args.model)

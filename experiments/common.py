@@ -119,10 +119,25 @@ def add_lookahead_argument(p) -> None:
                    help="L1/L2 below the root: the episode's table (exact, default) or the surrogate")
 
 
+def check_planners(names, option: str = "--policies", backend: str | None = None) -> None:
+    """SystemExit naming the option and the name unless each of `names` is a registered planner (after --plugin)
+    that runs on the physics `backend` (None: no physics)."""
+    from gsp_jax import planners
+
+    for name in names:
+        try:
+            p = planners.get(name)
+        except ValueError as e:
+            raise SystemExit(f"{option}: {e}") from None
+        if backend is not None and p.backends is not None and backend not in p.backends:
+            raise SystemExit(f"{option}: {name} runs in physics on {'/'.join(p.backends)} only, not {backend!r} "
+                             f"(--backend {p.backends[0]})")
+
+
 def add_bases_argument(p) -> None:
     from gsp_jax import evaluation
 
-    p.add_argument("--bases", nargs="+", default=list(evaluation.L1_PHYSICS["bases"]), choices=evaluation.BRANCH_BASES,
+    p.add_argument("--bases", nargs="+", default=list(evaluation.L1_PHYSICS["bases"]), metavar="NAME",
                    help="L1-physics: the policies its branches follow after their first action (each candidate is "
                         "branched under each; several: never worse than any of them)")
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from experiments.common import results_dir, table
 from experiments.paper import fig4a
-from gsp_jax import dp, evaluation, files, physics, scenario
+from gsp_jax import dp, evaluation, files, physics, planners, scenario
 from gsp_jax.grasps import NULL
 from gsp_jax.surrogate import Surrogate
 
@@ -159,7 +159,7 @@ def main(args: argparse.Namespace) -> None:
         wall[name] = time.perf_counter() - t1
         print(f"  {LABEL[name]} planned in {wall[name]:.1f} s after the table (includes compiling)", flush=True)
     phys = physics.Physics(ctx.surrogate)
-    groups = [evaluation.make(ctx, name) for name in PLANNERS]
+    groups = [planners.make(ctx, name) for name in PLANNERS]
     t2 = time.perf_counter()
     res = dict(zip(PLANNERS, phys.simulate_many(groups, ctx.batch, backend="c")))
     t_phys = time.perf_counter() - t2

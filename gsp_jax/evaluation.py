@@ -1,10 +1,10 @@
-"""Every planner of the library behind one factory, over a batch of unseen episodes: the paper's five (DP baseline,
-RL, L1, L2, DP optimal) and the physics check's references (fixed grasp sequences, random feasible ones), built
-the same way for the surrogate evaluation (Fig. 4a), the physics check (Fig. 4b, `envelope`) and the timing
-(Table 1).
+"""What the planners of a batch of unseen episodes are built from (`Context`: the episodes, their DP tables, the PPO
+policy, the DP baseline), and the library's planners, registered by name in `gsp_jax.planners`: the paper's five
+(DP baseline, RL, L1, L2, DP optimal), the physics check's references (fixed grasp sequences, random feasible ones)
+and L1-physics, built the same way for Fig. 4a, Fig. 4b, `envelope` and Table 1.
 
     ctx = evaluation.context("eval")                  # 27 evaluation episodes, their DP tables, the PPO policy
-    policy, axis = evaluation.make(ctx, "L2")         # axis: 0 if the policy differs per episode, else None
+    policy, axis = planners.make(ctx, "L2")           # axis: 0 if the policy differs per episode, else None
     res = physics.Physics(ctx.surrogate).simulate(policy, ctx.batch, policy_axis=axis, backend="c")
 """
 from __future__ import annotations
@@ -20,16 +20,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gsp_jax import dp, files, grasps, model as model_lib, policies, scenario
+from gsp_jax import dp, files, grasps, model as model_lib, planners, policies, scenario
 from gsp_jax.dp import TableModel
 from gsp_jax.surrogate import Surrogate
 
-POLICIES = ("dp-base", "rl", "L1", "L2", "dp-opt")  # the paper's (its Table 1 order)
-REFERENCES = ("four-tips", "one-tip", "random")  # the physics check's: a constant grasp, a grasp that cannot hold,
-# and random sequences of the surrogate's feasible actions
-LOOKAHEAD_DEPTH = {"L1": 1, "L2": 2}
-VERIFIED = ("L1-physics",)  # the surrogate's L1 candidates branched in C MuJoCo (`physics.verified`; backend c only)
-BRANCH_BASES = POLICIES + ("four-tips",)  # what L1-physics' branches can follow after their first action
 L1_PHYSICS = dict(k=2, bases=("four-tips", "dp-opt"))  # its defaults: L1's 2 best and each base's own action,
 # under the constant four-tip grasp and DP optimal (never worse than either). Measured (H100 host, stress set):
 # 29 falls of 120, regret 1 (k = 4 under RL: 56, regret 26); docs/lookahead.md
@@ -209,53 +203,95 @@ def context(set_name: str = "eval", n_episodes: int | None = None, policy_dir=No
     return Context(sur, set_name, list(chosen), batch, tabs, sols, base, net, source)
 
 
-def make(ctx: Context, name: str, model=None, cached: bool = True, seed: int = 0, hold: float = 0.0,
-         k: int = L1_PHYSICS["k"], bases=L1_PHYSICS["bases"]):
-    """(policy, policy_axis) of planner `name` (one of `POLICIES` or `REFERENCES`) for the context's episode batch.
+def make(ctx: Context, name: str, **options):
+    """(policy, policy_axis) of the registered planner `name` (`planners.make`; kept for the notebooks' spelling)."""
+    return planners.make(ctx, name, **options)
 
-    Lookahead (L1, L2) steps its root in `model` (default: the surrogate itself, which acts from any continuous
-    state) and, with `cached`, runs the tree's interior and its rollouts as lookups in each episode's table
-    (`inner`; exact, as every state below the root is discrete; policy_axis is then a `Lookahead` of in_axes, 0 for
-    the tables); without, all in `model`. `random`: one random feasible sequence per episode from `seed`
-    (`dp.random_sequence`, keeping the grasp with probability `hold`). `L1-physics` (`VERIFIED`): L1's `k` best
-    root actions (and each base's own action) at each decision branched in C MuJoCo to the episode's end under
-    each of `bases` (planner names of `BRANCH_BASES`, e.g. ("rl",) or ("four-tips", "dp-opt");
-    `physics.verified.PhysicsLookahead`)."""
+
+def _base(ctx: Context):
+    """The lookahead's base: the PPO policy, or the DP baseline where the context has none."""
+    return ctx.rl if ctx.rl is not None else policies.SequencePolicy(ctx.nominal_actions, ctx.surrogate.space)
+
+
+@planners.register("dp-base", group="paper", needs=("nominal",))
+def _dp_base(ctx: Context):
+    """DP baseline: the nominal episode's optimal sequence, open loop, on every episode."""
+    return policies.SequencePolicy(ctx.nominal_actions, ctx.surrogate.space), None
+
+
+@planners.register("rl", group="paper", needs=("rl",))
+def _rl(ctx: Context):
+    """RL: the PPO policy (DP behaviour-cloning pretraining), deterministic."""
+    return ctx.rl, None
+
+
+def _lookahead(ctx: Context, depth: int, model, cached: bool):
     sur = ctx.surrogate
-    base = ctx.rl if ctx.rl is not None or ctx.nominal_actions is None else policies.SequencePolicy(ctx.nominal_actions)
-    needs = {"dp-base": [ctx.nominal_actions], "dp-opt": [ctx.solutions], "random": [ctx.tables], "rl": [ctx.rl],
-             **{n: [base] + ([ctx.tables] if cached else []) for n in (*LOOKAHEAD_DEPTH, *VERIFIED)}}
-    if any(x is None for x in needs.get(name, [])):
-        raise ValueError(f"policy {name!r}: the context was built without what it needs (tables, the RL policy or "
-                         "the DP baseline)")
-    T = ctx.batch.n_steps
-    if name == "dp-base":
-        return policies.SequencePolicy(ctx.nominal_actions, sur.space), None
-    if name == "dp-opt":
-        return policies.TablePolicy(ctx.solutions.policy, sur.space), 0
-    if name == "rl":
-        return ctx.rl, None
-    if name in LOOKAHEAD_DEPTH:
-        depth = LOOKAHEAD_DEPTH[name]
-        if not cached:
-            return policies.Lookahead(base, model or sur, depth=depth), None
-        inner = TableModel(ctx.tables, sur.space)
-        return (policies.Lookahead(base, model or sur, depth=depth, inner=inner),
-                policies.Lookahead(None, None, depth=depth, inner=0))
-    if name in VERIFIED:
-        from gsp_jax.physics.verified import PhysicsLookahead
+    if not cached:
+        return policies.Lookahead(_base(ctx), model or sur, depth=depth), None
+    if ctx.tables is None:
+        raise ValueError(f"L{depth} with cached=True: the context was built without tables")
+    inner = TableModel(ctx.tables, sur.space)
+    return (policies.Lookahead(_base(ctx), model or sur, depth=depth, inner=inner),
+            policies.Lookahead(None, None, depth=depth, inner=0))
 
-        if isinstance(bases, str) or not bases or any(b not in BRANCH_BASES for b in bases):
-            raise ValueError(f"bases: one or more of {BRANCH_BASES}, got {bases!r}")
-        root, axis = make(ctx, "L1", model, cached)
-        return PhysicsLookahead(root, axis, tuple(make(ctx, b, model, cached) for b in bases), k=k), None
-    if name == "four-tips":
-        return policies.SequencePolicy(jnp.asarray(four_tips(sur.space, T)), sur.space), None
-    if name == "one-tip":
-        return policies.SequencePolicy(jnp.asarray(one_tip(sur.space, T)), sur.space), None
-    if name == "random":
-        keys = jax.random.split(jax.random.PRNGKey(seed), len(ctx.names))
-        actions = jax.vmap(dp.random_sequence, (0, 0, 0, None, None))(
-            ctx.tables, ctx.batch.start_grasp, keys, sur.reward_config.r_min, hold)
-        return policies.SequencePolicy(actions), 0
-    raise ValueError(f"policy: expected one of {POLICIES + VERIFIED + REFERENCES}, got {name!r}")
+
+@planners.register("L1", group="paper", needs=("base",))
+def _l1(ctx: Context, *, cached: bool = True, model=None):
+    """L1: one step of lookahead over the base policy's rollouts (`cached`: the tree's interior and rollouts as
+    lookups in each episode's DP table, exact below the root; `model`: what steps the root, default the surrogate)."""
+    return _lookahead(ctx, 1, model, cached)
+
+
+@planners.register("L2", group="paper", needs=("base",))
+def _l2(ctx: Context, *, cached: bool = True, model=None):
+    """L2: two steps of lookahead over the base policy's rollouts (options as L1)."""
+    return _lookahead(ctx, 2, model, cached)
+
+
+@planners.register("dp-opt", group="paper", needs=("solutions",))
+def _dp_opt(ctx: Context):
+    """DP optimal: each episode's own optimal policy (its table solved exactly; knows the episode)."""
+    return policies.TablePolicy(ctx.solutions.policy, ctx.surrogate.space), 0
+
+
+@planners.register("four-tips", group="reference")
+def _four_tips(ctx: Context):
+    """The constant all-fingertips grasp, reached at the first waypoints and kept."""
+    sur = ctx.surrogate
+    return policies.SequencePolicy(jnp.asarray(four_tips(sur.space, ctx.batch.n_steps)), sur.space), None
+
+
+@planners.register("one-tip", group="reference")
+def _one_tip(ctx: Context):
+    """The index tip alone (lets the others go at the first waypoints): a grasp that must drop the tool."""
+    sur = ctx.surrogate
+    return policies.SequencePolicy(jnp.asarray(one_tip(sur.space, ctx.batch.n_steps)), sur.space), None
+
+
+@planners.register("random", group="reference", needs=("tables",))
+def _random(ctx: Context, *, seed: int = 0, hold: float = 0.0):
+    """One random feasible sequence per episode (`dp.random_sequence`: keep the grasp with probability `hold`)."""
+    keys = jax.random.split(jax.random.PRNGKey(seed), len(ctx.names))
+    actions = jax.vmap(dp.random_sequence, (0, 0, 0, None, None))(
+        ctx.tables, ctx.batch.start_grasp, keys, ctx.surrogate.reward_config.r_min, hold)
+    return policies.SequencePolicy(actions), 0
+
+
+@planners.register("L1-physics", group="verified", needs=("base",), backends=("c",))
+def _l1_physics(ctx: Context, *, k: int = L1_PHYSICS["k"], bases: tuple = L1_PHYSICS["bases"], cached: bool = True,
+                model=None):
+    """L1's `k` best root actions (and each base's own) at each decision, branched in C MuJoCo to the episode's end
+    under each of `bases` (registered planners, e.g. ("four-tips", "dp-opt")); never worse than either base."""
+    from gsp_jax.physics.verified import PhysicsLookahead
+
+    if isinstance(bases, str) or not bases or any(b not in planners.names() or b == "L1-physics" for b in bases):
+        raise ValueError(f"bases: one or more registered planners other than L1-physics, got {bases!r}")
+    root, axis = _lookahead(ctx, 1, model, cached)
+    made = []
+    for b in bases:
+        try:
+            made.append(planners.make(ctx, b, dict(cached=cached, model=model)))
+        except ValueError as e:
+            raise ValueError(f"bases: {b!r} cannot be built here: {e}") from None
+    return PhysicsLookahead(root, axis, tuple(made), k=k), None

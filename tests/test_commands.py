@@ -22,6 +22,7 @@ QUICKEST = {
     "demo": [(["demo", "--no-gif"], ["results/demo/demo.png"])],
     "your-model": [(["check-model", "hammer"], []),
                    (["demo", "--no-gif", "--model", "hammer"], ["results/demo-hammer/demo.png"])],
+    "planners": [(["planners"], [])],
     "surrogate": [(["surrogate", "--episode", "nominal", "--waypoints", "0"], [])],
     "bench-startup": [(["bench-startup", "--no-off", "--out", "s.json"], ["s.json"])],
     "bench-surrogate": [(["bench-surrogate", "--loop-steps", "17", "--repeats", "1", "--out", "b.json"], ["b.json"])],

@@ -1,4 +1,4 @@
-"""`gsp_jax.evaluation`: the one planner factory and its reference sequences."""
+"""`gsp_jax.evaluation`: the library's planners (registered in `gsp_jax.planners`) and its reference sequences."""
 from __future__ import annotations
 
 import jax.numpy as jnp
@@ -16,13 +16,13 @@ def _bare(sur, rl=None):
 
 @pytest.mark.parametrize("name", ["dp-base", "dp-opt", "random", "rl", "L1", "L2"])
 def test_a_planner_missing_what_it_needs_is_refused_by_name(sur, name):
-    with pytest.raises(ValueError, match=f"policy '{name}'"):
+    with pytest.raises(ValueError, match=f"planner '{name}': the context was built without"):
         evaluation.make(_bare(sur), name)
 
 
 def test_cached_lookahead_needs_the_tables_too(sur):
     rl = object()  # present: only the tables are missing
-    with pytest.raises(ValueError, match="policy 'L1'"):
+    with pytest.raises(ValueError, match="planner 'L1': the context was built without tables"):
         evaluation.make(_bare(sur, rl), "L1", cached=True)
     policy, axis = evaluation.make(_bare(sur, rl), "L1", cached=False)
     assert axis is None and policy.inner is None
@@ -38,7 +38,8 @@ def test_physics_lookahead_is_made_of_its_root_and_bases(sur):
     assert isinstance(policy, PhysicsLookahead) and axis is None and policy.k == 3
     assert policy.root.depth == 1 and [b[0] for b in policy.bases][1] is ctx.rl
     np.testing.assert_array_equal(policy.bases[0][0].actions, evaluation.four_tips(sur.space, ctx.batch.n_steps))
-    with pytest.raises(ValueError, match="policy 'dp-opt'"):  # the default's second base, DP optimal, needs tables
+    with pytest.raises(ValueError, match="bases: 'dp-opt' cannot be built here: .* without solutions"):  # the
+        # default's second base, DP optimal, needs the tables' solutions
         evaluation.make(ctx, "L1-physics", cached=False)
     for bad in ("rl", (), ("L1-physics",), ("random",)):
         with pytest.raises(ValueError, match="bases"):

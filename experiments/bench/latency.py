@@ -26,14 +26,21 @@ import numpy as np
 
 from experiments import common
 from experiments.common import results_dir, table, timed
-from gsp_jax import dp, evaluation, files, policies
+from gsp_jax import dp, evaluation, files, planners, policies
 from gsp_jax.env import TableModel
+
+
+LOOKAHEADS = ("L1", "L2")  # the rows whose tree reads each episode's table when cached
+
+
+def _verified(name: str) -> bool:
+    return planners.get(name).group == "verified"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--episodes", type=int, default=7, help="evaluation episodes (each gives up to 16 decisions)")
-    p.add_argument("--policies", nargs="+", default=list(evaluation.POLICIES),
-                   choices=evaluation.POLICIES + evaluation.VERIFIED)
+    p.add_argument("--policies", nargs="+", default=list(planners.names("paper")),
+                   choices=planners.names("paper") + planners.names("verified"))
     p.add_argument("--k", nargs="+", type=int, default=[evaluation.L1_PHYSICS["k"]],
                    help="L1-physics: the surrogate's best k root actions are branched per decision (several: a row "
                         "each)")
@@ -54,8 +61,7 @@ def run(ctx: evaluation.Context, names: list[str], cached: bool, ks=(evaluation.
     # setup per episode, shared by the planners that need it: the table (cached L1/L2, DP optimal) and its backup
     jax.block_until_ready(backup(build(episodes[0]), episodes[0].start_grasp))  # compile both
     tables, t_build, t_backup = [], [], []
-    needs_table = "dp-opt" in names or any(n in evaluation.VERIFIED for n in names) or (
-        cached and any(n in evaluation.LOOKAHEAD_DEPTH for n in names))
+    needs_table = "dp-opt" in names or any(_verified(n) for n in names) or (cached and any(n in LOOKAHEADS for n in names))
     for i, ep in enumerate(episodes if needs_table else []):
         tab, tb = timed(build, ep)
         sol, tk = timed(backup, tab, ep.start_grasp)
@@ -65,24 +71,24 @@ def run(ctx: evaluation.Context, names: list[str], cached: bool, ks=(evaluation.
 
     rows = {}
     for name in names:
-        if name in evaluation.VERIFIED:
+        if _verified(name):
             for k in ks:
                 label = name if len(ks) == 1 else f"{name} k={k}"
                 table = cached or "dp-opt" in bases  # the root's table (cached L1), DP optimal's table and backup
                 setup = [table * tb + ("dp-opt" in bases) * tk for tb, tk in zip(t_build, t_backup)]
                 rows[label] = physics_lookahead(ctx, name, k, bases, cached, setup)
             continue
-        base, _ = evaluation.make(ctx, name, cached=False)  # dp-base, rl, continuous lookahead: episode-independent
+        base, _ = planners.make(ctx, name, dict(cached=False))  # dp-base, rl, continuous lookahead: episode-independent
 
         def policy_for(i):
             if name == "dp-opt":
                 return policies.TablePolicy(tables[i][1].policy)
-            if cached and name in evaluation.LOOKAHEAD_DEPTH:
+            if cached and name in LOOKAHEADS:
                 return base.replace(inner=TableModel(tables[i][0], sur.space))
             return base
 
         setup = ([b + k for b, k in zip(t_build, t_backup)] if name == "dp-opt" else
-                 list(t_build) if cached and name in evaluation.LOOKAHEAD_DEPTH else [0.0] * len(episodes))
+                 list(t_build) if cached and name in LOOKAHEADS else [0.0] * len(episodes))
         warm = sur.reset(episodes[0])
         jax.block_until_ready(step(warm, act(policy_for(0), warm)))  # compile
         decide, stepping, per_episode, returns = [], [], [], []
@@ -118,7 +124,7 @@ def physics_lookahead(ctx: evaluation.Context, name: str, k: int, bases, cached:
 
     def episode(i):
         one = ctx.select([i])
-        policy, axis = evaluation.make(one, name, cached=cached, k=k, bases=bases)
+        policy, axis = planners.make(one, name, dict(cached=cached, k=k, bases=bases))
         res, wall = timed(lambda: phys.simulate_batch(policy, one.batch, axis, backend="c"))
         return [d.seconds for d in policy.decisions], wall, res
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from experiments import common
 from experiments.common import bar_png, results_dir, table
-from gsp_jax import evaluation, files, lookahead, policies, stats
+from gsp_jax import evaluation, files, lookahead, planners, policies, stats
 from gsp_jax.env import TableModel
 
 COMPARED = ("dp-base", "rl", "L1", "L2")  # relative to dp-opt
@@ -35,7 +35,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def returns(ctx: evaluation.Context, name: str, backend: str, cached: bool = True) -> np.ndarray:
     """Return of policy `name` on every episode of the context (N,), stepping `backend`."""
-    policy, axis = evaluation.make(ctx, name, cached=cached)
+    policy, axis = planners.make(ctx, name, dict(cached=cached))
     space = ctx.surrogate.space
 
     def one(ep, table, pol):
@@ -49,7 +49,7 @@ def returns(ctx: evaluation.Context, name: str, backend: str, cached: bool = Tru
 
 def run(ctx: evaluation.Context, backend: str, out, cached: bool = True) -> dict:
     rets, wall = {}, {}
-    for name in evaluation.POLICIES:
+    for name in planners.names("paper"):
         t0 = time.perf_counter()
         rets[name] = returns(ctx, name, backend, cached)
         wall[name] = time.perf_counter() - t0

@@ -22,14 +22,13 @@ import numpy as np
 from experiments import common
 from experiments.common import bar_png, results_dir, table
 from experiments.physics.check import result_rows
-from gsp_jax import evaluation, files, physics, stats
+from gsp_jax import evaluation, files, physics, planners, stats
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", default="eval", choices=["evalA", "evalB", "eval", "val"])
     p.add_argument("--episodes", type=int, default=None, help="only N episodes, spread over the set")
-    p.add_argument("--policies", nargs="+", default=list(evaluation.POLICIES),
-                   choices=evaluation.POLICIES + evaluation.VERIFIED,
+    p.add_argument("--policies", nargs="+", default=list(planners.names("paper")), metavar="NAME",
                    help="the paper's five by default; L1-physics (C MuJoCo only) branches L1's candidates in physics")
     p.add_argument("--policy-dir", default=None)
     p.add_argument("--fresh", action="store_true", help="ignore saved per-policy results")
@@ -49,7 +48,7 @@ def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str =
     """Fig. 4b's result per policy (saved results reused); `jobs` policies at a time (default as `--jobs`)."""
     phys = physics.Physics(ctx.surrogate)
     stamp = f"{common.fingerprint(ctx)}-{backend}" + ("" if cached else "-continuous") + (
-        f"-k{k}-" + "+".join(bases) if any(n in evaluation.VERIFIED for n in names) else "")
+        f"-k{k}-" + "+".join(bases) if any("bases" in planners.get(n).options for n in names) else "")
     jobs = 1 if jobs is None else jobs
     if jobs < 1:
         raise ValueError(f"jobs (--jobs) must be >= 1, got {jobs}")
@@ -70,21 +69,21 @@ def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str =
         result = dict(policy=name, episodes=ctx.names, rl_policy=ctx.rl_source, mean_deg=mean, ci95_deg=ci,
                       falls=int(np.sum(res.fell)), held=[r for r in rows if not r["fell"]], per_episode=rows,
                       wall_s_incl_compile=wall, jobs=jobs, platform=jax.default_backend(), backend=backend,
-                      fingerprint=stamp, **(dict(k=k, bases=list(bases)) if name in evaluation.VERIFIED else {}))
+                      fingerprint=stamp, **(dict(k=k, bases=list(bases)) if "bases" in planners.get(name).options else {}))
         files.write_json(out / f"{name}.json", result)
         print(f"  {name:8s} mean angle error {mean:.1f} deg (+-{ci:.1f}), {result['falls']}/{len(ctx.names)} "
               f"fell ({wall:.1f} s incl. compile)", flush=True)
         return result
 
     def simulate(name):
-        policy, axis = evaluation.make(ctx, name, cached=cached, k=k, bases=bases)
+        policy, axis = planners.make(ctx, name, dict(cached=cached, k=k, bases=bases))
         t0 = time.perf_counter()
         res = jax.block_until_ready(phys.simulate_batch(policy, ctx.batch, axis, backend=backend))
         return save(name, res, time.perf_counter() - t0)
 
     t0 = time.perf_counter()
     if backend == "c" and todo:  # every policy's episodes in one lockstep on every core
-        made = [evaluation.make(ctx, name, cached=cached, k=k, bases=bases) for name in todo]
+        made = [planners.make(ctx, name, dict(cached=cached, k=k, bases=bases)) for name in todo]
         res = phys.simulate_many(made, ctx.batch, backend="c", progress=True)
         wall = time.perf_counter() - t0
         done = {name: save(name, r, wall) for name, r in zip(todo, res)}
@@ -129,6 +128,8 @@ def figures(results: dict) -> dict:
 
 
 def main(args: argparse.Namespace) -> None:
+    common.check_planners(args.policies, "--policies", args.backend)
+    common.check_planners(args.bases, "--bases")
     ctx = evaluation.context(args.set, args.episodes, args.policy_dir)
     print(f"Fig. 4b: {len(ctx.names)} episodes of '{args.set}' in {args.backend} (JAX on {jax.default_backend()}), "
           f"RL policy {ctx.rl_source}", flush=True)

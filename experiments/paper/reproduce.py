@@ -29,7 +29,7 @@ from experiments.common import results_dir
 from experiments.paper import fig4a
 from experiments.paper import fig4b
 from experiments.paper import table1
-from gsp_jax import evaluation, files
+from gsp_jax import evaluation, files, planners
 
 PRESETS = {
     "quick": dict(fig4a_episodes=9, backend="table", batch=0, repeats=1, fig4b_episodes=2, train=False),
@@ -98,7 +98,7 @@ def main(args: argparse.Namespace) -> None:
         if backend_4a == "surrogate":  # cross-check: the tables give the same returns
             res["table_vs_surrogate_max_abs"] = {
                 n: float(np.max(np.abs(fig4a.returns(ctx, n, "table") - np.asarray(res["returns"][n]))))
-                for n in evaluation.POLICIES
+                for n in planners.names("paper")
             }
         fig4a.print_result(res)
         shutil.copy(results_dir("fig4a") / "fig4a.png", out / "fig4a.png")
@@ -116,7 +116,7 @@ def main(args: argparse.Namespace) -> None:
         print(f"[3/3] Fig. 4b ({backend})", flush=True)
         ctx = everything.take(p["fig4b_episodes"])
         # beyond the paper, in C MuJoCo: L1 verified in physics (its defaults, `evaluation.L1_PHYSICS`)
-        names = evaluation.POLICIES + (evaluation.VERIFIED if backend == "c" else ())
+        names = planners.names("paper") + (planners.names("verified") if backend == "c" else ())
         res = fig4b.run(ctx, names, results_dir("fig4b"), backend=backend)
         fig4b.print_result(res)
         shutil.copy(results_dir("fig4b") / "fig4b.png", out / "fig4b.png")
@@ -181,7 +181,7 @@ def _claims(sections: dict) -> list[tuple[str, str, str]]:
         rows.append(("DP optimal is by far the most expensive online (151.79 s vs <= 4.30 s)",
                      ", ".join(f"{n} {r['warm_s']:.3g} s" for n, r in t.items()), "yes" if ok else "no"))
     if "fig4b" in sections:
-        b = {n: r for n, r in sections["fig4b"].items() if n in evaluation.POLICIES}  # the paper's policies
+        b = {n: r for n, r in sections["fig4b"].items() if n in planners.names("paper")}  # the paper's policies
         errors = {n: r["mean_deg"] for n, r in b.items()}
         tied = max(errors.values()) - min(errors.values()) < 1e-6
         listing = ", ".join(f"{n} {e:.1f}" for n, e in errors.items())
@@ -253,7 +253,7 @@ def report(s: dict) -> str:
                   "![Fig. 4b](fig4b.png)", "", "| policy | mean [deg] | 95% CI ± | fell | mean time of the fall [s] |",
                   "|---|---|---|---|---|"]
         for name, r in b.items():
-            if name in evaluation.VERIFIED:  # beyond the paper
+            if planners.get(name).group == "verified":  # beyond the paper
                 bases = " + ".join(r.get("bases", ["rl"]))  # results without them were k = 17 under RL
                 name = f"{name} (k = {r.get('k', 17)}, branches under {bases}; not in the paper)"
             ci = "–" if not np.isfinite(r["ci95_deg"]) else f"{r['ci95_deg']:.1f}"

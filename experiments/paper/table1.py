@@ -32,7 +32,7 @@ import jax
 
 from experiments import common
 from experiments.common import results_dir, table
-from gsp_jax import dp, evaluation, files, policies
+from gsp_jax import dp, evaluation, files, planners, policies
 from gsp_jax import lookahead as lookahead_lib
 from gsp_jax.env import TableModel
 from gsp_jax.surrogate import Surrogate
@@ -61,8 +61,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ahead", type=_at_least_one, default=None, help="batched RL: decisions per batch of realised states "
                    f"(`policies.rollout_batched`; the same episode): default {GPU_AHEAD} on a GPU, 1 on a CPU (which pays for "
                    "every state)")
-    p.add_argument("--policies", nargs="+", default=list(evaluation.POLICIES), choices=evaluation.POLICIES,
-                   metavar="NAME", help=f"which rows to time (default: all of {', '.join(evaluation.POLICIES)})")
+    p.add_argument("--policies", nargs="+", default=list(PAPER), choices=PAPER,
+                   metavar="NAME", help=f"which rows to time (default: all of {', '.join(PAPER)})")
     p.add_argument("--lookahead", default="table", choices=LOOKAHEAD,
                    help="L1/L2: the unseen episode's table for the whole search (exact from the episode's start; "
                         "default), below the root only (cached), or none (continuous)")
@@ -70,6 +70,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "issue 37 (the table's IK vmapped, L1/L2's root in the surrogate), side by side in this run")
 
 
+PAPER = planners.names("paper")  # Table 1's rows: the paper's five planners, in its order
 BATCHED = ("dp-base", "rl")  # the policies whose episode can also run as one batch of transitions
 LOOKAHEAD = ("table", "cached", "continuous")  # L1 and L2: root and interior in the table; interior only; neither
 
@@ -110,8 +111,8 @@ def planner(ctx: evaluation.Context, name: str, lookahead: str = "table", batche
             model = TableModel(table, sur.space)  # from its start the surrogate only visits the table's states
             return lookahead_lib.rollout(model, policies.TablePolicy(sol.policy), model.reset(ep))[0]
         return plan
-    policy, _ = evaluation.make(ctx, name, cached=False)
-    if name in evaluation.LOOKAHEAD_DEPTH:  # each decision's search has stepped every action: the episode moves on
+    policy, _ = planners.make(ctx, name, dict(cached=False))
+    if isinstance(policy, policies.Lookahead):  # each decision's search has stepped every action: the episode moves on
         def plan(ep):                       # to its child (`rollout_planned`) instead of stepping the surrogate again
             if lookahead == "continuous":
                 return lookahead_lib.rollout_planned(policy, sur.reset(ep))[0]
@@ -154,7 +155,7 @@ def measure(fn, arg, repeats: int) -> tuple[float, float]:
 
 
 def run(ctx: evaluation.Context, batch: int, repeats: int, out, lookahead: str = "table",
-        names=evaluation.POLICIES, ahead: int | None = None, compare_before: bool = False) -> dict:
+        names=PAPER, ahead: int | None = None, compare_before: bool = False) -> dict:
     ahead = default_ahead() if ahead is None else ahead
     t_start = time.perf_counter()
     one = jax.tree.map(lambda x: x[0], ctx.batch)
@@ -168,7 +169,7 @@ def run(ctx: evaluation.Context, batch: int, repeats: int, out, lookahead: str =
             other = measure(planner(ctx, name, lookahead, not batched, ahead), one, repeats)[1]
             row |= dict(rollout="batched" if batched else "stepped", batched_warm_s=warm if batched else other,
                         stepped_warm_s=other if batched else warm)
-        if compare_before and name in ("dp-opt", *evaluation.LOOKAHEAD_DEPTH):  # the code before, in the same run
+        if compare_before and name in ("dp-opt", "L1", "L2"):  # the code before, in the same run
             c_old, w_old = measure(planner(before(ctx), name, "cached", batched, ahead), one, repeats)
             row |= dict(before_warm_s=w_old, before_compile_s=c_old, speedup=w_old / warm)
         if batch:
@@ -238,7 +239,7 @@ def main(args: argparse.Namespace) -> None:
                          args.ik_unroll)
     print(f"Table 1 on {jax.devices()[0].device_kind}: episode {ctx.names[0]} ...", flush=True)
     result = run(ctx, args.batch, repeats, results_dir("table1"), lookahead=args.lookahead,
-                 names=tuple(n for n in evaluation.POLICIES if n in args.policies), ahead=args.ahead,
+                 names=tuple(n for n in PAPER if n in args.policies), ahead=args.ahead,
                  compare_before=args.before)
     common.record("table1", figures(result), per_device=True)
     print_result(result)

@@ -25,11 +25,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.common import results_dir, table
-from gsp_jax import evaluation, files, physics, policies, scenario, surrogate, wrench
+from experiments.common import check_planners, results_dir, table
+from gsp_jax import evaluation, files, physics, planners, policies, scenario, surrogate, wrench
 from gsp_jax.stats import mean_ci
 
-POLICIES = ("dp-opt", "dp-base", "rl", "random", "four-tips", "scripted", "one-tip")
 
 
 def least_friction(env: surrogate.Surrogate, grasp: int, episode: scenario.Episode) -> tuple[float, float]:
@@ -45,7 +44,8 @@ def least_friction(env: surrogate.Surrogate, grasp: int, episode: scenario.Episo
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", default="evalA", choices=["nominal", "train", "val", "evalA", "evalB", "eval", "all"])
-    p.add_argument("--policy", default="dp-opt", choices=POLICIES)
+    p.add_argument("--policy", default="dp-opt", metavar="NAME",
+                   help="a registered planner (`python -m experiments planners`), or scripted (three fixed sequences)")
     p.add_argument("--policy-dir", default=None,
                    help="saved PPO policy for --policy rl (default: results/train/dp/seed0, else the shipped one)")
     p.add_argument("--episodes", type=int, default=None, help="only the first N episodes of the set")
@@ -61,11 +61,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def make_policy(kind: str, set_name: str, episodes: dict, args=None):
-    """(policy, policy_axis) of `evaluation.make` for a batch of named `episodes`: DP tables only for the planners
-    that need them, the PPO policy only for rl, the DP baseline only for dp-base."""
-    ctx = evaluation.context(set_name, episodes=episodes, tables=kind in ("dp-opt", "random"), rl=kind == "rl",
-                             nominal=kind == "dp-base", policy_dir=getattr(args, "policy_dir", None))
-    return evaluation.make(ctx, kind, seed=getattr(args, "seed", 0))
+    """(policy, policy_axis) of registered planner `kind` for a batch of named `episodes`, from a context with only
+    what it reads (`planners.context_flags`)."""
+    ctx = evaluation.context(set_name, episodes=episodes, policy_dir=getattr(args, "policy_dir", None),
+                             **planners.context_flags([kind]))
+    return planners.make(ctx, kind, dict(seed=getattr(args, "seed", 0)))
 
 
 def result_rows(names, res: physics.Result) -> list[dict]:
@@ -134,6 +134,8 @@ def _summary(names, res, **extra) -> dict:
 def main(args: argparse.Namespace) -> None:
     if args.episodes is not None and args.episodes < 1:
         raise SystemExit(f"--episodes: {args.episodes} (must be >= 1)")
+    if args.policy != "scripted":
+        check_planners([args.policy], "--policy", args.backend)
     env = surrogate.Surrogate()
     episodes = scenario.episode_set(args.set)
     if args.episodes:

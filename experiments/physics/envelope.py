@@ -30,6 +30,7 @@ import numpy as np
 from experiments import common
 from experiments.common import results_dir, table
 from gsp_jax import dp, evaluation, files, physics, policies, scenario
+from gsp_jax import planners as gsp_planners
 
 PLANNERS = ("four-tips", "dp-opt", "L1", "L2", "rl")
 
@@ -38,6 +39,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", default="stress", choices=["stress", "stress-cal", "eval", "val", "train", "variations"])
     p.add_argument("--episodes", type=int, default=None, help="only N episodes, spread over the set")
     p.add_argument("--random", type=int, default=8, help="random surrogate-feasible sequences per episode")
+    p.add_argument("--policies", nargs="+", default=list(PLANNERS), metavar="NAME",
+                   help=f"registered planners to run (default: {' '.join(PLANNERS)}; rl only where the model has a "
+                        "PPO policy); --plugin adds yours")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--policy-dir", default=None)
     p.add_argument("--jobs", type=int, default=None, help="processes classifying falls (default: the CPU cores)")
@@ -58,7 +62,7 @@ def auc(score_hold, score_fall) -> float:
 
 
 def summarise(kinds, fell, angle, feasible, returns, classes, early=None) -> dict:
-    """Per kind and over the pool. kinds (G,) names (PLANNERS first, then random ones); fell, angle, feasible,
+    """Per kind and over the pool. kinds (G,) names (the planners first, then random ones); fell, angle, feasible,
     returns (G, N) per sequence; classes {(g, e): "necessary" | "controller" | "undetermined"} for every fall;
     early {(g, e): bool}: a necessary fall that came before the point the oracle calls impossible."""
     early = early or {}
@@ -142,15 +146,17 @@ def classify(episodes: list, jobs: list, processes: int) -> list:
 
 # ---------------------------------------------------------------------------------------------------- main
 def main(args: argparse.Namespace) -> None:
+    common.check_planners(args.policies, "--policies", "c")
+    common.check_planners(args.bases, "--bases")
     if args.random < 0:
         raise SystemExit(f"envelope: --random must be >= 0, got {args.random}")
     if args.physics_lookahead < 0:
         raise SystemExit(f"envelope: --physics-lookahead must be >= 0, got {args.physics_lookahead}")
     ctx = evaluation.context(args.set, args.episodes, args.policy_dir)
     sur, N, T = ctx.surrogate, len(ctx.names), ctx.batch.n_steps
-    planners = [p for p in PLANNERS if p != "rl" or ctx.rl is not None]  # a model without a PPO policy: no RL row
+    planners = [p for p in args.policies if p != "rl" or ctx.rl is not None]  # a model without a PPO policy: no RL row
     planners += ["L1-physics"] if args.physics_lookahead else []
-    groups = [evaluation.make(ctx, name, k=args.physics_lookahead or 1, bases=args.bases)
+    groups = [gsp_planners.make(ctx, name, dict(k=args.physics_lookahead or 1, bases=tuple(args.bases)))
               for name in planners]
     keys = jax.random.split(jax.random.PRNGKey(args.seed), N * args.random).reshape(N, args.random, 2)
     holds = jnp.where(jnp.arange(args.random) % 2 == 0, 0.0, 0.8)

@@ -1,0 +1,145 @@
+"""Every planner by name: one registry that the library's planners and a user's own join alike.
+
+    policy, axis = planners.make(ctx, "L2")          # ctx: `evaluation.context(...)`; axis 0: one policy per episode
+    planners.names()                                 # every registered name
+    planners.names("paper")                          # the paper's five, in its Table 1 order
+
+    @planners.register("my-planner", needs=("tables",))
+    def my_planner(ctx, *, hold: float = 0.5):
+        '''Keep the grasp with probability `hold` ... (the first line is what `python -m experiments planners` shows)'''
+        return policy, policy_axis
+
+A builder takes the `evaluation.Context` of a batch of N episodes and keyword options (with defaults: they are the
+planner's documented options) and returns (policy, policy_axis): a policy for `physics.Physics.simulate` /
+`policies.rollout`, and 0 where it holds one policy per episode (a pytree of axes for a composite), None where one
+policy serves all. `needs` names what of the context it reads ("tables", "solutions", "rl", "nominal", or "base":
+the lookahead's base, the RL policy or else the DP baseline; a planner with a `cached` option reads the tables
+while it is on), so a command builds only that. The commands take
+any registered name; `--plugin MODULE` imports a user's module (which registers its planners) first.
+"""
+from __future__ import annotations
+
+import dataclasses
+import inspect
+from typing import Any, Callable
+
+NEEDS = ("tables", "solutions", "rl", "nominal", "base")
+GROUPS = ("paper", "reference", "verified", "user")
+
+
+@dataclasses.dataclass(frozen=True)
+class Planner:
+    name: str
+    build: Callable  # build(ctx, **options) -> (policy, policy_axis)
+    group: str  # "paper" (the paper's five), "reference" (the physics check's), "verified" (branched in C MuJoCo), "user"
+    needs: tuple[str, ...]  # what of the context it reads (`NEEDS`)
+    options: dict[str, Any]  # its keyword options and their defaults
+    backends: tuple[str, ...] | None  # the physics backends it runs on (None: any)
+
+    @property
+    def summary(self) -> str:
+        doc = inspect.getdoc(self.build) or ""
+        return doc.split("\n\n")[0].replace("\n", " ")
+
+
+_REGISTRY: dict[str, Planner] = {}
+
+
+def register(name: str, *, group: str = "user", needs=(), backends=None):
+    """Decorator: register `fn(ctx, **options) -> (policy, policy_axis)` as planner `name`. Its keyword-only
+    parameters (with defaults) are its options; `needs` ⊆ `NEEDS`; `backends`: the physics backends it supports
+    (None: all). Registering another function under a taken name is a ValueError (the same function again is not:
+    a module imported twice)."""
+    if not isinstance(name, str) or not name or any(c.isspace() for c in name):
+        raise ValueError(f"planners.register: a name without spaces, got {name!r}")
+    if group not in GROUPS:
+        raise ValueError(f"planners.register({name!r}): group one of {GROUPS}, got {group!r}")
+    bad = [n for n in needs if n not in NEEDS]
+    if bad:
+        raise ValueError(f"planners.register({name!r}): needs one of {NEEDS}, got {bad}")
+
+    def decorate(fn: Callable) -> Callable:
+        params = list(inspect.signature(fn).parameters.values())
+        if not params or params[0].kind not in (params[0].POSITIONAL_ONLY, params[0].POSITIONAL_OR_KEYWORD):
+            raise ValueError(f"planners.register({name!r}): the builder takes the context first, got {fn.__name__}"
+                             f"{inspect.signature(fn)}")
+        options = {p.name: p.default for p in params[1:] if p.kind is p.KEYWORD_ONLY}
+        missing = [n for n, d in options.items() if d is inspect.Parameter.empty]
+        if missing or any(p.kind not in (p.KEYWORD_ONLY,) for p in params[1:]):
+            raise ValueError(f"planners.register({name!r}): options must be keyword-only with defaults "
+                             f"(`def {fn.__name__}(ctx, *, option=default)`), got {inspect.signature(fn)}")
+        old = _REGISTRY.get(name)
+        if old is not None and (old.build.__module__, old.build.__qualname__) != (fn.__module__, fn.__qualname__):
+            raise ValueError(f"planners.register: {name!r} is taken by {old.build.__module__}.{old.build.__qualname__}")
+        _REGISTRY[name] = Planner(name, fn, group, tuple(needs), options, None if backends is None else tuple(backends))
+        return fn
+
+    return decorate
+
+
+def _builtin() -> None:
+    from gsp_jax import evaluation  # noqa: F401 - registers the library's planners
+
+
+def names(group: str | None = None) -> tuple[str, ...]:
+    """Registered planner names (of one group: "paper", "reference", "verified", "user"), in registration order."""
+    _builtin()
+    return tuple(n for n, p in _REGISTRY.items() if group is None or p.group == group)
+
+
+def get(name: str) -> Planner:
+    _builtin()
+    if name not in _REGISTRY:
+        raise ValueError(f"planner: {name!r} is not registered; registered: {', '.join(_REGISTRY)} "
+                         f"(a planner of your own: `--plugin MODULE`, or import its module first)")
+    return _REGISTRY[name]
+
+
+def needs(names_: "str | list[str] | tuple[str, ...]") -> set[str]:
+    """What of the context the planners `names_` read together with their default options (`NEEDS`)."""
+    names_ = (names_,) if isinstance(names_, str) else names_
+    return set().union(*(_reads(get(n), {}) for n in names_)) if names_ else set()
+
+
+def _reads(p: Planner, options: dict) -> tuple[str, ...]:
+    """`p.needs`, and the tables where its `cached` option (a lookahead's tree as table lookups) is on."""
+    cached = "cached" in p.options and options.get("cached", p.options["cached"])
+    return p.needs + (("tables",) if cached and "tables" not in p.needs else ())
+
+
+def make(ctx, name: str, shared: dict | None = None, **options):
+    """(policy, policy_axis) of planner `name` for the context's batch. `options`: the planner's own (an option it
+    does not take is a ValueError naming its options); `shared`: options passed only to the planners that take
+    them (a command's settings for every planner it runs, e.g. dict(cached=True, k=2))."""
+    p = get(name)
+    unknown = sorted(set(options) - set(p.options))
+    if unknown:
+        raise ValueError(f"planner {name!r}: no option {unknown[0]!r} (its options: "
+                         f"{', '.join(p.options) or 'none'})")
+    merged = {**{k: v for k, v in (shared or {}).items() if k in p.options}, **options}
+    missing = [n for n in _reads(p, merged) if _lacks(ctx, n)]
+    if missing:
+        raise ValueError(f"planner {name!r}: the context was built without {' or '.join(missing)} (build it with "
+                         f"`evaluation.context(..., **planners.context_flags([{name!r}]))`)")
+    return p.build(ctx, **merged)
+
+
+def context_flags(names_) -> dict[str, bool]:
+    """`evaluation.context`'s tables / rl / nominal flags for running the planners `names_` (only what they read)."""
+    need = needs(names_)
+    return dict(tables=bool(need & {"tables", "solutions"}), rl=bool(need & {"rl", "base"}),
+                nominal=bool(need & {"nominal", "base"}))
+
+
+def _lacks(ctx, need: str) -> bool:
+    if need == "base":
+        return ctx.rl is None and ctx.nominal_actions is None
+    attr = {"tables": "tables", "solutions": "solutions", "rl": "rl", "nominal": "nominal_actions"}[need]
+    return getattr(ctx, attr) is None
+
+
+def describe() -> list[dict]:
+    """One row per planner: name, group, options (name=default), needs, backends, summary."""
+    _builtin()
+    return [dict(name=p.name, group=p.group, options=dict(p.options), needs=list(_reads(p, {})),
+                 backends=list(p.backends) if p.backends else "any", summary=p.summary) for p in _REGISTRY.values()]

@@ -27,7 +27,7 @@ COMMANDS = {  # command -> (module, one-line help)
     "rescore": ("experiments.physics.rescore", "a recorded envelope pool scored under other rewards, no new physics"),
     "calibrate": ("experiments.physics.calibrate", "the reward's weights and thresholds against physics (train + val episodes)"),
     "fig4a": ("experiments.paper.fig4a", "Fig. 4a: surrogate returns relative to DP optimal, 95% CI, RM-ANOVA"),
-    "fig4b": ("experiments.paper.fig4b", "Fig. 4b: the same policies closed loop in MJX, angle error under the torque"),
+    "fig4b": ("experiments.paper.fig4b", "Fig. 4b: the same policies closed loop in C MuJoCo (or MJX), angle error under the torque"),
     "table1": ("experiments.paper.table1", "Table 1: online wall-clock time per unseen episode, beside the paper's"),
     "bench-latency": ("experiments.bench.latency", "per-decision latency of each planner, one episode at a time"),
     "ik-spikes": ("experiments.diagnostics.ik_spikes", "IK local minima: spikes between converged neighbours, with and without extra starts"),

@@ -1,6 +1,7 @@
 """`python -m experiments fig4b [--set eval] [--episodes N] [--policies ...]`: the paper's Fig. 4b.
 
-The policies of Fig. 4a run closed loop in the MJX physics check (`gsp_jax.physics`): at every waypoint each acts
+The policies of Fig. 4a (or any registered planner, `--plugin` for yours) run closed loop in the physics check
+(`gsp_jax.physics`; C MuJoCo by default, `--backend mjx` for MJX): at every waypoint each acts
 on the simulated state (L1 and L2 search the surrogate from it), the contact controller executes the grasp, and
 after the last waypoint the episode's torque is applied; the score is the mean tool angle error under it, 180 deg
 when the tool fell or touched the table. All episodes of a policy run in one batch. Each policy's result is saved
@@ -32,7 +33,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the paper's five by default; L1-physics (C MuJoCo only) branches L1's candidates in physics")
     p.add_argument("--policy-dir", default=None)
     p.add_argument("--fresh", action="store_true", help="ignore saved per-policy results")
-    p.add_argument("--backend", default="mjx", choices=physics.BACKENDS, help="mjx (one XLA batch) or c (C MuJoCo)")
+    p.add_argument("--backend", default="c", choices=physics.BACKENDS,
+                   help="c (C MuJoCo, every published figure's; the default) or mjx (one XLA batch)")
     p.add_argument("--jobs", type=int, default=None,
                    help="MJX: policies run side by side (threads; default 1). C MuJoCo runs them all in one lockstep")
     p.add_argument("--warm", action="store_true", help="C MuJoCo: time the lockstep a second time (warm)")
@@ -42,7 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     common.add_lookahead_argument(p)
 
 
-def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str = "mjx", cached: bool = True,
+def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str = "c", cached: bool = True,
         jobs: int | None = None, warm: bool = False, k: int = evaluation.L1_PHYSICS["k"],
         bases=evaluation.L1_PHYSICS["bases"]) -> dict:
     """Fig. 4b's result per policy (saved results reused); `jobs` policies at a time (default as `--jobs`)."""

@@ -6,6 +6,7 @@ Data flows one way:
                                      -> kinematics.py, ik.py, wrench.py (kernels)
     scenario.py (Episode) -> surrogate.py (reset/step, reward terms) -> dp.py (table, Bellman backup)
                                                                      -> policies.py (one `act(state)` interface)
+                                                                     -> planners.py (every planner by name)
 
 The surrogate step is `surrogate.Surrogate.step`: `realise` (IK) at the current and next waypoint, then
 `score` (wrench solves: the move, the hold, the hold under the external wrench, and the change when changes are

@@ -20,8 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gsp_jax import dp, files, grasps, model as model_lib, planners, policies, scenario
-from gsp_jax.dp import TableModel
+from gsp_jax import dp, files, grasps, model as model_lib, policies, scenario
 from gsp_jax.surrogate import Surrogate
 
 L1_PHYSICS = dict(k=2, bases=("four-tips", "dp-opt"))  # its defaults: L1's 2 best and each base's own action,
@@ -201,97 +200,3 @@ def context(set_name: str = "eval", n_episodes: int | None = None, policy_dir=No
             print(f"RL policy: {source}", flush=True)
     base = nominal_actions(sur) if nominal else None
     return Context(sur, set_name, list(chosen), batch, tabs, sols, base, net, source)
-
-
-def make(ctx: Context, name: str, **options):
-    """(policy, policy_axis) of the registered planner `name` (`planners.make`; kept for the notebooks' spelling)."""
-    return planners.make(ctx, name, **options)
-
-
-def _base(ctx: Context):
-    """The lookahead's base: the PPO policy, or the DP baseline where the context has none."""
-    return ctx.rl if ctx.rl is not None else policies.SequencePolicy(ctx.nominal_actions, ctx.surrogate.space)
-
-
-@planners.register("dp-base", group="paper", needs=("nominal",))
-def _dp_base(ctx: Context):
-    """DP baseline: the nominal episode's optimal sequence, open loop, on every episode."""
-    return policies.SequencePolicy(ctx.nominal_actions, ctx.surrogate.space), None
-
-
-@planners.register("rl", group="paper", needs=("rl",))
-def _rl(ctx: Context):
-    """RL: the PPO policy (DP behaviour-cloning pretraining), deterministic."""
-    return ctx.rl, None
-
-
-def _lookahead(ctx: Context, depth: int, model, cached: bool):
-    sur = ctx.surrogate
-    if not cached:
-        return policies.Lookahead(_base(ctx), model or sur, depth=depth), None
-    if ctx.tables is None:
-        raise ValueError(f"L{depth} with cached=True: the context was built without tables")
-    inner = TableModel(ctx.tables, sur.space)
-    return (policies.Lookahead(_base(ctx), model or sur, depth=depth, inner=inner),
-            policies.Lookahead(None, None, depth=depth, inner=0))
-
-
-@planners.register("L1", group="paper", needs=("base",))
-def _l1(ctx: Context, *, cached: bool = True, model=None):
-    """L1: one step of lookahead over the base policy's rollouts (`cached`: the tree's interior and rollouts as
-    lookups in each episode's DP table, exact below the root; `model`: what steps the root, default the surrogate)."""
-    return _lookahead(ctx, 1, model, cached)
-
-
-@planners.register("L2", group="paper", needs=("base",))
-def _l2(ctx: Context, *, cached: bool = True, model=None):
-    """L2: two steps of lookahead over the base policy's rollouts (options as L1)."""
-    return _lookahead(ctx, 2, model, cached)
-
-
-@planners.register("dp-opt", group="paper", needs=("solutions",))
-def _dp_opt(ctx: Context):
-    """DP optimal: each episode's own optimal policy (its table solved exactly; knows the episode)."""
-    return policies.TablePolicy(ctx.solutions.policy, ctx.surrogate.space), 0
-
-
-@planners.register("four-tips", group="reference")
-def _four_tips(ctx: Context):
-    """The constant all-fingertips grasp, reached at the first waypoints and kept."""
-    sur = ctx.surrogate
-    return policies.SequencePolicy(jnp.asarray(four_tips(sur.space, ctx.batch.n_steps)), sur.space), None
-
-
-@planners.register("one-tip", group="reference")
-def _one_tip(ctx: Context):
-    """The index tip alone (lets the others go at the first waypoints): a grasp that must drop the tool."""
-    sur = ctx.surrogate
-    return policies.SequencePolicy(jnp.asarray(one_tip(sur.space, ctx.batch.n_steps)), sur.space), None
-
-
-@planners.register("random", group="reference", needs=("tables",))
-def _random(ctx: Context, *, seed: int = 0, hold: float = 0.0):
-    """One random feasible sequence per episode (`dp.random_sequence`: keep the grasp with probability `hold`)."""
-    keys = jax.random.split(jax.random.PRNGKey(seed), len(ctx.names))
-    actions = jax.vmap(dp.random_sequence, (0, 0, 0, None, None))(
-        ctx.tables, ctx.batch.start_grasp, keys, ctx.surrogate.reward_config.r_min, hold)
-    return policies.SequencePolicy(actions), 0
-
-
-@planners.register("L1-physics", group="verified", needs=("base",), backends=("c",))
-def _l1_physics(ctx: Context, *, k: int = L1_PHYSICS["k"], bases: tuple = L1_PHYSICS["bases"], cached: bool = True,
-                model=None):
-    """L1's `k` best root actions (and each base's own) at each decision, branched in C MuJoCo to the episode's end
-    under each of `bases` (registered planners, e.g. ("four-tips", "dp-opt")); never worse than either base."""
-    from gsp_jax.physics.verified import PhysicsLookahead
-
-    if isinstance(bases, str) or not bases or any(b not in planners.names() or b == "L1-physics" for b in bases):
-        raise ValueError(f"bases: one or more registered planners other than L1-physics, got {bases!r}")
-    root, axis = _lookahead(ctx, 1, model, cached)
-    made = []
-    for b in bases:
-        try:
-            made.append(planners.make(ctx, b, dict(cached=cached, model=model)))
-        except ValueError as e:
-            raise ValueError(f"bases: {b!r} cannot be built here: {e}") from None
-    return PhysicsLookahead(root, axis, tuple(made), k=k), None

@@ -185,11 +185,3 @@ def space_of(hand: hand_lib.HandModel) -> GraspSpace:
 def _space(hand: hand_lib.HandModel) -> GraspSpace:  # one per hand object (hashed by identity)
     return GraspSpace(n_options=tuple(hand.n_options), link_names=hand.link_names, start_options=hand.start_options,
                       tip_options=hand.tip_options)
-
-
-def default_space() -> GraspSpace:
-    """The grasp space of the default model (`gsp_jax.model.load_model()`: the shipped wrench unless
-    `set_default` chose another)."""
-    from gsp_jax import model as model_lib
-
-    return model_lib.load_model().space

@@ -498,16 +498,3 @@ def from_mjmodel(model: mujoco.MjModel) -> HandModel:
 @functools.lru_cache(maxsize=8)
 def load_mjmodel(path: str | pathlib.Path = SCENE_XML) -> mujoco.MjModel:
     return mujoco.MjModel.from_xml_path(str(path))
-
-
-@functools.lru_cache(maxsize=8)
-def load(path: str | pathlib.Path = SCENE_XML) -> HandModel:
-    """The `HandModel` of a scene file (cached: one object per path). Checks the file first
-    (`gsp_jax.model.check_model`) and raises `gsp_jax.model.ModelError` listing every convention it breaks."""
-    from gsp_jax import model as model_lib  # the checks read this module's conventions
-
-    model_lib.require(path)
-    hand = dataclasses.replace(from_mjmodel(load_mjmodel(path)), source=str(path))
-    if len(hand.q_start) != hand.n_joints:
-        raise ValueError(f"model: gsp_ik_start has {len(hand.q_start)} values for {hand.n_joints} joints")
-    return hand

@@ -107,12 +107,29 @@ def set_default(name_or_path) -> Model:
     return model
 
 
+@functools.lru_cache(maxsize=8)
+def load_hand(path: str | pathlib.Path = hand_lib.SCENE_XML) -> hand_lib.HandModel:
+    """The `HandModel` of a scene file (one object per path), the file checked first (`require`: a `ModelError`
+    listing every convention it breaks). `load_model` is the door that also names and digests the file."""
+    require(path)
+    hand = dataclasses.replace(hand_lib.from_mjmodel(hand_lib.load_mjmodel(path)), source=str(path))
+    if len(hand.q_start) != hand.n_joints:
+        raise ValueError(f"model: gsp_ik_start has {len(hand.q_start)} values for {hand.n_joints} joints")
+    return hand
+
+
+def default_space() -> grasps.GraspSpace:
+    """The grasp space of the default model (`load_model()`: the shipped wrench unless `set_default` chose
+    another)."""
+    return load_model().space
+
+
 @functools.lru_cache(maxsize=16)
 def _load(path: str) -> Model:
     shipped = {str(p.resolve()): n for n, p in SHIPPED.items()}
     name = shipped.get(str(pathlib.Path(path).resolve()), pathlib.Path(path).parent.name
                        if pathlib.Path(path).stem == "scene" else pathlib.Path(path).stem)
-    return Model(name, pathlib.Path(path), digest(path), hand_lib.load(path))
+    return Model(name, pathlib.Path(path), digest(path), load_hand(path))
 
 
 def of_hand(hand: hand_lib.HandModel) -> Model:

@@ -9,7 +9,7 @@
         '''Keep the grasp with probability `hold` ... (the first line is what `python -m experiments planners` shows)'''
         return policy, policy_axis
 
-A builder takes the `evaluation.Context` of a batch of N episodes and keyword options (with defaults: they are the
+The library's planners register themselves at the end of this module. A builder takes the `evaluation.Context` of a batch of N episodes and keyword options (with defaults: they are the
 planner's documented options) and returns (policy, policy_axis): a policy for `physics.Physics.simulate` /
 `policies.rollout`, and 0 where it holds one policy per episode (a pytree of axes for a composite), None where one
 policy serves all. `needs` names what of the context it reads ("tables", "solutions", "rl", "nominal", or "base":
@@ -22,6 +22,11 @@ from __future__ import annotations
 import dataclasses
 import inspect
 from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+
+from gsp_jax import dp, evaluation, policies
 
 NEEDS = ("tables", "solutions", "rl", "nominal", "base")
 GROUPS = ("paper", "reference", "verified", "user")
@@ -77,18 +82,12 @@ def register(name: str, *, group: str = "user", needs=(), backends=None):
     return decorate
 
 
-def _builtin() -> None:
-    from gsp_jax import evaluation  # noqa: F401 - registers the library's planners
-
-
 def names(group: str | None = None) -> tuple[str, ...]:
     """Registered planner names (of one group: "paper", "reference", "verified", "user"), in registration order."""
-    _builtin()
     return tuple(n for n, p in _REGISTRY.items() if group is None or p.group == group)
 
 
 def get(name: str) -> Planner:
-    _builtin()
     if name not in _REGISTRY:
         raise ValueError(f"planner: {name!r} is not registered; registered: {', '.join(_REGISTRY)} "
                          f"(a planner of your own: `--plugin MODULE`, or import its module first)")
@@ -140,6 +139,95 @@ def _lacks(ctx, need: str) -> bool:
 
 def describe() -> list[dict]:
     """One row per planner: name, group, options (name=default), needs, backends, summary."""
-    _builtin()
     return [dict(name=p.name, group=p.group, options=dict(p.options), needs=list(_reads(p, {})),
                  backends=list(p.backends) if p.backends else "any", summary=p.summary) for p in _REGISTRY.values()]
+
+
+# ------------------------------------------------------------------------------------------ the library's planners
+def _base(ctx: evaluation.Context):
+    """The lookahead's base: the PPO policy, or the DP baseline where the context has none."""
+    return ctx.rl if ctx.rl is not None else policies.SequencePolicy(ctx.nominal_actions, ctx.surrogate.space)
+
+
+@register("dp-base", group="paper", needs=("nominal",))
+def _dp_base(ctx: evaluation.Context):
+    """DP baseline: the nominal episode's optimal sequence, open loop, on every episode."""
+    return policies.SequencePolicy(ctx.nominal_actions, ctx.surrogate.space), None
+
+
+@register("rl", group="paper", needs=("rl",))
+def _rl(ctx: evaluation.Context):
+    """RL: the PPO policy (DP behaviour-cloning pretraining), deterministic."""
+    return ctx.rl, None
+
+
+def _lookahead(ctx: evaluation.Context, depth: int, model, cached: bool):
+    sur = ctx.surrogate
+    if not cached:
+        return policies.Lookahead(_base(ctx), model or sur, depth=depth), None
+    if ctx.tables is None:
+        raise ValueError(f"L{depth} with cached=True: the context was built without tables")
+    inner = dp.TableModel(ctx.tables, sur.space)
+    return (policies.Lookahead(_base(ctx), model or sur, depth=depth, inner=inner),
+            policies.Lookahead(None, None, depth=depth, inner=0))
+
+
+@register("L1", group="paper", needs=("base",))
+def _l1(ctx: evaluation.Context, *, cached: bool = True, model=None):
+    """L1: one step of lookahead over the base policy's rollouts (`cached`: the tree's interior and rollouts as
+    lookups in each episode's DP table, exact below the root; `model`: what steps the root, default the surrogate)."""
+    return _lookahead(ctx, 1, model, cached)
+
+
+@register("L2", group="paper", needs=("base",))
+def _l2(ctx: evaluation.Context, *, cached: bool = True, model=None):
+    """L2: two steps of lookahead over the base policy's rollouts (options as L1)."""
+    return _lookahead(ctx, 2, model, cached)
+
+
+@register("dp-opt", group="paper", needs=("solutions",))
+def _dp_opt(ctx: evaluation.Context):
+    """DP optimal: each episode's own optimal policy (its table solved exactly; knows the episode)."""
+    return policies.TablePolicy(ctx.solutions.policy, ctx.surrogate.space), 0
+
+
+@register("four-tips", group="reference")
+def _four_tips(ctx: evaluation.Context):
+    """The constant all-fingertips grasp, reached at the first waypoints and kept."""
+    sur = ctx.surrogate
+    return policies.SequencePolicy(jnp.asarray(evaluation.four_tips(sur.space, ctx.batch.n_steps)), sur.space), None
+
+
+@register("one-tip", group="reference")
+def _one_tip(ctx: evaluation.Context):
+    """The index tip alone (lets the others go at the first waypoints): a grasp that must drop the tool."""
+    sur = ctx.surrogate
+    return policies.SequencePolicy(jnp.asarray(evaluation.one_tip(sur.space, ctx.batch.n_steps)), sur.space), None
+
+
+@register("random", group="reference", needs=("tables",))
+def _random(ctx: evaluation.Context, *, seed: int = 0, hold: float = 0.0):
+    """One random feasible sequence per episode (`dp.random_sequence`: keep the grasp with probability `hold`)."""
+    keys = jax.random.split(jax.random.PRNGKey(seed), len(ctx.names))
+    actions = jax.vmap(dp.random_sequence, (0, 0, 0, None, None))(
+        ctx.tables, ctx.batch.start_grasp, keys, ctx.surrogate.reward_config.r_min, hold)
+    return policies.SequencePolicy(actions), 0
+
+
+@register("L1-physics", group="verified", needs=("base",), backends=("c",))
+def _l1_physics(ctx: evaluation.Context, *, k: int = evaluation.L1_PHYSICS["k"],
+                bases: tuple = evaluation.L1_PHYSICS["bases"], cached: bool = True, model=None):
+    """L1's `k` best root actions (and each base's own) at each decision, branched in C MuJoCo to the episode's end
+    under each of `bases` (registered planners, e.g. ("four-tips", "dp-opt")); never worse than either base."""
+    from gsp_jax.physics.verified import PhysicsLookahead
+
+    if isinstance(bases, str) or not bases or any(b not in names() or b == "L1-physics" for b in bases):
+        raise ValueError(f"bases: one or more registered planners other than L1-physics, got {bases!r}")
+    root, axis = _lookahead(ctx, 1, model, cached)
+    made = []
+    for b in bases:
+        try:
+            made.append(make(ctx, b, dict(cached=cached, model=model)))
+        except ValueError as e:
+            raise ValueError(f"bases: {b!r} cannot be built here: {e}") from None
+    return PhysicsLookahead(root, axis, tuple(made), k=k), None

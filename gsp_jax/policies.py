@@ -23,7 +23,8 @@ from gsp_jax.observation import observation, observation_size
 from gsp_jax.grasps import GraspSpace
 from gsp_jax.lookahead import Lookahead  # re-exported: the Ll policies
 from gsp_jax.ppo import networks as nets
-from gsp_jax.ppo.train import PPOConfig, load_policy, save_policy
+from gsp_jax.ppo.checkpoint import load_policy, save_policy
+from gsp_jax.ppo.config import PPOConfig
 from gsp_jax.scenario import Episode
 from gsp_jax.surrogate import State, Surrogate
 
@@ -133,7 +134,7 @@ def model_tag(path: str | pathlib.Path) -> dict | None:
 
 
 def save_network_policy(path: str | pathlib.Path, params: nets.Params, sur: Surrogate) -> None:
-    """Write a policy (`ppo.train.save_policy`) and, beside it, the model it is for (`model_tag`)."""
+    """Write a policy (`ppo.checkpoint.save_policy`) and, beside it, the model it is for (`model_tag`)."""
     save_policy(path, params)
     m = sur.model
     tag = pathlib.Path(path).parent / f"{pathlib.Path(path).name}.model.json"

@@ -44,8 +44,10 @@ def pytest_sessionfinish(session, exitstatus):
 
 @pytest.fixture(scope="session")
 def hand():
-    """The HandModel of models/scene.xml (cached by hand.load, so one object for the whole run)."""
-    return hand_lib.load()
+    """The HandModel of the shipped wrench (`load_model().hand`: the default surrogate's own object)."""
+    from gsp_jax import model as model_lib
+
+    return model_lib.load_model().hand
 
 
 @pytest.fixture(scope="session")

@@ -119,7 +119,7 @@ def test_inside_jit_an_invalid_episode_gives_r_min_and_a_flag_never_nan(sur, fie
 
 def test_the_physics_batch_check_takes_a_pytree_of_policy_axes(sur):
     """A per-episode policy given as a pytree of in_axes (L1 searching each episode's table: a `Lookahead` of axes,
-    as `evaluation.make` gives it) passes the batch check; `make demo` runs one through the physics."""
+    as `planners.make` gives it) passes the batch check; `make demo` runs one through the physics."""
     axis = policies.Lookahead(None, None, depth=1, inner=0)
     two = scenario.stack([NOMINAL, scenario.make_episode(shift_mm=2)])
     physics.Physics(sur)._check_batch([(policies.SequencePolicy(jnp.zeros(16, jnp.int32)), axis)], two)

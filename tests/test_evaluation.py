@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gsp_jax import evaluation, grasps, scenario
+from gsp_jax import evaluation, grasps, planners, scenario
 
 
 def _bare(sur, rl=None):
@@ -17,14 +17,14 @@ def _bare(sur, rl=None):
 @pytest.mark.parametrize("name", ["dp-base", "dp-opt", "random", "rl", "L1", "L2"])
 def test_a_planner_missing_what_it_needs_is_refused_by_name(sur, name):
     with pytest.raises(ValueError, match=f"planner '{name}': the context was built without"):
-        evaluation.make(_bare(sur), name)
+        planners.make(_bare(sur), name)
 
 
 def test_cached_lookahead_needs_the_tables_too(sur):
     rl = object()  # present: only the tables are missing
     with pytest.raises(ValueError, match="planner 'L1': the context was built without tables"):
-        evaluation.make(_bare(sur, rl), "L1", cached=True)
-    policy, axis = evaluation.make(_bare(sur, rl), "L1", cached=False)
+        planners.make(_bare(sur, rl), "L1", cached=True)
+    policy, axis = planners.make(_bare(sur, rl), "L1", cached=False)
     assert axis is None and policy.inner is None
 
 
@@ -34,16 +34,16 @@ def test_physics_lookahead_is_made_of_its_root_and_bases(sur):
     from gsp_jax.physics.verified import PhysicsLookahead
 
     ctx = _bare(sur, rl=object())
-    policy, axis = evaluation.make(ctx, "L1-physics", cached=False, k=3, bases=("four-tips", "rl"))
+    policy, axis = planners.make(ctx, "L1-physics", cached=False, k=3, bases=("four-tips", "rl"))
     assert isinstance(policy, PhysicsLookahead) and axis is None and policy.k == 3
     assert policy.root.depth == 1 and [b[0] for b in policy.bases][1] is ctx.rl
     np.testing.assert_array_equal(policy.bases[0][0].actions, evaluation.four_tips(sur.space, ctx.batch.n_steps))
     with pytest.raises(ValueError, match="bases: 'dp-opt' cannot be built here: .* without solutions"):  # the
         # default's second base, DP optimal, needs the tables' solutions
-        evaluation.make(ctx, "L1-physics", cached=False)
+        planners.make(ctx, "L1-physics", cached=False)
     for bad in ("rl", (), ("L1-physics",), ("random",)):
         with pytest.raises(ValueError, match="bases"):
-            evaluation.make(ctx, "L1-physics", cached=False, bases=bad)
+            planners.make(ctx, "L1-physics", cached=False, bases=bad)
 
 
 def test_reference_sequences_reach_their_grasps(sur):
@@ -63,6 +63,6 @@ def test_reference_sequences_reach_their_grasps(sur):
     assert all(tips[i] for i in np.flatnonzero(four))
     one = final(evaluation.one_tip(space))
     assert [names[i] for i in np.flatnonzero(one)] == ["index"]
-    policy, axis = evaluation.make(_bare(sur), "four-tips")
+    policy, axis = planners.make(_bare(sur), "four-tips")
     assert axis is None and np.array_equal(np.asarray(policy.actions), evaluation.four_tips(space))
     assert np.all(evaluation.one_tip(space)[2:] == grasps.NULL) and jnp.asarray(evaluation.one_tip(space)).dtype == jnp.int32

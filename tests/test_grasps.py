@@ -4,6 +4,7 @@ import itertools
 import numpy as np
 import pytest
 
+from gsp_jax import model as model_lib
 from gsp_jax import grasps, scenario
 
 COUNTS = (3, 3, 2, 4, 2, 2)  # the paper's option counts (option 0 = not in contact)
@@ -11,7 +12,7 @@ COUNTS = (3, 3, 2, 4, 2, 2)  # the paper's option counts (option 0 = not in cont
 
 @pytest.fixture(scope="module")
 def space():
-    return grasps.default_space()
+    return model_lib.default_space()
 
 
 @pytest.fixture(scope="module")

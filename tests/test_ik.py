@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 import tolerances as tol
+from gsp_jax import model as model_lib
 from gsp_jax import grasps, ik, kinematics, scenario
 
 CFG = ik.IKConfig()
@@ -36,7 +37,7 @@ def _rows(hand):
 
 @pytest.fixture(scope="module")
 def space():
-    return grasps.default_space()
+    return model_lib.default_space()
 
 
 @pytest.fixture(scope="module")

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import tolerances as tol
+from gsp_jax import model as model_lib
 from gsp_jax import dp, grasps, ik, ik_lanes, kinematics, scenario
 from gsp_jax.surrogate import Surrogate
 
@@ -24,7 +25,7 @@ FAST = {"xla_backend_optimization_level": 0}
 def problems(hand):
     """192 IK problems of the nominal episode's table (every 3rd grasp at 4 waypoints) and random configurations:
     active (N, L), targets (N, L, 3), tool poses (N, 3), (N, 3, 3), q (N, J)."""
-    space = grasps.default_space()
+    space = model_lib.default_space()
     ep = scenario.make_episode()
     g, t = np.meshgrid(np.arange(0, space.n_grasps, 6), [0, 5, 10, 15], indexing="ij")
     g, t = jnp.asarray(g.ravel(), jnp.int32), jnp.asarray(t.ravel())

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import tolerances as tol
-from gsp_jax import dp, lookahead, policies, scenario
+from gsp_jax import dp, lookahead, planners, policies, scenario
 from gsp_jax.env import TableModel, observation_size, table_state
 from gsp_jax.ppo import networks as nets
 
@@ -143,14 +143,14 @@ def test_cached_successors_give_the_surrogates_plan(sur, solved, network, discre
 
 
 def test_experiments_cached_lookahead_is_one_policy_per_episode_table(sur, solved, network):
-    """`evaluation.make` (Fig. 4a/4b): the cached L1 carries every episode's table with in_axes 0 (hashable, as the
+    """`planners.make` (Fig. 4a/4b): the cached L1 carries every episode's table with in_axes 0 (hashable, as the
     physics runner keys its programs by them), and vmapped over the episodes it acts as a per-episode Lookahead
     whose interior is that episode's table."""
     from gsp_jax import evaluation
 
     eps, tables, sols = solved
     ctx = evaluation.Context(sur, "test", [f"e{i}" for i in range(4)], eps, tables, sols, sols.actions[0], network, "x")
-    policy, axis = evaluation.make(ctx, "L1")
+    policy, axis = planners.make(ctx, "L1")
     assert hash(axis) == hash(policies.Lookahead(None, None, depth=1, inner=0))
     states = jax.jit(jax.vmap(lambda e, g: sur.discrete_state(e, g, 2)))(eps, sols.grasps[:, 2])
     plans = jax.jit(jax.vmap(lambda pol, s: pol.plan(s), in_axes=(axis, 0)))(policy, states)
@@ -164,7 +164,7 @@ def test_experiments_cached_lookahead_is_one_policy_per_episode_table(sur, solve
             assert int(plans.action[i]) == int(ref.action)
             clear += 1
     assert clear >= 1  # measured: all 4 have a clear best action
-    plain, none_axis = evaluation.make(ctx, "L1", cached=False)
+    plain, none_axis = planners.make(ctx, "L1", cached=False)
     assert none_axis is None and plain.inner is None
 
 

@@ -47,7 +47,7 @@ def test_a_builder_is_checked_when_it_registers():
         planners.register("bad-default")(lambda ctx, *, k: None)
     with pytest.raises(ValueError, match="needs one of"):
         planners.register("bad-needs", needs=("everything",))
-    with pytest.raises(ValueError, match="'four-tips' is taken by gsp_jax.evaluation"):
+    with pytest.raises(ValueError, match="'four-tips' is taken by gsp_jax.planners"):
         planners.register("four-tips")(lambda ctx: None)
     with pytest.raises(ValueError, match="without spaces"):
         planners.register("my planner")

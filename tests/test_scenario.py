@@ -8,6 +8,7 @@ import re
 import numpy as np
 import pytest
 
+from gsp_jax import model as model_lib
 from gsp_jax import grasps, scenario as sc
 
 M0 = 0.35
@@ -48,7 +49,7 @@ def _check_episode(ep, shift_mm, torque, mass_factor, com_y_cm):
     np.testing.assert_allclose(np.asarray(ep.com), [0, com_y_cm * 1e-2, 0], atol=1e-8)
     assert float(ep.friction) == pytest.approx(0.8)
     assert float(ep.dt) == pytest.approx(0.25)
-    assert tuple(np.asarray(grasps.default_space().decode(ep.start_grasp)).tolist()) == (1, 1, 0, 1, 0, 0)
+    assert tuple(np.asarray(model_lib.default_space().decode(ep.start_grasp)).tolist()) == (1, 1, 0, 1, 0, 0)
     sc.validate(ep, n_grasps=288)
 
 

@@ -123,7 +123,7 @@ def shipped_files_unreadable(monkeypatch):
         return guarded
 
     monkeypatch.setattr(hand_lib, "load_mjmodel", guard(hand_lib.load_mjmodel))
-    monkeypatch.setattr(hand_lib, "load", guard(hand_lib.load))
+    monkeypatch.setattr(model_lib, "load_hand", guard(model_lib.load_hand))
     monkeypatch.setattr(mujoco.MjSpec, "from_file", staticmethod(guard(mujoco.MjSpec.from_file)))
     monkeypatch.setattr(model_lib, "_default", [None])  # load_model(None) fails instead of giving the wrench
 

@@ -28,8 +28,6 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from mujoco import batch as mj_batch
 
-from gsp_jax.physics import verified
-from gsp_jax.policies import SequencePolicy
 from gsp_jax.scenario import Episode
 
 
@@ -244,8 +242,7 @@ class _Lockstep:
         self.qpos_trace = np.zeros((M, K, nq), np.float32)
         self.actions, self.grasps = np.zeros((M, T), np.int32), np.zeros((M, T), np.int32)
         self.group_rows = [slice(g * N, (g + 1) * N) for g in range(G)]
-        self.decides = [pr.decide(0 if isinstance(policy, verified.PhysicsLookahead) else axis)
-                        for policy, axis in groups]
+        self.decides = [pr.decide(0 if hasattr(policy, "in_physics") else axis) for policy, axis in groups]
         self.pedestal_drop, self.tick, self.control_every = scene.pedestal_drop, c.tick, c.control_every
         self.segment = 0
         if start is not None:
@@ -300,13 +297,12 @@ class _Lockstep:
         obs, parts, snapshot = self.observe_all(), [], None
         for g, (policy, _) in enumerate(self.groups):
             rows, decide = self.group_rows[g], self.decides[g]
-            if isinstance(policy, verified.PhysicsLookahead):  # its actions chosen by branching in physics
-                actions = np.zeros((len(self.grasp[rows]), self.T), np.int32)
+            if hasattr(policy, "in_physics"):  # a policy that decides in physics (`physics.verified`): its hook
+                # gets the lockstep's state and gives this segment's policy (one per episode, axis 0)
                 if k < self.T:
                     snapshot = self.snapshot() if snapshot is None else snapshot
-                    actions[:, k] = verified.choose(policy, self.phys, snapshot, np.arange(len(self.fell))[rows],
-                                                    obs[rows], self.episodes, k)
-                policy = SequencePolicy(actions)
+                policy = policy.in_physics(self.phys, snapshot if k < self.T else None,
+                                           np.arange(len(self.fell))[rows], obs[rows], self.episodes, k, self.T)
             act, gr, cs_g = decide(policy, jax.device_put(self.cs[rows], self.default), obs[rows],
                                    self.grasp[rows], self.episodes, k)
             if k < self.T:

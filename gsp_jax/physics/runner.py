@@ -217,12 +217,9 @@ class Physics:
         for name, value in (("cores", cores), ("workers", workers)):
             if value is not None and not (isinstance(value, int) and value >= 1):
                 raise ValueError(f"{name} must be an int >= 1, got {value!r}")
-        if backend != "c":
-            from gsp_jax.physics.verified import PhysicsLookahead
-
-            if any(isinstance(p, PhysicsLookahead) for p, _ in policies):
-                raise ValueError(f"policy: PhysicsLookahead branches copies of C MuJoCo's state and needs backend='c', "
-                                 f"got backend={backend!r}")
+        if backend != "c" and any(hasattr(p, "in_physics") for p, _ in policies):
+            raise ValueError(f"policy: a policy that decides in physics (e.g. PhysicsLookahead) branches copies of C "
+                             f"MuJoCo's state and needs backend='c', got backend={backend!r}")
         if backend == "c":
             from gsp_jax.physics import c_backend
 

@@ -32,6 +32,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from gsp_jax.policies import SequencePolicy
+
 
 @struct.dataclass
 class FirstThen:
@@ -87,6 +89,15 @@ class PhysicsLookahead:
             raise ValueError(f"PhysicsLookahead.bases must be a non-empty sequence of (policy, policy_axis) pairs, "
                              f"got {self.bases!r}")
         self.bases = tuple(tuple(b) for b in self.bases)
+
+    def in_physics(self, phys, snapshot, rows: np.ndarray, obs: np.ndarray, episodes, k: int, n_steps: int):
+        """The C backend's hook at segment k: this segment's policy for the lockstep's episodes `rows` (their
+        observations `obs`), from the lockstep's `snapshot` (None after the last decision): each episode's action
+        at k chosen by branching in physics (`choose`), as a `SequencePolicy` (one per episode, axis 0)."""
+        actions = np.zeros((len(rows), n_steps), np.int32)
+        if snapshot is not None:
+            actions[:, k] = choose(self, phys, snapshot, rows, obs, episodes, k)
+        return SequencePolicy(actions)
 
 
 def _program(phys, key, make):

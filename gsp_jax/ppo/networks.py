@@ -3,7 +3,7 @@
     nets = make_networks(obs_size, n_actions, NetworkConfig())
     params = nets.init(key)                       # Params(normalizer, actor, critic)
     logits = nets.logits(params, obs)             # (..., A)
-    value = nets.value(params, obs)               # (...,)  in reward_scale units (see ppo.train.PPOConfig)
+    value = nets.value(params, obs)               # (...,)  in reward_scale units (see ppo.config.PPOConfig)
 
 The normaliser is brax's running mean/std (Welford); it is a part of the parameters so that a saved policy
 carries it, but only `update_normalizer` changes it, never a gradient step.

@@ -32,55 +32,9 @@ from tqdm.auto import tqdm
 
 from gsp_jax import files
 from gsp_jax.ppo import losses
+from gsp_jax.ppo.checkpoint import load_policy, save_policy, uncommitted
+from gsp_jax.ppo.config import PPOConfig
 from gsp_jax.ppo import networks as nets
-
-
-@dataclasses.dataclass(frozen=True)
-class PPOConfig:
-    n_envs: int = 2048  # parallel environments
-    unroll: int = 16  # environment steps per environment and iteration (one episode's length)
-    epochs: int = 4  # passes over an iteration's data
-    minibatches: int = 8  # Adam steps per epoch
-    learning_rate: float = 3e-4
-    # piecewise-linear learning-rate factor over training: (fraction of max_iterations, factor) knots
-    lr_knots: tuple[tuple[float, float], ...] = ((0.0, 1.0), (0.5, 1.0), (1.0, 0.1))
-    max_iterations: int = 300
-    gamma: float = 1.0  # finite horizon, undiscounted: the DP's return
-    gae_lambda: float = 0.95
-    clip: float = 0.2
-    # an iteration's remaining Adam steps are skipped once a minibatch's approx. KL from the rollout policy exceeds
-    # this (None: never). Fresh Adam moves every weight by ~lr whatever the gradient, so without it the first
-    # iteration after DP pretraining moved the near-deterministic policy by KL 0.95 and every episode fell for 45
-    # iterations (H100, full preset, seed 0).
-    target_kl: float | None = 0.05
-    vf_coef: float = 0.5
-    ent_coef: float = 0.01
-    max_grad_norm: float = 0.5
-    reward_scale: float = 0.1  # rewards (and so critic targets) are multiplied by this in the update
-    update_normalizer: bool = True  # fold every rollout into the observation statistics (off: keep them fixed)
-    eval_every: int = 5  # iterations between validations of the deterministic policy
-    patience: int = 20  # validations without improvement before an early stop (0: never stop early)
-    checkpoint_every: int = 10  # iterations between checkpoints (and at the end)
-
-    def __post_init__(self):
-        for name in ("n_envs", "unroll", "epochs", "minibatches", "max_iterations", "eval_every", "checkpoint_every"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"PPOConfig.{name}: must be >= 1, got {getattr(self, name)}")
-        if (self.n_envs * self.unroll) % self.minibatches:
-            raise ValueError(
-                f"PPOConfig.minibatches: {self.minibatches} does not divide n_envs * unroll = {self.n_envs * self.unroll}"
-            )
-        if self.target_kl is not None and not self.target_kl > 0:
-            raise ValueError(f"PPOConfig.target_kl: must be > 0 or None, got {self.target_kl}")
-        if not 0 < self.learning_rate < 1:
-            raise ValueError(f"PPOConfig.learning_rate: expected in (0, 1), got {self.learning_rate}")
-
-    def learning_rate_at(self, step):
-        """The schedule over Adam steps (piecewise linear in the fraction of training done), held for an iteration
-        from its first step (steps that `target_kl` skips count as taken)."""
-        total = self.max_iterations * self.epochs * self.minibatches
-        xs, ys = zip(*self.lr_knots)
-        return self.learning_rate * jnp.interp(step / total, jnp.asarray(xs), jnp.asarray(ys))
 
 
 @struct.dataclass
@@ -355,7 +309,7 @@ def _restore(manager: ocp.CheckpointManager, ts: TrainState) -> tuple[TrainState
             warnings.warn(f"checkpoint {manager.directory / str(step)} cannot be read ({type(e).__name__}: "
                           f"{str(e).splitlines()[0][:200]}); resuming from the step before it", stacklevel=3)
             continue
-        return _uncommitted(restored.state), history
+        return uncommitted(restored.state), history
     raise ValueError(f"checkpoint_dir {manager.directory}: no step can be read ({sorted(manager.all_steps())}); "
                      "move the folder away to start again")
 
@@ -396,30 +350,3 @@ def _save(manager: ocp.CheckpointManager, step: int, ts: TrainState, history: li
 
 def _jsonable(x):
     return json.loads(json.dumps(x, default=lambda o: list(o) if isinstance(o, tuple) else str(o)))
-
-
-def save_policy(path: str | pathlib.Path, params: nets.Params) -> None:
-    """Write a policy (Params) to an orbax checkpoint directory."""
-    with ocp.StandardCheckpointer() as ckpt:
-        ckpt.save(pathlib.Path(path).absolute(), params, force=True)
-
-
-def load_policy(path: str | pathlib.Path, networks: nets.Networks) -> nets.Params:
-    """Read a policy written by `save_policy`, for networks of the same shape."""
-    path = pathlib.Path(path).absolute()
-    if not path.exists():
-        raise FileNotFoundError(f"policy: no checkpoint at {path}")
-    # the parameters' shapes without running `init` (op by op it compiles ~50 small programs: seconds on a GPU)
-    device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
-    target = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device),
-                          jax.eval_shape(networks.init, jax.random.PRNGKey(0)))
-    with ocp.StandardCheckpointer() as ckpt:
-        return _uncommitted(ckpt.restore(path, target))
-
-
-def _uncommitted(tree):
-    """Restored arrays come back committed to a device, which jit treats as a new signature (a recompile):
-    hand them over as plain arrays."""
-    return jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), tree)
-
-

@@ -534,8 +534,8 @@ def test_float32_problem_stays_float32_with_x64_enabled():
     code = textwrap.dedent(
         """
         import jax, jax.numpy as jnp
-        from gsp_jax import hand as H, ik, kinematics, scenario
-        hand = H.load()
+        from gsp_jax import ik, kinematics, model, scenario
+        hand = model.load_hand()
         p, m = jnp.zeros(3, jnp.float32), jnp.eye(3, dtype=jnp.float32)
         q = jnp.asarray(hand.q_start, jnp.float32)
         assert jax.eval_shape(lambda q: kinematics.body_poses(hand, q), q)[0].dtype == jnp.float32

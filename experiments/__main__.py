@@ -19,17 +19,14 @@ COMMANDS = {  # command -> (module, one-line help)
     "train": ("experiments.paper.train", "PPO on the training episodes, with or without DP pretraining, over seeds"),
     "train-curves": ("experiments.paper.train_curves", "Fig. 3: PPO training curves with and without DP pretraining"),
     "bench-ppo": ("experiments.bench.ppo", "PPO env steps/s and wall time to the DP-baseline return"),
-    "physics": ("experiments.physics.check", "MJX physics check: a policy's grasp sequences, angle error under the torque"),
-    "physics-corr": ("experiments.physics.correlation", "rank correlation of surrogate return and simulated error"),
-    "physics-agree": ("experiments.physics.agreement", "MJX against C MuJoCo: held/fell agreement and hold angles"),
+    "physics": ("experiments.physics.check", "the physics check (MJX or C MuJoCo): a policy's grasp sequences, angle error under the torque; --compare: MJX against C"),
     "bench-physics": ("experiments.bench.physics", "the physics check against the engine alone, on 1, 2 and all cores"),
     "envelope": ("experiments.physics.envelope", "the stress envelope in physics: falls classified by the oracle, regret"),
-    "rescore": ("experiments.physics.rescore", "a recorded envelope pool scored under other rewards, no new physics"),
+    "rescore": ("experiments.physics.rescore", "surrogate against physics: a recorded envelope pool scored under rewards (rho, AUC), no new physics"),
     "calibrate": ("experiments.physics.calibrate", "the reward's weights and thresholds against physics (train + val episodes)"),
     "fig4a": ("experiments.paper.fig4a", "Fig. 4a: surrogate returns relative to DP optimal, 95% CI, RM-ANOVA"),
     "fig4b": ("experiments.paper.fig4b", "Fig. 4b: the same policies closed loop in C MuJoCo (or MJX), angle error under the torque"),
-    "table1": ("experiments.paper.table1", "Table 1: online wall-clock time per unseen episode, beside the paper's"),
-    "bench-latency": ("experiments.bench.latency", "per-decision latency of each planner, one episode at a time"),
+    "table1": ("experiments.paper.table1", "Table 1: online wall-clock time per unseen episode, beside the paper's; --per-decision: latency per decision"),
     "ik-spikes": ("experiments.diagnostics.ik_spikes", "IK local minima: spikes between converged neighbours, with and without extra starts"),
     "precision": ("experiments.diagnostics.precision", "float32 reward spread across CPUs, 1-ulp inputs and float64 (test tolerances)"),
     "reproduce": ("experiments.paper.reproduce", "everything above in sequence, one Markdown report (--quick on CPU)"),
@@ -83,12 +80,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--record", action="store_true",
                         help="also write the result to docs/data/<name>.json and append it to docs/data/history/")
     sub = parser.add_subparsers(dest="command", required=True)
-    modules = {}
-    for name, (module, help_) in COMMANDS.items():
-        mod = importlib.import_module(module)
-        modules[name] = mod
-        sp = sub.add_parser(name, help=help_.replace("%", "%%"), description=mod.__doc__)
-        mod.add_arguments(sp)
+    chosen = next((w for w in words if w in COMMANDS), None)  # only its module is imported (the others: help only)
+    module = None
+    for name, (path, help_) in COMMANDS.items():
+        if name != chosen:
+            sub.add_parser(name, help=help_.replace("%", "%%"))
+            continue
+        module = importlib.import_module(path)
+        sp = sub.add_parser(name, help=help_.replace("%", "%%"), description=module.__doc__)
+        module.add_arguments(sp)
         sp.add_argument("--plugin", action="append", default=[], metavar="MODULE",
                         help="import this module (a name on the path, or a .py file) first: its planners register "
                              "themselves (`gsp_jax.planners.register`); repeatable")
@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> None:
     from experiments import common
     from gsp_jax import model as model_lib
 
-    common.RECORD = args.record
+    common.RECORD = common.RECORD or args.record  # a command run by another (`common.run_command`) keeps it
     for plugin in args.plugin:
         load_plugin(plugin)
     if getattr(args, "model", None) is not None:
@@ -112,7 +112,7 @@ def main(argv: list[str] | None = None) -> None:
     from gsp_jax import files, scenario
 
     try:
-        modules[args.command].main(args)
+        module.main(args)
     except (files.FolderInUse, scenario.EpisodeError) as e:  # a user's input or a busy folder: the message, no trace
         raise SystemExit(f"{args.command}: {e}") from None
 

@@ -33,6 +33,14 @@ def results_dir(*parts: str) -> pathlib.Path:
     return path
 
 
+def run_command(words: list[str]) -> None:
+    """Run another command in this process, as `python -m experiments <words>` would (the same --record, --model
+    and plugins): how a pipeline such as `reproduce` composes commands, reading their results from their files."""
+    from experiments.__main__ import main
+
+    main(list(words))
+
+
 def table(headers: list[str], rows: list[list], floatfmt: str = ".3f") -> str:
     """A fixed-width text table (right-aligned numbers)."""
     cells = [[f"{c:{floatfmt}}" if isinstance(c, float) else str(c) for c in row] for row in rows]
@@ -114,9 +122,15 @@ def record(name: str, figures: dict, per_device: bool = False, data: pathlib.Pat
     return row
 
 
-def add_lookahead_argument(p) -> None:
-    p.add_argument("--lookahead", default="cached", choices=["cached", "continuous"],
-                   help="L1/L2 below the root: the episode's table (exact, default) or the surrogate")
+def add_lookahead_argument(p, root_in_table: bool = False) -> None:
+    """`--lookahead`: where L1/L2 search. `cached` (default): below the root in the episode's table (exact for the
+    discrete states the surrogate visits), the root's actions stepped in the surrogate; `continuous`: all in the
+    surrogate. With `root_in_table` (episodes planned from their start, never from a simulated state) also `table`,
+    the default there: the root's children too are the table's."""
+    choices = ["table", "cached", "continuous"] if root_in_table else ["cached", "continuous"]
+    p.add_argument("--lookahead", default=choices[0], choices=choices,
+                   help="L1/L2: " + ("the episode's table for the whole search (exact from its start), " if root_in_table
+                                     else "") + "below the root in the episode's table (cached), or none (continuous)")
 
 
 def check_planners(names, option: str = "--policies", backend: str | None = None) -> None:
@@ -162,3 +176,21 @@ def bar_png(path, names, means, cis, ylabel: str, title: str, color, ylim=None, 
     fig.tight_layout()
     fig.savefig(path, dpi=130)
     plt.close(fig)
+
+
+def fig4a_png(relative: dict, n: int, path) -> None:
+    """Fig. 4a: each policy's return relative to DP optimal (`stats.relative_returns`'s "relative") on n episodes."""
+    names = list(relative)
+    bar_png(path, names, [relative[k]["mean"] for k in names], [relative[k]["ci95"] for k in names],
+            "return - DP optimal return (symlog)", f"Surrogate, {n} unseen episodes (95% CI)",
+            ["#999999", "#4c72b0", "#55a868", "#2e7d32"][: len(names)],
+            symlog=0.05)  # falls (-200) and the lookahead's hundredths on one axis
+
+
+def fig4b_png(results: dict, n: int, path) -> None:
+    """Fig. 4b: each policy's mean tool angle error [deg] in physics ({policy: {mean_deg, ci95_deg, backend}})."""
+    names = list(results)
+    engine = {"mjx": "MJX", "c": "C MuJoCo"}.get(next(iter(results.values())).get("backend", "mjx"), "MJX")
+    bar_png(path, names, [results[k]["mean_deg"] for k in names], [np.nan_to_num(results[k]["ci95_deg"]) for k in names],
+            "mean tool angle error [deg] (180 = fell)", f"{engine} physics, {n} unseen episodes (95% CI)", "#4c72b0",
+            ylim=(0, 190))

@@ -20,7 +20,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments.common import results_dir, table
-from experiments.paper import fig4a
 from gsp_jax import dp, evaluation, files, physics, planners, scenario
 from gsp_jax.grasps import NULL
 from gsp_jax.surrogate import Surrogate
@@ -44,9 +43,7 @@ def _context(name: str | None) -> evaluation.Context:
     if name is None:
         name, episode = next(iter(scenario.episode_set("evalA", sur.model).items()))  # the first of 'eval'
     else:
-        from experiments.diagnostics.surrogate import find_episode
-
-        episode = find_episode(name)
+        episode = scenario.find(name)
     batch = scenario.stack([episode])
     tables = jax.block_until_ready(jax.jit(lambda b: dp.build_tables(sur, b))(batch))
     solutions = jax.jit(jax.vmap(dp.backup))(tables, batch.start_grasp)
@@ -132,7 +129,7 @@ def _gif(qpos: np.ndarray, stem) -> list[str]:
 
 def main(args: argparse.Namespace) -> None:
     if args.gif_from:
-        from experiments.physics.check import render_episode
+        from gsp_jax.physics.report import render_episode
 
         stem = args.gif_from.removesuffix("_qpos.npy")
         if not render_episode(physics.Physics(Surrogate()), np.load(args.gif_from), stem):
@@ -155,7 +152,7 @@ def main(args: argparse.Namespace) -> None:
     plans, wall = {}, {}
     for name in PLANNERS:
         t1 = time.perf_counter()
-        plans[name] = float(fig4a.returns(ctx, name, "table")[0])  # the plan's episode stepped in its table
+        plans[name] = float(planners.returns(ctx, name, "table", cached=True)[0])  # the plan's episode stepped in its table
         wall[name] = time.perf_counter() - t1
         print(f"  {LABEL[name]} planned in {wall[name]:.1f} s after the table (includes compiling)", flush=True)
     phys = physics.Physics(ctx.surrogate)

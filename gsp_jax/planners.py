@@ -143,6 +143,27 @@ def describe() -> list[dict]:
                  backends=list(p.backends) if p.backends else "any", summary=p.summary) for p in _REGISTRY.values()]
 
 
+def returns(ctx, name: str, backend: str = "table", **options):
+    """Return of planner `name` on every episode of `ctx` (N,) float32, each episode stepped from its reset in its
+    DP table (`backend="table"`: exact for the discrete states the surrogate visits) or in the surrogate itself
+    (`"surrogate"`, a lookahead's tree included). `options` go to `make`."""
+    from gsp_jax import lookahead
+    from gsp_jax.env import TableModel
+
+    if backend not in ("table", "surrogate"):
+        raise ValueError(f"returns: backend must be 'table' or 'surrogate', got {backend!r}")
+    policy, axis = make(ctx, name, options)
+    space = ctx.surrogate.space
+
+    def one(ep, table, pol):
+        model = TableModel(table, space) if backend == "table" else ctx.surrogate
+        if isinstance(pol, policies.Lookahead):
+            pol = pol.replace(model=model)
+        return lookahead.rollout(model, pol, model.reset(ep))[0]
+
+    return jax.jit(jax.vmap(one, (0, 0, axis)))(ctx.batch, ctx.tables, policy)
+
+
 # ------------------------------------------------------------------------------------------ the library's planners
 def _base(ctx: evaluation.Context):
     """The lookahead's base: the PPO policy, or the DP baseline where the context has none."""

@@ -304,6 +304,20 @@ def episode_set(name: str, model=None) -> dict[str, Episode]:
     return SETS[name](model=model)
 
 
+def find(name: str, model=None) -> Episode:
+    """The episode called `name` in any named set of the model (sets the model's tool cannot take are skipped);
+    `EpisodeError` naming the known ones if none has it."""
+    found = {}
+    for set_name in ("nominal", "variations", "train", "val", "evalA", "evalB", "stress"):
+        try:
+            found.update(episode_set(set_name, model))
+        except EpisodeError:
+            continue
+    if name not in found:
+        raise EpisodeError(f"episode: unknown episode {name!r}; known: {', '.join(found)}")
+    return found[name]
+
+
 def stack(episodes: Sequence[Episode]) -> Episode:
     """A batch (leading axis) from a list of single episodes."""
     return jax.tree.map(lambda *xs: jnp.stack(xs), *episodes)

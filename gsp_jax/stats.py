@@ -5,6 +5,9 @@ are the subjects, policies the within-subject factor) with Holm-corrected paired
     res = rm_anova(scores, ["dp-base", "rl", "L1"])  # scores (n_episodes, n_policies)
     res.f, res.p, res.posthoc                        # posthoc: list of Comparison(a, b, diff, t, p, p_holm)
     rank = rank_tests(scores, names)                 # Friedman + Holm-corrected Wilcoxon signed-rank: no normality
+    spearman(x, y), auc(hold, fall)                  # how a score ranks outcomes (the surrogate against physics)
+    cluster_bootstrap_se(x, y, episode, seed)        # ... and the SE of that rank correlation, episodes resampled
+    sign_test(a_failed, b_failed)                    # paired failures of two conditions: exact sign test
 
 The ANOVA (the paper's test) assumes normal, spherical differences; returns with rare falls (-200) are far from
 that, so the rank-based tests are reported beside it.
@@ -122,3 +125,68 @@ def rank_tests(scores, names: list[str]) -> RankResult:
     holm = multipletests([p for _, _, p in raw], method="holm")[1]
     posthoc = [Comparison(names[i], names[j], d, w, p, float(ph)) for (i, j), (d, w, p), ph in zip(pairs, raw, holm)]
     return RankResult(chi2=float(chi2), df=len(names) - 1, p=float(p), posthoc=posthoc)
+
+
+# ------------------------------------------------------------- the surrogate against physics: ranks and sign tests
+def spearman(x, y) -> float:
+    """Spearman rank correlation of two equal-length samples; nan where either is constant."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    if np.ptp(x) == 0 or np.ptp(y) == 0:
+        return float("nan")
+    return float(stats.spearmanr(x, y).statistic)
+
+
+def auc(score_hold, score_fall) -> float:
+    """P(a hold's score > a fall's score), ties half (the Mann-Whitney U over the product); nan if either is
+    empty."""
+    a, b = np.asarray(score_hold, float), np.asarray(score_fall, float)
+    if not len(a) or not len(b):
+        return float("nan")
+    diff = a[:, None] - b[None, :]
+    return float(np.mean((diff > 0) + 0.5 * (diff == 0)))
+
+
+def cluster_bootstrap_se(x, y, cluster, seed: int, n: int = 200) -> float:
+    """Standard error of `spearman(x, y)` pooled over samples (N,), resampling whole clusters (N,) ids with
+    replacement `n` times (a cluster's samples, e.g. one episode's sequences, are not independent)."""
+    x, y, cluster = np.asarray(x), np.asarray(y), np.asarray(cluster)
+    rng = np.random.default_rng(seed)
+    ids = np.unique(cluster)
+    members = [np.flatnonzero(cluster == c) for c in ids]
+    vals = []
+    for _ in range(n):
+        idx = np.concatenate([members[i] for i in rng.integers(0, len(ids), len(ids))])
+        vals.append(spearman(x[idx], y[idx]))
+    vals = np.asarray(vals)
+    return float(np.nanstd(vals[np.isfinite(vals)])) if np.isfinite(vals).any() else float("nan")
+
+
+def sign_test(a_failed, b_failed) -> tuple[int, int, float]:
+    """(cases where only b failed, cases where only a failed, the two-sided exact sign test's p-value that the two
+    are equally likely) from paired failures (N,) bool of two conditions a and b."""
+    a, b = np.asarray(a_failed, bool), np.asarray(b_failed, bool)
+    if a.shape != b.shape:
+        raise ValueError(f"sign_test: failures of {a.shape} and {b.shape} cases")
+    wins, losses = int(np.sum(~a & b)), int(np.sum(a & ~b))
+    p = 1.0 if wins + losses == 0 else float(stats.binomtest(wins, wins + losses, 0.5).pvalue)
+    return wins, losses, p
+
+
+def relative_returns(returns: dict, reference: str, compared, r_min: float) -> dict:
+    """Fig. 4a's analysis of per-episode returns {policy: (N,)}: each compared policy's return minus the reference's
+    (mean and 95% half-width; episodes where it is optimal within 1e-4; falls: returns <= r_min), and the
+    RM-ANOVA and rank tests of those differences ({"anova": None, ...} where statsmodels is missing)."""
+    rets = {n: np.asarray(r, np.float64) for n, r in returns.items()}
+    compared = list(compared)
+    rel = {n: rets[n] - rets[reference] for n in compared}
+    summary = {n: dict(zip(["mean", "ci95"], mean_ci(rel[n])))
+               | dict(optimal=int(np.sum(rel[n] > -1e-4)), falls=int(np.sum(rets[n] <= r_min))) for n in compared}
+    scores = np.stack([rel[n] for n in compared], axis=1)
+    try:
+        anova = rm_anova(scores, compared)
+        rank = rank_tests(scores, compared)
+    except ImportError as e:  # statsmodels missing (a bare GPU image): `reproduce --report-only` redoes this
+        return dict(relative=summary, anova=None, rank=None, anova_text=f"statistics skipped: {e}")
+    return dict(relative=summary, anova_text=anova.summary() + "\n" + rank.summary(),
+                anova=dict(f=anova.f, df=[anova.df_num, anova.df_den], p=anova.p, posthoc=[vars(c) for c in anova.posthoc]),
+                rank=dict(chi2=rank.chi2, df=rank.df, p=rank.p, posthoc=[vars(c) for c in rank.posthoc]))

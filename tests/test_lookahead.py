@@ -312,11 +312,11 @@ def test_shared_rollouts_cover_every_leaf(sur):
     assert lookahead._ball_size(sur.space, 2) == 1 + 10 + 40
 
 
-def test_bench_latency_times_the_planners_own_decisions(sur, solved, network, stepped):
-    """`bench-latency` times one decision at a time on the planner's own episode: DP optimal earns each episode's
+def test_per_decision_latency_times_the_planners_own_decisions(sur, solved, network, stepped):
+    """`table1 --per-decision` times one decision at a time on the planner's own episode: DP optimal earns each episode's
     DP optimum, and the cached L1 earns what the same policy earns run plan by plan (`stepped`, which the rollout
     test below checks against the jitted `rollout_planned`); every step of every episode is a decision."""
-    from experiments.bench import latency as bench_latency
+    from experiments.paper.table1 import decisions as bench_latency
     from gsp_jax import evaluation
 
     eps, tables, sols = solved
@@ -336,7 +336,7 @@ def test_table1_dp_optimal_earns_its_dp_optimum_by_replaying_its_own_table(sur, 
     (from its start the surrogate visits only the table's states: `test_env` checks the two step for step): the
     episode earns exactly the DP optimum of the episode."""
     from gsp_jax import evaluation
-    from experiments.paper import table1
+    from experiments.paper.table1 import episode as table1
 
     eps, tables, sols = solved
     one = jax.tree.map(lambda x: x[:1], (eps, tables, sols))
@@ -350,7 +350,7 @@ def test_table1_lookahead_in_the_table_runs_the_cached_episode(sur, solved, netw
     the episode that the cached L1 runs with the root's actions stepped in the surrogate (from its start the
     surrogate visits only the table's states): the same return, to the tolerance of a few rewards."""
     from gsp_jax import evaluation
-    from experiments.paper import table1
+    from experiments.paper.table1 import episode as table1
 
     eps, tables, sols = solved
     one = jax.tree.map(lambda x: x[:1], (eps, tables, sols))

@@ -157,9 +157,9 @@ def test_oracle_names_bad_input(oracle):
 
 
 def test_envelope_summary_counts_regret_and_classes():
-    """`experiments.physics.envelope.summarise` on a hand-made pool: a planner's regret counts the episodes where it fell and
+    """`gsp_jax.physics.envelope.summarise` on a hand-made pool: a planner's regret counts the episodes where it fell and
     another sequence held; the falls' classes are counted; the AUC is the hold-above-fall probability."""
-    from experiments.physics import envelope
+    from gsp_jax.physics import envelope
 
     kinds = ["four-tips", "dp-opt", "random0"]
     fell = np.array([[0, 1, 1], [1, 1, 0], [0, 1, 1]], bool)  # episode 1: everything fell

@@ -52,3 +52,69 @@ def test_friedman_matches_the_worked_example():
     assert res.p == pytest.approx(np.exp(-3.5), rel=1e-9)
     by = {(c.a, c.b): c for c in res.posthoc}
     assert by[("a", "c")].diff == -4.0 and by[("a", "c")].t == 0.0  # every difference negative: W+ = 0
+
+
+def test_spearman_is_pearson_of_the_ranks_and_nan_for_a_constant():
+    """Without ties, Spearman's rho is the Pearson correlation of the ranks (computed here by argsort)."""
+    rng = np.random.default_rng(0)
+    x, y = rng.normal(size=40), rng.normal(size=40)
+    y = 0.5 * x + y
+    rank = lambda v: np.argsort(np.argsort(v)).astype(float)  # noqa: E731
+    assert stats.spearman(x, y) == pytest.approx(np.corrcoef(rank(x), rank(y))[0, 1], abs=1e-12)
+    assert stats.spearman(x, -x) == pytest.approx(-1.0) and np.isnan(stats.spearman(x, np.ones(40)))
+
+
+def test_auc_is_the_share_of_hold_fall_pairs_ordered_right():
+    """Brute force over every (hold, fall) pair: 1 if the hold scores higher, 1/2 if tied."""
+    hold, fall = [3.0, 1.0, 2.0, 2.0], [2.0, 0.0, 5.0]
+    pairs = [1.0 if h > f else 0.5 if h == f else 0.0 for h in hold for f in fall]
+    assert stats.auc(hold, fall) == pytest.approx(np.mean(pairs))
+    assert np.isnan(stats.auc([], fall)) and stats.auc([1.0], [0.0]) == 1.0
+
+
+def test_sign_test_p_is_the_exact_binomial_tail():
+    """8 cases only b failed against 5 only a did: p = 2 sum_{k<=5} C(13, k) / 2^13; no discordant case: p = 1."""
+    from math import comb
+
+    a = [False] * 8 + [True] * 5 + [False] * 3 + [True] * 2  # 3 both held, 2 both failed
+    b = [True] * 8 + [False] * 5 + [False] * 3 + [True] * 2
+    wins, losses, p = stats.sign_test(a, b)
+    assert (wins, losses) == (8, 5)
+    assert p == pytest.approx(2 * sum(comb(13, k) for k in range(6)) / 2**13)
+    assert stats.sign_test([True, False], [True, False])[2] == 1.0
+    with pytest.raises(ValueError, match="failures of"):
+        stats.sign_test([True], [True, False])
+
+
+def test_cluster_bootstrap_se_resamples_whole_clusters():
+    """Clusters whose samples agree perfectly within and across give rho = 1 in every resample: SE 0. With noise
+    the SE is positive, the same for the same seed, and shrinks as clusters are added (about 1/sqrt(clusters))."""
+    x = np.arange(30.0)
+    assert stats.cluster_bootstrap_se(x, 2 * x, np.repeat(np.arange(10), 3), seed=0) == pytest.approx(0.0, abs=1e-12)
+    rng = np.random.default_rng(1)
+
+    def se(n_clusters, seed=0):
+        x = rng.normal(size=n_clusters * 4)
+        return stats.cluster_bootstrap_se(x, x + rng.normal(size=x.size), np.repeat(np.arange(n_clusters), 4), seed)
+
+    small, large = se(8), se(128)
+    assert small > 0 and large < small
+    x = np.linspace(0, 1, 24)
+    y = np.sin(13 * x)
+    c = np.repeat(np.arange(6), 4)
+    assert stats.cluster_bootstrap_se(x, y, c, seed=3) == stats.cluster_bootstrap_se(x, y, c, seed=3)
+
+
+def test_relative_returns_against_a_reference():
+    """Differences to the reference, their optimal counts (within 1e-4) and falls (<= r_min), and the ANOVA's F
+    against `rm_anova` of the same differences."""
+    rng = np.random.default_rng(2)
+    ref = rng.normal(size=12)
+    returns = {"a": ref - np.abs(rng.normal(size=12)), "b": ref.copy(), "c": ref - 1.0, "ref": ref}
+    returns["a"][0] = -200.0
+    out = stats.relative_returns(returns, "ref", ["a", "b", "c"], r_min=-200.0)
+    assert out["relative"]["b"] == dict(mean=0.0, ci95=0.0, optimal=12, falls=0)
+    assert out["relative"]["c"]["mean"] == pytest.approx(-1.0) and out["relative"]["c"]["optimal"] == 0
+    assert out["relative"]["a"]["falls"] == 1
+    scores = np.stack([returns[n] - ref for n in "abc"], 1)
+    assert out["anova"]["f"] == pytest.approx(stats.rm_anova(scores, list("abc")).f)

@@ -18,14 +18,14 @@ import numpy as np
 
 from experiments import common
 from experiments.common import best_time, table
-from experiments.paper import train as train_exp
 from gsp_jax.env import GraspEnv
 from gsp_jax.gym_env import GymGraspEnv
+from gsp_jax.ppo import pipeline
 from gsp_jax.ppo import train as ppo
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--preset", choices=sorted(train_exp.PRESETS), default=None, help="default: full on a GPU")
+    p.add_argument("--preset", choices=sorted(pipeline.PRESETS), default=None, help="default: full on a GPU")
     p.add_argument("--surrogate-envs", type=int, default=None, help="envs for the surrogate-backend iteration")
     p.add_argument("--max-iterations", type=int, default=None, help="cap for the time-to-target runs")
     p.add_argument("--seed", type=int, default=0)
@@ -58,12 +58,12 @@ def gym_rate(s, n_steps: int) -> float:
 
 def time_to_baseline(s, mode: str, seed: int, max_iterations: int | None) -> dict:
     target = s.reference["train"]["dp_baseline"]
-    cfg = dataclasses.replace(train_exp.ppo_config(s, mode), eval_every=1, patience=0, max_iterations=max_iterations or s.ppo_config.max_iterations)
+    cfg = dataclasses.replace(pipeline.ppo_config(s, mode), eval_every=1, patience=0, max_iterations=max_iterations or s.ppo_config.max_iterations)
     t0 = time.perf_counter()
     params = None
     bc_s = 0.0
     if mode == "dp":
-        params, _ = train_exp.pretrained(s, seed, progress=False)
+        params, _ = pipeline.pretrained(s, seed, progress=False)
         bc_s = time.perf_counter() - t0
     trainer = ppo.Trainer(s.env, s.networks, cfg, s.eval_envs)
     result = ppo.train(trainer, seed, params=params, progress=False, stop_when=lambda r: r.get("train_greedy_return", -np.inf) >= target)
@@ -84,7 +84,7 @@ def time_to_baseline(s, mode: str, seed: int, max_iterations: int | None) -> dic
 def main(args: argparse.Namespace) -> None:
     gpu = jax.default_backend() == "gpu"
     preset = args.preset or ("full" if gpu else "quick")
-    s = train_exp.setup(preset)
+    s = pipeline.setup(preset)
     n_envs = s.ppo_config.n_envs
     sur_envs = args.surrogate_envs or (1024 if gpu else 16)
     print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}); preset {preset}")

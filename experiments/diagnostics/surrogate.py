@@ -28,21 +28,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--waypoints", default="0,5,10,15", help="comma-separated waypoint indices")
 
 
-def find_episode(name: str) -> scenario.Episode:
-    """The episode of that name in any named set of the model (sets the model's tool cannot take are skipped)."""
-    eps = {}
-    for set_name in ("nominal", "variations", "train", "val", "evalA", "evalB", "stress"):
-        try:
-            eps.update(scenario.episode_set(set_name))
-        except scenario.EpisodeError:
-            continue
-    if name not in eps:
-        raise SystemExit(f"--episode: unknown episode {name!r}; known: {', '.join(eps)}")
-    return eps[name]
-
-
 def main(args: argparse.Namespace) -> None:
-    ep = find_episode(args.episode)
+    ep = scenario.find(args.episode)
     ts = [int(t) for t in args.waypoints.split(",")]
     bad = [t for t in ts if not 0 <= t < ep.n_steps]
     if bad:

@@ -18,9 +18,8 @@ import jax
 import numpy as np
 
 from experiments import common
-from experiments.common import bar_png, results_dir, table
-from gsp_jax import evaluation, files, lookahead, planners, policies, stats
-from gsp_jax.env import TableModel
+from experiments.common import results_dir, table
+from gsp_jax import evaluation, files, planners, stats
 
 COMPARED = ("dp-base", "rl", "L1", "L2")  # relative to dp-opt
 
@@ -35,16 +34,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def returns(ctx: evaluation.Context, name: str, backend: str, cached: bool = True) -> np.ndarray:
     """Return of policy `name` on every episode of the context (N,), stepping `backend`."""
-    policy, axis = planners.make(ctx, name, dict(cached=cached))
-    space = ctx.surrogate.space
-
-    def one(ep, table, pol):
-        model = TableModel(table, space) if backend == "table" else ctx.surrogate
-        if isinstance(pol, policies.Lookahead):
-            pol = pol.replace(model=model)
-        return lookahead.rollout(model, pol, model.reset(ep))[0]
-
-    return np.asarray(jax.jit(jax.vmap(one, (0, 0, axis)))(ctx.batch, ctx.tables, policy))
+    return np.asarray(planners.returns(ctx, name, backend, cached=cached))
 
 
 def run(ctx: evaluation.Context, backend: str, out, cached: bool = True) -> dict:
@@ -58,38 +48,18 @@ def run(ctx: evaluation.Context, backend: str, out, cached: bool = True) -> dict
     result = dict(set=ctx.set_name, episodes=ctx.names, backend=backend, rl_policy=ctx.rl_source,
                   returns={n: r.tolist() for n, r in rets.items()}, dp_opt_rollout_vs_table_max_abs=gap, wall_s=wall,
                   r_min=ctx.surrogate.reward_config.r_min)
+    if backend == "surrogate":  # cross-check: the tables give the same returns
+        result["table_vs_surrogate_max_abs"] = {n: float(np.max(np.abs(returns(ctx, n, "table", cached) - rets[n])))
+                                                for n in rets}
     result |= analyse(result)
     files.write_json(out / "returns.json", result)
-    plot(result["relative"], len(ctx.names), out / "fig4a.png")
+    common.fig4a_png(result["relative"], len(ctx.names), out / "fig4a.png")
     return result
 
 
 def analyse(result: dict) -> dict:
     """Relative returns with 95% intervals, and the RM-ANOVA with post-hoc tests, from saved `returns`."""
-    rets = {n: np.asarray(r) for n, r in result["returns"].items()}
-    rel = {n: rets[n] - rets["dp-opt"] for n in COMPARED}
-    summary = {
-        n: dict(zip(["mean", "ci95"], stats.mean_ci(rel[n])))
-        | dict(optimal=int(np.sum(rel[n] > -1e-4)), falls=int(np.sum(rets[n] <= result["r_min"])))
-        for n in COMPARED
-    }
-    scores = np.stack([rel[n] for n in COMPARED], axis=1)
-    try:
-        anova = stats.rm_anova(scores, list(COMPARED))
-        rank = stats.rank_tests(scores, list(COMPARED))
-    except ImportError as e:  # statsmodels missing (a bare GPU image): `reproduce --report-only` redoes this
-        return dict(relative=summary, anova=None, rank=None, anova_text=f"statistics skipped: {e}")
-    return dict(relative=summary, anova_text=anova.summary() + "\n" + rank.summary(),
-                anova=dict(f=anova.f, df=[anova.df_num, anova.df_den], p=anova.p, posthoc=[vars(c) for c in anova.posthoc]),
-                rank=dict(chi2=rank.chi2, df=rank.df, p=rank.p, posthoc=[vars(c) for c in rank.posthoc]))
-
-
-def plot(summary: dict, n: int, path) -> None:
-    names = list(summary)
-    bar_png(path, names, [summary[k]["mean"] for k in names], [summary[k]["ci95"] for k in names],
-            "return - DP optimal return (symlog)", f"Surrogate, {n} unseen episodes (95% CI)",
-            ["#999999", "#4c72b0", "#55a868", "#2e7d32"][: len(names)],
-            symlog=0.05)  # falls (-200) and the lookahead's hundredths on one axis
+    return stats.relative_returns(result["returns"], "dp-opt", COMPARED, result["r_min"])
 
 
 def print_result(result: dict) -> None:

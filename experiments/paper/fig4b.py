@@ -21,8 +21,8 @@ import jax
 import numpy as np
 
 from experiments import common
-from experiments.common import bar_png, results_dir, table
-from experiments.physics.check import result_rows
+from experiments.common import results_dir, table
+from gsp_jax.physics.report import result_rows
 from gsp_jax import evaluation, files, physics, planners, stats
 
 
@@ -106,16 +106,8 @@ def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str =
         how = "one lockstep" if backend == "c" else f"{jobs} at a time"
         print(f"  {len(todo)} policies in {time.perf_counter() - t0:.1f} s ({how}, compile included)", flush=True)
     results = {name: results.get(name) or done[name] for name in names}
-    plot(results, len(ctx.names), out / "fig4b.png")
+    common.fig4b_png(results, len(ctx.names), out / "fig4b.png")
     return results
-
-
-def plot(results: dict, n: int, path) -> None:
-    names = list(results)
-    engine = {"mjx": "MJX", "c": "C MuJoCo"}.get(next(iter(results.values())).get("backend", "mjx"), "MJX")
-    bar_png(path, names, [results[k]["mean_deg"] for k in names], [np.nan_to_num(results[k]["ci95_deg"]) for k in names],
-            "mean tool angle error [deg] (180 = fell)", f"{engine} physics, {n} unseen episodes (95% CI)", "#4c72b0",
-            ylim=(0, 190))
 
 
 def print_result(results: dict) -> None:

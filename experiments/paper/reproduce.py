@@ -26,10 +26,7 @@ import numpy as np
 
 from experiments import common
 from experiments.common import results_dir
-from experiments.paper import fig4a
-from experiments.paper import fig4b
-from experiments.paper import table1
-from gsp_jax import evaluation, files, planners
+from gsp_jax import evaluation, files, planners, stats
 
 PRESETS = {
     "quick": dict(fig4a_episodes=9, backend="table", batch=0, repeats=1, fig4b_episodes=2, train=False),
@@ -67,11 +64,8 @@ def main(args: argparse.Namespace) -> None:
     print(f"reproduce --{preset} on {device.device_kind} ({device.platform}); report -> {out / 'REPORT.md'}", flush=True)
     have_policy = evaluation.TRAINED_POLICY.exists() or evaluation.SHIPPED_POLICY.exists()
     if args.policy_dir is None and (args.train or (p["train"] and not have_policy)):
-        from experiments.paper import train
-
         print("[0/3] training the PPO policy (DP pretraining, full preset, seed 0)", flush=True)
-        train.main(argparse.Namespace(pretrain="dp", seeds=1, first_seed=0, preset="full", iterations=None, envs=None,
-                                      patience=None, out="train"))
+        common.run_command(["train", "--pretrain", "dp", "--seeds", "1", "--preset", "full"])
     command = f"python -m experiments reproduce --{preset}" + (f" --policy-dir {args.policy_dir}" if args.policy_dir else "")
     command += f" --backend {args.backend}" if getattr(args, "backend", "mjx") != "mjx" else ""
     command += f" --skip {' '.join(args.skip)}" if args.skip else ""
@@ -88,40 +82,26 @@ def main(args: argparse.Namespace) -> None:
                                           f"{previous.get('device')}, {previous.get('date')}.")
             sections = previous | sections
 
-    widest = None if None in (p["fig4a_episodes"], p["fig4b_episodes"]) else max(p["fig4a_episodes"], p["fig4b_episodes"], 1)
-    everything = evaluation.context("eval", widest, args.policy_dir)  # tables once; the stages take subsets
+    policy = ["--policy-dir", args.policy_dir] if args.policy_dir else []
+    only = lambda n: [] if n is None else ["--episodes", str(n)]  # noqa: E731
     if "fig4a" not in args.skip:
         backend_4a = getattr(args, "fig4a_backend", None) or p["backend"]
         print(f"[1/3] Fig. 4a ({backend_4a} backend)", flush=True)
-        ctx = everything.take(p["fig4a_episodes"])
-        res = fig4a.run(ctx, backend_4a, results_dir("fig4a"))
-        if backend_4a == "surrogate":  # cross-check: the tables give the same returns
-            res["table_vs_surrogate_max_abs"] = {
-                n: float(np.max(np.abs(fig4a.returns(ctx, n, "table") - np.asarray(res["returns"][n]))))
-                for n in planners.names("paper")
-            }
-        fig4a.print_result(res)
+        common.run_command(["fig4a", "--backend", backend_4a, *only(p["fig4a_episodes"]), *policy])
+        sections["fig4a"] = files.read_json(results_dir("fig4a") / "returns.json")
         shutil.copy(results_dir("fig4a") / "fig4a.png", out / "fig4a.png")
-        sections["fig4a"] = res
-        common.record("fig4a", fig4a.figures(res))
     if "table1" not in args.skip:
         print("[2/3] Table 1", flush=True)
-        ctx = everything.take(max(1, p["batch"]))
-        res = table1.run(table1.with_ik_unroll(ctx, None), p["batch"], p["repeats"], results_dir("table1"))
-        table1.print_result(res)
-        sections["table1"] = res
-        common.record("table1", table1.figures(res), per_device=True)
+        common.run_command(["table1", "--batch", str(p["batch"]), "--repeats", str(p["repeats"]), *policy])
+        sections["table1"] = files.read_json(results_dir("table1") / f"{device.platform}.json")
     if "fig4b" not in args.skip:
         backend = getattr(args, "backend", "mjx")
         print(f"[3/3] Fig. 4b ({backend})", flush=True)
-        ctx = everything.take(p["fig4b_episodes"])
         # beyond the paper, in C MuJoCo: L1 verified in physics (its defaults, `evaluation.L1_PHYSICS`)
         names = planners.names("paper") + (planners.names("verified") if backend == "c" else ())
-        res = fig4b.run(ctx, names, results_dir("fig4b"), backend=backend)
-        fig4b.print_result(res)
+        common.run_command(["fig4b", "--backend", backend, "--policies", *names, *only(p["fig4b_episodes"]), *policy])
+        sections["fig4b"] = {n: files.read_json(results_dir("fig4b") / f"{n}.json") for n in names}
         shutil.copy(results_dir("fig4b") / "fig4b.png", out / "fig4b.png")
-        sections["fig4b"] = res
-        common.record("fig4b", fig4b.figures(res))
     files.write_json(out / "report.json", sections, default=str)
     files.write_text(out / "REPORT.md", report(sections))
     print(f"wrote {out / 'REPORT.md'} ({(time.perf_counter() - t_start) / 60:.1f} min)")
@@ -134,10 +114,11 @@ def rebuild(out: pathlib.Path) -> None:
                          "committed GPU run)")
     sections = files.read_json(out / "report.json")
     if "fig4a" in sections:
-        sections["fig4a"] |= fig4a.analyse(sections["fig4a"])
-        fig4a.plot(sections["fig4a"]["relative"], len(sections["fig4a"]["episodes"]), out / "fig4a.png")
+        f = sections["fig4a"]
+        f |= stats.relative_returns(f["returns"], "dp-opt", [n for n in f["returns"] if n != "dp-opt"], f["r_min"])
+        common.fig4a_png(f["relative"], len(f["episodes"]), out / "fig4a.png")
     if "fig4b" in sections:
-        fig4b.plot(sections["fig4b"], len(next(iter(sections["fig4b"].values()))["episodes"]), out / "fig4b.png")
+        common.fig4b_png(sections["fig4b"], len(next(iter(sections["fig4b"].values()))["episodes"]), out / "fig4b.png")
     files.write_json(out / "report.json", sections, default=str)
     files.write_text(out / "REPORT.md", report(sections))
     print(f"wrote {out / 'REPORT.md'}")

@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments.common import results_dir, table
-from experiments.physics.correlation import spearman
+from gsp_jax.stats import spearman
 from gsp_jax import calibration, dp, evaluation, files, physics, policies, scenario, surrogate
 
 GRID = dict(  # the candidates: every combination. (A first sweep on the nominal episode: fall thresholds of 0.1

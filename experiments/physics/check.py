@@ -14,7 +14,10 @@ episodes together. At every waypoint the policy acts on the simulated state; `rl
 Prints each episode's tool angle error under the final torque (180 when the tool fell or touched the table),
 position error, largest tilt during the lift and fall time, and the mean with a 95% interval; writes
 results/physics/<set>_<policy>[_c].json (`summary.falls`, `summary.mean_angle_error_deg`, per sequence for
-`scripted`), the traces, an angle-trace PNG and (with --render) a key frame PNG and a GIF."""
+`scripted`), the traces, an angle-trace PNG and (with --render) a key frame PNG and a GIF.
+
+`--compare NAME ...` simulates nothing: it sets the saved MJX and C MuJoCo runs of those policies on --set side by
+side (held/fell agreement, hold angles) and writes results/physics/<set>_agreement.json."""
 from __future__ import annotations
 
 import argparse
@@ -26,20 +29,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments.common import check_planners, results_dir, table
-from gsp_jax import evaluation, files, physics, planners, policies, scenario, surrogate, wrench
-from gsp_jax.stats import mean_ci
+from gsp_jax import evaluation, files, physics, planners, policies, scenario, surrogate
+from gsp_jax.physics import report
 
-
-
-def least_friction(env: surrogate.Surrogate, grasp: int, episode: scenario.Episode) -> tuple[float, float]:
-    """The least friction coefficient at which `grasp`'s nominal contacts can hold `episode`'s tool at rest (its
-    weight about its CoM), however hard they press: `wrench.least_friction`'s bracket (lower, upper)."""
-    opts = np.asarray(env.space.decode(grasp))
-    links = np.flatnonzero(opts)
-    h = env.hand
-    weight = -float(episode.mass) * np.asarray(h.gravity, float)
-    return wrench.least_friction(h.option_pos[links, opts[links]], h.option_normal[links, opts[links]],
-                                 np.concatenate([weight, np.zeros(3)]), np.asarray(episode.com))
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -58,6 +50,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "default the first); the key frame is the last frame before a fall, else the end of the hold")
     p.add_argument("--render-window", type=float, nargs=2, default=None, metavar=("FROM", "TO"),
                    help="render only this time window [s] into the GIF")
+    p.add_argument("--compare", nargs="+", default=None, metavar="NAME",
+                   help="no simulation: MJX against C MuJoCo on these policies' saved runs of --set (`physics --policy "
+                        "NAME` with --backend mjx and with --backend c): held/fell agreement and hold angles")
 
 
 def make_policy(kind: str, set_name: str, episodes: dict, args=None):
@@ -68,70 +63,42 @@ def make_policy(kind: str, set_name: str, episodes: dict, args=None):
     return planners.make(ctx, kind, dict(seed=getattr(args, "seed", 0)))
 
 
-def result_rows(names, res: physics.Result) -> list[dict]:
-    return [
-        dict(episode=n, angle_error_deg=float(res.angle_error[i]), position_error_mm=1e3 * float(res.position_error[i]),
-             max_lift_angle_deg=float(res.max_angle[i]), fell=bool(res.fell[i]), fall_time_s=float(res.fall_time[i]),
-             grasps=[int(g) for g in res.grasps[i]])
-        for i, n in enumerate(names)
-    ]
+def compare(set_name: str, names) -> None:
+    """MJX against C MuJoCo, the same controller on the same sequences: from results/physics/<set>_<policy>.json
+    (MJX) and <set>_<policy>_c.json (C), per policy and over all, how often the two engines agree on held/fell and
+    how far apart their hold angles are [deg] where both hold; writes results/physics/<set>_agreement.json."""
+    out = results_dir("physics")
+    rows, fell_a, fell_b, diffs = [], [], [], []
+    for policy in names:
+        missing = [p.name for p in (out / f"{set_name}_{policy}.json", out / f"{set_name}_{policy}_c.json") if not p.exists()]
+        if missing:
+            raise SystemExit(f"--compare {policy}: no {', '.join(missing)} in {out} (run `physics --set {set_name} "
+                             f"--policy {policy}` with --backend mjx and with --backend c first)")
+        a = files.read_json(out / f"{set_name}_{policy}.json")["episodes"]
+        b = files.read_json(out / f"{set_name}_{policy}_c.json")["episodes"]
+        if [r["episode"] for r in a] != [r["episode"] for r in b]:
+            raise SystemExit(f"--compare {policy}: the MJX and C runs are of different episodes (rerun both)")
+        fa, fb = np.array([r["fell"] for r in a]), np.array([r["fell"] for r in b])
+        both = ~fa & ~fb
+        d = np.abs(np.array([r["angle_error_deg"] for r in a]) - np.array([r["angle_error_deg"] for r in b]))[both]
+        rows.append([policy, *_agreement(fa, fb, d)])
+        fell_a += list(fa)
+        fell_b += list(fb)
+        diffs += list(d)
+    rows.append(["all", *_agreement(np.array(fell_a), np.array(fell_b), np.array(diffs))])
+    head = ["policy", "sequences", "both fell", "both held", "disagree", "agree [%]", "max |d angle| [deg]", "> 2 deg"]
+    files.write_json(out / f"{set_name}_agreement.json", [dict(zip(head, r)) for r in rows])
+    print(table(head, rows, ".1f"))
 
 
-def trace_png(phys: physics.Physics, names, res: physics.Result, path, title: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    angle = np.asarray(res.angle)
-    t = (np.arange(angle.shape[1]) + 1) * phys.config.tick
-    fig, ax = plt.subplots(figsize=(8, 4))
-    for i, n in enumerate(names):
-        a = angle[i].copy()
-        if res.fell[i]:
-            a[int(round(float(res.fall_time[i]) / phys.config.tick)) :] = np.nan
-        ax.plot(t, a, lw=1, label=n if len(names) <= 10 else None)
-    ax.axvline(phys.hold_time(scenario.N_WAYPOINTS), color="k", ls="--", lw=0.8)
-    ax.text(phys.hold_time(scenario.N_WAYPOINTS), ax.get_ylim()[1] * 0.95, " torque on", fontsize=8, va="top")
-    ax.set_xlabel("time [s]")
-    ax.set_ylabel("tool angle error [deg]")
-    ax.set_title(title + " (lines end where the tool fell)")
-    if len(names) <= 10:
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
-def render_episode(phys: physics.Physics, qpos: np.ndarray, stem, window=None, key: int = -1) -> list:
-    """Key frame (frame `key`) PNG and a GIF at 25 frames per simulated second (of the time `window`, default all);
-    [] if no GL backend."""
-    try:
-        from gsp_jax import render
-    except Exception as e:  # noqa: BLE001 - rendering is optional
-        print(f"rendering skipped: {e}")
-        return []
-    try:
-        every = max(1, int(round(0.04 / phys.config.tick)))
-        png = render.save_png(f"{stem}_keyframe.png", render.frames(phys.model, qpos[key][None], size=(480, 640))[0])
-        lo, hi = (0, len(qpos)) if window is None else (int(window[0] / phys.config.tick), int(window[1] / phys.config.tick))
-        gif = render.save_gif(f"{stem}.gif", render.frames(phys.model, qpos[lo:hi], every=every), fps=25)
-        return [png, gif]
-    except Exception as e:  # noqa: BLE001
-        print(f"rendering skipped ({type(e).__name__}: {e}); set MUJOCO_GL=egl or osmesa")
-        return []
-
-
-def _summary(names, res, **extra) -> dict:
-    mean, ci = mean_ci(res.angle_error)
-    held = ~np.asarray(res.fell)
-    return dict(episodes=len(names), falls=int(np.sum(res.fell)), mean_angle_error_deg=mean, ci95_deg=ci,
-                mean_hold_angle_deg_where_held=float(np.mean(np.asarray(res.angle_error)[held])) if held.any() else None,
-                max_lift_tilt_deg_where_held=float(np.max(np.asarray(res.max_angle)[held])) if held.any() else None,
-                **extra)
+def _agreement(fa, fb, d) -> list:
+    return [len(fa), int(np.sum(fa & fb)), int(np.sum(~fa & ~fb)), int(np.sum(fa != fb)), 100 * float(np.mean(fa == fb)),
+            float(d.max()) if d.size else float("nan"), int(np.sum(d > 2.0))]
 
 
 def main(args: argparse.Namespace) -> None:
+    if args.compare:
+        return compare(args.set, args.compare)
     if args.episodes is not None and args.episodes < 1:
         raise SystemExit(f"--episodes: {args.episodes} (must be >= 1)")
     if args.policy != "scripted":
@@ -161,11 +128,11 @@ def main(args: argparse.Namespace) -> None:
     t0 = time.perf_counter()
     res = jax.block_until_ready(phys.simulate_batch(policy, batch, axis, backend=args.backend, progress=True))
     wall = time.perf_counter() - t0
-    rows = result_rows(labels, res)
+    rows = report.result_rows(labels, res)
     out = results_dir("physics")
     stem = out / (f"{args.set}_{args.policy}" + ("" if args.backend == "mjx" else f"_{args.backend}"))
     summary = dict(set=args.set, policy=args.policy, backend=args.backend, device=jax.devices()[0].device_kind,
-                   **_summary(labels, res), wall_s_incl_compile=wall, config=dataclasses.asdict(phys.config))
+                   **report.summary(labels, res), wall_s_incl_compile=wall, config=dataclasses.asdict(phys.config))
     if args.policy == "scripted":
         summary["sequences"] = {}
         for i, k in enumerate(seqs):
@@ -175,18 +142,18 @@ def main(args: argparse.Namespace) -> None:
             # mu, no controller can hold the tool
             held = {(int(g), n) for i_n, n in enumerate(names) for g in np.asarray(part.grasps[i_n])}
             by_com = {(g, tuple(np.asarray(episodes[n].com).tolist())): episodes[n] for g, n in held}  # mass scales out
-            need = max(least_friction(env, g, ep) for (g, _), ep in by_com.items())  # the hardest, by its bracket
+            need = max(report.least_friction(env, g, ep) for (g, _), ep in by_com.items())  # the hardest, by its bracket
             summary["sequences"][k] = dict(actions=[int(a) for a in seqs[k]], least_friction_needed=need,
                                            episode_friction=sorted({float(e.friction) for e in episodes.values()}),
-                                           **_summary(names, part))
+                                           **report.summary(names, part))
     files.write_json(stem.with_suffix(".json"), dict(summary=summary, episodes=rows))
     files.savez(f"{stem}_trace.npz", compressed=True, angle=np.asarray(res.angle), qpos=np.asarray(res.qpos), names=labels)
-    trace_png(phys, labels, res, f"{stem}_angle.png", f"{args.policy} on {args.set} ({args.backend})")
+    report.angle_png(phys, labels, res, f"{stem}_angle.png", f"{args.policy} on {args.set} ({args.backend})")
     written = [stem.with_suffix(".json"), f"{stem}_trace.npz", f"{stem}_angle.png"]
     if args.render:
         i = labels.index(args.render_episode) if args.render_episode else 0
         key = int(round(float(res.fall_time[i]) / phys.config.tick)) - 2 if bool(res.fell[i]) else -1
-        written += render_episode(phys, np.asarray(res.qpos[i]), f"{stem}_{labels[i].replace('/', '_')}",
+        written += report.render_episode(phys, np.asarray(res.qpos[i]), f"{stem}_{labels[i].replace('/', '_')}",
                                 args.render_window, key)
     print(table(["episode", "angle err [deg]", "pos err [mm]", "max lift tilt", "fell at [s]"],
                 [[r["episode"], r["angle_error_deg"], r["position_error_mm"], r["max_lift_angle_deg"],

@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor
 
 import jax
 import jax.numpy as jnp
@@ -30,6 +29,7 @@ import numpy as np
 from experiments import common
 from experiments.common import results_dir, table
 from gsp_jax import dp, evaluation, files, physics, policies, scenario
+from gsp_jax.physics.envelope import classify, summarise
 from gsp_jax import planners as gsp_planners
 
 PLANNERS = ("four-tips", "dp-opt", "L1", "L2", "rl")
@@ -48,100 +48,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--physics-lookahead", type=int, default=0, metavar="K",
                    help="also L1-physics, branching L1's K best actions in physics at each decision (0: not run)")
     common.add_bases_argument(p)
-
-
-# ------------------------------------------------------------------------------------------- the summary
-def auc(score_hold, score_fall) -> float:
-    """P(a hold's score > a fall's score), ties half (the Mann-Whitney U over the product); nan if either is
-    empty."""
-    a, b = np.asarray(score_hold, float), np.asarray(score_fall, float)
-    if not len(a) or not len(b):
-        return float("nan")
-    diff = a[:, None] - b[None, :]
-    return float(np.mean((diff > 0) + 0.5 * (diff == 0)))
-
-
-def summarise(kinds, fell, angle, feasible, returns, classes, early=None) -> dict:
-    """Per kind and over the pool. kinds (G,) names (the planners first, then random ones); fell, angle, feasible,
-    returns (G, N) per sequence; classes {(g, e): "necessary" | "controller" | "undetermined"} for every fall;
-    early {(g, e): bool}: a necessary fall that came before the point the oracle calls impossible."""
-    early = early or {}
-    from scipy import stats
-
-    fell, angle = np.asarray(fell, bool), np.asarray(angle, float)
-    feasible, returns = np.asarray(feasible, bool), np.asarray(returns, float)
-    G, N = fell.shape
-    held_any = ~fell  # (G, N)
-    rows = {}
-    for g, kind in enumerate(kinds):
-        cls = [classes.get((g, e)) for e in range(N) if fell[g, e]]
-        others = np.delete(held_any, g, axis=0).any(0)
-        held = ~fell[g]
-        rows[kind] = dict(
-            episodes=N, falls=int(fell[g].sum()), necessary=cls.count("necessary"), controller=cls.count("controller"),
-            undetermined=cls.count("undetermined"),
-            early=sum(bool(early.get((g, e))) for e in range(N) if fell[g, e] and classes.get((g, e)) == "necessary"),
-            regret=int(np.sum(fell[g] & others)),
-            regret_episodes=[int(e) for e in np.flatnonzero(fell[g] & others)],
-            mean_angle_held_deg=float(angle[g, held].mean()) if held.any() else float("nan"))
-    within = [auc(returns[~fell[:, e] & feasible[:, e], e], returns[fell[:, e] & feasible[:, e], e]) for e in range(N)]
-    within = [a for a in within if np.isfinite(a)]
-    ok = feasible.ravel()
-    rho = stats.spearmanr(returns.ravel()[ok], -angle.ravel()[ok]).statistic if ok.sum() > 2 else float("nan")
-    pool = dict(sequences=int(G * N), surrogate_feasible=int(ok.sum()),
-                feasible_hold_share=float(np.mean(~fell.ravel()[ok])) if ok.any() else float("nan"),
-                auc_pooled=auc(returns.ravel()[ok & ~fell.ravel()], returns.ravel()[ok & fell.ravel()]),
-                auc_within_mean=float(np.mean(within)) if within else float("nan"), auc_within_episodes=len(within),
-                spearman_pooled=float(rho))
-    return dict(kinds=rows, pool=pool)
-
-
-# ------------------------------------------------------------------------------------ the oracle, in processes
-_ORACLE = None
-
-
-def _start_worker() -> None:
-    global _ORACLE
-    jax.config.update("jax_platforms", "cpu")
-    from gsp_jax.physics.oracle import Oracle
-    from gsp_jax.surrogate import Surrogate
-
-    sur = Surrogate()
-    _ORACLE = Oracle(sur, physics.Scene(sur.hand))
-
-
-def _point_time(point: str, n_steps: int) -> int:
-    """The waypoint from which an oracle point matters ("t3", "t3 change": 3; "hold": T)."""
-    return n_steps if point == "hold" else int(point.split()[0][1:])
-
-
-def _classify(job) -> tuple:
-    """(class, worst point, its ratio, fell before the first impossible point, the reached configurations' worst
-    point, its ratio) of one fall."""
-    episode, grasps, rows, fall_row = job  # rows (T, nq): before each decision t >= 1 and at the hold's start
-    episode = scenario.from_dict(episode)
-    v = _ORACLE.sequence(episode, grasps)
-    point, ratio = v.worst
-    sim = _ORACLE.simulated(episode, grasps, rows, 1, fall_row)
-    first = min((_point_time(p, episode.n_steps) for p, r in zip(v.points, v.ratio_outer) if r > 1.0), default=None)
-    early = first is not None and fall_row < first
-    kind = "necessary" if v.impossible else "controller" if v.possible else "undetermined"
-    return (kind, point, ratio, early, *sim.worst)
-
-
-def classify(episodes: list, jobs: list, processes: int) -> list:
-    """The oracle's class of each (episode index, grasps, reached configurations (T, nq), rows before the fall) in
-    `jobs`, in `processes` processes (`_classify`)."""
-    if not jobs:
-        return []
-    work = [(scenario.to_dict(episodes[job[0]]), *job[1:]) for job in jobs]
-    if processes <= 1:
-        _start_worker()
-        return [_classify(w) for w in work]
-    import multiprocessing
-
-    with ProcessPoolExecutor(processes, multiprocessing.get_context("spawn"), initializer=_start_worker) as pool:
-        return list(pool.map(_classify, work, chunksize=max(1, len(work) // (4 * processes))))
 
 
 # ---------------------------------------------------------------------------------------------------- main

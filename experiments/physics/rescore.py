@@ -10,14 +10,15 @@ the recorded run chose: a reward whose own optimum differs is judged on its rank
 (for those, rerun `envelope` with it as the default).
 
 The first row is the calibrated reward; each `--reward` adds one, as fields of `surrogate.RewardConfig` to change
-(e.g. `--reward squeeze=8,grip=0 --reward squeeze=8,grip=0,motors=true`). Prints a table; writes
-results/rescore/<set>.json.
+(e.g. `--reward grip=2 --reward fall_unmet=0.2,grip=6`). Beside the pooled Spearman rho the table gives its mean
+within episodes, and a scatter of the calibrated reward's returns against the simulated angle errors shows the pool.
+Prints a table; writes results/rescore/<set>.json and <set>.png. (A pool of your own: `envelope --set S --random R`
+records one, in C MuJoCo.)
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import pathlib
 import time
 
@@ -26,8 +27,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments.common import ROOT, results_dir, table
-from experiments.physics.envelope import summarise
-from gsp_jax import files, ik, scenario, surrogate
+from gsp_jax.physics.envelope import summarise
+from gsp_jax import files, scenario, stats, surrogate
 
 DEFAULT_POOL = ROOT / "docs" / "data" / "archive" / "envelope" / "stress_reached_h100.json"
 
@@ -158,13 +159,42 @@ def main(args: argparse.Namespace) -> None:
         t1 = time.perf_counter()
         returns, feasible = score_pool(reward, sur.hand, batch, contacts, index, changed, args.batch)
         pool = summarise(kinds, fell, angle, feasible, returns, {})["pool"]
+        within = [stats.spearman(returns[:, e], -angle[:, e]) for e in range(len(names))]
+        within = [r for r in within if np.isfinite(r)]
+        pool |= dict(spearman_within_mean=float(np.mean(within)) if within else float("nan"),
+                     spearman_within_episodes=len(within))
+        if not out:
+            scatter_png(returns, angle, kinds, results_dir("rescore") / f"{set_name}.png", f"{set_name}, {label}", pool)
         out.append(dict(reward=label, config=dataclasses.asdict(reward), **pool))
         rows.append([label, pool["surrogate_feasible"], pool["feasible_hold_share"], pool["auc_pooled"],
-                     pool["auc_within_mean"], pool["spearman_pooled"]])
+                     pool["auc_within_mean"], pool["spearman_pooled"], pool["spearman_within_mean"]])
         print(f"  {label}: {time.perf_counter() - t1:.0f} s", flush=True)
     path = results_dir("rescore") / f"{set_name}.json"
     files.write_json(path, dict(pool=str(args.pool), set=set_name, episodes=names, sequences=int(fell.size),
                                     physics_falls=int(fell.sum()), rewards=out))
     print(f"wrote {path}\n")
     print(f"{fell.size} sequences of '{set_name}', {int(fell.sum())} fell in the recorded physics")
-    print(table(["reward", "feasible", "of them held", "AUC pooled", "AUC within", "Spearman rho"], rows))
+    print(table(["reward", "feasible", "of them held", "AUC pooled", "AUC within", "Spearman rho",
+                 "rho within episodes"], rows))
+
+
+def scatter_png(returns, angle, kinds, path, title: str, pool: dict) -> None:
+    """Surrogate return (G, N) against the simulated angle error [deg] (180: fell), planners coloured, random grey."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    for g, kind in enumerate(kinds):
+        planner = not kind.startswith("random")
+        ax.scatter(returns[g], angle[g], s=14 if planner else 8, c=None if planner else "0.65",
+                   label=kind if planner else ("random feasible" if g == len(kinds) - 1 else None), zorder=2 if planner else 1)
+    ax.set_xscale("symlog", linthresh=1.0)
+    ax.set_xlabel("surrogate return (symlog)")
+    ax.set_ylabel("simulated angle error under the torque [deg]\n(180 = fell)")
+    ax.set_title(f"surrogate vs physics, {title}: Spearman {pool['spearman_pooled']:.2f}")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

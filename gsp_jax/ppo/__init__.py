@@ -6,4 +6,5 @@ config.py      PPOConfig: the run's settings
 checkpoint.py  a trained policy on disk (save_policy, load_policy)
 train.py       the training loop: jitted iterations (rollout `lax.scan` + SGD epochs), validation, early stop,
                the run's resumable orbax checkpoints
+pipeline.py    the paper's pipeline: DP behaviour cloning, then PPO on the training episodes, validated (presets)
 """

@@ -1,32 +1,15 @@
-"""`python -m experiments bench-latency [--episodes N] [--lookahead cached|continuous]`: how long each planner takes
-per decision, one unseen episode at a time, as an online controller calls it.
+"""The online latency of each planner per decision, one unseen episode at a time (`table1 --per-decision`).
 
-An online planner meets one episode at a time. When the episode is revealed it may prepare (*setup*: DP optimal
-solves the episode's table; L1/L2 with `--lookahead cached` build it, as the root's successors are looked up in
-it), then it is asked for one action per waypoint from the surrogate's current, continuous state (*decision*: the
-policy's `act`). Both are timed one call at a time, warm (each program is compiled and run once before), on the
-planner's own rollouts of N evaluation episodes (default 7 x 16 = 112 decisions); the surrogate step that carries
-the episode on is timed apart. Per episode, setup + its decisions + its surrogate steps is what a controller pays
-that steps the surrogate after each decision; `table1` times one jitted call (no dispatch per call), in which L1 and
-L2 move on to their searches' own root children (`lookahead.rollout_planned`) instead of stepping again. Writes
-results/bench_latency/<platform>.json and prints median and p99 latencies beside the paper's per-episode times last.
-
-`--policies ... L1-physics [--k 17 4]`: the physics-verified lookahead (`physics.verified`) runs each episode
-alone in C MuJoCo on every core; its decision is L1's ranking plus the k branches simulated to the episode's end
-(the call `Decision.seconds` times), its setup the episode's table (the cached L1 ranks the candidates), and its
-episode setup + decisions. The episode's own simulation, which a robot would live through, is not counted
-(`simulated_s` gives the run's whole wall time).
+    result = run(ctx, names, cached=True)   # {policies: {name: {decision_median_s, decision_p99_s, ...}}, ...}
 """
 from __future__ import annotations
-
-import argparse
 
 import jax
 import numpy as np
 
 from experiments import common
-from experiments.common import results_dir, table, timed
-from gsp_jax import dp, evaluation, files, planners, policies
+from experiments.common import table, timed
+from gsp_jax import dp, evaluation, planners, policies
 from gsp_jax.env import TableModel
 
 
@@ -35,18 +18,6 @@ LOOKAHEADS = ("L1", "L2")  # the rows whose tree reads each episode's table when
 
 def _verified(name: str) -> bool:
     return planners.get(name).group == "verified"
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--episodes", type=int, default=7, help="evaluation episodes (each gives up to 16 decisions)")
-    p.add_argument("--policies", nargs="+", default=list(planners.names("paper")),
-                   choices=planners.names("paper") + planners.names("verified"))
-    p.add_argument("--k", nargs="+", type=int, default=[evaluation.L1_PHYSICS["k"]],
-                   help="L1-physics: the surrogate's best k root actions are branched per decision (several: a row "
-                        "each)")
-    common.add_bases_argument(p)
-    p.add_argument("--policy-dir", default=None)
-    common.add_lookahead_argument(p)
 
 
 def run(ctx: evaluation.Context, names: list[str], cached: bool, ks=(evaluation.L1_PHYSICS["k"],),
@@ -156,17 +127,3 @@ def print_result(result: dict) -> None:
     print(f"Per-decision latency, one episode at a time ({result['device']}, lookahead {result['lookahead']}, "
           f"{len(result['episodes'])} episodes; medians; paper: {common.PAPER['table1_machine']})")
     print(table(headers, rows, ".2f"))
-
-
-def main(args: argparse.Namespace) -> None:
-    ctx = evaluation.context("eval", args.episodes, args.policy_dir)
-    print(f"bench-latency on {jax.devices()[0].device_kind}: {len(ctx.names)} episodes ...", flush=True)
-    if any(k < 1 for k in args.k):
-        raise SystemExit(f"bench-latency: --k must be >= 1, got {args.k}")
-    result = run(ctx, args.policies, cached=args.lookahead == "cached", ks=args.k, bases=args.bases)
-    out = results_dir("bench_latency") / f"{result['platform']}.json"
-    files.write_json(out, result)
-    print(f"wrote {out}\n")
-    common.record("bench_latency", dict(episodes=len(result["episodes"]), lookahead=result["lookahead"], policies={
-        n: {k: v for k, v in r.items() if k != "returns"} for n, r in result["policies"].items()}), per_device=True)
-    print_result(result)

@@ -1,29 +1,10 @@
-"""`python -m experiments table1 [--set eval] [--batch N] [--repeats K] [--policies NAME ...] [--lookahead table|cached|continuous]
-[--before] [--ik-unroll K] [--ahead K]`: the paper's Table 1, online wall-clock time per unseen episode.
+"""Table 1's measure: the online wall-clock time of one unseen episode per planner, one jitted call from the
+episode's start (see the `table1` command for what each planner does inside it).
 
-For each policy, the time to plan and run one unseen episode through the surrogate from its start, as an online
-planner would: DP baseline and RL act per step (a sequence lookup, one network call) and run the surrogate's step
-for each decision, either stepping after each or, as the decisions fix every grasp the episode visits, all T
-transitions afterwards in one vmapped batch (`policies.rollout_batched`; both forms are timed, side by side, and
-the warm time is the form `default_batched` picks: batched for DP baseline, and for RL on a GPU, where RL's chain of
-decisions realises the states of `GPU_AHEAD` decisions in one batch: `--ahead`). DP optimal first builds the
-episode's whole table and backs it up, then runs its policy in that table: from its start the surrogate visits only
-the table's discrete states, so the table steps the episode exactly as the surrogate would (`tests/test_env.py`
-checks the two step for step) and the surrogate's 16 steps would recompute what the table holds. L1 and L2 first
-build the episode's table too, then at every step search in it (`--lookahead table`, the default: the root's
-children are the table's, for the same reason), or step the root's actions in the surrogate and search below them
-in the table (`cached`, the form before issue 37), or search in the surrogate alone (`continuous`); the episode
-moves on to the searched root child of the chosen action (`lookahead.rollout_planned`). The table is built inside
-the timed call (the episode is unseen). `--before` also times DP optimal, L1 and L2 as the code stood before issue
-37 (the table's IK vmapped, L1/L2 `cached`), side by side in the same run. Compilation (once per program, reused for
-every later episode of the same length) is shown apart from the warm time (fastest of `--repeats` calls). With
-`--batch N`, also the time per episode when N unseen episodes are planned in one vmapped call. On a GPU the
-surrogate's IK runs `GPU_IK_UNROLL` iterations per loop trip (the same result; `--ik-unroll 1` for the plain loop).
-Writes results/table1/<platform>.json; prints the table, beside the paper's, last.
+    result = run(ctx, batch, repeats, out, lookahead="table")   # {policies: {name: {warm_s, compile_s, ...}}, ...}
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import os
 import time
@@ -31,7 +12,7 @@ import time
 import jax
 
 from experiments import common
-from experiments.common import results_dir, table
+from experiments.common import table
 from gsp_jax import dp, evaluation, files, planners, policies
 from gsp_jax import lookahead as lookahead_lib
 from gsp_jax.env import TableModel
@@ -43,31 +24,6 @@ GPU_IK_UNROLL = 3  # IK iterations per loop trip on a GPU (`IKConfig.unroll`): e
 GPU_AHEAD = 4  # RL's decisions per batch of realised states on a GPU (`policies.rollout_batched`'s `ahead`): measured on
 # an H100 (one process, IK unrolled 3): a batched RL episode 48.3 / 27.5 / 26.7 / 23.7 / 37.3 / 35.7 ms at 1 .. 6 (its
 # batches hold 1 / 12 / 63 / 196 / 420 / 696 states), all with the episodes stepping runs (27 evaluation episodes)
-
-
-def _at_least_one(text: str) -> int:
-    if not text.isdigit() or int(text) < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {text!r}")
-    return int(text)
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--set", default="eval", choices=["evalA", "evalB", "eval"])
-    p.add_argument("--batch", type=int, default=0, help="also time N episodes planned in one vmapped call (0: skip)")
-    p.add_argument("--repeats", type=int, default=None, help="warm calls per measurement (default 3 on a GPU, 1 on CPU)")
-    p.add_argument("--policy-dir", default=None)
-    p.add_argument("--ik-unroll", type=_at_least_one, default=None, help="IK iterations per loop trip (`IKConfig.unroll`; the "
-                   f"same result): default {GPU_IK_UNROLL} on a GPU, 1 on a CPU (where it only lengthens compiles)")
-    p.add_argument("--ahead", type=_at_least_one, default=None, help="batched RL: decisions per batch of realised states "
-                   f"(`policies.rollout_batched`; the same episode): default {GPU_AHEAD} on a GPU, 1 on a CPU (which pays for "
-                   "every state)")
-    p.add_argument("--policies", nargs="+", default=list(PAPER), choices=PAPER,
-                   metavar="NAME", help=f"which rows to time (default: all of {', '.join(PAPER)})")
-    p.add_argument("--lookahead", default="table", choices=LOOKAHEAD,
-                   help="L1/L2: the unseen episode's table for the whole search (exact from the episode's start; "
-                        "default), below the root only (cached), or none (continuous)")
-    p.add_argument("--before", action="store_true", help="also time DP optimal, L1 and L2 as the code stood before "
-                   "issue 37 (the table's IK vmapped, L1/L2's root in the surrogate), side by side in this run")
 
 
 PAPER = planners.names("paper")  # Table 1's rows: the paper's five planners, in its order
@@ -231,15 +187,3 @@ def with_ik_unroll(ctx: evaluation.Context, unroll: int | None) -> evaluation.Co
     if unroll < 1:
         raise ValueError(f"ik_unroll: expected an integer >= 1, got {unroll}")
     return _with_ik_config(ctx, unroll=unroll)
-
-
-def main(args: argparse.Namespace) -> None:
-    repeats = args.repeats or (3 if jax.default_backend() == "gpu" else 1)
-    ctx = with_ik_unroll(evaluation.context(args.set, 1 if not args.batch else args.batch, args.policy_dir),
-                         args.ik_unroll)
-    print(f"Table 1 on {jax.devices()[0].device_kind}: episode {ctx.names[0]} ...", flush=True)
-    result = run(ctx, args.batch, repeats, results_dir("table1"), lookahead=args.lookahead,
-                 names=tuple(n for n in PAPER if n in args.policies), ahead=args.ahead,
-                 compare_before=args.before)
-    common.record("table1", figures(result), per_device=True)
-    print_result(result)

@@ -66,58 +66,150 @@ def infeasible(ctx: evaluation.Context, i: int = 0) -> str | None:
     return sur.explain(episode, np.asarray(longest.actions))
 
 
+def _timeline(phys: physics.Physics, n_steps: int) -> tuple[float, float, int]:
+    """(control tick [s], segment [s], ticks in the episode) of an episode of n_steps waypoints in `phys`."""
+    segment = phys.hold_time(n_steps) / n_steps
+    return segment / phys.n_segment, segment, phys.n_ticks(n_steps)
+
+
+def _runs(row: np.ndarray) -> list[tuple[int, int, int]]:
+    """(first, length, value) of each run of equal values in a 1-D array."""
+    cuts = np.flatnonzero(np.diff(row)) + 1
+    starts = np.concatenate([[0], cuts])
+    lengths = np.diff(np.concatenate([starts, [row.size]]))
+    return [(int(s), int(n), int(row[s])) for s, n in zip(starts, lengths)]
+
+
 def _picture(phys: physics.Physics, ctx, grasps: dict, res: dict, path) -> None:
-    """Each plan's grasp timeline (links x waypoints, coloured by option) above both angle traces."""
+    """Each plan's grasp timeline above both angle traces, on one time axis [s]. A timeline has a row per contact
+    link and a bar per run of one contact option, named by where it touches the tool (`render.option_places`; the
+    option's number where the name does not fit, every option listed at the right); blank: the link is not
+    touching the tool. Segment k starts at waypoint k (its decision, k x segment seconds) and executes the grasp
+    after decision k; the hold keeps the last grasp."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.patches import Patch
+
+    from gsp_jax import render
 
     space, links = ctx.surrogate.space, ctx.surrogate.hand.link_names
-    fig, axes = plt.subplots(len(grasps) + 1, 1, figsize=(8, 2.0 * len(grasps) + 3),
-                             gridspec_kw=dict(height_ratios=[1] * len(grasps) + [1.6]))
+    places = render.option_places(phys.model)
+    T = ctx.batch.n_steps
+    tick, segment, n_ticks = _timeline(phys, T)
+    end, hold = n_ticks * tick, phys.hold_time(T)
+    colours = plt.get_cmap("Set2").colors
+    fig, axes = plt.subplots(len(grasps) + 1, 1, figsize=(12.5, 0.32 * len(links) * len(grasps) + 4.2), sharex=True,
+                             gridspec_kw=dict(height_ratios=[0.32 * len(links)] * len(grasps) + [2.6]))
+    bars = []  # (axes, start [s], width [s], its name, its number)
     for ax, (name, g) in zip(axes, grasps.items()):
-        opts = np.stack([np.asarray(space.decode(int(x))) for x in g], 1)  # (L, T)
-        ax.imshow(np.where(opts > 0, opts, np.nan), aspect="auto", cmap="viridis", vmin=1, vmax=max(3, opts.max()),
-                  interpolation="nearest")
-        for (i, t), o in np.ndenumerate(opts):
-            if o:
-                ax.text(t, i, str(o), ha="center", va="center", fontsize=6, color="w")
+        opts = np.stack([np.asarray(space.decode(int(x))) for x in g], 1)  # (L, T) option after each decision
+        opts = np.concatenate([opts, np.repeat(opts[:, -1:], phys.n_hold, 1)], 1)  # the hold keeps the last
+        r = res[name]
+        stop = float(r.fall_time[0]) if bool(r.fell[0]) else end  # the bars end where the tool fell
+        for i, row in enumerate(opts):
+            for first, n, o in _runs(row):
+                if not o:
+                    continue
+                x0, w = first * segment, min(n * segment, stop - first * segment)
+                if w <= 0:
+                    continue
+                ax.broken_barh([(x0, w)], (i - 0.4, 0.8), facecolors=colours[(o - 1) % len(colours)],
+                               edgecolors="0.3", lw=0.5)
+                bars.append((ax, x0, w, ax.text(x0 + w / 2, i, places[links[i]][o - 1], ha="center", va="center",
+                                                fontsize=6.5), str(o)))
+        if stop < end:
+            ax.axvspan(stop, end, color="0.85", hatch="//", zorder=3)
+            ax.text((stop + end) / 2, (len(links) - 1) / 2, f"fell at {stop:.2f} s", ha="center", va="center",
+                    zorder=4, bbox=dict(facecolor="w", edgecolor="none"))
+        ax.set_ylim(len(links) - 0.5, -0.5)
         ax.set_yticks(range(len(links)), links, fontsize=7)
-        ax.set_title(f"{LABEL[name]}: contact option of each link after each decision", fontsize=9)
-        ax.set_xticks([])
+        right = ax.twinx()
+        right.set_ylim(ax.get_ylim())
+        right.set_yticks(range(len(links)), ["   ".join(f"{k + 1}: {p}" for k, p in enumerate(places[link]))
+                                             for link in links], fontsize=6)
+        ax.text(1.005, 1.02, "each link's options (number: where it touches the tool)", transform=ax.transAxes,
+                fontsize=7, va="bottom")
+        for x in np.arange(T + 1) * segment:
+            ax.axvline(x, color="0.85", lw=0.5, zorder=0)
+        ax.axvline(hold, color="k", ls="--", lw=0.8)
+        ax.set_title(f"{LABEL[name]}: where each link touches the tool after each decision", fontsize=9, loc="left")
+        ax.tick_params(labelbottom=True, labelsize=7)
+    fig.legend(handles=[Patch(facecolor="w", edgecolor="0.6", label="blank: the link is not touching the tool")],
+               loc="upper left", fontsize=8, frameon=False)
+    waypoints = axes[0].secondary_xaxis("top")
+    waypoints.set_xticks(np.arange(T) * segment, [str(k) if k % 2 == 0 else "" for k in range(T)], fontsize=6)
+    waypoints.set_xlabel("waypoint (a decision at each)", fontsize=7)
     ax = axes[-1]
-    tick = phys.config.tick
     for name, r in res.items():
         a = np.asarray(r.angle[0]).copy()
         if bool(r.fell[0]):
             a[int(round(float(r.fall_time[0]) / tick)) :] = np.nan
         ax.plot((np.arange(a.size) + 1) * tick, a, lw=1.2, label=LABEL[name])
-    hold = phys.hold_time(ctx.batch.n_steps)
     ax.axvline(hold, color="k", ls="--", lw=0.8)
-    ax.text(hold, ax.get_ylim()[1] * 0.95, " torque on", fontsize=8, va="top")
-    ax.set_xlabel("time [s] (a decision every segment; lines end where the tool fell)")
+    ax.text(hold, ax.get_ylim()[1] * 0.95, " hold: torque on", fontsize=8, va="top")
+    for x in np.arange(T + 1) * segment:
+        ax.axvline(x, color="0.9", lw=0.5, zorder=0)
+    ax.set_xlim(0, end)
+    ax.set_xticks(np.arange(0, end + 1e-9, 0.5))
+    ax.set_xlabel("time [s] (grey lines: the waypoints, a decision at each; traces end where the tool fell)")
     ax.set_ylabel("tool angle error [deg]")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper left")
     fig.suptitle(f"{ctx.names[0]} in C MuJoCo", fontsize=10)
     fig.tight_layout()
+    renderer = fig.canvas.get_renderer()
+    for ax, x0, w, text, number in bars:  # a name wider than its bar (measured once laid out): the number
+        left, right = ax.transData.transform([(x0, 0), (x0 + w, 0)])[:, 0]
+        if text.get_window_extent(renderer).width > 0.95 * (right - left):
+            text.set_text(number)
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
 
-def _gif(qpos: np.ndarray, stem) -> list[str]:
-    """Key frame PNG and GIF of a trace (K, nq), drawn in a child process with MUJOCO_GL=egl unless the environment
-    names a backend (it must be set before mujoco is imported, and where libEGL is missing the import fails: the
-    child's failure then only skips the GIF)."""
+def _captions(phys: physics.Physics, ctx, r, every: int) -> list[str]:
+    """The text of each GIF frame (every `every`-th control tick of result `r`, one episode): the simulated time,
+    the waypoint, the grasp being executed (`GraspSpace.label`) and, in a segment that changes it, the change named
+    by where the link goes on the tool; the hold and a fall named as they come."""
+    from gsp_jax import render
+
+    space, places = ctx.surrogate.space, render.option_places(phys.model)
+    T = ctx.batch.n_steps
+    tick, _, n_ticks = _timeline(phys, T)
+    grasps, actions = np.asarray(r.grasps[0]), np.asarray(r.actions[0])
+    fell, fall_time = bool(r.fell[0]), float(r.fall_time[0])
+    out = []
+    for j in range(0, n_ticks, every):
+        t = (j + 1) * tick
+        k = min(j // phys.n_segment, T - 1)
+        head = f"t = {t:.2f} s   " + (f"waypoint {k} of {T}" if t <= phys.hold_time(T) else "hold: torque on")
+        lines = [head, f"grasp: {space.label(int(grasps[k]))}"]
+        a = int(actions[k])
+        if a != NULL and t <= phys.hold_time(T):
+            link, option = space.link_names[space.action_link[a]], int(space.action_option[a])
+            lines.append(f"{link} -> {places[link][option - 1] if option else 'off the tool'}")
+        if fell and t >= fall_time:
+            lines.append(f"FELL at {fall_time:.2f} s")
+        out.append("\n".join(lines))
+    return out
+
+
+def _gif(phys: physics.Physics, ctx, r, stem) -> list[str]:
+    """Key frame PNG and GIF of one episode's result `r`, each frame captioned (`_captions`), drawn in a child
+    process with MUJOCO_GL=egl unless the environment names a backend (it must be set before mujoco is imported,
+    and where libEGL is missing the import fails: the child's failure then only skips the GIF)."""
     import os
     import subprocess
     import sys
 
-    trace = f"{stem}_qpos.npy"
-    np.save(trace, qpos)
-    env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
-    from gsp_jax import model as model_lib
+    from gsp_jax import model as model_lib, render
 
+    tick = _timeline(phys, ctx.batch.n_steps)[0]
+    every = max(1, int(round(1 / (render.GIF_FPS * tick))))
+    trace = f"{stem}_qpos.npy"
+    np.save(trace, np.asarray(r.qpos[0])[::every])
+    files.write_json(f"{stem}_captions.json", _captions(phys, ctx, r, every))
+    env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
     run = subprocess.run([sys.executable, "-m", "experiments", "demo", "--gif-from", trace, "--model",
                           str(model_lib.load_model().path)], env=env, capture_output=True, text=True)
     if run.returncode != 0:
@@ -127,13 +219,25 @@ def _gif(qpos: np.ndarray, stem) -> list[str]:
     return [f"{stem}_keyframe.png", f"{stem}.gif"]
 
 
+def _render_gif(phys: physics.Physics, trace: str) -> None:
+    """(The child of `_gif`) the GIF of a saved trace `<stem>_qpos.npy` (a frame each) with its captions
+    `<stem>_captions.json`, and its last frame large as `<stem>_keyframe.png`."""
+    import json
+
+    from gsp_jax import render
+
+    stem = trace.removesuffix("_qpos.npy")
+    qpos = np.load(trace)
+    with open(f"{stem}_captions.json") as f:
+        texts = json.load(f)
+    render.save_png(f"{stem}_keyframe.png", render.caption(render.frames(phys.model, qpos[-1:], size=(480, 640)),
+                                                           texts[-1:], size=18)[0])
+    render.save_gif(f"{stem}.gif", render.caption(render.frames(phys.model, qpos), texts), fps=render.GIF_FPS)
+
+
 def main(args: argparse.Namespace) -> None:
     if args.gif_from:
-        from gsp_jax.physics.report import render_episode
-
-        stem = args.gif_from.removesuffix("_qpos.npy")
-        if not render_episode(physics.Physics(Surrogate()), np.load(args.gif_from), stem):
-            raise SystemExit(1)
+        _render_gif(physics.Physics(Surrogate()), args.gif_from)
         return
     from gsp_jax import model as model_lib
 
@@ -166,7 +270,7 @@ def main(args: argparse.Namespace) -> None:
     _picture(phys, ctx, grasps, res, out / "demo.png")
     written = [str(out / "demo.png")]
     if not args.no_gif:
-        written += _gif(np.asarray(res["L1"].qpos[0]), out / "demo_L1")
+        written += _gif(phys, ctx, res["L1"], out / "demo_L1")
     rows, record = [], {}
     for name in PLANNERS:
         r = res[name]

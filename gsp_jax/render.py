@@ -13,6 +13,9 @@ anything imports mujoco (e.g. `MUJOCO_GL=egl python -m experiments physics --ren
 the CPU machines here; the GPU machines we measured on have no libEGL (there `MUJOCO_GL=egl` makes `import
 mujoco` fail), so render from a saved `qpos` trace on a CPU. `osmesa` is the software fallback where installed.
 Nothing else in the library imports this module, so the physics check runs without any GL.
+
+Words for pictures need no GL: `option_places` names where each contact option touches the tool (from the model's
+sites and the tool's geoms), `caption` writes lines of text onto frames (Pillow, which matplotlib already needs).
 """
 from __future__ import annotations
 
@@ -38,6 +41,78 @@ TABLE_SCALE = 50.0  # the table is drawn this much larger (no black sky behind t
 VIEWS = {"closeup": dict(lookat=(0.01, 0.0, 0.045), distance=0.30, azimuth=20.0, elevation=-30.0),  # handle end
          "head": dict(lookat=(0.01, 0.0, 0.045), distance=0.30, azimuth=160.0, elevation=-30.0),  # head end
          "side": dict(lookat=(0.01, 0.0, 0.075), distance=0.32, azimuth=90.0, elevation=-25.0)}  # thumb side
+
+
+GIF_FPS = 25  # frames per simulated second in a GIF of an episode
+FACES = {0: ("-x end", "+x end"), 1: ("-y side", "+y side"), 2: ("underside", "top")}  # outward normal's axis, sign
+
+
+def _rotation(quat) -> np.ndarray:
+    mat = np.zeros(9)
+    mujoco.mju_quat2Mat(mat, np.asarray(quat, np.float64))
+    return mat.reshape(3, 3)
+
+
+def option_places(model: mujoco.MjModel) -> dict[str, tuple[str, ...]]:
+    """{contact link: (where its option k touches the tool, for k = 1, 2, ...)}: the tool geom nearest the option's
+    site ``opt_<link>_<k>`` (the geom's name, or "geom <i>"), the face the finger pushes on (the site's inward z
+    axis reversed, by its largest tool-frame component: "+y side", "underside", "-x end", ...) and the site's
+    coordinate along the tool's longest axis [mm], e.g. "handle -y side, x -20 mm". Tool frame, as in the model;
+    the tool's colliding geoms (by contact bits or by contact pairs)."""
+    from gsp_jax import hand as hand_lib
+
+    tool = hand_lib.tool_body(model)
+    paired = {int(g) for g in (*model.pair_geom1, *model.pair_geom2) if model.geom_bodyid[g] == tool}
+    geoms = hand_lib.tool_geoms(model, tool) or sorted(paired)  # the physics scene collides by explicit pairs
+    if not geoms:
+        raise ValueError(f"model: the tool body {model.body(tool).name!r} has no colliding geom")
+    # each geom's box (its aabb, in its own frame) and that box's corners in the tool frame
+    boxes = [(model.geom_pos[g], _rotation(model.geom_quat[g]), model.geom_aabb[g, :3], model.geom_aabb[g, 3:])
+             for g in geoms]
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float64)
+    corners = np.concatenate([pos + (centre + signs * half) @ mat.T for pos, mat, centre, half in boxes])
+    axis = int(np.argmax(np.ptp(corners, axis=0)))  # the tool's longest axis
+
+    def signed_distance(point, box) -> float:  # to a geom's box: < 0 inside
+        pos, mat, centre, half = box
+        q = np.abs((point - pos) @ mat - centre) - half
+        return float(np.linalg.norm(np.maximum(q, 0.0)) + min(q.max(), 0.0))
+
+    places = {}
+    for link in hand_lib.contact_links(model):
+        names, k = [], 1
+        while (site := mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, f"opt_{link}_{k}")) >= 0:
+            point = model.site_pos[site]
+            outward = -_rotation(model.site_quat[site])[:, 2]
+            face = int(np.argmax(np.abs(outward)))
+            nearest = min(range(len(geoms)), key=lambda i: abs(signed_distance(point, boxes[i])))
+            geom = model.geom(geoms[nearest]).name or f"geom {geoms[nearest]}"
+            names.append(f"{geom} {FACES[face][int(outward[face] > 0)]}, {'xyz'[axis]} {1000 * point[axis]:+.0f} mm")
+            k += 1
+        places[link] = tuple(names)
+    return places
+
+
+def caption(images: np.ndarray, texts: list[str], size: int = 14) -> np.ndarray:
+    """Frames (N, H, W, 3) uint8 with texts[i] (lines split at "\n") written in white on a dark band across the top
+    of frame i; a copy, the input is kept."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    if len(texts) != len(images):
+        raise ValueError(f"texts: one per frame ({len(images)}), got {len(texts)}")
+    font = ImageFont.load_default(size=size)
+    out = []
+    for image, text in zip(images, texts):
+        pil = Image.fromarray(np.asarray(image, np.uint8)).convert("RGBA")
+        band = Image.new("RGBA", pil.size, (0, 0, 0, 0))
+        draw = ImageDraw.Draw(band)
+        lines = text.split("\n")
+        step = int(round(1.3 * size))
+        draw.rectangle([0, 0, pil.size[0], step * len(lines) + size // 2], fill=(0, 0, 0, 150))
+        for i, line in enumerate(lines):
+            draw.text((size // 2, size // 4 + step * i), line, fill=(255, 255, 255, 255), font=font)
+        out.append(np.asarray(Image.alpha_composite(pil, band).convert("RGB")))
+    return np.stack(out)
 
 
 def _fingers(model: mujoco.MjModel) -> tuple[int, list[int]]:

@@ -45,10 +45,57 @@ def _pm(cell: str) -> tuple[float, float]:
 
 DATA = ROOT / "docs/data"
 SCHEMA = {"name", "date", "commit", "device", "command", "figures"}  # and an optional "note"
+ORDER = ["dp-base", "rl", "L1", "L2", "dp-opt"]  # the README's columns
 
 
-def _data(name: str) -> dict:
-    return json.loads((DATA / f"{name}.json").read_text())["figures"]
+def _file(name: str) -> dict:
+    return json.loads((DATA / f"{name}.json").read_text())
+
+
+def _machine(device: str) -> str:
+    """The machine of a recorded device string as the README names it: 'H100', 'H200', ... or 'CPU'."""
+    found = re.search(r"\b([A-Z]\d{2,3})\b", device)
+    if found:
+        return found.group(1)
+    assert device.lower().startswith("cpu"), f"no machine in the device {device!r}"
+    return "CPU"
+
+
+def _units() -> list[str]:
+    """The README's claims: each table row, each list item, each paragraph (a machine named in one names it for all
+    the figures of that one)."""
+    units, item = [], []
+    for line in README.read_text().splitlines() + [""]:
+        starts = line.startswith(("|", "- ", "#")) or not line.strip()
+        if starts and item:
+            units.append(" ".join(item))
+            item = []
+        if line.startswith("|"):
+            units.append(line)
+        elif line.strip():
+            item.append(line.strip())
+    return units
+
+
+def _cited(unit: str) -> list[str]:
+    """The docs/data files a README claim cites: `<figure>_<device>` in backticks."""
+    return [n for n in re.findall(r"`([a-z0-9_]+)`", unit) if (DATA / f"{n}.json").is_file()]
+
+
+def _row(label: str) -> tuple[str, list[str]]:
+    """(the docs/data file it cites, the cells) of the README's results row whose label starts with `label`."""
+    for line in README.read_text().splitlines():
+        cells = [c.strip().strip("*").strip() for c in line.split("|")[1:-1]]
+        if cells and cells[0].startswith(label):
+            cited = _cited(cells[0])
+            assert len(cited) <= 1, (label, cited)
+            return (cited[0] if cited else ""), cells[1:]
+    raise AssertionError(f"README.md has no results row {label!r}")
+
+
+def _pm(cell: str) -> tuple[float, float]:
+    mean, ci = cell.replace("−", "-").split("±")
+    return float(mean), float(ci)
 
 
 def _report() -> dict:
@@ -56,47 +103,113 @@ def _report() -> dict:
 
 
 def _gpu() -> str:
-    """The GPU of the report's run as the README names it (H100, H200, ...); its Table 1 is docs/data/table1_<gpu>."""
-    device = _report()["table1"].get("device", _report()["device"])  # Table 1's GPU (a partial run may be another's)
-    found = re.search(r"\b([A-Z]\d{2,3})\b", device)
-    assert found, f"report.json's Table 1 names no GPU: {device!r}"
-    return found.group(1)
+    """The slug of the report's run's GPU (h100, h200, ...): its files are docs/data/<figure>_<gpu>."""
+    return _machine(_report()["device"]).lower()
+
+
+def test_every_readme_figure_names_the_machine_of_its_data_file():
+    """Each README claim that cites a docs/data file names that file's machine (the one its recorded device says,
+    also the file's name's suffix); each results row with our numbers cites one."""
+    cited = 0
+    for unit in _units():
+        for name in _cited(unit):
+            cited += 1
+            row = _file(name)
+            machine = _machine(row["device"])
+            assert name.endswith("_" + machine.lower()), f"{name}.json records {row['device']!r}"
+            assert re.search(rf"\b{machine}\b( host)?", unit), f"README names no {machine} where it cites {name}: {unit}"
+    assert cited >= 8, f"the README cites {cited} docs/data files"
+    for label in ("Fig. 4a", "Fig. 4b: falls", "Fig. 4b: tool angle", "Table 1: ours"):
+        assert _row(label)[0], f"README results row {label!r} cites no docs/data file"
 
 
 def test_results_table_is_docs_data():
-    """The README's results rows (Fig. 4a, Fig. 4b, Table 1) equal docs/data (fig4a, fig4b, table1_<the report's
-    GPU>), at the digits shown."""
-    order = ["dp-base", "rl", "L1", "L2", "dp-opt"]
-    fig4a = _data("fig4a")["relative"]
-    cells = _row("Fig. 4a: surrogate return − DP optimal (mean ± 95% CI)")
-    for cell, p in zip(cells, order[:4]):
+    """The README's results rows (Fig. 4a, Fig. 4b, Table 1) equal the docs/data file each cites, at the digits
+    shown."""
+    name, cells = _row("Fig. 4a: surrogate return")
+    fig4a = _file(name)["figures"]["relative"]
+    for cell, p in zip(cells, ORDER[:4]):
         assert _pm(cell) == (round(fig4a[p]["mean"], 2), round(fig4a[p]["ci95"], 2)), (p, cell)
     assert cells[4] == "0"
-    fig4b = _data("fig4b")
-    assert [int(x) for x in _row("Fig. 4b: falls / 27 in C MuJoCo")] == [fig4b[p]["falls"] for p in order]
-    for cell, p in zip(_row("Fig. 4b: tool angle error [deg] (mean ± 95% CI; 180 for a fall)"), order):
+    name, cells = _row("Fig. 4b: falls / 27")
+    fig4b = _file(name)["figures"]
+    assert [int(x) for x in cells] == [fig4b[p]["falls"] for p in ORDER] and fig4b["rl"]["episodes"] == 27
+    name, cells = _row("Fig. 4b: tool angle error")
+    fig4b = _file(name)["figures"]
+    for cell, p in zip(cells, ORDER):
         assert _pm(cell) == (round(fig4b[p]["mean_deg"], 1), round(fig4b[p]["ci95_deg"], 1)), (p, cell)
-    table1 = _data(f"table1_{_gpu().lower()}")
-    for cell, p in zip(_row(f"Table 1: ours, one {_gpu()}"), order):
+    name, cells = _row("Table 1: ours")
+    table1 = _file(name)["figures"]
+    for cell, p in zip(cells, ORDER):
         value = float(cell.removesuffix(" s"))
         digits = len(cell.removesuffix(" s").split(".")[1])
         assert value == round(table1["warm_s"][p], digits), (p, cell)
-    assert [float(c.removesuffix(" s")) for c in _row("Table 1: online time per episode, paper (32-core Xeon)")] == [
-        table1["paper_s"][p] for p in order]
+    assert [float(c.removesuffix(" s")) for c in _row("Table 1: online time per episode, paper")[1]] == [
+        table1["paper_s"][p] for p in ORDER]
+
+
+def _claim(pattern: str) -> tuple[str, ...]:
+    found = re.findall(pattern, " ".join(README.read_text().split()))
+    assert len(found) == 1, f"README.md states {pattern!r} {len(found)} times"
+    return found[0] if isinstance(found[0], tuple) else (found[0],)
+
+
+def test_readme_sentences_are_docs_data():
+    """The figures in the README's sentences equal the files they cite: the L1 decision's latency, L1-physics and
+    the envelope (stress set), RL's falls by the oracle (evaluation set), the report's Holm-corrected p."""
+    latency = _file("bench_latency_h100")["figures"]["policies"]["L1"]["decision_median_s"]
+    assert float(_claim(r"One L1 decision takes ([\d.]+) ms \(median\) on the H100 host \(`bench_latency_h100`\)")[0]) \
+        == round(1000 * latency, 1)
+    fig4b = _file("fig4b_h100")["figures"]["L1-physics"]
+    falls, n, angle = _claim(r"evaluation set: (\d+) of (\d+) falls, ([\d.]+)° mean angle error \(H100 host, `fig4b_h100`\)")
+    assert (int(falls), int(n), float(angle)) == (fig4b["falls"], fig4b["episodes"], round(fig4b["mean_deg"], 1))
+    stress = _file("envelope_stress_h100")["figures"]
+    kinds, pool = stress["summary"]["kinds"], stress["summary"]["pool"]
+    got = _claim(r"stress set: (\d+) of (\d+) falls, regret (\d+) \(four tips (\d+), DP optimal (\d+), L1 (\d+); "
+                 r"H100 host, `envelope_stress_h100`\)")
+    assert tuple(map(int, got)) == (kinds["L1-physics"]["falls"], stress["episodes"], kinds["L1-physics"]["regret"],
+                                    kinds["four-tips"]["falls"], kinds["dp-opt"]["falls"], kinds["L1"]["falls"])
+    got = _claim(r"The stress set has (\d+) episodes.*? The constant four-tip grasp drops (\d+) of them\. For (\d+) of those"
+                 r".*?\(DP optimal (\d+), L1 (\d+), L2 (\d+), RL (\d+); L1-physics (\d+)\)\. Of the sequences the "
+                 r"surrogate calls feasible, (\d+)% hold \(the aim is 95%\)\. H100 host, `envelope_stress_h100`")
+    four = kinds["four-tips"]
+    assert tuple(map(int, got)) == (stress["episodes"], four["falls"], four["controller"],
+                                    *(kinds[k]["regret"] for k in ("dp-opt", "L1", "L2", "rl", "L1-physics")),
+                                    round(100 * pool["feasible_hold_share"]))
+    rho, auc = _claim(r"Spearman ρ ([\d.]+), AUC ([\d.]+) \(holds against falls\) on the stress pool \(H100 host, "
+                      r"`envelope_stress_h100`\)")
+    assert (float(rho), float(auc)) == (round(pool["spearman_pooled"], 2), round(pool["auc_pooled"], 2))
+    rl = _file("envelope_eval_h200")["figures"]["summary"]["kinds"]["rl"]
+    falls = _claim(r"RL's (\d+) falls are all necessary by the feasibility oracle \(H200 host, `envelope_eval_h200`\)")
+    assert int(falls[0]) == rl["falls"] == rl["necessary"]
+    holm = {(p["a"], p["b"]): p["p_holm"] for p in _report()["fig4a"]["anova"]["posthoc"]}
+    bound = float(_claim(r"L1 and L2 beat RL and DP baseline in the surrogate \(Holm-corrected p ≤ ([\d.]+)\)")[0])
+    assert max(holm[a, b] for a in ("dp-base", "rl") for b in ("L1", "L2")) <= bound
 
 
 def test_docs_data_has_one_schema_and_a_history_per_result():
-    """Every current result in docs/data has the one schema, and its history (docs/data/history/<name>.jsonl, a
-    row per run) ends with it."""
+    """Every current result in docs/data has the one schema, is named <figure>_<device> after the machine it records,
+    and its history (docs/data/history/<name>.jsonl, a row per run) ends with it; nothing else lives there."""
     current = sorted(DATA.glob("*.json"))
-    expected = {"fig4a", "fig4b", f"table1_{_gpu().lower()}", "envelope_stress", "envelope_eval"}
+    expected = {f"fig4a_{_gpu()}", f"fig4b_{_gpu()}", f"table1_{_gpu()}", "envelope_stress_h100", "envelope_eval_h200"}
     assert {p.stem for p in current} >= expected
+    assert {p.name for p in DATA.iterdir()} == {p.name for p in current} | {"history"}, sorted(DATA.iterdir())
     for path in current:
         row = json.loads(path.read_text())
         assert SCHEMA <= set(row) <= SCHEMA | {"note"}, (path.name, sorted(row))
         assert row["name"] == path.stem and isinstance(row["figures"], dict) and row["figures"], path.name
+        assert path.stem.endswith("_" + _machine(row["device"]).lower()), (path.name, row["device"])
         history = (DATA / "history" / f"{path.stem}.jsonl").read_text().splitlines()
         assert json.loads(history[-1]) == row, f"{path.name}: the history's last row is not the current result"
+    assert {p.stem for p in (DATA / "history").iterdir()} == {p.stem for p in current}
+
+
+def test_the_history_manifest_lists_every_file():
+    """docs/history/<date>/MANIFEST.md lists (and links) every file of its folder."""
+    for folder in sorted((ROOT / "docs/history").iterdir()):
+        listed = set(re.findall(r"^\| \[([^\]]+)\]\(", (folder / "MANIFEST.md").read_text(), re.M))
+        files = {f.relative_to(folder).as_posix() for f in folder.rglob("*") if f.is_file() and f.name != "MANIFEST.md"}
+        assert listed == files, (sorted(files - listed), sorted(listed - files))
 
 
 def test_the_report_is_the_run_docs_data_holds():
@@ -105,9 +218,8 @@ def test_the_report_is_the_run_docs_data_holds():
     from experiments.paper.table1 import episode as table1
 
     report = _report()
-    assert fig4a.figures(report["fig4a"]) == _data("fig4a")
-    assert fig4b.figures(report["fig4b"]) == _data("fig4b")
-    assert table1.figures(report["table1"]) == _data(f"table1_{_gpu().lower()}")
+    for stage, module in (("fig4a", fig4a), ("fig4b", fig4b), ("table1", table1)):
+        assert module.figures(report[stage]) == _file(f"{stage}_{_gpu()}")["figures"], stage
 
 
 def test_record_writes_the_current_result_and_appends_its_history(tmp_path, monkeypatch):

@@ -40,11 +40,15 @@ def test_wheel_installs_outside_the_checkout_and_steps_the_surrogate(tmp_path):
     pip = [sys.executable, "-m", "pip", "--disable-pip-version-check", "-q"]
     run = lambda cmd, **kw: subprocess.run(cmd, check=True, capture_output=True, text=True, **kw)  # noqa: E731
 
-    run([*pip, "wheel", "--no-deps", "-w", str(tmp_path / "dist"), str(ROOT)])
+    built = run([*pip, "wheel", "--no-deps", "-w", str(tmp_path / "dist"), str(ROOT)])
+    assert "warning" not in (built.stdout + built.stderr).lower(), built.stdout + built.stderr  # a quiet install
     (wheel,) = (tmp_path / "dist").glob("gsp_jax-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
-    for f in ("scene.xml", "hand.xml", "wrench.xml", "policies/ppo_dp_seed0/_METADATA"):
-        assert f"gsp_jax/models/{f}" in names, f"{f} is not in the wheel"
+    shipped = [f.relative_to(ROOT / "models").as_posix() for f in (ROOT / "models").rglob("*")
+               if f.is_file() and "__pycache__" not in f.parts]
+    assert {"scene.xml", "hand.xml", "wrench.xml", "policies/ppo_dp_seed0/_METADATA"} <= set(shipped)
+    missing = [f for f in shipped if f"gsp_jax/models/{f}" not in names]
+    assert not missing, f"models/ files not in the wheel: {missing}"
     assert not any(n.startswith("models/") for n in names)  # one copy, inside the package
 
     site = tmp_path / "site"

@@ -30,7 +30,7 @@ from experiments.common import ROOT, results_dir, table
 from gsp_jax.physics.envelope import summarise
 from gsp_jax import files, scenario, stats, surrogate
 
-DEFAULT_POOL = ROOT / "docs" / "data" / "archive" / "envelope" / "stress_reached_h100.json"
+DEFAULT_POOL = ROOT / "docs" / "history" / "2026-11-27" / "envelope" / "stress_reached_h100.json"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -94,14 +94,15 @@ def device_slug() -> str:
     return next((g for g in ("h100", "h200", "a100", "l4") if g in kind), jax.default_backend())
 
 
-def record(name: str, figures: dict, per_device: bool = False, data: pathlib.Path | None = None) -> dict | None:
+def record(name: str, figures: dict, data: pathlib.Path | None = None) -> dict | None:
     """With `--record` (`RECORD`): `figures` (a small JSON-able dict, the benchmark's printed table) become the
-    current `docs/data/<name>.json` and a new line of `docs/data/history/<name>.jsonl`, one schema for all:
-    {name, date, commit, device, command, figures}. `per_device`: timings, kept per device (<name>_<device>)."""
+    current `docs/data/<name>_<device>.json` (`device_slug`: one current result per figure and machine) and a new
+    line of `docs/data/history/<name>_<device>.jsonl`, one schema for all: {name, date, commit, device, command,
+    figures}."""
     if not RECORD:
         return None
     data = DATA if data is None else pathlib.Path(data)
-    name = f"{name}_{device_slug()}" if per_device else name
+    name = f"{name}_{device_slug()}"
     try:
         commit = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=ROOT, capture_output=True, text=True,
                                 check=True).stdout.strip()

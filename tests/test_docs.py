@@ -223,8 +223,8 @@ def test_the_report_is_the_run_docs_data_holds():
 
 
 def test_record_writes_the_current_result_and_appends_its_history(tmp_path, monkeypatch):
-    """`python -m experiments --record <command>`: `common.record` writes the schema's row and appends it to the
-    history; without --record it writes nothing."""
+    """`python -m experiments --record <command>`: `common.record` writes the schema's row, named for its figure and
+    machine, and appends it to the history; without --record it writes nothing."""
     from experiments import common
 
     monkeypatch.setattr(common, "RECORD", False)
@@ -233,6 +233,8 @@ def test_record_writes_the_current_result_and_appends_its_history(tmp_path, monk
     first = common.record("bench_x", {"a": 1.0}, data=tmp_path)
     second = common.record("bench_x", {"a": 2.0}, data=tmp_path)
     assert set(first) == SCHEMA and first["figures"] == {"a": 1.0}
-    assert json.loads((tmp_path / "bench_x.json").read_text()) == second
-    rows = [json.loads(line) for line in (tmp_path / "history" / "bench_x.jsonl").read_text().splitlines()]
+    slug = common.device_slug()
+    assert first["name"] == f"bench_x_{slug}"
+    assert json.loads((tmp_path / f"bench_x_{slug}.json").read_text()) == second
+    rows = [json.loads(line) for line in (tmp_path / "history" / f"bench_x_{slug}.jsonl").read_text().splitlines()]
     assert rows == [first, second]

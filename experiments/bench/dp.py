@@ -66,7 +66,7 @@ def main(args: argparse.Namespace) -> None:
     out = args.out or str(results_dir() / "bench_dp.json")
     files.write_json(out, result)
     print(f"wrote {out}\n")
-    common.record("bench_dp", result, per_device=True)
+    common.record("bench_dp", result)
     print(table(
         ["DP solve (table + backup)", "wall [s]", "per episode [s]", "vs step-at-a-time"],
         [

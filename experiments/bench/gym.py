@@ -53,6 +53,6 @@ def main(args) -> None:
             sync = rate(gym.vector.SyncVectorEnv([lambda: GymGraspEnv(env) for _ in range(n)]), n, args.seconds)
         rows.append([n, f"{native:,.0f}", f"{sync:,.0f}" if sync else "-", f"{native / sync:.1f}x" if sync else "-"])
         print(f"  N = {n}: native {native:,.0f} steps/s" + (f", SyncVectorEnv {sync:,.0f}" if sync else ""), flush=True)
-    common.record("bench_gym", dict(rows=rows), per_device=True)
+    common.record("bench_gym", dict(rows=rows))
     print("\nGymnasium vector envs, table backend, 9 training episodes (env steps/s, warm)\n")
     print(table(["N envs", "GraspVectorEnv (vmapped)", "SyncVectorEnv", "speed-up"], rows))

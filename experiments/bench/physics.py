@@ -127,5 +127,5 @@ def main(args: argparse.Namespace) -> None:
     print(f"wrote {path}\n")
     print(f"engine alone (mj_step, one core, the same states): {engine['default']:,.0f} steps/s, "
           f"{steps / engine['default']:.2f} s for the batch's {steps:,} steps")
-    common.record("bench_physics", dict(head=head, rows=rows), per_device=True)
+    common.record("bench_physics", dict(head=head, rows=rows))
     print(table(head, rows, ".2f"))

@@ -106,6 +106,6 @@ def main(args: argparse.Namespace) -> None:
         [[r["mode"], r["reached"], str(r["iteration"]), r["wall_s"], r["pretrain_s"], r["first_iteration_s"], r["final_train_greedy_return"]] for r in runs],
     ))
     common.record("bench_ppo", dict(preset=preset, steps_per_s={r[0]: dict(envs=r[1], steps_per_s=r[2], compile_s=r[3])
-                                                              for r in rows}, time_to_baseline=runs), per_device=True)
+                                                              for r in rows}, time_to_baseline=runs))
     print(f"\ntable backend: {table_rate / loop_rate:,.0f}x the one-env loop; {table_rate / sur_rate:,.0f}x the surrogate backend\n")
     print(table(["env steps/s", "envs", "steps/s", "compile s"], rows, floatfmt=",.1f"))

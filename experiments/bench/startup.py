@@ -87,7 +87,7 @@ def main(args: argparse.Namespace) -> None:
     out = args.out or str(common.results_dir("bench") / f"startup_{first['platform']}.json")
     files.write_json(out, result)
     print(f"wrote {out}\n")
-    common.record("bench_startup", result, per_device=True)
+    common.record("bench_startup", result)
     print(f"the Quickstart from a fresh process, {first['device']} ({first['platform']}), seconds")
     print(common.table(
         ["process", "import", "first L1 decision", "next decision (another episode)", "warm decision",

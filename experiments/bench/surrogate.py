@@ -69,7 +69,7 @@ def main(args: argparse.Namespace) -> None:
     out = args.out or str(results_dir() / "bench_surrogate.json")
     files.write_json(out, result)
     print(f"wrote {out}")
-    common.record("bench_surrogate", result, per_device=True)
+    common.record("bench_surrogate", result)
     print()
     print(table(
         ["mode", "steps", "wall [s]", "steps/s", f"{n_g}x{n_a}x{ep.n_steps} table by steps [s]"],

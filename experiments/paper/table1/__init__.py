@@ -100,7 +100,7 @@ def per_episode(args: argparse.Namespace, names: list[str]) -> None:
     print(f"Table 1 on {jax.devices()[0].device_kind}: episode {ctx.names[0]} ...", flush=True)
     result = episode.run(ctx, args.batch, repeats, results_dir("table1"), lookahead=args.lookahead,
                          names=tuple(n for n in PAPER if n in names), ahead=args.ahead, compare_before=args.before)
-    common.record("table1", episode.figures(result), per_device=True)
+    common.record("table1", episode.figures(result))
     episode.print_result(result)
 
 
@@ -113,5 +113,5 @@ def per_decision(args: argparse.Namespace, names: list[str]) -> None:
     files.write_json(out, result)
     print(f"wrote {out}\n")
     common.record("bench_latency", dict(episodes=len(result["episodes"]), lookahead=result["lookahead"], policies={
-        n: {k: v for k, v in r.items() if k != "returns"} for n, r in result["policies"].items()}), per_device=True)
+        n: {k: v for k, v in r.items() if k != "returns"} for n, r in result["policies"].items()}))
     decisions.print_result(result)

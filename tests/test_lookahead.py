@@ -332,34 +332,32 @@ def test_per_decision_latency_times_the_planners_own_decisions(sur, solved, netw
 
 
 def test_table1_dp_optimal_earns_its_dp_optimum_by_replaying_its_own_table(sur, solved, network):
-    """`table1`'s DP optimal solves the unseen episode inside the timed call and runs its policy in that table
+    """`online.plan`'s DP optimal (Table 1's) solves the unseen episode inside the timed call and runs its policy in that table
     (from its start the surrogate visits only the table's states: `test_env` checks the two step for step): the
     episode earns exactly the DP optimum of the episode."""
-    from gsp_jax import evaluation
-    from experiments.paper.table1 import episode as table1
+    from gsp_jax import evaluation, online
 
     eps, tables, sols = solved
     one = jax.tree.map(lambda x: x[:1], (eps, tables, sols))
     ctx = evaluation.Context(sur, "test", ["e0"], *one, sols.actions[0], network, "x")
-    ret = jax.jit(table1.planner(ctx, "dp-opt"))(_pick(eps, 0))
+    ret = jax.jit(online.plan(ctx, "dp-opt"))(_pick(eps, 0))
     np.testing.assert_allclose(float(ret), float(sols.ret[0]), atol=tol.REWARD_ATOL * 6)
 
 
 def test_table1_lookahead_in_the_table_runs_the_cached_episode(sur, solved, network, stepped):
-    """`table1`'s L1 searching in the unseen episode's table, root included (`lookahead="table"`, the default), runs
+    """`online.plan`'s L1 (Table 1's) searching in the unseen episode's table, root included (`lookahead="table"`, the default), runs
     the episode that the cached L1 runs with the root's actions stepped in the surrogate (from its start the
     surrogate visits only the table's states): the same return, to the tolerance of a few rewards."""
-    from gsp_jax import evaluation
-    from experiments.paper.table1 import episode as table1
+    from gsp_jax import evaluation, online
 
     eps, tables, sols = solved
     one = jax.tree.map(lambda x: x[:1], (eps, tables, sols))
     ctx = evaluation.Context(sur, "test", ["e0"], *one, sols.actions[0], network, "x")
     _, decisions, ret, _ = stepped(1)
-    got = jax.jit(table1.planner(ctx, "L1", lookahead="table"))(_pick(eps, 0))
+    got = jax.jit(online.plan(ctx, "L1", lookahead="table"))(_pick(eps, 0))
     np.testing.assert_allclose(float(got), ret, atol=tol.REWARD_ATOL * len(decisions))
     with pytest.raises(ValueError, match="lookahead"):
-        table1.planner(ctx, "L1", lookahead="tables")
+        online.plan(ctx, "L1", lookahead="tables")
 
 
 @pytest.mark.parametrize("depth", [1, 2])

@@ -7,8 +7,8 @@ the same planners' latency per decision, one episode at a time.
 from its start, as one jitted call. DP baseline and RL act per step (a sequence lookup, one network call) and run
 the surrogate's step for each decision, either stepping after each or, as the decisions fix every grasp the episode
 visits, all T transitions afterwards in one vmapped batch (`policies.rollout_batched`; both forms are timed, side by
-side, and the warm time is the form `episode.default_batched` picks: batched for DP baseline, and for RL on a GPU,
-where RL's chain of decisions realises the states of `GPU_AHEAD` decisions in one batch: `--ahead`). DP optimal
+side, and the warm time is the form `online.default_batched` picks: batched for DP baseline, and for RL on a GPU,
+where RL's chain of decisions realises the states of `online.GPU_AHEAD` decisions in one batch: `--ahead`). DP optimal
 first builds the episode's whole table and backs it up, then runs its policy in that table: from its start the
 surrogate visits only the table's discrete states, so the table steps the episode exactly as the surrogate would
 (`tests/test_env.py` checks the two step for step). L1 and L2 first build the episode's table too, then at every
@@ -43,7 +43,7 @@ import jax
 from experiments import common
 from experiments.common import results_dir
 from experiments.paper.table1 import decisions, episode
-from gsp_jax import evaluation, files, planners
+from gsp_jax import evaluation, files, online, planners
 
 PAPER = planners.names("paper")  # Table 1's rows: the paper's five planners, in its order
 
@@ -67,7 +67,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--ik-unroll", type=_at_least_one, default=None, help="IK iterations per loop trip (`IKConfig.unroll`; "
                    f"the same result): default {episode.GPU_IK_UNROLL} on a GPU, 1 on a CPU (where it only lengthens compiles)")
     g.add_argument("--ahead", type=_at_least_one, default=None, help="batched RL: decisions per batch of realised states "
-                   f"(`policies.rollout_batched`; the same episode): default {episode.GPU_AHEAD} on a GPU, 1 on a CPU "
+                   f"(`policies.rollout_batched`; the same episode): default {online.GPU_AHEAD} on a GPU, 1 on a CPU "
                    "(which pays for every state)")
     g.add_argument("--before", action="store_true", help="also time DP optimal, L1 and L2 as the code stood before the "
                    "batch-last IK (the table's IK vmapped, L1/L2's root in the surrogate), side by side in this run")

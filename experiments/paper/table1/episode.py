@@ -13,76 +13,13 @@ import jax
 
 from experiments import common
 from experiments.common import table
-from gsp_jax import dp, evaluation, files, planners, policies
-from gsp_jax import lookahead as lookahead_lib
-from gsp_jax.env import TableModel
+from gsp_jax import evaluation, files, online, planners
 from gsp_jax.surrogate import Surrogate
 
 GPU_IK_UNROLL = 3  # IK iterations per loop trip on a GPU (`IKConfig.unroll`): each trip of XLA's loop costs a sync on
 # the device; measured on an H100 (one process): a batched RL episode 53.4 / 47.7 / 46.9 / 47.8 ms at 1 / 3 / 6 / 12,
 # compiling in 12 / 19 / 25 / 36 s; the same episodes (27 evaluation episodes: equal grasps, returns)
-GPU_AHEAD = 4  # RL's decisions per batch of realised states on a GPU (`policies.rollout_batched`'s `ahead`): measured on
-# an H100 (one process, IK unrolled 3): a batched RL episode 48.3 / 27.5 / 26.7 / 23.7 / 37.3 / 35.7 ms at 1 .. 6 (its
-# batches hold 1 / 12 / 63 / 196 / 420 / 696 states), all with the episodes stepping runs (27 evaluation episodes)
-
-
 PAPER = planners.names("paper")  # Table 1's rows: the paper's five planners, in its order
-BATCHED = ("dp-base", "rl")  # the policies whose episode can also run as one batch of transitions
-LOOKAHEAD = ("table", "cached", "continuous")  # L1 and L2: root and interior in the table; interior only; neither
-
-
-def default_batched(name: str) -> bool:
-    """Whether `planner` batches policy `name`'s transitions by default: DP baseline always, RL on a GPU."""
-    return name == "dp-base" or (name == "rl" and jax.default_backend() == "gpu")
-
-
-def default_ahead() -> int:
-    """Batched RL's decisions per batch of realised states: `GPU_AHEAD` on a GPU, 1 on a CPU."""
-    return GPU_AHEAD if jax.default_backend() == "gpu" else 1
-
-
-def planner(ctx: evaluation.Context, name: str, lookahead: str = "table", batched: bool | None = None,
-            ahead: int | None = None):
-    """episode -> return for policy `name`, planned online on the surrogate. L1 and L2 (`lookahead`): "table"
-    builds the unseen episode's table (as DP optimal does) and searches in it, root included: from its start the
-    surrogate visits only the table's discrete states, so the root's children are the table's (exact, as for DP
-    optimal); "cached" steps the root's actions in the surrogate and looks up below the root; "continuous" runs the
-    whole search in the surrogate. With
-    `batched`, DP baseline and RL run their decisions first and then all the episode's transitions as one vmapped
-    batch (`policies.rollout_batched`), instead of stepping the surrogate after each decision: on a GPU a step's
-    cost is its chain of dependent solves, not its arithmetic, so T steps in one batch cost about one. DP
-    baseline's open-loop sequence needs no more work batched; RL's decisions each realise their state first (one
-    IK a step more, a chain of T IKs left on the critical path), which a CPU, where a batch costs what its problems
-    cost, pays in full; `ahead` (default `default_ahead`) realises the states of that many decisions in one batch,
-    shortening the chain to T / ahead batched IKs. Default (`default_batched`): batched for DP baseline, and for RL
-    on a GPU."""
-    if lookahead not in LOOKAHEAD:
-        raise ValueError(f"lookahead: one of {LOOKAHEAD}, got {lookahead!r}")
-    sur = ctx.surrogate
-    if batched is None:
-        batched = default_batched(name)
-    if name == "dp-opt":  # solve the unseen episode's whole table, then run its policy in that table
-        def plan(ep):
-            table, sol = dp.solve(sur, ep)
-            model = TableModel(table, sur.space)  # from its start the surrogate only visits the table's states
-            return lookahead_lib.rollout(model, policies.TablePolicy(sol.policy), model.reset(ep))[0]
-        return plan
-    policy, _ = planners.make(ctx, name, dict(cached=False))
-    if isinstance(policy, policies.Lookahead):  # each decision's search has stepped every action: the episode moves on
-        def plan(ep):                       # to its child (`rollout_planned`) instead of stepping the surrogate again
-            if lookahead == "continuous":
-                return lookahead_lib.rollout_planned(policy, sur.reset(ep))[0]
-            model = TableModel(dp.build_table(sur, ep), sur.space)  # the unseen episode's table, inside the timed call
-            if lookahead == "table":
-                return lookahead_lib.rollout_planned(policy.replace(model=model, inner=model), model.reset(ep))[0]
-            return lookahead_lib.rollout_planned(policy.replace(inner=model), sur.reset(ep))[0]
-        return plan
-    if batched and name in BATCHED:
-        ahead = default_ahead() if ahead is None else ahead
-        return lambda ep: policies.rollout_batched(sur, policy, ep, ahead)[0]
-    return lambda ep: lookahead_lib.rollout(sur, policy, sur.reset(ep))[0]
-
-
 def before(ctx: evaluation.Context) -> evaluation.Context:
     """The context as the code stood before issue 37: the table's IK `ik.solve` vmapped on every platform (not the
     CPU's batch-last form, `ik_lanes`); with `lookahead="cached"` its L1 and L2 are the planners of then."""
@@ -112,21 +49,21 @@ def measure(fn, arg, repeats: int) -> tuple[float, float]:
 
 def run(ctx: evaluation.Context, batch: int, repeats: int, out, lookahead: str = "table",
         names=PAPER, ahead: int | None = None, compare_before: bool = False) -> dict:
-    ahead = default_ahead() if ahead is None else ahead
+    ahead = online.default_ahead() if ahead is None else ahead
     t_start = time.perf_counter()
     one = jax.tree.map(lambda x: x[0], ctx.batch)
     rows = {}
     for name in names:
-        batched = default_batched(name)
-        fn = planner(ctx, name, lookahead, batched, ahead)
+        batched = online.default_batched(name)
+        fn = online.plan(ctx, name, lookahead, batched, ahead)
         compile_s, warm = measure(fn, one, repeats)
         row = dict(warm_s=warm, compile_s=compile_s)
-        if name in BATCHED:  # both forms, side by side; warm_s is the platform's default
-            other = measure(planner(ctx, name, lookahead, not batched, ahead), one, repeats)[1]
+        if name in online.BATCHED:  # both forms, side by side; warm_s is the platform's default
+            other = measure(online.plan(ctx, name, lookahead, not batched, ahead), one, repeats)[1]
             row |= dict(rollout="batched" if batched else "stepped", batched_warm_s=warm if batched else other,
                         stepped_warm_s=other if batched else warm)
         if compare_before and name in ("dp-opt", "L1", "L2"):  # the code before, in the same run
-            c_old, w_old = measure(planner(before(ctx), name, "cached", batched, ahead), one, repeats)
+            c_old, w_old = measure(online.plan(before(ctx), name, "cached", batched, ahead), one, repeats)
             row |= dict(before_warm_s=w_old, before_compile_s=c_old, speedup=w_old / warm)
         if batch:
             n = min(batch, len(ctx.names))
@@ -136,7 +73,7 @@ def run(ctx: evaluation.Context, batch: int, repeats: int, out, lookahead: str =
         rows[name] = row
         print(f"  {name:8s} warm {warm:9.4f} s   compile {compile_s:7.1f} s" +
               (f"   (stepped {row['stepped_warm_s']:.4f} s, batched steps {row['batched_warm_s']:.4f} s)"
-               if name in BATCHED else "") +
+               if name in online.BATCHED else "") +
               (f"   before: {row['before_warm_s']:.4f} s ({row['speedup']:.1f}x)" if "before_warm_s" in row else "") +
               (f"   batch of {row['batch']}: {row['batch_per_episode_s']:.4f} s per episode" if batch else ""), flush=True)
     device = jax.devices()[0]

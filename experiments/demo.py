@@ -90,7 +90,7 @@ def _picture(phys: physics.Physics, ctx, grasps: dict, res: dict, path) -> None:
         ax.set_title(f"{LABEL[name]}: contact option of each link after each decision", fontsize=9)
         ax.set_xticks([])
     ax = axes[-1]
-    tick = phys.config.tick
+    tick = phys.timestep
     for name, r in res.items():
         a = np.asarray(r.angle[0]).copy()
         if bool(r.fell[0]):

@@ -84,12 +84,12 @@ def trace_png(phys: physics.Physics, names, res: physics.Result, path, title: st
     import matplotlib.pyplot as plt
 
     angle = np.asarray(res.angle)
-    t = (np.arange(angle.shape[1]) + 1) * phys.config.tick
+    t = (np.arange(angle.shape[1]) + 1) * phys.timestep
     fig, ax = plt.subplots(figsize=(8, 4))
     for i, n in enumerate(names):
         a = angle[i].copy()
         if res.fell[i]:
-            a[int(round(float(res.fall_time[i]) / phys.config.tick)) :] = np.nan
+            a[int(round(float(res.fall_time[i]) / phys.timestep)) :] = np.nan
         ax.plot(t, a, lw=1, label=n if len(names) <= 10 else None)
     ax.axvline(phys.hold_time(scenario.N_WAYPOINTS), color="k", ls="--", lw=0.8)
     ax.text(phys.hold_time(scenario.N_WAYPOINTS), ax.get_ylim()[1] * 0.95, " torque on", fontsize=8, va="top")
@@ -112,9 +112,9 @@ def render_episode(phys: physics.Physics, qpos: np.ndarray, stem, window=None, k
         print(f"rendering skipped: {e}")
         return []
     try:
-        every = max(1, int(round(0.04 / phys.config.tick)))
+        every = max(1, int(round(0.04 / phys.timestep)))
         png = render.save_png(f"{stem}_keyframe.png", render.frames(phys.model, qpos[key][None], size=(480, 640))[0])
-        lo, hi = (0, len(qpos)) if window is None else (int(window[0] / phys.config.tick), int(window[1] / phys.config.tick))
+        lo, hi = (0, len(qpos)) if window is None else (int(window[0] / phys.timestep), int(window[1] / phys.timestep))
         gif = render.save_gif(f"{stem}.gif", render.frames(phys.model, qpos[lo:hi], every=every), fps=25)
         return [png, gif]
     except Exception as e:  # noqa: BLE001
@@ -156,7 +156,7 @@ def main(args: argparse.Namespace) -> None:
         policy, axis = make_policy(args.policy, args.set, episodes, args)
         batch = scenario.stack(list(episodes.values()))
     print(f"physics check: {len(labels)} episodes of '{args.set}', policy {args.policy}, backend {args.backend}, "
-          f"{phys.n_ticks(scenario.N_WAYPOINTS) * phys.config.control_every} physics steps each "
+          f"{phys.n_ticks(scenario.N_WAYPOINTS)} physics steps each "
           f"({jax.devices()[0].platform}; compiling first) ...", flush=True)
     t0 = time.perf_counter()
     res = jax.block_until_ready(phys.simulate_batch(policy, batch, axis, backend=args.backend, progress=True))
@@ -185,7 +185,7 @@ def main(args: argparse.Namespace) -> None:
     written = [stem.with_suffix(".json"), f"{stem}_trace.npz", f"{stem}_angle.png"]
     if args.render:
         i = labels.index(args.render_episode) if args.render_episode else 0
-        key = int(round(float(res.fall_time[i]) / phys.config.tick)) - 2 if bool(res.fell[i]) else -1
+        key = int(round(float(res.fall_time[i]) / phys.timestep)) - 2 if bool(res.fell[i]) else -1
         written += render_episode(phys, np.asarray(res.qpos[i]), f"{stem}_{labels[i].replace('/', '_')}",
                                 args.render_window, key)
     print(table(["episode", "angle err [deg]", "pos err [mm]", "max lift tilt", "fell at [s]"],

@@ -165,7 +165,8 @@ def main(args: argparse.Namespace) -> None:
     out = results_dir("physics")
     stem = out / (f"{args.set}_{args.policy}" + ("" if args.backend == "mjx" else f"_{args.backend}"))
     summary = dict(set=args.set, policy=args.policy, backend=args.backend, device=jax.devices()[0].device_kind,
-                   **_summary(labels, res), wall_s_incl_compile=wall, config=dataclasses.asdict(phys.config))
+                   **_summary(labels, res), wall_s_incl_compile=wall, config=dataclasses.asdict(phys.config),
+                   timestep_s=phys.timestep)
     if args.policy == "scripted":
         summary["sequences"] = {}
         for i, k in enumerate(seqs):

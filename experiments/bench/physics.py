@@ -15,7 +15,6 @@ Writes JSON (`engine_steps_per_s_one_core`, and per row `runner_steps_per_s`, `c
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import time
 
 import jax
@@ -32,7 +31,8 @@ from gsp_jax.physics import c_backend
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", default="eval")
     p.add_argument("--waypoints", type=int, default=scenario.N_WAYPOINTS, help="episode length (shorter: quicker)")
-    p.add_argument("--variant", action="append", default=[], help="NAME:key=value,... a PhysicsConfig variant")
+    p.add_argument("--variant", action="append", default=[],
+                   help="NAME:key=value,... a PhysicsConfig variant (keys: field names of any group)")
     p.add_argument("--backends", nargs="+", default=["c"], choices=physics.BACKENDS)
     p.add_argument("--cores", nargs="+", type=int, default=None,
                    help="core counts for the C runner (default: 1, 2 and all)")
@@ -43,17 +43,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _variants(specs) -> list[tuple[str, physics.PhysicsConfig]]:
-    out = [("default", physics.PhysicsConfig())]
-    fields = {f.name for f in dataclasses.fields(physics.PhysicsConfig)}
+    base = physics.PhysicsConfig()
+    out = [("default", base)]
     for spec in specs:
         name, _, body = spec.partition(":")
         kw = {}
         for item in filter(None, body.split(",")):
             key, _, value = item.partition("=")
-            if key not in fields:
+            if key not in physics.config.GROUP_OF:
                 raise ValueError(f"--variant {spec!r}: PhysicsConfig has no field {key!r}")
-            kw[key] = type(getattr(physics.PhysicsConfig(), key))(value)
-        out.append((name, physics.PhysicsConfig(**kw)))
+            kw[key] = type(base.value(key))(value)
+        out.append((name, base.replace(**kw)))
     return out
 
 
@@ -62,7 +62,7 @@ def engine_alone(phys: physics.Physics, episodes, log) -> tuple[float, int]:
     fields = jax.device_get(jax.vmap(phys.scene.episode_fields)(episodes))
     models = [phys.scene.c_model(jax.tree.map(lambda x: x[e], fields)) for e in range(int(episodes.mass.shape[0]))]
     datas = [mujoco.MjData(m) for m in models]
-    spec, every = mujoco.mjtState.mjSTATE_INTEGRATION, phys.config.control_every
+    spec = mujoco.mjtState.mjSTATE_INTEGRATION
     busy, steps = 0.0, 0
     for ids, states, pedestals in log:
         for e, state, ped in zip(ids, states, pedestals):
@@ -70,10 +70,9 @@ def engine_alone(phys: physics.Physics, episodes, log) -> tuple[float, int]:
             m.geom_pos[phys.scene.pedestal_geoms] = ped
             mujoco.mj_setState(m, d, state, spec)
             t0 = time.perf_counter()
-            for _ in range(every):
-                mujoco.mj_step(m, d)
+            mujoco.mj_step(m, d)
             busy += time.perf_counter() - t0
-            steps += every
+            steps += 1
     return steps / busy, steps
 
 

@@ -123,7 +123,7 @@ def main(args: argparse.Namespace) -> None:
         policy, axis = make_policy(args.policy, args.set, episodes, args)
         batch = scenario.stack(list(episodes.values()))
     print(f"physics check: {len(labels)} episodes of '{args.set}', policy {args.policy}, backend {args.backend}, "
-          f"{phys.n_ticks(scenario.N_WAYPOINTS) * phys.config.control_every} physics steps each "
+          f"{phys.n_ticks(scenario.N_WAYPOINTS)} physics steps each "
           f"({jax.devices()[0].platform}; compiling first) ...", flush=True)
     t0 = time.perf_counter()
     res = jax.block_until_ready(phys.simulate_batch(policy, batch, axis, backend=args.backend, progress=True))
@@ -132,7 +132,8 @@ def main(args: argparse.Namespace) -> None:
     out = results_dir("physics")
     stem = out / (f"{args.set}_{args.policy}" + ("" if args.backend == "mjx" else f"_{args.backend}"))
     summary = dict(set=args.set, policy=args.policy, backend=args.backend, device=jax.devices()[0].device_kind,
-                   **report.summary(labels, res), wall_s_incl_compile=wall, config=dataclasses.asdict(phys.config))
+                   **report.summary(labels, res), wall_s_incl_compile=wall, config=dataclasses.asdict(phys.config),
+                   timestep_s=phys.timestep)
     if args.policy == "scripted":
         summary["sequences"] = {}
         for i, k in enumerate(seqs):
@@ -152,7 +153,7 @@ def main(args: argparse.Namespace) -> None:
     written = [stem.with_suffix(".json"), f"{stem}_trace.npz", f"{stem}_angle.png"]
     if args.render:
         i = labels.index(args.render_episode) if args.render_episode else 0
-        key = int(round(float(res.fall_time[i]) / phys.config.tick)) - 2 if bool(res.fell[i]) else -1
+        key = int(round(float(res.fall_time[i]) / phys.timestep)) - 2 if bool(res.fell[i]) else -1
         written += report.render_episode(phys, np.asarray(res.qpos[i]), f"{stem}_{labels[i].replace('/', '_')}",
                                 args.render_window, key)
     print(table(["episode", "angle err [deg]", "pos err [mm]", "max lift tilt", "fell at [s]"],

@@ -87,7 +87,7 @@ def main(args: argparse.Namespace) -> None:
     episodes = scenario.unstack(ctx.batch)
     falls = [(g, e) for g in range(len(kinds)) for e in range(N) if fell[g, e]]
     t1 = time.perf_counter()
-    n_seg, tick = phys.n_segment, phys.config.tick
+    n_seg, tick = phys.n_segment, phys.timestep
 
     def reached(g, e):  # the configurations before each decision t >= 1 and at the hold's start; rows before the fall
         rows = np.asarray(res[g].qpos[e, n_seg - 1 :: n_seg][:T])

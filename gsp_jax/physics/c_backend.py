@@ -9,7 +9,7 @@ One lockstep runs every episode of every policy given (Fig. 4b's 5 policies x 27
   between decisions       the episodes run as chunks side by side (threads; `workers`), each chunk's control tick
                           one jitted JAX call that reads its episodes' states and returns their motor commands (and
                           the status of the tick before), then an `Engine` (`mujoco.batch.Batch`) steps them
-                          `control_every` times on its share of the cores (MuJoCo's own batched stepping:
+                          once on its share of the cores (MuJoCo's own batched stepping:
                           bit-identical to a loop of `mj_step` per episode, at any thread count).
 
 A tick's JAX call takes four flat arrays (controller states, observations, episodes, tick index) and returns two:
@@ -190,14 +190,14 @@ class Engine:
         self.obs[:, :a], self.obs[:, a:b], self.obs[:, b:] = self.qpos, self.qvel, self.bias
         return self.obs
 
-    def step(self, ids: np.ndarray, ctrl: np.ndarray, external: np.ndarray, nstep: int) -> None:
-        """Episodes `ids` advance `nstep` physics steps under motor commands ctrl (n, nu) and the tool's external
+    def step(self, ids: np.ndarray, ctrl: np.ndarray, external: np.ndarray) -> None:
+        """Episodes `ids` advance one physics step under motor commands ctrl (n, nu) and the tool's external
         wrench (n, 6); the others stay as they are."""
         self.ctrl[ids] = ctrl[ids]
         self.xfrc[ids, self.scene.tool_body] = external[ids]
         if self.log is not None:  # (episodes, their mjSTATE_INTEGRATION rows, pedestal positions) before the step
             self.log.append((ids.copy(), self.batch.state[ids].copy(), self._geom_pos[ids][:, self.scene.pedestal_geoms]))
-        self.batch.step(ids=ids, nstep=nstep)
+        self.batch.step(ids=ids, nstep=1)
         self._restored = None
 
 
@@ -208,7 +208,7 @@ class _Lockstep:
     def __init__(self, phys, groups, episodes: Episode, cores: int, workers: int, engine_log: list | None,
                  start: Snapshot | None = None):
         self.phys, self.groups, self.episodes = phys, groups, episodes
-        c, scene = phys.config, phys.scene
+        scene = phys.scene
         N, T = int(np.shape(episodes.mass)[0]), episodes.n_steps
         G = len(groups)
         M, K, nq = G * N, phys.n_ticks(T), phys.model.nq
@@ -243,7 +243,7 @@ class _Lockstep:
         self.actions, self.grasps = np.zeros((M, T), np.int32), np.zeros((M, T), np.int32)
         self.group_rows = [slice(g * N, (g + 1) * N) for g in range(G)]
         self.decides = [pr.decide(0 if hasattr(policy, "in_physics") else axis) for policy, axis in groups]
-        self.pedestal_drop, self.tick, self.control_every = scene.pedestal_drop, c.tick, c.control_every
+        self.pedestal_drop, self.tick = scene.pedestal_drop, phys.timestep
         self.segment = 0
         if start is not None:
             self._restore(start)
@@ -326,7 +326,7 @@ class _Lockstep:
                 if out[alive, -1].max(initial=0.0) > 0.5:  # a fall: that episode is no longer stepped
                     alive = np.flatnonzero(~self.fell[rows])
             if alive.size:
-                eng.step(alive, out[:, :nu], out[:, nu:nu + 6], self.control_every)
+                eng.step(alive, out[:, :nu], out[:, nu:nu + 6])
             obs = eng.observe()
         return cs_w
 

@@ -11,15 +11,13 @@ of the episode's waypoints (a cubic Hermite spline through them):
                 kp, kd from `tool_freq` / `tool_damping`; I' = I + m tool_radius^2 (a thin tool's inertia about its
                 long axis alone would leave it free to roll); I'' = I' but per principal axis at most
                 `rotation_step` / (tick kd) I (damping stable at the control rate); the feedback force and torque
-                capped at `feedback_limit` tool weights (times tool_radius for the torque); s the external wrench's
-                ramp (0 while lifting, 1 in the hold);
+                capped at `feedback_limit` tool weights, at least `feedback_floor` (times tool_radius for the
+                torque); s the external wrench's ramp (0 while lifting, 1 in the hold);
   contacts      the grasp's contact points on the *observed* tool (where each link touches); forces f in the
-                friction cones (`friction_margin` of mu) that supply (F, T), with `squeeze` newtons along every
+                friction cones (`friction_margin` of mu) that supply (F, T), with `grip_force` newtons along every
                 normal as the solve's preferred forces, so the grip lives in the grasp matrix's null space and
                 inside the cones (`wrench.solve(prefer=...)`, warm-started from the last tick);
-  fingers       tau = sum_l J_l^T (f_l + K_l (x*_l - x_l) + D (v*_l - J_l dq) + h Lambda_l a*_l) + bias + posture
-                (h Lambda_l a*_l on held links only: `hand_compensation` of the force that moves the link's finger
-                with the tool's commanded acceleration a*_l at its point, `reflected_force`), with J_l the
+  fingers       tau = sum_l J_l^T (f_l + K_l (x*_l - x_l) + D (v*_l - J_l dq)) + bias + posture, with J_l the
                 Jacobian of link l's centre-line point nearest its target x*_l at the *measured* joint angles: no IK
                 while the tool is held. Targets are fixed to the observed tool: a touching link's where it touches
                 (K stiff along the normal, `held_stiffness_ratio` across); an arriving link's its option's nominal
@@ -32,11 +30,11 @@ A grasp change (a decision that changes one link's option) runs inside its segme
 
   unload  (`unload` s) the link's load fraction goes to 0: the force is the blend s f_with + (1 - s) f_without
           of the solves with and without it, so the links that stay carry the whole wrench before it lets go;
-  move    (`move` s) the link travels a path fixed to the tool: back off its contact by `clearance` along the
-          normal, across (sideways first when the new normal differs), to `clearance` off the new contact, in
+  move    (`move` s) the link travels a path fixed to the tool: back off its contact by `standoff` along the
+          normal, across (sideways first when the new normal differs), to `standoff` off the new contact, in
           (slowly: the last leg gets the most time); a link that is removed stops at its first point and parks
-          there; `slide="contact"` keeps a slide along one face on the face instead;
-  load    once the link touches (within `contact_tol` of the surface and `reach_tol` of its point), its target
+          there;
+  load    once the link touches (within `touch_tol` of the surface and `reach_tol` of its point), its target
           becomes where it touches and its load fraction rises to 1 in `load` s.
 """
 from __future__ import annotations
@@ -134,15 +132,6 @@ def _solve3(m: jax.Array, v: jax.Array) -> jax.Array:
     return (c0 * v[..., :1] + c1 * v[..., 1:2] + c2 * v[..., 2:]) / det
 
 
-def reflected_force(jac: jax.Array, joint_inertia: jax.Array, acc: jax.Array, most: float) -> jax.Array:
-    """(L, 3) the force at each link point that accelerates its joints' inertia with the point: Lambda a with
-    Lambda = (J M^-1 J^T + I / most)^-1, the link's reflected inertia [kg] for joints of diagonal inertia M (J,),
-    capped at `most` kg along any direction. J^T Lambda a are the least joint-inertia torques that give the point
-    the acceleration a (as most -> inf). jac (L, 3, J), acc (L, 3)."""
-    jmj = jnp.einsum("lij,j,lkj->lik", jac, 1.0 / joint_inertia, jac) + jnp.eye(3) / most
-    return _solve3(jmj, acc)
-
-
 def _smooth(u: jax.Array) -> jax.Array:
     return u * u * (3 - 2 * u)
 
@@ -151,21 +140,18 @@ class Controller:
     """The contact controller of one hand model (see the module docstring). Stateless after construction."""
 
     def __init__(self, hand: HandModel, space: grasps.GraspSpace, config: PhysicsConfig, ctrl_range, gravity,
-                 joint_inertia=None):
-        self.hand, self.space, self.config = hand, space, config
-        # (J,) the joints' inertia [kg m^2] (`Scene.joint_inertia`); needed where `hand_compensation` > 0
-        if config.hand_compensation > 0 and joint_inertia is None:
-            raise ValueError("Controller: joint_inertia is required when PhysicsConfig.hand_compensation > 0")
-        self.joint_inertia = jnp.asarray(np.ones(hand.n_joints) if joint_inertia is None else joint_inertia, jnp.float32)
+                 timestep: float):
+        """`ctrl_range`: the motors' (low, high) torques (J,) x 2 [N m]; `gravity` (3,) [m/s^2]; `timestep` [s] the
+        control period (the scene's physics step: the controller acts at every step)."""
+        self.hand, self.space, self.config, self.timestep = hand, space, config, timestep
         self.ctrl_range = tuple(jnp.asarray(r, jnp.float32) for r in ctrl_range)
-        self.motor_limit = config.motor_margin * jnp.minimum(-self.ctrl_range[0], self.ctrl_range[1])  # (J,)
         self.gravity = jnp.asarray(gravity, jnp.float32)
         self.finger_names = hand.finger_names
         self.link_finger = np.asarray(hand.link_finger)  # (L,) finger of each contact link
         self.is_tip = np.asarray(hand.link_is_tip)  # (L,) the finger's deepest contact link: where it parks
         radius = hand.link_radius[:, None, None]
         self.targets_tool = (hand.option_pos - radius * hand.option_normal).astype(np.float32)  # (L, K, 3)
-        self.wrench_config = wrench.WrenchConfig(method="apg", iterations=config.force_iterations)
+        self.wrench_config = wrench.WrenchConfig(method="apg", iterations=config.controller.force_iterations)
 
     # ----------------------------------------------------------------------------------------- geometry
     def _frame(self, obs: Observation):
@@ -194,10 +180,11 @@ class Controller:
 
     def _touching(self, target: jax.Array, point: jax.Array, normal: jax.Array) -> jax.Array:
         """(L,) bool: link points `point` (L, 3) touch the surface of their `target`s (L, 3) with inward `normal`s
-        (L, 3), all in one frame: within `contact_tol` of it along the normal and `reach_tol` across it."""
+        (L, 3), all in one frame: within `touch_tol` of it along the normal and `reach_tol` across it."""
         gap = jnp.sum((target - point) * normal, -1)  # > 0: the link is off the surface
         across = jnp.linalg.norm(target - point - gap[..., None] * normal, axis=-1)
-        return (gap < self.config.contact_tol) & (across < self.config.reach_tol)
+        timeline = self.config.timeline
+        return (gap < timeline.touch_tol) & (across < timeline.reach_tol)
 
     # ------------------------------------------------------------------------------------------- phases
     def start(self, episode: Episode, q0: jax.Array, obs: Observation) -> ControllerState:
@@ -218,7 +205,7 @@ class Controller:
     def begin_segment(self, cs: ControllerState, obs: Observation, grasp: jax.Array, time: jax.Array) -> ControllerState:
         """A new segment at `time` with reference grasp `grasp` (at most one link differs from the current one):
         the changed link's path, and parking points."""
-        c, L = self.config, self.hand.n_links
+        gap, L = self.config.timeline.standoff, self.hand.n_links
         new, old = self.space.decode(grasp), cs.options
         changed = new != old
         link = jnp.argmax(changed)
@@ -229,16 +216,12 @@ class Controller:
         n_old = jnp.where(old[link] > 0, self._normal(old)[link], 0.0)
         n_new = jnp.where(new[link] > 0, self._normal(new)[link], 0.0)
         a = jnp.where(old[link] > 0, jnp.where(cs.anchored[link], cs.anchor[link], self._target(old)[link]), here)
-        a1 = a - c.clearance * n_old
+        a1 = a - gap * n_old
         side = n_new - jnp.dot(n_new, n_old) * n_old  # the new normal's part across the old one
-        a2 = a1 - c.clearance * side
+        a2 = a1 - gap * side
         b = jnp.where(new[link] > 0, self._target(new)[link], a1)
-        b1 = b - c.clearance * n_new
+        b1 = b - gap * n_new
         path = jnp.where(new[link] > 0, jnp.stack([a, a1, a2, b1, b]), jnp.stack([a, a1, a1, a1, a1]))
-        if c.slide == "contact":  # a slide along one face stays on it, pressed lightly (`slide_depth` into it)
-            along = a + jnp.linspace(0.0, 1.0, N_PATH)[:, None] * (b - a) + c.slide_depth * n_new
-            same_face = (old[link] > 0) & (new[link] > 0) & (jnp.dot(n_old, n_new) > 0.99)
-            path = jnp.where(same_face, along.at[-1].set(b), path)
         any_change = jnp.any(changed)
         park = jnp.where(any_change & (jnp.arange(L) == link)[:, None] & (new[link] == 0), path[-1], cs.park)
         return cs.replace(options=new, previous=old, changed=changed, start=jnp.asarray(time, jnp.float32),
@@ -247,12 +230,13 @@ class Controller:
     # -------------------------------------------------------------------------------------------- a tick
     def tool_wrench(self, obs: Observation, episode: Episode, ref: Motion, external: jax.Array) -> jax.Array:
         """(6,) force and torque about the CoM the contacts must supply (impedance on the observed pose)."""
-        kp, kd = self.config.tool_gains
+        c = self.config.controller
+        kp, kd = c.tool_gains
         p, mat, omega = self._frame(obs)
         r_com = mat @ episode.com
         com, com_ref = p + r_com, ref.pos + kinematics.quat_to_mat(ref.quat) @ episode.com
         v_com = obs.tool_vel[:3] + jnp.cross(omega, r_com)
-        c, weight = self.config, episode.mass * jnp.linalg.norm(self.gravity)
+        weight = episode.mass * jnp.linalg.norm(self.gravity)
         feedback = episode.mass * (kp * (com_ref - com) + kd * (ref.vel - v_com))
         inertia, stiff, damp = self._tool_inertia(mat, episode)
         turn = stiff @ (kp * rotation_error(ref.quat, obs.tool_quat)) - damp @ (kd * omega)
@@ -274,37 +258,22 @@ class Controller:
         tool's angular velocity off (within a tick the tool turns alone, the fingers follow through the contacts'
         compliance: bounded by the tool's plus the fingers' reflected inertia, the heavy tool of
         `test_the_tool_loop_is_stable_at_the_control_rate` still fell, measured before the noslip solver)."""
-        c = self.config
+        c = self.config.controller
         inertia = (mat * episode.inertia) @ mat.T
         stiff = episode.inertia + episode.mass * c.tool_radius**2  # (3,) about the tool's principal axes
-        damp = stiff if c.rotation_step == 0 else jnp.minimum(
-            stiff, c.rotation_step / (c.tick * c.tool_gains[1]) * episode.inertia)
+        damp = jnp.minimum(stiff, c.rotation_step / (self.timestep * c.tool_gains[1]) * episode.inertia)
         return inertia, (mat * stiff) @ mat.T, (mat * damp) @ mat.T
 
-    def _hand_compensation(self, mat, omega, com, episode: Episode, x, jac, held, wrench_cmd):
-        """Joint torques (J,) that move the holding links' fingers with the tool (observed at rotation `mat`,
-        angular velocity `omega`, CoM `com`): `hand_compensation` x `reflected_force` of each held link at its
-        point's commanded acceleration (the tool's, from the wrench the contacts and the external load command and
-        the inertia `tool_wrench` assumes)."""
-        c = self.config
-        inertia, stiff, _ = self._tool_inertia(mat, episode)
-        acc = wrench_cmd[:3] / episode.mass + self.gravity  # the CoM's commanded acceleration
-        alpha = _solve3(stiff, wrench_cmd[3:] - jnp.cross(omega, inertia @ omega))  # ... and angular
-        force = reflected_force(jac, self.joint_inertia, acc + jnp.cross(alpha, x - com), c.hand_reflected_mass)
-        return c.hand_compensation * jnp.einsum("lij,li->j", jac, jnp.where(held, force, 0.0))
-
-    def _forces(self, points, normals, active, mu, required, com, init, motors):
-        """Cone forces (L, 3) on the links `active` (L,) that supply `required`, pulled towards `squeeze` newtons
-        along each normal (the grip: it lives in the grasp matrix's null space, inside the cones), with the joint
-        torques they cost within `motors` (a `wrench.MotorLimits`, or None)."""
-        prefer = self.config.squeeze * normals
-        return wrench.solve(points, normals, active, mu, required, com, self.wrench_config, init, prefer,
-                            motors=motors).forces
+    def _forces(self, points, normals, active, mu, required, com, init):
+        """Cone forces (L, 3) on the links `active` (L,) that supply `required`, pulled towards `grip_force`
+        newtons along each normal (the grip: it lives in the grasp matrix's null space, inside the cones)."""
+        prefer = self.config.controller.grip_force * normals
+        return wrench.solve(points, normals, active, mu, required, com, self.wrench_config, init, prefer).forces
 
     def _phase(self, cs: ControllerState, time: jax.Array):
         """Where each link is in the segment's grasp change at `time`: (unloading, travelling, moving (L,) bool,
         current (L,) the option each link's force acts at, on_path (L, 3) tool-frame point on the travel path)."""
-        c = self.config
+        c = self.config.timeline
         tau_s = time - cs.start
         unloading = cs.changed & (tau_s < c.unload)
         u = jnp.clip((tau_s - c.unload) / c.move, 0.0, 1.0)
@@ -331,18 +300,15 @@ class Controller:
         """Forces (L, 3) pulling every tracked link to its target; a touching (`held`) link only weakly across the
         surface (there the force solve holds the tool; a stiff pull to a point on a tool that slips would pull the
         tool with it)."""
-        c = self.config
+        c = self.config.fingers
         err, derr = x_ref - x, v_ref - v
         err_n, derr_n = jnp.sum(err * nrm, -1, keepdims=True) * nrm, jnp.sum(derr * nrm, -1, keepdims=True) * nrm
         ratio = c.held_stiffness_ratio
         # a free link (travelling, arriving, parked) is pulled as by a joint-space spring towards the damped
         # least-squares step J^T (J J^T + lam^2)^-1 e: J^T kp e alone is weak along the directions a finger
         # barely moves in (a near-straight finger lowering its tip), and an arriving tip came too late
-        if c.free_stiffness > 0:
-            jjt = jnp.einsum("lij,lkj->lik", jac, jac) + c.free_damping**2 * jnp.eye(3)
-            f_free = c.free_stiffness * _solve3(jjt, err)
-        else:
-            f_free = c.finger_kp * err
+        jjt = jnp.einsum("lij,lkj->lik", jac, jac) + c.free_damping**2 * jnp.eye(3)
+        f_free = c.free_stiffness * _solve3(jjt, err)
         f_track = jnp.where(held, c.finger_kp * (err_n + ratio * (err - err_n)), f_free)
         f_track = f_track + c.finger_kd * jnp.where(held, derr_n + ratio * (derr - derr_n), derr)
         return jnp.where(tracked[:, None], f_track, 0.0)
@@ -351,7 +317,7 @@ class Controller:
                 external: jax.Array) -> tuple[jax.Array, ControllerState]:
         """Joint torques (J,) for one tick at `time`, and the next state. `external` (6,): the external wrench
         the controller feeds forward (zero while lifting)."""
-        c = self.config
+        timeline, tick = self.config.timeline, self.timestep
         with jax.default_matmul_precision("highest"):
             p, mat, omega = self._frame(obs)
             unloading, travelling, moving, current, on_path = self._phase(cs, time)
@@ -369,8 +335,8 @@ class Controller:
             arrive = (current > 0) & ~anchored & ~travelling & self._touching(x_ref, x, nrm)
             anchor = jnp.where(arrive[:, None], self._on_surface((x - p) @ mat, current), cs.anchor)
             anchored = anchored | arrive
-            up = jnp.where(anchored, jnp.minimum(cs.load + c.tick / c.load, 1.0), cs.load)
-            load = jnp.where(want, up, jnp.maximum(cs.load - c.tick / c.unload, 0.0))
+            up = jnp.where(anchored, jnp.minimum(cs.load + tick / timeline.load, 1.0), cs.load)
+            load = jnp.where(want, up, jnp.maximum(cs.load - tick / timeline.unload, 0.0))
             held = (anchored & (current > 0))[:, None]
             f_track = self._tracking(x_ref, v_ref, x, v, jac, nrm, held, tracked)
 
@@ -379,21 +345,14 @@ class Controller:
             surface = jnp.where(anchored[:, None], anchor, self._target(current)) + radius * (nrm @ mat)
             pts = p + surface @ mat.T
             required = self.tool_wrench(obs, episode, ref, external)
-            mu = c.friction_margin * episode.friction
+            mu = self.config.controller.friction_margin * episode.friction
             com = p + mat @ episode.com
             active = (current > 0) & (load > 0)
-            posture = c.posture_kp * (cs.q_rest - obs.q)
-            gravity = jnp.where(c.gravity_compensation, obs.bias, 0.0)
-            # the motors' limits bind the grip forces with the fingers' own gravity (the tracking pull yields)
-            motors = (None if c.motor_margin == 0 else
-                      wrench.MotorLimits(jac, posture + gravity, self.motor_limit, c.motor_weight))
-            f_a = self._forces(pts, nrm, active, mu, required, com, cs.f_with, motors)
-            f_b = self._forces(pts, nrm, active & ~cs.changed, mu, required, com, cs.f_without, motors)
+            posture = self.config.fingers.posture_kp * (cs.q_rest - obs.q)
+            f_a = self._forces(pts, nrm, active, mu, required, com, cs.f_with)
+            f_b = self._forces(pts, nrm, active & ~cs.changed, mu, required, com, cs.f_without)
             share = jnp.sum(load * cs.changed)
             forces = share * f_a + (1 - share) * f_b
-            tau = jnp.einsum("lij,li->j", jac, forces + f_track) + posture + gravity
-            if c.hand_compensation > 0:
-                tau = tau + self._hand_compensation(mat, omega, com, episode, x, jac, held & active[:, None],
-                                                    required + external)
+            tau = jnp.einsum("lij,li->j", jac, forces + f_track) + posture + obs.bias  # bias: gravity compensation
             tau = jnp.clip(tau, *self.ctrl_range)
         return tau, cs.replace(load=load, f_with=f_a, f_without=f_b, anchor=anchor, anchored=anchored)

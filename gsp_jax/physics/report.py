@@ -52,12 +52,12 @@ def angle_png(phys, names, res, path, title: str) -> None:
     import matplotlib.pyplot as plt
 
     angle = np.asarray(res.angle)
-    t = (np.arange(angle.shape[1]) + 1) * phys.config.tick
+    t = (np.arange(angle.shape[1]) + 1) * phys.timestep
     fig, ax = plt.subplots(figsize=(8, 4))
     for i, n in enumerate(names):
         a = angle[i].copy()
         if res.fell[i]:
-            a[int(round(float(res.fall_time[i]) / phys.config.tick)) :] = np.nan
+            a[int(round(float(res.fall_time[i]) / phys.timestep)) :] = np.nan
         ax.plot(t, a, lw=1, label=n if len(names) <= 10 else None)
     ax.axvline(phys.hold_time(scenario.N_WAYPOINTS), color="k", ls="--", lw=0.8)
     ax.text(phys.hold_time(scenario.N_WAYPOINTS), ax.get_ylim()[1] * 0.95, " torque on", fontsize=8, va="top")
@@ -80,9 +80,9 @@ def render_episode(phys, qpos: np.ndarray, stem, window=None, key: int = -1) -> 
         print(f"rendering skipped: {e}")
         return []
     try:
-        every = max(1, int(round(0.04 / phys.config.tick)))
+        every = max(1, int(round(0.04 / phys.timestep)))
         png = render.save_png(f"{stem}_keyframe.png", render.frames(phys.model, qpos[key][None], size=(480, 640))[0])
-        lo, hi = (0, len(qpos)) if window is None else (int(window[0] / phys.config.tick), int(window[1] / phys.config.tick))
+        lo, hi = (0, len(qpos)) if window is None else (int(window[0] / phys.timestep), int(window[1] / phys.timestep))
         gif = render.save_gif(f"{stem}.gif", render.frames(phys.model, qpos[lo:hi], every=every), fps=25)
         return [png, gif]
     except Exception as e:  # noqa: BLE001

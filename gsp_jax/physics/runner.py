@@ -2,16 +2,16 @@
 MuJoCo MJX (`Physics.simulate`, pure JAX: jit and vmap over episodes) or by C MuJoCo (`backend="c"`, the
 reference implementation of the engine; `gsp_jax.physics.c_backend`).
 
-Timeline of an episode (times in `PhysicsConfig`): T decision segments of `segment` seconds, then `hold` seconds
-at the final pose. At the start of segment k < T the policy observes the *simulated* state (joint angles, tool
+Timeline of an episode (`PhysicsConfig.timeline`): T decision segments of the episodes' dt (`scenario.DT`), then
+`hold` seconds at the final pose, in control ticks of the scene's physics step (the controller acts at every step). At the start of segment k < T the policy observes the *simulated* state (joint angles, tool
 pose and velocity: the surrogate's `State`) and picks an action; the new reference grasp is executed by the
 controller during the segment while the tool tracks the reference motion from waypoint k to k+1. In the hold the
 episode's external wrench ramps on (`xfrc_applied` at the tool's CoM, known to the controller); the tool's angle
 and position errors are averaged over the hold.
 
 A tool that touches the table (after the first segment, when the start pedestals drop), moves `fall_distance`
-from its reference or turns more than `fall_angle` has fallen: its angle error is 180 degrees and its simulation
-freezes there (a dropped tool never reaches the solver as NaN).
+from its reference or turns more than `fall_angle` has fallen (`PhysicsConfig.outcome`): its angle error is
+`FALLEN_ERROR` (180 degrees) and its simulation freezes there (a dropped tool never reaches the solver as NaN).
 """
 from __future__ import annotations
 
@@ -21,6 +21,7 @@ import numpy as np
 from flax import struct
 from mujoco import mjx
 
+from gsp_jax import scenario
 from gsp_jax.physics.config import PhysicsConfig
 from gsp_jax.physics.controller import Controller, ControllerState, reference_motion
 from gsp_jax.physics.scene import Observation, Scene
@@ -28,6 +29,7 @@ from gsp_jax.scenario import Episode
 from gsp_jax.surrogate import RewardTerms, State, Surrogate
 
 BACKENDS = ("mjx", "c")
+FALLEN_ERROR = 180.0  # [deg] the angle error a fallen tool reports (`Result.angle_error`, `Result.max_angle`)
 
 
 @struct.dataclass
@@ -36,7 +38,7 @@ class Result:
 
     actions: jax.Array  # (T,) int32, the policy's actions
     grasps: jax.Array  # (T,) int32, reference grasp after each decision
-    angle_error: jax.Array  # () [deg] mean tool angle error over the hold; `fallen_error` (180) if it fell
+    angle_error: jax.Array  # () [deg] mean tool angle error over the hold; FALLEN_ERROR (180) if it fell
     position_error: jax.Array  # () [m] mean tool position error over the hold (meaningless if it fell)
     max_angle: jax.Array  # () [deg] largest angle error before the hold (the lift's tilt); 180 if it fell then
     fell: jax.Array  # () bool: touched the table, dropped, or turned past fall_angle
@@ -64,12 +66,17 @@ class Physics:
         self.hand, self.space, self.config = self.surrogate.hand, self.surrogate.space, config
         self.scene = Scene(self.hand, config)
         self.model = self.scene.model
+        self.timestep = self.scene.timestep  # [s] the control period: the scene's physics step
+        self.segment = scenario.DT  # [s] between decisions: the episodes' dt (`check_episodes`)
         self.controller = Controller(self.hand, self.space, config, self.scene.ctrl_range, self.hand.gravity,
-                                     self.scene.joint_inertia())
-        c = config
-        self.n_segment = c.ticks(c.segment)  # control ticks per segment
-        self.n_hold = max(1, int(round(c.hold / c.segment)))  # hold segments
+                                     self.timestep)
+        self.n_segment = self.ticks(self.segment)  # control ticks per segment
+        self.n_hold = max(1, int(round(config.timeline.hold / self.segment)))  # hold segments
         self._jitted = {}
+
+    def ticks(self, seconds: float) -> int:
+        """Whole control ticks (at least 1) nearest `seconds`."""
+        return max(1, int(round(seconds / self.timestep)))
 
     def n_ticks(self, n_steps: int) -> int:
         """Control ticks of an episode with n_steps waypoints (the length of `Result.angle`)."""
@@ -77,7 +84,7 @@ class Physics:
 
     def hold_time(self, n_steps: int) -> float:
         """Simulated time at which the hold starts [s]."""
-        return n_steps * self.n_segment * self.config.tick
+        return n_steps * self.n_segment * self.timestep
 
     # ------------------------------------------------------------------ the pieces both backends share
     def start(self, episode: Episode):
@@ -94,7 +101,7 @@ class Physics:
         decision, state = k < episode.n_steps, self.observed_state(obs, grasp, episode, k)
         action = jax.lax.cond(decision, lambda s: jnp.asarray(policy.act(s), jnp.int32), lambda s: jnp.int32(0), state)
         grasp = jnp.where(decision, self.space.apply(grasp, action)[0], grasp)
-        cs = self.controller.begin_segment(cs, obs, grasp, k * self.n_segment * self.config.tick)
+        cs = self.controller.begin_segment(cs, obs, grasp, k * self.n_segment * self.timestep)
         return jnp.where(decision, action, -1), grasp, cs
 
     def observed_state(self, obs: Observation, grasp, episode: Episode, k) -> State:
@@ -106,33 +113,30 @@ class Physics:
 
     def external(self, episode: Episode, j) -> jax.Array:
         """(6,) the external wrench applied during control tick j (ramped on in the hold)."""
-        c = self.config
-        held = (j + 1) * c.tick - self.hold_time(episode.n_steps)
-        return jnp.clip(held / c.ramp, 0.0, 1.0) * episode.w_ext
+        held = (j + 1) * self.timestep - self.hold_time(episode.n_steps)
+        return jnp.clip(held / self.config.timeline.ramp, 0.0, 1.0) * episode.w_ext
 
     def tick(self, cs: ControllerState, obs: Observation, episode: Episode, j):
         """Control tick j: (motor commands (nu,), tool external wrench (6,), controller state)."""
-        c = self.config
-        time = j * c.tick
-        ext = self.external(episode, j)
-        tau, cs = self.controller.control(cs, obs, episode, reference_motion(episode, time), time,
-                                          ext if c.feedforward_external else jnp.zeros(6))
+        time = j * self.timestep
+        ext = self.external(episode, j)  # fed forward: the controller knows the external wrench
+        tau, cs = self.controller.control(cs, obs, episode, reference_motion(episode, time), time, ext)
         ctrl = jnp.zeros(self.model.nu, jnp.float32).at[self.scene.hand_act].set(tau)
         return ctrl, ext, cs
 
     def check(self, obs: Observation, episode: Episode, j):
         """Status after control tick j: (angle error [deg], position error [m], fallen?)."""
-        ref = reference_motion(episode, (j + 1) * self.config.tick)
+        ref = reference_motion(episode, (j + 1) * self.timestep)
         return self.scene.status(obs, ref.pos, ref.quat, j >= self.n_segment)
 
     def result(self, actions, grasps, angle, perr, qpos, fell, fall_tick, n_steps) -> Result:
-        c, n_before = self.config, n_steps * self.n_segment
+        n_before = n_steps * self.n_segment
         return Result(
             actions=actions, grasps=grasps,
-            angle_error=jnp.where(fell, c.fallen_error, jnp.mean(angle[..., n_before:], -1)),
+            angle_error=jnp.where(fell, FALLEN_ERROR, jnp.mean(angle[..., n_before:], -1)),
             position_error=jnp.mean(perr[..., n_before:], -1),
-            max_angle=jnp.where(fell & (fall_tick < n_before), c.fallen_error, jnp.max(angle[..., :n_before], -1)),
-            fell=fell, fall_time=jnp.where(fell, (fall_tick + 1).astype(jnp.float32) * c.tick, -1.0),
+            max_angle=jnp.where(fell & (fall_tick < n_before), FALLEN_ERROR, jnp.max(angle[..., :n_before], -1)),
+            fell=fell, fall_time=jnp.where(fell, (fall_tick + 1).astype(jnp.float32) * self.timestep, -1.0),
             angle=angle, qpos=qpos)
 
     # ---------------------------------------------------------------------------------- the MJX runner
@@ -153,12 +157,12 @@ class Physics:
 
     def _step(self, carry: _Carry, episode: Episode, fields, j):
         """Control tick j of one episode in MJX: (carry, (angle, position error, qpos))."""
-        c, scene = self.config, self.scene
-        mx = scene.mjx_model(fields, scene.pedestal_drop(j * c.tick))
+        scene = self.scene
+        mx = scene.mjx_model(fields, scene.pedestal_drop(j * self.timestep))
         ctrl, ext, cs = self.tick(carry.cs, self._observe(carry.data), episode, j)
         xfrc = jnp.zeros((self.model.nbody, 6), jnp.float32).at[scene.tool_body].set(ext)
         data = carry.data.replace(ctrl=ctrl, xfrc_applied=xfrc)
-        data = jax.lax.fori_loop(0, c.control_every, lambda _, d: mjx.step(mx, d), data)
+        data = mjx.step(mx, data)
         angle, perr, fell_now = self.check(self._observe(data), episode, j)
         keep = carry.fell | fell_now  # freeze: a fallen tool stays put, a non-finite step is never stored
         data = jax.tree.map(lambda old, new: jnp.where(keep, old, new), carry.data, data)
@@ -211,7 +215,7 @@ class Physics:
         `cores` cores, as `workers` chunks side by side (`c_backend.simulate`; defaults: all cores, a chunk per ~32
         episodes); in MJX one batch per policy."""
         self._check_batch(policies, episodes)
-        check_episodes(episodes, self.config)
+        check_episodes(episodes)
         if backend not in BACKENDS:
             raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
         for name, value in (("cores", cores), ("workers", workers)):
@@ -236,8 +240,6 @@ class Physics:
     def _check_batch(self, policies, episodes: Episode) -> None:
         """Named errors for a batch the runner cannot take: episodes without a batch axis, an invalid episode of the
         model (`scenario.validate`), a per-episode policy (axis 0) whose batch is not the episodes'."""
-        from gsp_jax import scenario
-
         if isinstance(episodes.mass, jax.core.Tracer):
             return
         if np.ndim(episodes.mass) != 1:
@@ -255,11 +257,12 @@ class Physics:
                                  f"episodes) on every array, got {sorted(sizes, key=str)}")
 
 
-def check_episodes(episodes: Episode, config: PhysicsConfig) -> None:
+def check_episodes(episodes: Episode) -> None:
     """Clear errors for episodes the physics check cannot run (concrete arrays only)."""
     dt = np.asarray(episodes.dt)
-    if not np.allclose(dt, config.segment, rtol=1e-5):
-        raise ValueError(f"episode.dt must equal PhysicsConfig.segment = {config.segment} s, got {np.unique(dt)}")
+    if not np.allclose(dt, scenario.DT, rtol=1e-5):
+        raise ValueError(f"episode.dt must equal the physics check's segment, scenario.DT = {scenario.DT} s, got "
+                         f"{np.unique(dt)}")
     for name in ("mass", "friction"):
         value = np.asarray(getattr(episodes, name))
         if not np.all(np.isfinite(value) & (value > 0)):

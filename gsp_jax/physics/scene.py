@@ -3,11 +3,12 @@ index arrays both backends (MJX and C MuJoCo) need, the per-episode model fields
 of a simulated state.
 
 Contact model: MJX (mujoco-mjx 3.17) misses tilted capsule-box contacts that C MuJoCo finds, so the physics model
-replaces every hand capsule, for contact, by `spheres_per_capsule` spheres along its axis (sphere-box and
+replaces every hand capsule, for contact, by `SPHERES_PER_CAPSULE` spheres along its axis (sphere-box and
 sphere-plane are exact in MJX) and lists the contacts explicitly: tool x table, tool x the spheres of the hand's
 `touch_tool` bodies (friction = the episode's), the `touch_table` bodies' spheres x table, tool x start supports
 (`HandModel.touch_tool`, `touch_table`, `support_top`: conventions of the model file, no geom names). The
-surrogate's geometry (the same model file) is unchanged.
+physics step is the scene file's (`<option timestep>`), the pairs with the table take the table geom's sliding
+friction. The surrogate's geometry (the same model file) is unchanged.
 
 The start: the tool rests at waypoint 0 on small pedestals (the model's start supports: support by contact, standing
 in for the table the scene starts it on: at the table's height the fingertips cannot reach the side faces); they sink
@@ -32,6 +33,7 @@ from gsp_jax.scenario import Episode
 
 AWAY = -1.0  # [m] the start supports are moved this far down when they drop away
 SUPPORT = "gsp_support"  # the start supports' geom names: gsp_support1, gsp_support2, ...
+SPHERES_PER_CAPSULE = 4  # contact spheres along each hand capsule (MJX misses tilted capsule-box contacts)
 
 
 def _named_spec(path) -> mujoco.MjSpec:
@@ -47,7 +49,10 @@ def physics_model(hand: hand_lib.HandModel, config: PhysicsConfig = PhysicsConfi
     """The physics model of the scene a hand was loaded from (`hand.source`): contact spheres for the hand's capsules
     and spheres, and an explicit contact list (see the module docstring): the tool with the table, with the geoms
     of the hand's `touch_tool` bodies (friction set per episode) and with its start supports; the geoms of the
-    `touch_table` bodies with the table. Solver settings from `config`."""
+    `touch_table` bodies with the table. The scene file's timestep; solver settings from `config.sim`; the
+    joints' damping integrated explicitly (`mjDSBL_EULERDAMP`: Euler's implicit damping re-solves the accelerations
+    from the constraint forces, which an unconverged float32 MJX solve leaves as a new contact's whole response;
+    docs/physics.md)."""
     if not hand.source:
         raise ValueError("physics: the hand was not loaded from a scene file (hand.source is empty): load it with "
                          "gsp_jax.load_model(path)")
@@ -57,7 +62,8 @@ def physics_model(hand: hand_lib.HandModel, config: PhysicsConfig = PhysicsConfi
     tool = hand_lib.tool_body(base)
     tool_geoms = [name(mujoco.mjtObj.mjOBJ_GEOM, g) for g in hand_lib.tool_geoms(base, tool)]
     tool_geom0 = mujoco.mj_name2id(base, mujoco.mjtObj.mjOBJ_GEOM, tool_geoms[0])
-    table = name(mujoco.mjtObj.mjOBJ_GEOM, hand_lib.table_geom(base))
+    table_id = hand_lib.table_geom(base)
+    table, table_mu = name(mujoco.mjtObj.mjOBJ_GEOM, table_id), float(base.geom_friction[table_id, 0])
     to_tool, to_table = [], []
     for g in range(base.ngeom):
         if int(base.geom_type[g]) not in (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_SPHERE)) or \
@@ -71,7 +77,7 @@ def physics_model(hand: hand_lib.HandModel, config: PhysicsConfig = PhysicsConfi
         mujoco.mju_quat2Mat(mat, base.geom_quat[g])
         axis = mat.reshape(3, 3)[:, 2]
         body = spec.body(bname)
-        n_s = config.spheres_per_capsule if half > 0 else 1
+        n_s = SPHERES_PER_CAPSULE if half > 0 else 1
         for k, z in enumerate(np.linspace(-half, half, n_s) if n_s > 1 else [0.0]):
             sname = f"{gname}_sphere{k}"
             body.add_geom(name=sname, type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[radius, 0, 0],
@@ -90,23 +96,22 @@ def physics_model(hand: hand_lib.HandModel, config: PhysicsConfig = PhysicsConfi
     fric = lambda mu: [mu, mu, 0.005, 0.0001, 0.0001]  # noqa: E731
     for tg in tool_geoms:
         spec.add_pair(name=f"{tg}-{table}", geomname1=tg, geomname2=table, condim=3,
-                      friction=fric(config.table_friction), solref=solref, solimp=solimp)
+                      friction=fric(table_mu), solref=solref, solimp=solimp)
         for s in to_tool:  # friction set per episode (Scene.mjx_model_for / c_model_for)
             spec.add_pair(name=f"{tg}-{s}", geomname1=tg, geomname2=s, condim=3, friction=fric(scenario.FRICTION0),
                           solref=solref, solimp=solimp)
     for k, sname in enumerate(supports):
         tg = tool_geoms[_support_geom(hand, base, tool, k)]
         spec.add_pair(name=f"{tg}-{sname}", geomname1=tg, geomname2=sname, condim=3,
-                      friction=fric(config.table_friction), solref=solref, solimp=solimp)
+                      friction=fric(table_mu), solref=solref, solimp=solimp)
     for s in to_table:
         spec.add_pair(name=f"{s}-{table}", geomname1=s, geomname2=table, condim=3,
-                      friction=fric(config.table_friction), solref=solref, solimp=solimp)
+                      friction=fric(table_mu), solref=solref, solimp=solimp)
     model = spec.compile()
-    model.opt.timestep = config.timestep
-    model.opt.iterations, model.opt.ls_iterations = config.solver_iterations, config.ls_iterations
-    if not config.implicit_damping:
-        model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_EULERDAMP
-    model.opt.noslip_iterations = config.noslip_iterations
+    sim = config.sim
+    model.opt.iterations, model.opt.ls_iterations = sim.solver_iterations, sim.ls_iterations
+    model.opt.disableflags |= mujoco.mjtDisableBit.mjDSBL_EULERDAMP
+    model.opt.noslip_iterations = sim.noslip_iterations
     return model
 
 
@@ -175,6 +180,7 @@ class Scene:
         self.support_top = hand.support_top.astype(np.float32)  # (P, 3) tool frame
         self.support_drop = (hand.support_half[:, 2]).astype(np.float32)  # (P,) centre below the top
         self.tool_corners = hand.tool_hull().astype(np.float32)  # (8 G, 3) the geoms' box corners, tool frame
+        self.timestep = float(m.opt.timestep)  # [s] the physics step, which is the control period
 
         try:
             self._mx, self._mx_error = mjx.put_model(m), None
@@ -188,16 +194,6 @@ class Scene:
             raise ValueError(f"physics: MJX cannot simulate this scene ({self._mx_error}); use the C MuJoCo backend "
                              "(backend='c', the default of the physics check)")
         return self._mx
-
-    def joint_inertia(self) -> np.ndarray:
-        """(J,) [kg m^2] the hand joints' inertia: the diagonal of the joint-space inertia (armature included, 80-100%
-        of it) at the model's reference pose."""
-        m = self.model
-        d = mujoco.MjData(m)
-        mujoco.mj_forward(m, d)
-        full = np.zeros((m.nv, m.nv))
-        mujoco.mj_fullM(m, d, full)
-        return np.diag(full)[self.hand_dof].astype(np.float32)
 
     # ------------------------------------------------------------------------------------------ episodes
     def episode_fields(self, episode: Episode) -> EpisodeFields:
@@ -214,8 +210,9 @@ class Scene:
         """How far [m] (<= 0) the pedestals have sunk at `time`: in place for the first segment, then sinking at
         `pedestal_speed`, so the fingers take the tool's weight over a few tens of milliseconds. float32; `xp` is
         jax.numpy (traceable) or numpy (the same value without a JAX dispatch: the C backend asks every tick)."""
-        c, f32 = self.config, xp.float32
-        return -xp.minimum(f32(c.pedestal_speed) * xp.maximum(f32(time - c.segment), f32(0.0)), f32(-AWAY))
+        f32 = xp.float32
+        return -xp.minimum(f32(self.config.sim.pedestal_speed) * xp.maximum(f32(time - scenario.DT), f32(0.0)),
+                           f32(-AWAY))
 
     @staticmethod
     def pedestal_positions(fields: EpisodeFields, drop):
@@ -262,11 +259,11 @@ class Scene:
     def status(self, obs: Observation, ref_pos, ref_quat, lifted) -> tuple[jax.Array, jax.Array, jax.Array]:
         """(angle error [deg], position error [m], fallen?) of the tool against a reference pose; the table
         counts once `lifted`. A non-finite state counts as fallen (and reads 0 error)."""
-        c = self.config
+        c = self.config.outcome
         cos = jnp.clip(jnp.abs(jnp.dot(obs.tool_quat, ref_quat)), 0.0, 1.0)
         angle = jnp.degrees(2 * jnp.arccos(cos))
         perr = jnp.linalg.norm(obs.tool_pos - ref_pos)
         lowest = jnp.min((self.tool_corners @ kinematics.quat_to_mat(obs.tool_quat).T)[:, 2]) + obs.tool_pos[2]
         finite = jnp.all(jnp.isfinite(jnp.concatenate([obs.q, obs.dq, obs.tool_pos, obs.tool_quat, obs.tool_vel])))
-        fell = ~finite | (lifted & (lowest < c.table_margin)) | (perr > c.fall_distance) | (angle > c.fall_angle)
+        fell = ~finite | (lifted & (lowest < c.fall_height)) | (perr > c.fall_distance) | (angle > c.fall_angle)
         return jnp.where(finite, angle, 0.0), jnp.where(finite, perr, 0.0), fell

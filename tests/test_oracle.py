@@ -177,3 +177,20 @@ def test_envelope_summary_counts_regret_and_classes():
     brute = np.mean([[h > f for f in falls] for h in holds])
     assert out["pool"]["auc_pooled"] == pytest.approx(brute)
     assert out["pool"]["feasible_hold_share"] == pytest.approx(3 / 9)
+
+
+def test_the_envelope_oracle_process_judges_the_callers_model():
+    """`envelope.classify`'s worker processes start with the library's default model; they are handed the caller's
+    (`--model`), so a hammer's falls are judged on the hammer's hand, not silently on the shipped wrench."""
+    from gsp_jax import model as model_lib
+    from gsp_jax.physics import envelope
+
+    hammer = model_lib.load_model("hammer")
+    try:
+        envelope._start_worker(str(hammer.path))
+        assert envelope._ORACLE.surrogate.model.name == "hammer"
+        assert model_lib.load_model().name == "hammer"
+    finally:
+        model_lib.set_default(None)
+        envelope._ORACLE = None
+    assert model_lib.load_model().name == model_lib.DEFAULT

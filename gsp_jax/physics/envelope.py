@@ -12,7 +12,8 @@ import jax
 import numpy as np
 
 from gsp_jax import scenario
-from gsp_jax.stats import auc
+from gsp_jax.stats import auc, spearman
+
 
 # ------------------------------------------------------------------------------------------- the summary
 def summarise(kinds, fell, angle, feasible, returns, classes, early=None) -> dict:
@@ -20,8 +21,6 @@ def summarise(kinds, fell, angle, feasible, returns, classes, early=None) -> dic
     returns (G, N) per sequence; classes {(g, e): "necessary" | "controller" | "undetermined"} for every fall;
     early {(g, e): bool}: a necessary fall that came before the point the oracle calls impossible."""
     early = early or {}
-    from scipy import stats
-
     fell, angle = np.asarray(fell, bool), np.asarray(angle, float)
     feasible, returns = np.asarray(feasible, bool), np.asarray(returns, float)
     G, N = fell.shape
@@ -41,7 +40,7 @@ def summarise(kinds, fell, angle, feasible, returns, classes, early=None) -> dic
     within = [auc(returns[~fell[:, e] & feasible[:, e], e], returns[fell[:, e] & feasible[:, e], e]) for e in range(N)]
     within = [a for a in within if np.isfinite(a)]
     ok = feasible.ravel()
-    rho = stats.spearmanr(returns.ravel()[ok], -angle.ravel()[ok]).statistic if ok.sum() > 2 else float("nan")
+    rho = spearman(returns.ravel()[ok], -angle.ravel()[ok]) if ok.sum() > 2 else float("nan")
     pool = dict(sequences=int(G * N), surrogate_feasible=int(ok.sum()),
                 feasible_hold_share=float(np.mean(~fell.ravel()[ok])) if ok.any() else float("nan"),
                 auc_pooled=auc(returns.ravel()[ok & ~fell.ravel()], returns.ravel()[ok & fell.ravel()]),
@@ -54,13 +53,16 @@ def summarise(kinds, fell, angle, feasible, returns, classes, early=None) -> dic
 _ORACLE = None
 
 
-def _start_worker() -> None:
+def _start_worker(model_path) -> None:
+    """A process's oracle, of the model at `model_path` (the caller's: a spawned process starts with the default)."""
     global _ORACLE
     jax.config.update("jax_platforms", "cpu")
+    from gsp_jax import model as model_lib
     from gsp_jax.physics.oracle import Oracle
     from gsp_jax.physics.scene import Scene
     from gsp_jax.surrogate import Surrogate
 
+    model_lib.set_default(model_path)
     sur = Surrogate()
     _ORACLE = Oracle(sur, Scene(sur.hand))
 
@@ -86,14 +88,18 @@ def _classify(job) -> tuple:
 
 def classify(episodes: list, jobs: list, processes: int) -> list:
     """The oracle's class of each (episode index, grasps, reached configurations (T, nq), rows before the fall) in
-    `jobs`, in `processes` processes (`_classify`)."""
+    `jobs`, in `processes` processes (`_classify`), for this process's default model (`model.load_model()`)."""
+    from gsp_jax import model as model_lib
+
     if not jobs:
         return []
     work = [(scenario.to_dict(episodes[job[0]]), *job[1:]) for job in jobs]
+    path = str(model_lib.load_model().path)
     if processes <= 1:
-        _start_worker()
+        _start_worker(path)
         return [_classify(w) for w in work]
     import multiprocessing
 
-    with ProcessPoolExecutor(processes, multiprocessing.get_context("spawn"), initializer=_start_worker) as pool:
+    with ProcessPoolExecutor(processes, multiprocessing.get_context("spawn"), initializer=_start_worker,
+                             initargs=(path,)) as pool:
         return list(pool.map(_classify, work, chunksize=max(1, len(work) // (4 * processes))))

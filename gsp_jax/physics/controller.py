@@ -160,7 +160,7 @@ class Controller:
 
     def _links(self, q: jax.Array, near: jax.Array):
         """Link points (L, 3) on the links' centre lines nearest the world points `near` (L, 3) at joint angles q,
-        and their Jacobians (L, 3, J). (Forces act there too: the tool holds better so than with forces at the
+        and their Jacobians (L, 3, J). (Forces act there too: the tool holds better than with them at the
         touching point one radius out.)"""
         return kinematics.closest_on_links_and_jacobians(self.hand, q, near)
 

@@ -40,10 +40,10 @@ AUTOTUNED = ("train", "bench-ppo", "bench-startup")  # commands that keep XLA's 
 def deterministic_gpu_kernels(command: str | None) -> None:
     """Let XLA pick GPU kernels by its heuristics instead of timing candidates (`--xla_gpu_autotune_level=0`, unless
     XLA_FLAGS sets a level): the timed choice varies between runs, most under load, and with it the last bits of
-    the policies' decisions; closed loop in physics such bits decide near-ties (measured: Fig. 4b with the policies
-    side by side gave RL/L1/L2 6/1/1 falls in two runs and 5/0/0 in two others). Training (`AUTOTUNED`) keeps the
-    autotuner: the networks' GEMMs run 2.4x faster with it (PPO iteration on the table backend, H100, side by side);
-    its GPU runs can then differ between processes in the last bits. Must run before JAX starts."""
+    the policies' decisions; closed loop in physics such bits decide near-ties (Fig. 4b's marginal episodes:
+    docs/lookahead.md). Training (`AUTOTUNED`) keeps the autotuner: the networks' GEMMs run much faster with it
+    (docs/lookahead.md); its GPU runs can then differ between processes in the last bits. Must run before JAX
+    starts."""
     flags = os.environ.get("XLA_FLAGS", "")
     if command not in AUTOTUNED and "xla_gpu_autotune_level" not in flags:
         os.environ["XLA_FLAGS"] = f"{flags} --xla_gpu_autotune_level=0".strip()

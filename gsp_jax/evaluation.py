@@ -24,8 +24,8 @@ from gsp_jax import dp, files, grasps, model as model_lib, policies, scenario
 from gsp_jax.surrogate import Surrogate
 
 L1_PHYSICS = dict(k=2, bases=("four-tips", "dp-opt"))  # its defaults: L1's 2 best and each base's own action,
-# under the constant four-tip grasp and DP optimal (never worse than either). Measured (H100 host, stress set):
-# 29 falls of 120, regret 1 (k = 4 under RL: 56, regret 26); docs/lookahead.md
+# under the constant four-tip grasp and DP optimal (never worse than either); their falls and regret against other
+# settings: docs/lookahead.md ("Lookahead verified in physics")
 TRAINED_POLICY = pathlib.Path("results/train/dp/seed0/policy")  # what `python -m experiments train` writes
 SHIPPED_POLICY = policies.SHIPPED_POLICY  # a copy of results/train/dp/seed0/policy of a full GPU run
 TABLE_CACHE = pathlib.Path("results/tables")  # `dp_tables` keeps built tables here (relative to the working dir)

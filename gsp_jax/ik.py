@@ -21,28 +21,18 @@ equation solve per iteration makes the step scale-free, reaching sub-millimetre 
 iterations where plain gradient descent needs hundreds. The adaptive damping accepts only steps that lower the
 cost, so the iteration is monotone.
 
-Local minima (issue 14), measured with `python -m experiments ik-spikes` as *spikes* (a collision-free IK more than
-2 mm off while both neighbouring waypoints of the same grasp are below 1 mm). Two kinds: (1) a fingertip stopped on
-a tool edge (~5.4 mm off); (2) far more often, near the top of high paths, a finger whose *medial* phalanx is the
-contact stops curled over the tool's edge, ~2.3 mm short: its distal phalanx (an inactive link) sits on its 4 mm
-clearance margin and a medial sphere on its contact slack, so uncurling the finger (the way to the solution, which
-the neighbouring waypoints find) first raises the cost; LM there is stationary (more iterations or another damping
-change nothing). Starting the fingers less curled frees them, and the start is chosen by the cost *without* the pull
-towards the model's start: with it, a converged solution far from the start often costs more than the local minimum
-near it (the pull weighs 3 um per mrad), which is what kept half the spikes of the first extra-start candidate ((0,
--.3, -.3, 0), (0, -.3, 0, 0)). The default extra starts, chosen on the training set's spike problems from a grid of
-31 per-finger offsets, straighten the middle and distal joints (pip -0.3, dip -0.4), the second also flexing the
-proximal one (mcp +0.3, pip -0.6). Measured on CPU with `python -m experiments ik-spikes`, spikes / converged (< 1
-mm) and collision-free / collisions, start alone -> default, 288 grasps x 16 waypoints per episode: nominal 17 / 979
-/ 1,452 -> 2 / 1,152 / 1,551; training set (9 episodes) 161 / 9,216 / 13,141 -> 20 / 10,551 / 14,009; validation set
-(11, held out) 183 / 11,075 / 16,035 -> 21 / 12,792 / 17,039 (the first candidate, lowest cost *with* the pull:
-training 57, and with ((0, -.3, .3, 0), (0, .6, -.3, 0)) training 27, validation 38). 3.0x the cost of one start
-(CPU, 4,608 IKs vmapped). More collision flags: every new one is on a (grasp, waypoint) that the start alone left
-unconverged (> 1 mm) and none is below 1 mm; converged, collision-free results lost: 3 (training), 1 (nominal), 0
-(validation), against 1,338 / 174 / 1,717 gained. The spikes left are the same curled-finger minimum at other
-(grasp, waypoint)s (2.0 .. 2.8 mm; a few fingertips on an edge): each start set frees the ones it was chosen on and,
-as their neighbours now converge, uncovers others; every finger shares one start, so a grasp that needs one finger
-opened and another not is freed only if some start suits all its fingers at once.
+Local minima. From the model's start alone the descent sometimes stops in a local minimum, seen as a *spike*
+(`python -m experiments ik-spikes`: a collision-free IK more than 2 mm off while both neighbouring waypoints of the
+same grasp are below 1 mm). Mostly a finger whose *medial* phalanx is the contact stops curled over the tool's edge:
+its distal phalanx (an inactive link) sits on its clearance margin and a medial sphere on its contact slack, so
+uncurling the finger (the way to the solution, which the neighbouring waypoints find) first raises the cost and LM
+is stationary there; more rarely a fingertip stops on a tool edge. Starting the fingers less curled frees them: the
+default extra starts, chosen on the training set's spike problems from a grid of 31 per-finger offsets, straighten the
+middle and distal joints (pip -0.3, dip -0.4), the second also flexing the proximal one (mcp +0.3, pip -0.6). The
+start is chosen by the cost *without* the pull towards the model's start: with it, a converged solution far from
+the start can cost more than the local minimum near it (the pull weighs 3 um per mrad). Every finger shares one
+start, so a grasp that needs one finger opened and another not is freed only if some start suits all its fingers
+at once. Spike counts, cost and the candidates tried: docs/model.md ("IK: local minima, measured").
 """
 from __future__ import annotations
 
@@ -64,8 +54,7 @@ class IKConfig:
     extra_starts: tuple = ((0.0, 0.0, -0.3, -0.4), (0.0, 0.3, -0.6, -0.4))  # more start configurations: per-finger
     # joint offsets (abd, mcp, pip, dip) from the model's start, the same for every finger; the solve runs from each
     # and keeps the lowest cost without the pull towards the start, so the result stays a function of (grasp, pose);
-    # 3x the cost of one start. () runs the model's start alone (the default before issue 14: spikes and figures in
-    # the module docstring)
+    # each start is one more descent. () runs the model's start alone (its spikes: docs/model.md)
     clearance: float = 0.004  # inactive links keep this far from the tool [m]
     contact_slack: float = 0.001  # active links may sink this far into the tool before the collision term acts [m]
     table_margin: float = 0.001  # every sphere keeps this far above the table [m]
@@ -77,14 +66,12 @@ class IKConfig:
     damping_up: float = 4.0  # damping factor after a rejected step
     collision_tol: float = 0.002  # penetration [m] beyond which the result counts as a collision
     lanes: bool | None = None  # an episode's table (`dp.realise_all`) solves its G x T problems in the batch-last
-    # form (`ik_lanes`: the same solve, to float32 rounding; 2-core AMD, one episode's DP optimal, side by side:
-    # 7.4x faster, about 45 s to compile against 11 s): None on a CPU only, True everywhere, False never (`solve`
-    # vmapped)
+    # form (`ik_lanes`: the same solve, to float32 rounding; on a CPU faster to run and slower to compile than
+    # `solve` vmapped, docs/performance.md): None on a CPU only, True everywhere, False never (`solve` vmapped)
     lanes_chunk: int = 288  # the batch-last form solves its batch this many problems at a time (`lax.map` over
     # chunks, each chunk's iterations run to the end before the next starts): a chunk's arrays stay in the CPU's
-    # caches, where the whole batch at once goes to memory every operation (2-core AMD, one episode's 4,608
-    # problems, before the chain's barriers: 4.4 s at once, 3.0-3.7 s in chunks of 72-1,152); the same result,
-    # lane by lane
+    # caches, where the whole batch at once goes to memory every operation (docs/performance.md); the same
+    # result, lane by lane
 
 
 @struct.dataclass
@@ -366,8 +353,7 @@ def _damped_step(jtj: jax.Array, jtr: jax.Array, lam: jax.Array) -> jax.Array:
     """The Levenberg-Marquardt step (J,): solves (J^T J + lam I) step = -J^T r, positive definite for lam > 0. On a
     CPU by LAPACK's Cholesky; on a GPU by Gauss-Jordan elimination written out for the static size
     (`_gauss_jordan_solve`): fused kernels instead of the solver library's seven calls, and small enough to compile
-    fast (one surrogate step, H100, side by side: 3.7 ms and 5.3 s to compile, against 4.5 ms and 8.3 s for a
-    Cholesky written out entry by entry and 6.3 ms and 5.3 s with cuSOLVER's Cholesky)."""
+    fast (against the Cholesky forms tried: docs/lookahead.md)."""
     a = jtj + lam * jnp.eye(jtj.shape[-1], dtype=jtj.dtype)
     return platform.by_platform(
         a, -jtr, cpu=lambda a, b: jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(a), True), b),
@@ -390,8 +376,7 @@ def _gauss_jordan_solve(a: jax.Array, b: jax.Array) -> jax.Array:
 
 def _normal_equations(jac: jax.Array, r: jax.Array) -> tuple[jax.Array, jax.Array]:
     """J^T J (J, J) and J^T r (J,) from the Jacobian (R, J) and residuals (R,). On a CPU as broadcast products and
-    sums (2-core CPU: 3x faster than XLA's batched matmul for these sizes); on a GPU as matmuls (an episode's table
-    of 13,824 IK problems, H100: 51 vs 72 ms; one step about the same)."""
+    sums, on a GPU as matmuls: each the faster form on its platform for these sizes (docs/performance.md)."""
     return platform.by_platform(
         jac, r,
         cpu=lambda jac, r: (jnp.sum(jac[:, :, None] * jac[:, None, :], 0), jnp.sum(jac * r[:, None], 0)),

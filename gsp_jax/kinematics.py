@@ -105,7 +105,7 @@ def small_einsum(spec: str, a: jax.Array, b: jax.Array) -> jax.Array:
     """`jnp.einsum(spec, a, b)` for the IK's tiny contractions (3-vectors, 3x3 matrices, point Jacobians). On a
     GPU it is written as a broadcast product and a sum, which XLA fuses with its neighbours (a tiny matmul is a
     kernel launch of its own, and the IK runs hundreds of them per iteration); the CPU keeps the matmul (there
-    the broadcast form measured slower). Two operands; "..." stands for leading axes that broadcast as in numpy.
+    the broadcast form is slower). Two operands; "..." stands for leading axes that broadcast as in numpy.
     Both forms agree to float32 rounding (tests/test_kinematics.py)."""
     return platform.by_platform(a, b, cpu=lambda a, b: jnp.einsum(spec, a, b),
                                 default=lambda a, b: _broadcast_einsum(spec, a, b))
@@ -152,7 +152,7 @@ def direction_jacobian(hand: HandModel, twists: jax.Array, body: np.ndarray, poi
     wrench = jnp.concatenate([jnp.cross(points, dirs), dirs], -1)  # (N, 6)
     moves = hand.joint_moves_body[body].astype(points.dtype)  # (N, J) joint j moves body b
     rows = sum(wrench[:, None, k] * twists[None, :, k] for k in range(6))  # the 6-term product written out: on
-    # a CPU 2x faster than a batched (N, 6) x (6, J) matmul, on a GPU one fused kernel
+    # a CPU faster than a batched (N, 6) x (6, J) matmul (docs/performance.md), on a GPU one fused kernel
     return rows * moves
 
 

@@ -15,9 +15,9 @@ import jax
 from gsp_jax import dp, lookahead as lookahead_lib, planners, policies
 from gsp_jax.env import TableModel
 
-GPU_AHEAD = 4  # RL's decisions per batch of realised states on a GPU (`policies.rollout_batched`'s `ahead`): measured on
-# an H100 (one process, IK unrolled 3): a batched RL episode 48.3 / 27.5 / 26.7 / 23.7 / 37.3 / 35.7 ms at 1 .. 6 (its
-# batches hold 1 / 12 / 63 / 196 / 420 / 696 states), all with the episodes stepping runs (27 evaluation episodes)
+GPU_AHEAD = 4  # RL's decisions per batch of realised states on a GPU (`policies.rollout_batched`'s `ahead`): a batch
+# realises, for each of the next k decisions j < k, the grasps within j link changes (196 states at k = 4); the
+# fastest k measured, the same episodes at every k (docs/lookahead.md)
 
 
 BATCHED = ("dp-base", "rl")  # the policies whose episode can also run as one batch of transitions

@@ -2,7 +2,7 @@
 
 Some kernels have a CPU form and a GPU form of the same arithmetic (`kinematics.small_einsum`, the IK's normal
 equations and damped step, the table's IK). `jax.lax.platform_dependent` would trace and lower both forms into
-every program and let XLA drop one: the surrogate step then traced 2x and lowered 208 branch pairs. `by_platform`
+every program and let XLA drop one, doubling the trace and lowering work (docs/performance.md). `by_platform`
 traces only the form of the platform the program will run on: the default device's (`jax.default_device`, when
 set) or else the default backend's. A program jitted explicitly for another backend still computes the same
 result (both forms agree to float32 rounding), in the other platform's form.

@@ -9,9 +9,9 @@ both sides of the handle show (thumb on -y, the other fingers on +y); ``"head"``
 ``"side"`` the whole hand and the tool's height from the thumb's side. A camera of the model works too (``"front"``).
 
 Optional: needs an OpenGL backend, chosen by the `MUJOCO_GL` environment variable, which must be set before
-anything imports mujoco (e.g. `MUJOCO_GL=egl python -m experiments physics --render`). `egl` works headless on
-the CPU machines here; the GPU machines we measured on have no libEGL (there `MUJOCO_GL=egl` makes `import
-mujoco` fail), so render from a saved `qpos` trace on a CPU. `osmesa` is the software fallback where installed.
+anything imports mujoco (e.g. `MUJOCO_GL=egl python -m experiments physics --render`). `egl` works headless where
+libEGL is installed; where it is missing (some GPU machines: docs/calibration.md) `MUJOCO_GL=egl` makes `import
+mujoco` fail, so render there from a saved `qpos` trace on a CPU. `osmesa` is the software fallback where installed.
 Nothing else in the library imports this module, so the physics check runs without any GL.
 
 Words for pictures need no GL: `option_places` names where each contact option touches the tool (from the model's

@@ -2,9 +2,9 @@
 measured. For every (grasp, waypoint) of every episode of a set, the IK error of the grasp, side by side: from the
 model's start alone (`extra_starts=()`), with the library's `IKConfig()`, and once per `--starts` candidate (the
 library's config with `IKConfig.extra_starts` replaced: per-finger joint offsets, one start per `;`; an empty
-string is the start alone; by default the pre-issue-14 candidate). A *spike* is a collision-free IK whose error
-exceeds 2 mm while both neighbouring waypoints of the same grasp are below 1 mm: a solution exists nearby, so the
-solver stopped in a local minimum (the issue-14 definition). Prints a small table last; writes
+string is the start alone; by default the first candidate tried, docs/model.md). A *spike* is a collision-free IK
+whose error exceeds 2 mm while both neighbouring waypoints of the same grasp are below 1 mm: a solution exists
+nearby, so the solver stopped in a local minimum. Prints a small table last; writes
 results/ik/<set>_spikes.json."""
 from __future__ import annotations
 

@@ -2,7 +2,7 @@
 are taken from.
 
 The rewards come out of iterative solvers (60 Levenberg-Marquardt IK iterations with an accept/reject test, 10
-semismooth Newton wrench iterations; 150 projected-gradient ones until issue 15) run in float32. Two computations of the same reward along two paths
+semismooth Newton wrench iterations) run in float32. Two computations of the same reward along two paths
 (vmapped vs looped, table vs step, another CPU's instruction set) differ in the last bits, and the solvers
 amplify those differences. This measures by how much, over the reward terms of every (grasp, waypoint) of an
 episode (what the DP table is built from), against the native float32 computation of the unperturbed episode:

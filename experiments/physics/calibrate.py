@@ -14,10 +14,8 @@ calibrated against the physics check, on the training and validation episodes on
 4. Per candidate: the Spearman rank correlation between each sequence's surrogate return and its simulated
    -angle error (180 deg when the tool fell), pooled; the share of surrogate-feasible sequences that hold; DP
    optimal's falls and grasp changes. The winner: the candidate whose DP-optimal plans fall least in physics, then
-   the higher correlation. (A planner uses the surrogate through its optimum. The first sweep chose by correlation
-   alone, within one bootstrap standard error of the best; that picked a reward without the change term whose DP
-   plans dropped the tool on 19 of 20 episodes, against 10 for the winner at 1.2 standard errors less
-   correlation. Both rows are in the sweep table.)
+   the higher correlation. (A planner uses the surrogate through its optimum: correlation alone can pick a reward
+   whose DP plans drop the tool far more often; docs/calibration.md.)
 
 Prints the sweep as a table; writes results/calibrate/sweep.json, and with --write the winner into
 gsp_jax/calibration.py, where `RewardConfig` reads its defaults."""

@@ -1,7 +1,7 @@
 """The C MuJoCo backend of the runner: the same controller, decisions and outcome as the MJX runner
 (`runner.Physics.simulate`), with the physics stepped by C MuJoCo on every CPU core. It is the reference every MJX
-figure can be checked against, and for this scene the faster engine (C MuJoCo steps it ~10x faster per core than
-MJX on an H100: ../shared/ENVIRONMENT.md).
+figure can be checked against, and for this scene the faster engine (per core, than MJX on a GPU:
+docs/performance.md).
 
 One lockstep runs every episode of every policy given (Fig. 4b's 5 policies x 27 episodes are one batch of 135):
 
@@ -13,8 +13,8 @@ One lockstep runs every episode of every policy given (Fig. 4b's 5 policies x 27
                           bit-identical to a loop of `mj_step` per episode, at any thread count).
 
 A tick's JAX call takes four flat arrays (controller states, observations, episodes, tick index) and returns two:
-a call with the controller's pytrees as arguments cost ~150 us of dispatch (21 leaves), more than the physics of
-27 episodes on two cores. Episodes that fell are frozen (no longer stepped).
+with the controller's pytrees as arguments (21 leaves) its dispatch would cost more than the physics of a tick
+(docs/performance.md). Episodes that fell are frozen (no longer stepped).
 """
 from __future__ import annotations
 
@@ -353,8 +353,8 @@ def simulate(phys, groups, episodes: Episode, cores: int | None = None, progress
     Between two decisions the lockstep's episodes run as `workers` chunks side by side (threads: XLA and MuJoCo
     both run without Python's lock), each with its own controller call per tick and its own `Engine` on
     cores / workers threads, so one chunk's physics overlaps another's controller. Default: one chunk per ~32
-    episodes, at most cores / 4 (measured, H100 host, 16 cores, 135 episodes warm: 1 chunk 13.3 s, 2 8.3 s, 4 6.2 s,
-    8 8.0 s, 16 13.8 s: each chunk's Python per tick holds Python's lock, and the controller calls contend).
+    episodes, at most cores / 4 (more chunks are slower: each chunk's Python per tick holds Python's lock, and the
+    controller calls contend; timings per chunk count: docs/physics.md, "Cost").
     `engine_log` (a list, one worker only): every step's states are appended to it (`Engine.log`; `experiments
     bench-physics` replays them to time the engine alone).
 

@@ -123,8 +123,8 @@ def rotation_error(q_ref: jax.Array, q: jax.Array) -> jax.Array:
 
 def _solve3(m: jax.Array, v: jax.Array) -> jax.Array:
     """x (..., 3) with m x = v for 3x3 matrices m (..., 3, 3), by the adjugate (Cramer's rule): written out, so
-    XLA fuses it (a batched LAPACK solve, 2 of its 5 calls a tick, cost a quarter of the controller's tick on a
-    2-core CPU: 27 episodes 0.90 -> 0.66 ms)."""
+    XLA fuses it (a batched LAPACK solve is a library call of its own, a large share of a controller tick on a CPU:
+    docs/physics.md, "Cost")."""
     c0 = jnp.cross(m[..., 1, :], m[..., 2, :])
     c1 = jnp.cross(m[..., 2, :], m[..., 0, :])
     c2 = jnp.cross(m[..., 0, :], m[..., 1, :])
@@ -160,8 +160,8 @@ class Controller:
 
     def _links(self, q: jax.Array, near: jax.Array):
         """Link points (L, 3) on the links' centre lines nearest the world points `near` (L, 3) at joint angles q,
-        and their Jacobians (L, 3, J). (Forces act there too: measured, that held better than at the touching
-        point one radius out.)"""
+        and their Jacobians (L, 3, J). (Forces act there too: the tool holds better than with them at the
+        touching point one radius out.)"""
         return kinematics.closest_on_links_and_jacobians(self.hand, q, near)
 
     def _target(self, options: jax.Array) -> jax.Array:
@@ -241,7 +241,7 @@ class Controller:
         inertia, stiff, damp = self._tool_inertia(mat, episode)
         turn = stiff @ (kp * rotation_error(ref.quat, obs.tool_quat)) - damp @ (kd * omega)
         # the feedback is capped: a contact's impact spikes the observed velocity, and an uncapped damping term
-        # would turn the spike into grip forces the motors cannot give (measured: the tool thrown out of the hand)
+        # would turn the spike into grip forces the motors cannot give, throwing the tool out of the hand
         clip = lambda v, top: v * jnp.minimum(1.0, top / (jnp.linalg.norm(v) + 1e-9))  # noqa: E731
         cap = jnp.maximum(c.feedback_limit * weight, c.feedback_floor)
         feedback, turn = clip(feedback, cap), clip(turn, cap * c.tool_radius)
@@ -256,8 +256,8 @@ class Controller:
         offset CoM's grip forces). Damping: the same, but about each principal axis at most `rotation_step` /
         (tick kd) times the tool's own inertia there, so one tick's damping takes at most `rotation_step` of the
         tool's angular velocity off (within a tick the tool turns alone, the fingers follow through the contacts'
-        compliance: bounded by the tool's plus the fingers' reflected inertia, the heavy tool of
-        `test_the_tool_loop_is_stable_at_the_control_rate` still fell, measured before the noslip solver)."""
+        compliance, so their reflected inertia does not count: docs/physics.md, "The tool loop at the control
+        rate")."""
         c = self.config.controller
         inertia = (mat * episode.inertia) @ mat.T
         stiff = episode.inertia + episode.mass * c.tool_radius**2  # (3,) about the tool's principal axes

@@ -173,8 +173,8 @@ class Physics:
     def _run(self, policy, episodes: Episode, policy_axis, batched: bool) -> Result:
         """The MJX episode loop: a scan over segments, each a decision and a scan over its control ticks. With
         `batched`, every per-episode function is vmapped *inside* the scans (the carry is batched from the start:
-        tracing a vmapped scan instead re-batches its body until the carry's batching settles, which measured 10 s
-        of the trace on a CPU)."""
+        tracing a vmapped scan instead re-batches its body until the carry's batching settles, a slow trace:
+        docs/performance.md)."""
         T, n = episodes.n_steps, self.n_segment
         vm = (lambda f, axes: jax.vmap(f, in_axes=axes)) if batched else (lambda f, axes: f)  # noqa: E731
         fields = vm(self.scene.episode_fields, 0)(episodes)

@@ -21,8 +21,7 @@ class PPOConfig:
     clip: float = 0.2
     # an iteration's remaining Adam steps are skipped once a minibatch's approx. KL from the rollout policy exceeds
     # this (None: never). Fresh Adam moves every weight by ~lr whatever the gradient, so without it the first
-    # iteration after DP pretraining moved the near-deterministic policy by KL 0.95 and every episode fell for 45
-    # iterations (H100, full preset, seed 0).
+    # iteration after DP pretraining throws the near-deterministic cloned policy far off (docs/rl.md).
     target_kl: float | None = 0.05
     vf_coef: float = 0.5
     ent_coef: float = 0.01

@@ -19,7 +19,7 @@ from gsp_jax.ppo import networks as nets
 from gsp_jax.ppo import train as ppo
 from gsp_jax.surrogate import Surrogate
 
-PRESETS = {  # quick: a few minutes on a 2-core CPU; full: the GPU run behind the README's numbers
+PRESETS = {  # quick: sized for a CPU; full: the GPU run behind the README's numbers
     "quick": dict(n_envs=256, hidden=(256, 256, 256), iterations=100, bc_epochs=300, minibatches=4),
     "full": dict(n_envs=2048, hidden=(256, 256, 256), iterations=300, bc_epochs=300, minibatches=8),
 }

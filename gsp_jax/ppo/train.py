@@ -11,7 +11,7 @@ Rewards enter the update multiplied by `reward_scale`, so the critic predicts re
 reported in `history` are in reward units. Starting from pretrained `params` keeps the weights and the
 normaliser but starts a fresh Adam state (the pretraining optimiser's moments belong to another objective); run
 it with `update_normalizer=False`, since folding PPO's rollouts into the statistics moves the pretrained
-network's inputs under it (measured: it undid the pretraining within 10 iterations).
+network's inputs under it and undoes the pretraining (docs/rl.md).
 """
 from __future__ import annotations
 

@@ -17,12 +17,12 @@ from gsp_jax import evaluation, files, online, planners
 from gsp_jax.surrogate import Surrogate
 
 GPU_IK_UNROLL = 3  # IK iterations per loop trip on a GPU (`IKConfig.unroll`): each trip of XLA's loop costs a sync on
-# the device; measured on an H100 (one process): a batched RL episode 53.4 / 47.7 / 46.9 / 47.8 ms at 1 / 3 / 6 / 12,
-# compiling in 12 / 19 / 25 / 36 s; the same episodes (27 evaluation episodes: equal grasps, returns)
+# the device, and more iterations a trip compile longer for little more; the same episodes at every unroll
+# (timings: docs/lookahead.md)
 PAPER = planners.names("paper")  # Table 1's rows: the paper's five planners, in its order
 def before(ctx: evaluation.Context) -> evaluation.Context:
-    """The context as the code stood before issue 37: the table's IK `ik.solve` vmapped on every platform (not the
-    CPU's batch-last form, `ik_lanes`); with `lookahead="cached"` its L1 and L2 are the planners of then."""
+    """The context as the code stood before the batch-last IK: the table's IK `ik.solve` vmapped on every platform
+    (not the CPU's batch-last form, `ik_lanes`); with `lookahead="cached"` its L1 and L2 are the planners of then."""
     return _with_ik_config(ctx, lanes=False)
 
 

@@ -45,7 +45,7 @@ QUICKEST = {
                        [])],
     "envelope": [(["envelope", "--set", "eval", "--episodes", "1", "--random", "0", "--physics-lookahead", "1",
                    "--bases", "four-tips"], ["results/envelope/eval.json"])],
-    "rescore": [(["rescore", "--episodes", "2", "--reward", "squeeze=8,grip=0"], ["results/rescore/stress.json"])],
+    "rescore": [(["rescore", "--episodes", "2", "--reward", "grip=0,fall_unmet=0.2"], ["results/rescore/stress.json"])],
     "calibrate": [(["calibrate", "--sets", "nominal", "--random", "1", "--backend", "c"],
                    ["results/calibrate/sweep.json"])],
     "fig4a": [(["fig4a", "--set", "evalA", "--episodes", "2"], ["results/fig4a/returns.json"])],

@@ -8,6 +8,9 @@ policy the same way. A policy may read any field of the state except `terms` (th
     DP optimal    TablePolicy(solution of the episode itself .policy)                  closed loop, (grasp, t)
     RL            NetworkPolicy(params, networks, space)                               deterministic PPO actor
     Ll (L1, L2)   Lookahead(base=any of these, model=surrogate, depth=l)               `gsp_jax.lookahead`
+
+A policy's episode in the surrogate `sur`: `lookahead.rollout(sur, policy, sur.reset(episode))` (the one rollout);
+`rollout_batched` runs the same episode with its transitions in one batch.
 """
 from __future__ import annotations
 

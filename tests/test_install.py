@@ -43,7 +43,7 @@ def test_wheel_installs_outside_the_checkout_and_steps_the_surrogate(tmp_path):
     run([*pip, "wheel", "--no-deps", "-w", str(tmp_path / "dist"), str(ROOT)])
     (wheel,) = (tmp_path / "dist").glob("gsp_jax-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
-    for f in ("scene.xml", "hand.xml", "wrench.xml", "policies/ppo_dp_seed0/_METADATA"):
+    for f in ("scene.xml", "hand.xml", "wrench.xml", "reward_calibration.json", "policies/ppo_dp_seed0/_METADATA"):
         assert f"gsp_jax/models/{f}" in names, f"{f} is not in the wheel"
     assert not any(n.startswith("models/") for n in names)  # one copy, inside the package
 

@@ -13,9 +13,11 @@ to one option). Its terms:
   (d) wrench_ext    at the last step only: wrench error against gravity plus the external wrench w_ext,
   (e) redundant     1 if a non-null action left the grasp unchanged (the null action is free),
   (f) wrench_change when the grasp changes: wrench error of the *shared* grasp (g without the link that moves,
-                    `GraspSpace.shared`) realised at the current pose, against the same moving wrench as (a): the
-                    links that stay must carry the tool through the change. 0 for the null action, and 0 at
-                    waypoints t < `supported_steps`, where the tool still rests on its start support.
+                    `GraspSpace.shared`; the contact controller unloads that link, moves it and loads it again)
+                    realised at the current pose, against the same moving wrench as (a): the links that stay
+                    must carry the tool through the change. 0 for the null action, and 0 at waypoints t <
+                    `supported_steps`, where the tool still rests on its start support (the physics' pedestals
+                    stay for the first segment).
 
 (a)-(d) depend on the new grasp g' and the waypoint only (`arrival`); (e) and (f) are the previous grasp's part
 (`with_previous`). The reward is -(weighted sum), capped at `max_step_cost`, or `r_min` when either IK collides, any

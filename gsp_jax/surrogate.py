@@ -28,7 +28,6 @@ from gsp_jax.reward import RewardConfig, RewardTerms
 from gsp_jax.scenario import Episode, unstack, validate
 
 
-
 @struct.dataclass
 class State:
     """Continuous surrogate state plus the episode input. Shapes for one state (vmap adds axes)."""

@@ -4,13 +4,15 @@ Data flows one way:
 
     a scene (models/*.xml or yours) -> model.py (load_model, check_model) -> hand.py (constant arrays)
                                      -> kinematics.py, ik.py, wrench.py (kernels)
-    scenario.py (Episode) -> surrogate.py (reset/step, reward terms) -> dp.py (table, Bellman backup)
+    reward.py (RewardConfig, its terms; models/reward_calibration.json) -> surrogate.py, dp.py
+    scenario.py (Episode) -> surrogate.py (reset/step)               -> dp.py (table, Bellman backup)
                                                                      -> policies.py (one `act(state)` interface)
                                                                      -> planners.py (every planner by name)
 
 The surrogate step is `surrogate.Surrogate.step`: `realise` (IK) at the current and next waypoint, then
 `score` (wrench solves: the move, the hold, the hold under the external wrench, and the change when changes are
-priced) -> reward.
+priced) -> `reward.arrival` and `reward.with_previous` (terms -> reward); the DP table scores with the same
+functions (`reward.of_transitions`).
 """
 
 from gsp_jax import cache as _cache

@@ -10,9 +10,11 @@ new grasp g' and t. So the table
 
 costs G x T distinct IK solves (4,608: each grasp at each waypoint, shared by the step that arrives there, the
 step that leaves and the changes it holds the tool through), G x T x 3 wrench solves, and no per-(g, a) physics
-at all -- against the paper's G x A x T = 78,336 `env.step()` calls. Every action is applicable in every grasp
-(the null action keeps it, the others set one link), so no transition is unreachable; a transition that collides
-or drops the tool gets R_MIN and ends the episode (`terminal`), as do all transitions of the last step.
+at all -- against the paper's G x A x T = 78,336 environment steps (`Surrogate.step`). The reward is
+`gsp_jax.reward`'s, as in the step: the arrival terms of each (g', t) (`grasp_terms`), then each transition's
+(`reward.of_transitions`). Every action is applicable in every grasp (the null action keeps it, the others set one
+link), so no transition is unreachable; a transition that collides or drops the tool gets R_MIN and ends the
+episode (`terminal`), as do all transitions of the last step.
 
 All functions take one episode; `jax.vmap` them over a batch (`scenario.stack`), episodes leading.
 """
@@ -22,10 +24,11 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from gsp_jax import platform
+from gsp_jax import platform, reward as reward_lib
 from gsp_jax.grasps import NULL, GraspSpace
+from gsp_jax.reward import RewardTerms
 from gsp_jax.scenario import Episode
-from gsp_jax.surrogate import Contacts, RewardTerms, State, Surrogate
+from gsp_jax.surrogate import Contacts, State, Surrogate
 
 
 @struct.dataclass
@@ -52,24 +55,24 @@ class Solution:
     ret: jax.Array  # () optimal return from the start grasp = value[start, 0]
 
 
-def build_table(env: Surrogate, episode: Episode) -> Table:
+def build_table(sur: Surrogate, episode: Episode) -> Table:
     """The reward/transition table of one episode from G x T IK solves (see the module docstring). A concrete
     episode is checked first (`Surrogate.check`)."""
-    episode = env.check(episode)
-    contacts = realise_all(env, episode)
-    return table_from_terms(env, episode, grasp_terms(env, episode, contacts), contacts)
+    episode = sur.check(episode)
+    contacts = realise_all(sur, episode)
+    return table_from_terms(sur, episode, grasp_terms(sur, episode, contacts), contacts)
 
 
-def realise_all(env: Surrogate, episode: Episode) -> Contacts:
+def realise_all(sur: Surrogate, episode: Episode) -> Contacts:
     """Every grasp realised by IK at every waypoint: leaves (G, T, ...). All G x T solves as one batch: on a CPU
-    in the batch-last form (`ik_lanes`, where `env.ik_config.lanes` allows), elsewhere `env.realise` vmapped."""
-    grasps = jnp.arange(env.space.n_grasps, dtype=jnp.int32)
-    vmapped = lambda: jax.vmap(jax.vmap(env.realise, (None, 0, 0)), (0, None, None))(  # noqa: E731
+    in the batch-last form (`ik_lanes`, where `sur.ik_config.lanes` allows), elsewhere `sur.realise` vmapped."""
+    grasps = jnp.arange(sur.space.n_grasps, dtype=jnp.int32)
+    vmapped = lambda: jax.vmap(jax.vmap(sur.realise, (None, 0, 0)), (0, None, None))(  # noqa: E731
         grasps, episode.waypoints, episode.quats)
-    lanes = env.ik_config.lanes
+    lanes = sur.ik_config.lanes
     if lanes is False:
         return vmapped()
-    batched = lambda: env.realise_batch(  # noqa: E731
+    batched = lambda: sur.realise_batch(  # noqa: E731
         jnp.broadcast_to(grasps[:, None], (len(grasps), episode.n_steps)),
         jnp.broadcast_to(episode.waypoints, (len(grasps),) + episode.waypoints.shape),
         jnp.broadcast_to(episode.quats, (len(grasps),) + episode.quats.shape))
@@ -78,44 +81,39 @@ def realise_all(env: Surrogate, episode: Episode) -> Contacts:
     return platform.by_platform(cpu=batched, default=vmapped)
 
 
-def grasp_terms(env: Surrogate, episode: Episode, contacts: Contacts) -> RewardTerms:
+def grasp_terms(sur: Surrogate, episode: Episode, contacts: Contacts) -> RewardTerms:
     """The reward terms (G', T) of arriving in grasp g' by a step from waypoint t, without the previous grasp's
-    part (not redundant, no change): the null action's terms from (g', t)."""
+    part (not redundant, no change): the null action's terms from (g', t) (`Surrogate.score`)."""
     n_t = episode.n_steps
     ts = jnp.arange(n_t, dtype=jnp.int32)
     nxt = jax.tree.map(lambda x: x[:, jnp.minimum(ts + 1, n_t - 1)], contacts)
 
     def score(now, nx, t):
-        return env.score(episode, t, episode.waypoints[t], episode.quats[t], now, nx, False)
+        return sur.score(episode, t, episode.waypoints[t], episode.quats[t], now, nx, False)
 
     return jax.vmap(jax.vmap(score, (0, 0, 0)), (0, 0, None))(contacts, nxt, ts)
 
 
-def table_from_terms(env: Surrogate, episode: Episode, plain: RewardTerms, contacts: Contacts) -> Table:
-    """The table from `grasp_terms`: every (g, a) reads its new grasp's terms, adds its redundant flag and its
-    change term (the shared grasp's moving-wrench term at waypoint t) and is rewarded by `env`'s config."""
-    n_g, n_t = env.space.n_grasps, episode.n_steps
+def table_from_terms(sur: Surrogate, episode: Episode, plain: RewardTerms, contacts: Contacts) -> Table:
+    """The table from `grasp_terms`: the transitions (G, A) of the grasp space, each rewarded by
+    `reward.of_transitions` (its new grasp's terms, its redundant flag, its change term from the shared grasp)."""
+    n_g, n_t = sur.space.n_grasps, episode.n_steps
     grasps = jnp.arange(n_g, dtype=jnp.int32)
     ts = jnp.arange(n_t, dtype=jnp.int32)
-    actions = jnp.arange(env.space.n_actions, dtype=jnp.int32)
-    next_grasp, is_redundant = env.space.apply(grasps[:, None], actions[None, :])  # (G, A)
-    changed = (next_grasp != grasps[:, None])[..., None]  # (G, A, 1)
-    terms = jax.tree.map(lambda x: x[next_grasp], plain)  # (G, A, T, ...)
-    if env.prices_changes:
-        shared = env.space.shared(grasps[:, None], actions[None, :])  # (G, A)
-        change_error, change_unmet = plain.wrench_move[shared], plain.unmet[shared][..., 0]
-    else:
-        change_error = change_unmet = jnp.zeros((), jnp.float32)
-    terms = env.finish(terms, is_redundant[..., None], changed, change_error, change_unmet, ts[None, None, :])
+    actions = jnp.arange(sur.space.n_actions, dtype=jnp.int32)
+    next_grasp, is_redundant = sur.space.apply(grasps[:, None], actions[None, :])  # (G, A)
+    changed = next_grasp != grasps[:, None]  # (G, A)
+    shared = sur.space.shared(grasps[:, None], actions[None, :])  # (G, A)
+    terms = reward_lib.of_transitions(sur.reward_config, plain, next_grasp, is_redundant, changed, shared, ts)
     terminal = terms.collision | terms.fall | (ts == n_t - 1)[None, None, :]
     return Table(reward=terms.reward, next_grasp=next_grasp, terminal=terminal, ik_error=contacts.ik.error, q=contacts.ik.q)
 
 
-def build_tables(env: Surrogate, episodes: Episode, batch_size: int | None = None) -> Table:
+def build_tables(sur: Surrogate, episodes: Episode, batch_size: int | None = None) -> Table:
     """Tables of a stacked episode set (leaves (N, ...)), `batch_size` episodes at a time (`lax.map`: one
     compilation, bounded memory; None = all at once). Concrete episodes are checked first (`Surrogate.check`)."""
-    episodes = env.check(episodes)
-    return jax.lax.map(lambda ep: build_table(env, ep), episodes, batch_size=batch_size)
+    episodes = sur.check(episodes)
+    return jax.lax.map(lambda ep: build_table(sur, ep), episodes, batch_size=batch_size)
 
 
 def backup(table: Table, start_grasp: jax.Array) -> Solution:
@@ -151,9 +149,9 @@ def longest_surviving(table: Table, start_grasp: jax.Array, r_min: float) -> Sol
     return backup(table.replace(reward=survived), start_grasp)
 
 
-def solve(env: Surrogate, episode: Episode) -> tuple[Table, Solution]:
+def solve(sur: Surrogate, episode: Episode) -> tuple[Table, Solution]:
     """Table + backup for one episode (`vmap` it for a batch)."""
-    table = build_table(env, episode)
+    table = build_table(sur, episode)
     return table, backup(table, episode.start_grasp)
 
 

@@ -13,7 +13,7 @@ best path, and q[a] = the best score under first action a (Q-values, for inspect
 absorbing (reward 0), so paths that end the episode early are scored by what they earned.
 
 `model` is anything with `step(state, action) -> (state, reward, done)`: the `Surrogate` (IK + wrench solves;
-from any continuous state, e.g. the simulated one in the physics check) or `env.TableModel` (one episode's DP
+from any continuous state, e.g. the simulated one in the physics check) or `dp.TableModel` (one episode's DP
 table: exact, and cheap, for the discrete states the surrogate visits). `base` is any policy (`act(state)`):
 DP, PPO's deterministic actor, or another lookahead. `depth` and `horizon` are static; everything else is
 traced, so `jax.vmap` runs one search per (state, episode, policy parameters) in one XLA kernel.
@@ -99,7 +99,7 @@ def search(model, state: State, base, depth: int = 1, horizon: int | None = None
            inner=None) -> Plan:
     """Algorithm 2 from one state: the best first action of the depth-`depth` tree with rollouts of `base`
     (see the module docstring). Shapes for one state; `jax.vmap` over states / episodes / base parameters.
-    `inner`: the model below the root (default `model`), e.g. the episode's `env.TableModel`: every state below
+    `inner`: the model below the root (default `model`), e.g. the episode's `dp.TableModel`: every state below
     the root is a discrete (grasp, waypoint) state, so only the root's A transitions need `model`."""
     if depth < 1:
         raise ValueError(f"depth: the lookahead depth l must be >= 1, got {depth}")

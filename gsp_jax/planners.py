@@ -11,7 +11,7 @@
 
 The library's planners register themselves at the end of this module. A builder takes the `evaluation.Context` of a batch of N episodes and keyword options (with defaults: they are the
 planner's documented options) and returns (policy, policy_axis): a policy for `physics.Physics.simulate` /
-`policies.rollout`, and 0 where it holds one policy per episode (a pytree of axes for a composite), None where one
+`lookahead.rollout`, and 0 where it holds one policy per episode (a pytree of axes for a composite), None where one
 policy serves all. `needs` names what of the context it reads ("tables", "solutions", "rl", "nominal", or "base":
 the lookahead's base, the RL policy or else the DP baseline; a planner with a `cached` option reads the tables
 while it is on), so a command builds only that. The commands take

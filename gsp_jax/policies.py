@@ -8,6 +8,9 @@ policy the same way. A policy may read any field of the state except `terms` (th
     DP optimal    TablePolicy(solution of the episode itself .policy)                  closed loop, (grasp, t)
     RL            NetworkPolicy(params, networks, space)                               deterministic PPO actor
     Ll (L1, L2)   Lookahead(base=any of these, model=surrogate, depth=l)               `gsp_jax.lookahead`
+
+A policy's episode in the surrogate `sur`: `lookahead.rollout(sur, policy, sur.reset(episode))` (the one rollout);
+`rollout_batched` runs the same episode with its transitions in one batch.
 """
 from __future__ import annotations
 
@@ -28,7 +31,7 @@ from gsp_jax.ppo.config import PPOConfig
 from gsp_jax.scenario import Episode
 from gsp_jax.surrogate import State, Surrogate
 
-__all__ = ["Lookahead", "NetworkPolicy", "SequencePolicy", "TablePolicy", "rollout", "rollout_batched"]
+__all__ = ["Lookahead", "NetworkPolicy", "SequencePolicy", "TablePolicy", "rollout_batched"]
 
 
 @struct.dataclass
@@ -154,17 +157,6 @@ def _check_concrete(actions, field: str, space: GraspSpace | None) -> None:
             bad = (a < 0) | (a != np.round(a))
             if np.any(bad):
                 raise ValueError(f"{field}: {a[bad].ravel()[0]} is not an action (a non-negative integer)")
-
-
-def rollout(env, policy, episode) -> tuple[jax.Array, State]:
-    """Return of `policy` on `episode` in the surrogate (a `lax.scan` of T steps), and the final state."""
-
-    def step(state, _):
-        state, reward, _ = env.step(state, policy.act(state))
-        return state, reward
-
-    final, rewards = jax.lax.scan(step, env.reset(episode), None, length=episode.n_steps)
-    return jnp.sum(rewards), final
 
 
 def rollout_batched(sur: Surrogate, policy, episode: Episode, ahead: int = 1) -> tuple[jax.Array, State]:

@@ -200,15 +200,15 @@ def _result(a, b, x, base, scale, wrench, rho) -> WrenchResult:
 
 
 def assess(forces: jax.Array, points: jax.Array, active: jax.Array, wrench: jax.Array, center: jax.Array,
-           cfg: WrenchConfig = WrenchConfig(), reference: jax.Array | None = None) -> WrenchResult:
+           cfg: WrenchConfig = WrenchConfig()) -> WrenchResult:
     """The `WrenchResult` of given contact forces (K, 3) (not a solve): the residual G f - w, the error
-    |S(G f - w)|^2 + rho |f - reference|^2 (reference (K, 3), default zero: the forces a solve pulls towards) and
-    the unmet fraction, on the active (K,) contacts. `solve`'s result, recomputed for forces a hand delivers."""
+    |S(G f - w)|^2 + rho |f|^2 and the unmet fraction, on the active (K,) contacts. `solve`'s result (without a
+    grip or `prefer`), recomputed for forces a hand delivers (`saturate`)."""
     dtype = points.dtype
     wrench, center = jnp.asarray(wrench, dtype), jnp.asarray(center, dtype)
     mask3 = jnp.repeat(active.astype(dtype), 3)
     scale = _scale(cfg, dtype)
-    base = jnp.zeros_like(mask3) if reference is None else jnp.asarray(reference, dtype).reshape(-1) * mask3
+    base = jnp.zeros_like(mask3)
     with jax.default_matmul_precision("highest"):
         a = scale[:, None] * grasp_matrix(points, center) * mask3[None]  # (6, 3K)
         return _result(a, scale * wrench - a @ base, forces.reshape(-1) * mask3 - base, base, scale, wrench,

@@ -1,10 +1,9 @@
 """Tests of experiments/physics/calibrate.py: the candidate tables (IK shared by all candidates, wrench solves by each
-friction scale) equal `dp.build_table` under each candidate's own surrogate; the winner is the fewest DP-optimal
+grip) equal `dp.build_table` under each candidate's own surrogate; the winner is the fewest DP-optimal
 falls, then the highest correlation; the evaluation episodes are refused."""
 from __future__ import annotations
 
 import argparse
-import pathlib
 import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
@@ -17,16 +16,17 @@ import pytest  # noqa: E402
 
 import tolerances as tol  # noqa: E402
 from experiments.physics import calibrate  # noqa: E402
-from gsp_jax import dp, scenario, surrogate  # noqa: E402
+from gsp_jax import dp, reward, scenario, surrogate  # noqa: E402
+from gsp_jax.reward import RewardConfig  # noqa: E402
 
 
 def test_candidate_tables_equal_each_candidates_own_table():
-    """Two candidates that differ in every calibrated field (friction scale, grip, fall threshold, change term) on
+    """Two candidates that differ in every calibrated field (grip, its mass scaling, fall threshold, change term) on
     a 3-waypoint episode: the shared-IK tables equal `dp.build_table` of a surrogate built with that config."""
-    base = surrogate.RewardConfig()
-    configs = [dataclasses.replace(base, friction_scale=1.0, grip=0.0, fall_unmet=0.3, w_wrench_change=0.0,
+    base = RewardConfig()
+    configs = [dataclasses.replace(base, grip=0.0, grip_scales_with_mass=False, fall_unmet=0.3, w_wrench_change=0.0,
                                    change_falls=False),
-               dataclasses.replace(base, friction_scale=0.8, grip=2.0, fall_unmet=0.2, w_wrench_change=5.0,
+               dataclasses.replace(base, grip=2.0, grip_scales_with_mass=True, fall_unmet=0.2, w_wrench_change=5.0,
                                    change_falls=True)]
     ep = scenario.eval_set_b()["mass1.5m0_comy+1cm"].head(3)
     tables = calibrate.candidate_tables(configs, scenario.stack([ep]))
@@ -42,7 +42,7 @@ def test_candidate_tables_equal_each_candidates_own_table():
 
 def _sweep(rows):
     results = [dict(label=f"c{i}", spearman=rho, feasible=10, feasible_held=0.5, dp_opt_falls=falls,
-                    dp_opt_angle=90.0, dp_opt_changes=2.0, config=dataclasses.asdict(surrogate.RewardConfig()))
+                    dp_opt_angle=90.0, dp_opt_changes=2.0, config=dataclasses.asdict(RewardConfig()))
                for i, (rho, falls) in enumerate(rows)]
     return dict(sweep=results, episodes=["a", "b"], sets=["train"], backend="c", sequences=40,
                 best_spearman=max(r for r, _ in rows if r == r), best_spearman_se=0.02, best_spearman_label="c0",
@@ -73,7 +73,7 @@ def test_sign_test_p_is_the_exact_binomial_tail():
 def test_incumbent_stays_unless_the_challenger_falls_significantly_less(capsys):
     """The incumbent (today's calibration, by its label) keeps its place against a challenger whose DP plans hold
     3 episodes more of 20 (p 0.25), and gives it up to one that holds 9 more and loses none (p 0.004)."""
-    incumbent = calibrate.label(surrogate.RewardConfig())
+    incumbent = calibrate.label(RewardConfig())
 
     def sweep(challenger_fell):
         s = _sweep([(0.5, sum(challenger_fell)), (0.3, 12)])
@@ -94,8 +94,20 @@ def test_evaluation_episodes_are_refused():
         calibrate.main(args)
 
 
-def test_write_targets_the_librarys_calibration_module():
-    """`calibrate --write` rewrites gsp_jax/calibration.py, the module `surrogate.RewardConfig` reads."""
-    from gsp_jax import calibration
-
-    assert calibrate.CALIBRATION_PY == pathlib.Path(calibration.__file__).resolve() and calibrate.CALIBRATION_PY.is_file()
+def test_write_targets_the_librarys_calibration_file(tmp_path, monkeypatch):
+    """`calibrate --write` writes the chosen row to the data file `RewardConfig` reads its defaults from
+    (`reward.CALIBRATION_JSON`): read back, the calibrated fields are the row's and the figures the sweep's."""
+    assert calibrate.CALIBRATION_JSON == reward.CALIBRATION_JSON and calibrate.CALIBRATION_JSON.is_file()
+    chosen = dataclasses.replace(RewardConfig(), grip=2.0, grip_scales_with_mass=False, fall_unmet=0.2,
+                                 w_wrench_change=1.0, change_falls=False)
+    row = dict(config=dataclasses.asdict(chosen), spearman=0.41234, feasible_held=0.7, dp_opt_falls=3,
+               dp_opt_changes=2.345)
+    summary = dict(sets=["train", "val"], backend="c", sequences=40, episodes=["a", "b"], best_spearman=0.5,
+                   best_spearman_se=0.02)
+    monkeypatch.setattr(calibrate, "CALIBRATION_JSON", tmp_path / "cal.json")
+    calibrate.write_calibration(row, summary)
+    values, measured = reward.read_calibration(tmp_path / "cal.json")
+    assert values == dict(grip=2.0, grip_scales_with_mass=False, fall_unmet=0.2, w_wrench_change=1.0,
+                          change_falls=False)
+    assert measured["sets"] == "train+val" and measured["spearman"] == 0.412 and measured["dp_opt_falls"] == 3
+    assert measured["episodes"] == 2

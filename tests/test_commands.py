@@ -44,7 +44,7 @@ QUICKEST = {
                        [])],
     "envelope": [(["envelope", "--set", "eval", "--episodes", "1", "--random", "0", "--physics-lookahead", "1",
                    "--bases", "four-tips"], ["results/envelope/eval.json"])],
-    "rescore": [(["rescore", "--episodes", "2", "--reward", "grip=2"], ["results/rescore/stress.json",
+    "rescore": [(["rescore", "--episodes", "2", "--reward", "grip=0,fall_unmet=0.2"], ["results/rescore/stress.json",
                                                                        "results/rescore/stress.png"])],
     "calibrate": [(["calibrate", "--sets", "nominal", "--random", "1", "--backend", "c"],
                    ["results/calibrate/sweep.json"])],

@@ -21,6 +21,7 @@ import pytest  # noqa: E402
 
 import tolerances as tol  # noqa: E402
 from gsp_jax import dp, grasps, ik, scenario, surrogate  # noqa: E402
+from gsp_jax.reward import RewardConfig  # noqa: E402
 
 T = 5  # waypoints of the reduced episodes
 N_BATCH = 20  # batch of every vmapped surrogate call (one compile each)
@@ -39,7 +40,7 @@ def _np(tree):
 
 # ------------------------------------------------------------------------------------------ fixtures
 @pytest.fixture(scope="module")
-def env(hand):
+def sur(hand):
     return surrogate.Surrogate(hand)
 
 
@@ -52,16 +53,16 @@ def episodes():
 
 
 @pytest.fixture(scope="module")
-def fns(env):
+def fns(sur):
     """Every compiled function of this module, compiled lazily on first use and then reused."""
     return dict(
-        solve=jax.jit(lambda e: dp.solve(env, e)),
-        vsolve=jax.jit(jax.vmap(lambda e: dp.solve(env, e))),
+        solve=jax.jit(lambda e: dp.solve(sur, e)),
+        vsolve=jax.jit(jax.vmap(lambda e: dp.solve(sur, e))),
         backup=jax.jit(dp.backup),
         sequence_return=jax.jit(dp.sequence_return),
-        vdiscrete=jax.jit(jax.vmap(env.discrete_state, (None, 0, 0))),
-        vreset=jax.jit(jax.vmap(env.reset)),
-        vstep=jax.jit(jax.vmap(env.step)),
+        vdiscrete=jax.jit(jax.vmap(sur.discrete_state, (None, 0, 0))),
+        vreset=jax.jit(jax.vmap(sur.reset)),
+        vstep=jax.jit(jax.vmap(sur.step)),
     )
 
 
@@ -171,8 +172,8 @@ def _triples(table, rng):
     return g, a, t
 
 
-def test_table_matches_surrogate_step(solved, episodes, env, fns):
-    """reward / next grasp / done of `env.step` from the DP state (g, t) equal the table's entries."""
+def test_table_matches_surrogate_step(solved, episodes, sur, fns):
+    """reward / next grasp / done of `sur.step` from the DP state (g, t) equal the table's entries."""
     table, _ = solved["nominal"]
     ep = episodes["nominal"]
     g, a, t = _triples(table, np.random.default_rng(0))
@@ -183,20 +184,20 @@ def test_table_matches_surrogate_step(solved, episodes, env, fns):
     np.testing.assert_array_equal(done, table.terminal[g, a, t])
     np.testing.assert_array_equal(out.t, t + 1)
     # the sample covers a failing step, a surviving one, a redundant one and the last step
-    assert np.any(reward == env.reward_config.r_min) and np.any(reward > env.reward_config.r_min)
-    assert np.any(out.terms.redundant == 1) and np.any((t == T - 1) & (reward > env.reward_config.r_min))
+    assert np.any(reward == sur.reward_config.r_min) and np.any(reward > sur.reward_config.r_min)
+    assert np.any(out.terms.redundant == 1) and np.any((t == T - 1) & (reward > sur.reward_config.r_min))
     # the redundancy flag enters the table's reward exactly as in the step: a non-null action that keeps the grasp
     np.testing.assert_array_equal(out.terms.redundant == 1, (table.next_grasp[g, a] == g) & (a != grasps.NULL))
     # the sample covers a grasp change that fails only through its change term (the shared grasp drops the tool)
-    assert np.any(out.terms.unmet[:, 3] > env.reward_config.fall_unmet)
+    assert np.any(out.terms.unmet[:, 3] > sur.reward_config.fall_unmet)
 
 
-def test_no_change_is_priced_on_the_start_support(solved, env):
+def test_no_change_is_priced_on_the_start_support(solved, sur):
     """At waypoint 0 the tool rests on its start support: a change there is rewarded as its new grasp kept by the
     null action (plus the redundant flag), while later some changes fail that their new grasps survive."""
     table, _ = solved["nominal"]
     n_g, n_a, _ = table.reward.shape
-    cfg = env.reward_config
+    cfg = sur.reward_config
     redundant = (table.next_grasp == np.arange(n_g)[:, None]) & (np.arange(n_a) != grasps.NULL)
     kept = table.reward[table.next_grasp, grasps.NULL, :]  # (G, A, T)
     r0 = table.reward[..., 0]
@@ -207,14 +208,14 @@ def test_no_change_is_priced_on_the_start_support(solved, env):
 
 
 # ------------------------------------------------------------------------------------------ 3. rollout
-def test_optimal_sequence_value_equals_surrogate_rollout(solved, episodes, env, fns):
-    """Replaying the DP's optimal actions in the surrogate, from `env.reset` of the episode (with its start grasp
+def test_optimal_sequence_value_equals_surrogate_rollout(solved, episodes, sur, fns):
+    """Replaying the DP's optimal actions in the surrogate, from `sur.reset` of the episode (with its start grasp
     set to each of N_BATCH grasps), sums to the DP's value, with the same per-step rewards, grasps and end."""
     table, sol = solved["nominal"]
     ep = episodes["nominal"]
     g0 = int(ep.start_grasp)
     rng = np.random.default_rng(3)
-    surviving = np.flatnonzero(sol.value[:, 0] > env.reward_config.r_min)
+    surviving = np.flatnonzero(sol.value[:, 0] > sur.reward_config.r_min)
     starts = np.concatenate([[g0], rng.choice(surviving[surviving != g0], 14, replace=False),
                              rng.choice(np.setdiff1d(np.arange(table.reward.shape[0]), surviving), 5, replace=False)])
     tab = jax.tree.map(jnp.asarray, table)
@@ -241,7 +242,7 @@ def test_optimal_sequence_value_equals_surrogate_rollout(solved, episodes, env, 
 
 # ------------------------------------------------------------------------------------------ 4. Bellman
 @pytest.mark.parametrize("name", ["nominal", "evalB"])
-def test_bellman_equation_holds_everywhere(name, solved, env):
+def test_bellman_equation_holds_everywhere(name, solved, sur):
     """value[g, t] = max_a reward + (0 if terminal else value[next, t + 1]) for every (g, t), value[:, T] = 0,
     and the policy attains the max. In particular a failing (R_MIN) action is chosen only when no surviving
     action from that (g, t) has a better total."""
@@ -255,7 +256,7 @@ def test_bellman_equation_holds_everywhere(name, solved, env):
     np.testing.assert_allclose(v[:, :n_t], q.max(axis=1), **TOL)
     chosen = np.take_along_axis(q, sol.policy[:, None, :], axis=1)[:, 0]
     np.testing.assert_allclose(chosen, v[:, :n_t], **TOL)
-    r_min = env.reward_config.r_min
+    r_min = sur.reward_config.r_min
     fails = np.take_along_axis(reward, sol.policy[:, None, :], axis=1)[:, 0] == r_min  # (G, T)
     surviving_q = np.where(reward > r_min, q, -np.inf).max(axis=1)  # best surviving action per (g, t)
     assert np.all(surviving_q[fails] <= r_min + 1e-4)
@@ -288,7 +289,7 @@ def test_batched_solve_equals_separate_solves(solved, episodes, fns):
         tol.assert_close_with_rare_ties(tables.terminal[i], table.terminal, 0, f"{name} terminal", tol.FLIP_FRACTION)
         tol.assert_close_with_rare_ties(tables.reward[i], table.reward, tol.REWARD_ATOL, f"{name} reward")
         tol.assert_close_with_rare_ties(
-            tables.ik_error[i], table.ik_error, tol.REWARD_ATOL * surrogate.RewardConfig().ik_scale, f"{name} IK error"
+            tables.ik_error[i], table.ik_error, tol.REWARD_ATOL * RewardConfig().ik_scale, f"{name} IK error"
         )
         tol.assert_close_with_rare_ties(sols.value[i], sol.value, tol.RETURN_ATOL, f"{name} value")
         np.testing.assert_allclose(sols.ret[i], sol.ret, atol=tol.RETURN_ATOL)
@@ -321,7 +322,7 @@ def _ik_problems(jaxpr, iterations: int, n_joints: int) -> int:
     return count
 
 
-def test_table_costs_g_times_t_ik_solves(env, episodes, solved):
+def test_table_costs_g_times_t_ik_solves(sur, episodes, solved):
     """The table needs G x T IK solves (each grasp at each waypoint), not 3 x G x A x T as stepping would; each
     solve runs from the IK's 1 + len(extra_starts) start configurations.
 
@@ -330,28 +331,28 @@ def test_table_costs_g_times_t_ik_solves(env, episodes, solved):
     count; with the count set to 37 (the wrench solver uses 150) every 37-step scan is an IK call, and its carry
     q has shape (*batch, J): the number of problems is the product of the batch dims (the table in `ik.solve`'s
     vmapped form, `IKConfig.lanes=False`: the batch-last form's carry is (J, batch)). The counter is checked on
-    `env.reset` (1 solve) and `env.step` (3 solves: the new grasp at the current pose and at the next waypoint, and
+    `sur.reset` (1 solve) and `sur.step` (3 solves: the new grasp at the current pose and at the next waypoint, and
     the shared grasp through a change; 2 without the change term) first, so a broken counter cannot pass."""
     iters = 37
-    assert iters not in (env.ik_config.iterations, env.wrench_config.iterations)
-    env37 = surrogate.Surrogate(env.hand, ik_config=ik.IKConfig(iterations=iters, lanes=False))
-    per = 1 + len(env37.ik_config.extra_starts)  # each IK problem runs from every start configuration
+    assert iters not in (sur.ik_config.iterations, sur.wrench_config.iterations)
+    sur37 = surrogate.Surrogate(sur.hand, ik_config=ik.IKConfig(iterations=iters, lanes=False))
+    per = 1 + len(sur37.ik_config.extra_starts)  # each IK problem runs from every start configuration
     ep = episodes["nominal"]
-    n_g, n_j = env.space.n_grasps, env.hand.n_joints
+    n_g, n_j = sur.space.n_grasps, sur.hand.n_joints
     count = lambda f, *args: _ik_problems(jax.make_jaxpr(f)(*args).jaxpr, iters, n_j)  # noqa: E731
-    assert count(env37.reset, ep) == per
-    state = jax.eval_shape(env37.reset, ep)  # abstract: tracing needs no IK to run
-    assert env37.prices_changes and count(env37.step, state, jnp.int32(3)) == 3 * per
-    off = surrogate.Surrogate(env.hand, surrogate.RewardConfig(w_wrench_change=0.0, change_falls=False),
+    assert count(sur37.reset, ep) == per
+    state = jax.eval_shape(sur37.reset, ep)  # abstract: tracing needs no IK to run
+    assert sur37.reward_config.prices_changes and count(sur37.step, state, jnp.int32(3)) == 3 * per
+    off = surrogate.Surrogate(sur.hand, RewardConfig(w_wrench_change=0.0, change_falls=False),
                               ik_config=ik.IKConfig(iterations=iters))
     assert count(off.step, state, jnp.int32(3)) == 2 * per
-    assert count(lambda e: dp.build_table(env37, e), ep) == n_g * T * per
+    assert count(lambda e: dp.build_table(sur37, e), ep) == n_g * T * per
     full = scenario.make_episode()
-    assert count(lambda e: dp.build_table(env37, e), full) == n_g * scenario.N_WAYPOINTS * per == 288 * 16 * per
+    assert count(lambda e: dp.build_table(sur37, e), full) == n_g * scenario.N_WAYPOINTS * per == 288 * 16 * per
     # and one IK error per (grasp, waypoint) comes out
     table, _ = solved["nominal"]
     assert table.ik_error.shape == (n_g, T)
-    assert table.reward.shape == (n_g, env.n_actions, T) and table.next_grasp.shape == (n_g, env.n_actions)
+    assert table.reward.shape == (n_g, sur.n_actions, T) and table.next_grasp.shape == (n_g, sur.n_actions)
 
 
 # ------------------------------------------------------------------------------------------ 7. sequence_return

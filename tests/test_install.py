@@ -46,7 +46,7 @@ def test_wheel_installs_outside_the_checkout_and_steps_the_surrogate(tmp_path):
     names = zipfile.ZipFile(wheel).namelist()
     shipped = [f.relative_to(ROOT / "models").as_posix() for f in (ROOT / "models").rglob("*")
                if f.is_file() and "__pycache__" not in f.parts]
-    assert {"scene.xml", "hand.xml", "wrench.xml", "policies/ppo_dp_seed0/_METADATA"} <= set(shipped)
+    assert {"scene.xml", "hand.xml", "wrench.xml", "reward_calibration.json", "policies/ppo_dp_seed0/_METADATA"} <= set(shipped)
     missing = [f for f in shipped if f"gsp_jax/models/{f}" not in names]
     assert not missing, f"models/ files not in the wheel: {missing}"
     assert not any(n.startswith("models/") for n in names)  # one copy, inside the package

@@ -22,41 +22,41 @@ SCALES = (0.5, 8.0)  # the external torque times these: grasps that clearly hold
 
 
 @pytest.fixture(scope="module")
-def env():
+def sur():
     return surrogate.Surrogate()
 
 
 @pytest.fixture(scope="module")
-def final_pose_problems(env):
+def final_pose_problems(sur):
     """Grasps realised at the nominal episode's final pose, their contacts' Jacobians and the final wrench."""
     ep = scenario.make_episode()
     pos, quat = ep.waypoints[-1], ep.quats[-1]
     rng = np.random.default_rng(0)
-    grasp_ids = jnp.asarray(rng.choice(env.space.n_grasps, N_GRASPS, replace=False), jnp.int32)
-    contacts = jax.jit(jax.vmap(env.realise, (0, None, None)))(grasp_ids, pos, quat)
-    jac = jax.vmap(lambda q, p: kinematics.closest_on_links_and_jacobians(env.hand, q, p)[1])(
+    grasp_ids = jnp.asarray(rng.choice(sur.space.n_grasps, N_GRASPS, replace=False), jnp.int32)
+    contacts = jax.jit(jax.vmap(sur.realise, (0, None, None)))(grasp_ids, pos, quat)
+    jac = jax.vmap(lambda q, p: kinematics.closest_on_links_and_jacobians(sur.hand, q, p)[1])(
         contacts.ik.q, contacts.points)
     com = pos + kinematics.quat_to_mat(quat) @ ep.com
     return ep, pos, quat, contacts, np.asarray(jac), np.asarray(com)
 
 
-def _lp_ratios(env, ep, contacts, jac, com, required):
+def _lp_ratios(sur, ep, contacts, jac, com, required):
     """(outer, inner) least peak joint torque / limit with which each grasp's realised contacts hold `required`."""
     out = []
-    mu = float(ep.friction) * env.reward_config.friction_scale
+    mu = float(ep.friction)
     for g in range(N_GRASPS):
         act = np.asarray(contacts.realised[g])
         if act.sum() == 0:
             out.append((np.inf, np.inf))
             continue
         m = wrench.hold_margin(np.asarray(contacts.points[g])[act], np.asarray(contacts.normals[g])[act], mu,
-                               np.asarray(required), com, jac[g][act], np.asarray(env.torque_limit))
+                               np.asarray(required), com, jac[g][act], np.asarray(sur.torque_limit))
         out.append((m.torque_ratio_outer, m.torque_ratio_inner))
     return np.asarray(out)
 
 
 @pytest.mark.parametrize("scale", SCALES)
-def test_motor_fall_agrees_with_the_oracle_lp(env, final_pose_problems, scale):
+def test_motor_fall_agrees_with_the_oracle_lp(sur, final_pose_problems, scale):
     """Among grasps whose cones can supply the wrench (the LP's ratio finite: the motors decide): where the LP says
     forces within the motors' limits exist with a margin (inner ratio <= 0.8), the motor check leaves little unmet
     (no fall); where it says none exist even at 2.5x the limits (outer ratio >= 2.5), it leaves more than the fall
@@ -64,34 +64,34 @@ def test_motor_fall_agrees_with_the_oracle_lp(env, final_pose_problems, scale):
     first-order model, the LP the exact bound); nor are those whose cones alone cannot (the wrench terms judge them)."""
     ep, pos, quat, contacts, jac, com = final_pose_problems
     ep = dataclasses.replace(ep, w_ext=ep.w_ext * scale)
-    required = jnp.concatenate([-ep.mass * env.gravity, jnp.zeros(3)]) - ep.w_ext
+    required = jnp.concatenate([-ep.mass * sur.gravity, jnp.zeros(3)]) - ep.w_ext
     init = jnp.zeros((N_GRASPS,) + contacts.points.shape[1:], jnp.float32)
-    unmet = np.asarray(jax.jit(jax.vmap(lambda c, f: env.motor_unmet(c, ep, pos, quat, f, required)))(contacts, init))
-    ratios = _lp_ratios(env, ep, contacts, jac, com, required)
+    unmet = np.asarray(jax.jit(jax.vmap(lambda c, f: sur.motor_unmet(c, ep, pos, quat, f, required)))(contacts, init))
+    ratios = _lp_ratios(sur, ep, contacts, jac, com, required)
     finite = np.isfinite(ratios[:, 0]) & (ratios[:, 0] < 1e3)
     holds, cannot = finite & (ratios[:, 1] <= 0.8), finite & (ratios[:, 0] >= 2.5)
     assert holds.sum() + cannot.sum() >= 2, (scale, ratios)  # the comparison is not empty
-    threshold = env.reward_config.motor_fall_unmet
+    threshold = sur.reward_config.motor_fall_unmet
     assert np.all(unmet[holds] < threshold - 0.1), (unmet[holds], ratios[holds])
     assert np.all(unmet[cannot] > threshold + 0.1), (unmet[cannot], ratios[cannot])
 
 
-def test_a_torque_beyond_the_motors_is_a_fall_and_said_so(env):
+def test_a_torque_beyond_the_motors_is_a_fall_and_said_so(sur):
     """The nominal episode with a 1e9 N m final torque: no sequence holds it in the surrogate (its DP optimum is
     r_min), explained as beyond the motors at the final step; with the check off (inf) the same plan of the nominal
     episode ran to its end (the probe of issue 50: planned as held)."""
     ep = scenario.make_episode(torque=1e9)
-    table, sol = jax.jit(lambda e: dp.solve(env, e))(ep)
-    r_min = env.reward_config.r_min
+    table, sol = jax.jit(lambda e: dp.solve(sur, e))(ep)
+    r_min = sur.reward_config.r_min
     assert float(sol.ret) <= r_min
     longest = dp.longest_surviving(table, ep.start_grasp, r_min)
     assert float(longest.ret) == ep.n_steps - 1  # every step but the last can be held
-    why = env.explain(ep, np.asarray(longest.actions))
+    why = sur.explain(ep, np.asarray(longest.actions))
     assert why.startswith(f"t={ep.n_steps - 1}:") and "beyond the hand's motors" in why, why
-    nominal_plan = np.asarray(jax.jit(lambda e: dp.solve(env, e))(scenario.make_episode())[1].actions)
-    off = surrogate.Surrogate(reward=dataclasses.replace(env.reward_config, motor_fall_unmet=float("inf")))
+    nominal_plan = np.asarray(jax.jit(lambda e: dp.solve(sur, e))(scenario.make_episode())[1].actions)
+    off = surrogate.Surrogate(reward=dataclasses.replace(sur.reward_config, motor_fall_unmet=float("inf")))
     assert off.explain(ep, nominal_plan) is None  # without the check the plan holds 1e9 N m
-    assert "beyond the hand's motors" in env.explain(ep, nominal_plan)
+    assert "beyond the hand's motors" in sur.explain(ep, nominal_plan)
 
 
 def _brute_force_survival(reward, terminal, next_grasp, start, r_min):

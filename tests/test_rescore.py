@@ -17,6 +17,7 @@ import pytest  # noqa: E402
 import tolerances as tol  # noqa: E402
 from experiments.physics import calibrate, rescore  # noqa: E402
 from gsp_jax import dp, scenario, surrogate  # noqa: E402
+from gsp_jax.reward import RewardConfig  # noqa: E402
 
 
 def test_rescored_returns_equal_the_tables_replay():
@@ -32,10 +33,10 @@ def test_rescored_returns_equal_the_tables_replay():
     keys, index, changed = rescore.step_states(sur, np.asarray(batch.start_grasp), grasps)
     contacts = rescore.realise_states(sur, batch, keys, 64)
     # the two candidates of test_calibrate (the same programs: the run's compilation cache serves both tests)
-    base = surrogate.RewardConfig()
-    configs = [dataclasses.replace(base, friction_scale=1.0, grip=0.0, fall_unmet=0.3, w_wrench_change=0.0,
+    base = RewardConfig()
+    configs = [dataclasses.replace(base, grip=0.0, grip_scales_with_mass=False, fall_unmet=0.3, w_wrench_change=0.0,
                                    change_falls=False),
-               dataclasses.replace(base, friction_scale=0.8, grip=2.0, fall_unmet=0.2, w_wrench_change=5.0,
+               dataclasses.replace(base, grip=2.0, grip_scales_with_mass=True, fall_unmet=0.2, w_wrench_change=5.0,
                                    change_falls=True)]
     tables = calibrate.candidate_tables(configs, batch)
     for reward, tab in zip(configs, tables):
@@ -55,14 +56,15 @@ def test_rescored_returns_equal_the_tables_replay():
 
 
 def test_bad_inputs_are_named(tmp_path):
-    base = surrogate.RewardConfig()
-    assert rescore.parse_reward("squeeze=8, motors=true", base).motors is True
-    with pytest.raises(SystemExit, match="squeez"):
-        rescore.parse_reward("squeez=8", base)
-    with pytest.raises(SystemExit, match="motors takes true or false"):
-        rescore.parse_reward("motors=maybe", base)
-    with pytest.raises(SystemExit, match="RewardConfig.squeeze"):
-        rescore.parse_reward("squeeze=-1", base)
+    base = RewardConfig()
+    parsed = rescore.parse_reward("grip=8, change_falls=false", base)
+    assert parsed.grip == 8.0 and parsed.change_falls is False and base.change_falls is True
+    with pytest.raises(SystemExit, match="squeeze"):  # a field the reward no longer has
+        rescore.parse_reward("squeeze=8", base)
+    with pytest.raises(SystemExit, match="change_falls takes true or false"):
+        rescore.parse_reward("change_falls=maybe", base)
+    with pytest.raises(SystemExit, match="RewardConfig.grip"):
+        rescore.parse_reward("grip=-1", base)
     with pytest.raises(SystemExit, match="no envelope result"):
         rescore.load_pool(str(tmp_path / "none.json"), None)
     (tmp_path / "x.json").write_text(json.dumps({"set": "stress"}))

@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import pytest
 
 from gsp_jax import cache, platform, scenario, surrogate
+from gsp_jax.reward import RewardConfig
 
 PROBE = """
 import json, jax, jax.numpy as jnp
@@ -82,7 +83,7 @@ def test_surrogates_of_one_model_share_their_programs(hand):
     """Two surrogates of the same hand and configs are equal and hash alike, so `reset` (compiled: `_reset`) builds
     one program for both; another reward config is another model."""
     a, b = surrogate.Surrogate(hand), surrogate.Surrogate(hand)
-    other = surrogate.Surrogate(hand, reward=surrogate.RewardConfig(w_redundant=0.1))
+    other = surrogate.Surrogate(hand, reward=RewardConfig(w_redundant=0.1))
     assert a == b and hash(a) == hash(b) and a != other
     episode = scenario.make_episode().head(5)  # a shape no other test resets
     before = surrogate.Surrogate._reset._cache_size()

@@ -1,10 +1,9 @@
 """`python -m experiments calibrate [--sets train,val] [--random 16] [--backend c] [--write]`: the surrogate's reward
 calibrated against the physics check, on the training and validation episodes only (never the evaluation set).
 
-1. Every candidate `RewardConfig` of a grid (the wrench solves' friction scale and grip, fixed or in proportion to
-   the tool's mass, the fall threshold, the grasp-change term on or off) scores every episode's DP table. The IK is
-   shared by all candidates (it does not depend on the reward), the wrench solves by all candidates of one friction
-   scale and grip.
+1. Every candidate `RewardConfig` of a grid (the wrench solves' grip, fixed or in proportion to the tool's mass, the
+   fall threshold, the grasp-change term on or off) scores every episode's DP table. The IK is shared by all
+   candidates (it does not depend on the reward), the wrench solves by all candidates of one grip.
 2. A pool of grasp sequences per episode: each candidate's DP optimal and DP baseline (the nominal episode's
    optimal sequence), `--random` random sequences feasible under the candidates' tables in turn (holding the grasp
    with probability 0, 0.6 or 0.9), and the scripted references of `physics` (four tips, the alternating changes,
@@ -18,14 +17,12 @@ calibrated against the physics check, on the training and validation episodes on
    whose DP plans drop the tool far more often; docs/calibration.md.)
 
 Prints the sweep as a table; writes results/calibrate/sweep.json, and with --write the winner into
-gsp_jax/calibration.py, where `RewardConfig` reads its defaults."""
+models/reward_calibration.json (`reward.write_calibration`), where `RewardConfig` reads its defaults."""
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime
 import itertools
-import pathlib
 import time
 
 import jax
@@ -34,26 +31,16 @@ import numpy as np
 
 from experiments.common import results_dir, table
 from gsp_jax.stats import spearman
-from gsp_jax import calibration, dp, evaluation, files, physics, policies, scenario, surrogate
+from gsp_jax import dp, evaluation, files, physics, policies, reward, scenario, surrogate
 
-GRID = dict(  # the candidates: every combination. (A first sweep on the nominal episode: fall thresholds of 0.1
-    # and below, or mu x0.6, leave no sequence feasible, not even the four tips that hold in physics -- the wrench
-    # solve's force penalty leaves a residual -- so the grid spans 0.15..0.3. mu x0.8 never won in two sweeps of
-    # 30 candidates, nor did fall 0.4, and they made way for the grip.)
-    friction_scale=(1.0,),
-    grip=((0.0, False, 0.0, False), (2.0, False, 0.0, False), (4.0, False, 0.0, False), (2.0, True, 0.0, False),
-          (4.0, True, 0.0, False), (6.0, True, 0.0, False),
-          (0.0, False, 4.0, False), (0.0, False, 8.0, False), (0.0, False, 4.0, True), (0.0, False, 8.0, True)),
-    # (grip [N], scales with mass, squeeze [N], motors): a hard grip (every realised contact presses with at least
-    # this, fixed or times m / m0; a fixed 4 N grip left the 0.5 m0 evaluation tools no feasible start), or a soft
-    # one as the controller squeezes (8 N, a preference, `RewardConfig.squeeze`), with or without the motors'
-    # torque limits (`RewardConfig.motors`)
+GRID = dict(  # the candidates: every combination (docs/calibration.md: what earlier sweeps measured)
+    grip=((0.0, False), (2.0, False), (4.0, False), (2.0, True), (4.0, True), (6.0, True)),  # (grip [N], x m / m0)
     fall_unmet=(0.15, 0.2, 0.25, 0.3),
     change=((0.0, False), (1.0, True), (5.0, True)),  # (w_wrench_change, change_falls): off / on / on, weighted 5
 )
 HOLDS = (0.0, 0.6, 0.9)
 ALPHA = 0.05  # a challenger replaces the incumbent calibration only at this significance (`choose_and_write`)
-CALIBRATION_PY = pathlib.Path(calibration.__file__).resolve()  # where `--write` puts the chosen defaults
+CALIBRATION_JSON = reward.CALIBRATION_JSON  # where `--write` puts the chosen defaults
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -62,42 +49,37 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backend", default="c", choices=physics.BACKENDS)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--chunk", type=int, default=512, help="most sequences per physics batch")
-    p.add_argument("--write", action="store_true", help="write the winner into gsp_jax/calibration.py")
+    p.add_argument("--write", action="store_true", help="write the winner into models/reward_calibration.json")
     p.add_argument("--from-sweep", default=None, help="choose from a saved results/calibrate/sweep.json (no reruns)")
 
 
-def candidates() -> list[surrogate.RewardConfig]:
-    base = surrogate.RewardConfig()
-    return [dataclasses.replace(base, friction_scale=fs, grip=gr, grip_scales_with_mass=gm, squeeze=sq, motors=mo,
-                                fall_unmet=fu, w_wrench_change=w, change_falls=cf)
-            for fs, (gr, gm, sq, mo), fu, (w, cf) in itertools.product(GRID["friction_scale"], GRID["grip"],
-                                                                       GRID["fall_unmet"], GRID["change"])]
+def candidates() -> list[reward.RewardConfig]:
+    base = reward.RewardConfig()
+    return [dataclasses.replace(base, grip=gr, grip_scales_with_mass=gm, fall_unmet=fu, w_wrench_change=w,
+                                change_falls=cf)
+            for (gr, gm), fu, (w, cf) in itertools.product(GRID["grip"], GRID["fall_unmet"], GRID["change"])]
 
 
-def label(cfg: surrogate.RewardConfig) -> str:
+def label(cfg: reward.RewardConfig) -> str:
     change = f"w {cfg.w_wrench_change:g}" if cfg.change_falls or cfg.w_wrench_change else "off"
     grip = f"{cfg.grip:g} N x m/m0" if cfg.grip_scales_with_mass else f"{cfg.grip:g} N"
-    if cfg.squeeze:
-        grip = f"squeeze {cfg.squeeze:g} N" if not cfg.grip else f"{grip} + squeeze {cfg.squeeze:g} N"
-    if cfg.motors:
-        grip += ", motors"
-    return f"mu x{cfg.friction_scale:g}, grip {grip}, fall {cfg.fall_unmet:g}, change {change}"
+    return f"mu x1, grip {grip}, fall {cfg.fall_unmet:g}, change {change}"  # "mu x1": as the saved sweeps name it
 
 
 def candidate_tables(configs, episodes: scenario.Episode) -> list[dp.Table]:
-    """Every candidate's tables (leaves (E, ...)): IK once, wrench solves once per (friction scale, grip)."""
-    grip_key = lambda c: (c.friction_scale, c.grip, c.grip_scales_with_mass, c.squeeze, c.motors)  # noqa: E731
+    """Every candidate's tables (leaves (E, ...)): IK once, wrench solves once per grip."""
+    grip_key = lambda c: (c.grip, c.grip_scales_with_mass)  # noqa: E731
     base = surrogate.Surrogate(reward=configs[0])
     contacts = jax.jit(jax.vmap(lambda ep: dp.realise_all(base, ep)))(episodes)
     terms = {}
-    for fs, gr, gm, sq, mo in sorted({grip_key(c) for c in configs}):
-        env = surrogate.Surrogate(hand=base.hand, reward=dataclasses.replace(
-            configs[0], friction_scale=fs, grip=gr, grip_scales_with_mass=gm, squeeze=sq, motors=mo))
-        terms[fs, gr, gm, sq, mo] = jax.jit(jax.vmap(lambda ep, c: dp.grasp_terms(env, ep, c)))(episodes, contacts)
+    for gr, gm in sorted({grip_key(c) for c in configs}):
+        sur = surrogate.Surrogate(hand=base.hand, reward=dataclasses.replace(configs[0], grip=gr,
+                                                                             grip_scales_with_mass=gm))
+        terms[gr, gm] = jax.jit(jax.vmap(lambda ep, c: dp.grasp_terms(sur, ep, c)))(episodes, contacts)
     out = []
     for cfg in configs:
-        env = surrogate.Surrogate(hand=base.hand, reward=cfg)
-        out.append(jax.jit(jax.vmap(lambda ep, t, c: dp.table_from_terms(env, ep, t, c)))(
+        sur = surrogate.Surrogate(hand=base.hand, reward=cfg)
+        out.append(jax.jit(jax.vmap(lambda ep, t, c: dp.table_from_terms(sur, ep, t, c)))(
             episodes, terms[grip_key(cfg)], contacts))
     return out
 
@@ -272,7 +254,7 @@ def choose_and_write(summary: dict, write: bool) -> dict:
     finite = np.isfinite([np.nan if r["spearman"] is None else r["spearman"] for r in results])
     best = min(range(len(results)), key=lambda i: (not finite[i], results[i]["dp_opt_falls"], -rho[i]))
     challenger, chosen = results[best], results[best]
-    incumbent = next((r for r in results if r["label"] == label(surrogate.RewardConfig())), None)
+    incumbent = next((r for r in results if r["label"] == label(reward.RewardConfig())), None)
     print(f"\nhighest rho: {summary['best_spearman_label']} ({summary['best_spearman']:.3f} +- "
           f"{summary['best_spearman_se']:.3f}, bootstrap over episodes)")
     print(f"challenger (fewest DP-optimal falls, then rho): {challenger['label']} (rho {challenger['spearman']:.3f}, "
@@ -289,7 +271,7 @@ def choose_and_write(summary: dict, write: bool) -> dict:
     print(f"chosen: {chosen['label']}")
     if write:
         write_calibration(chosen, summary)
-        print(f"wrote {CALIBRATION_PY}")
+        print(f"wrote {CALIBRATION_JSON}")
     return chosen
 
 
@@ -321,25 +303,15 @@ def bootstrap_se(ret, angle, ep_idx, seed: int, n: int = 200) -> float:
 
 
 def write_calibration(res: dict, summary: dict) -> None:
-    cfg = res["config"]
-    keys = ("friction_scale", "grip", "grip_scales_with_mass", "squeeze", "motors", "fall_unmet", "w_wrench_change",
-            "change_falls")
-    body = ",\n".join(f"    {k}={cfg.get(k, getattr(surrogate.RewardConfig(), k))!r}" for k in keys)
-    files.write_text(CALIBRATION_PY, f'''"""The reward's calibrated defaults, read by `surrogate.RewardConfig`. Written by `python -m experiments calibrate
---write` ({datetime.date.today().isoformat()}); rerun it rather than editing by hand."""
-
-CALIBRATED = dict(
-{body},
-)
-MEASURED = dict(  # on the calibration episodes, against the physics check
-    sets={"+".join(summary["sets"])!r},
-    backend={summary["backend"]!r},
-    sequences={summary["sequences"]},
-    spearman={res["spearman"]:.3f},  # rank correlation of surrogate return and -simulated angle error, pooled
-    feasible_held={res["feasible_held"]:.3f},  # share of the surrogate-feasible sequences that held
-    dp_opt_falls={res["dp_opt_falls"]},  # of {len(summary["episodes"])} episodes
-    dp_opt_changes={res["dp_opt_changes"]:.2f},  # mean grasp changes per episode of the DP-optimal plans
-    best_spearman={summary["best_spearman"]:.3f},  # the sweep's highest correlation (another candidate), and its
-    best_spearman_se={summary["best_spearman_se"]:.3f},  # bootstrap SE; see calibrate.choose_and_write for the choice
-)
-''')
+    """The chosen sweep row `res` and what the sweep measured for it, written to `CALIBRATION_JSON`."""
+    cfg, default = res["config"], reward.RewardConfig()
+    values = {k: cfg.get(k, getattr(default, k)) for k in reward.CALIBRATED_FIELDS}
+    measured = dict(  # on the calibration episodes, against the physics check
+        sets="+".join(summary["sets"]), backend=summary["backend"], sequences=summary["sequences"],
+        spearman=round(res["spearman"], 3),  # rank correlation of surrogate return and -simulated angle error, pooled
+        feasible_held=round(res["feasible_held"], 3),  # share of the surrogate-feasible sequences that held
+        dp_opt_falls=res["dp_opt_falls"], episodes=len(summary["episodes"]),  # DP-optimal plans that fell, of these
+        dp_opt_changes=round(res["dp_opt_changes"], 2),  # mean grasp changes per episode of the DP-optimal plans
+        best_spearman=round(summary["best_spearman"], 3),  # the sweep's highest correlation (another candidate) ...
+        best_spearman_se=round(summary["best_spearman_se"], 3))  # ... and its bootstrap SE (`choose_and_write`)
+    reward.write_calibration(CALIBRATION_JSON, values, measured)

@@ -9,8 +9,8 @@ within episodes) and its Spearman rho with -angle error (`envelope.summarise`). 
 the recorded run chose: a reward whose own optimum differs is judged on its ranking of this pool, not on its plans
 (for those, rerun `envelope` with it as the default).
 
-The first row is the calibrated reward; each `--reward` adds one, as fields of `surrogate.RewardConfig` to change
-(e.g. `--reward grip=2 --reward fall_unmet=0.2,grip=6`). Beside the pooled Spearman rho the table gives its mean
+The first row is the calibrated reward; each `--reward` adds one, as fields of `reward.RewardConfig` to change
+(e.g. `--reward grip=0 --reward grip=2,grip_scales_with_mass=false,fall_unmet=0.2`). Beside the pooled Spearman rho the table gives its mean
 within episodes, and a scatter of the calibrated reward's returns against the simulated angle errors shows the pool.
 Prints a table; writes results/rescore/<set>.json and <set>.png. (A pool of your own: `envelope --set S --random R`
 records one, in C MuJoCo.)
@@ -28,7 +28,7 @@ import numpy as np
 
 from experiments.common import ROOT, results_dir, table
 from gsp_jax.physics.envelope import summarise
-from gsp_jax import files, scenario, stats, surrogate
+from gsp_jax import files, reward as reward_lib, scenario, stats, surrogate
 
 DEFAULT_POOL = ROOT / "docs" / "history" / "2026-11-27" / "envelope" / "stress_reached_h100.json"
 
@@ -41,7 +41,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch", type=int, default=2048, help="states or steps vmapped at a time")
 
 
-def parse_reward(text: str, base: surrogate.RewardConfig) -> surrogate.RewardConfig:
+def parse_reward(text: str, base: reward_lib.RewardConfig) -> reward_lib.RewardConfig:
     """`base` with the fields of 'field=value,...' replaced (each value read as the field's type)."""
     fields = {f.name for f in dataclasses.fields(base)}
     changes = {}
@@ -118,7 +118,7 @@ def realise_states(sur: surrogate.Surrogate, batch: scenario.Episode, keys: np.n
     return jax.jit(lambda k: jax.lax.map(one, k, batch_size=size))(jnp.asarray(keys, jnp.int32))
 
 
-def score_pool(reward: surrogate.RewardConfig, hand, batch, contacts, index, changed, size: int):
+def score_pool(reward: reward_lib.RewardConfig, hand, batch, contacts, index, changed, size: int):
     """(returns (G, N), feasible (G, N)) of the pool's sequences under `reward`: each step scored as a DP table
     scores it (the tool on its waypoint, the change term from the shared grasp), summed up to the first step that
     ends the episode."""
@@ -144,7 +144,7 @@ def score_pool(reward: surrogate.RewardConfig, hand, batch, contacts, index, cha
 def main(args: argparse.Namespace) -> None:
     if args.batch < 1:
         raise SystemExit(f"--batch must be >= 1, got {args.batch}")
-    base = surrogate.RewardConfig()
+    base = reward_lib.RewardConfig()
     rewards = [("calibrated", base)] + [(text, parse_reward(text, base)) for text in args.reward]
     set_name, names, batch, kinds, grasps, fell, angle = load_pool(args.pool, args.episodes)
     sur = surrogate.Surrogate()

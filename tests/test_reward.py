@@ -1,0 +1,227 @@
+"""Tests of gsp_jax.reward: the calibration file (read, refused when missing or malformed, written and read back),
+the reward of a step's terms against a plain numpy reference, the previous grasp's part (the start support, the
+change term's fall check, the motor check), and the table's transitions against the step's function applied one
+transition at a time."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import types
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from gsp_jax import reward  # noqa: E402
+from gsp_jax.reward import CalibrationError, RewardConfig, RewardTerms  # noqa: E402
+
+CALIBRATED = dict(grip=4.0, grip_scales_with_mass=True, fall_unmet=0.3, w_wrench_change=5.0, change_falls=True)
+
+
+def _write(path, calibrated=CALIBRATED, measured=None, **extra):
+    path.write_text(json.dumps(dict(calibrated=calibrated, measured=measured or {"sequences": 1}, **extra)))
+    return path
+
+
+# ------------------------------------------------------------------------------------------ the calibration file
+def test_defaults_are_the_shipped_calibration_file():
+    """RewardConfig's calibrated defaults are the values of models/reward_calibration.json (read here with the json
+    module, not the reader under test), and no other field of the file or of the config is calibrated."""
+    data = json.loads(reward.CALIBRATION_JSON.read_text())
+    assert reward.CALIBRATION_JSON.parent.name == "models"
+    assert set(data["calibrated"]) == set(reward.CALIBRATED_FIELDS)
+    cfg = RewardConfig()
+    for name, value in data["calibrated"].items():
+        assert getattr(cfg, name) == value and type(getattr(cfg, name)) is type(value), name
+    assert reward.MEASURED == data["measured"]
+    assert set(reward.CALIBRATED_FIELDS) < {f.name for f in dataclasses.fields(RewardConfig)}
+
+
+def test_settings_not_adopted_are_gone():
+    """The knobs measured and not adopted are no fields of the reward (docs/calibration.md keeps the measurements)."""
+    names = {f.name for f in dataclasses.fields(RewardConfig)}
+    assert not names & {"squeeze", "motors", "friction_scale"}
+    with pytest.raises(TypeError, match="squeeze"):
+        RewardConfig(squeeze=8.0)
+
+
+def test_a_missing_or_malformed_calibration_is_named(tmp_path):
+    with pytest.raises(CalibrationError, match=r"none\.json: no such file.*calibrate --write"):
+        reward.read_calibration(tmp_path / "none.json")
+    (tmp_path / "cut.json").write_text('{"calibrated": {"grip": 4.')
+    with pytest.raises(CalibrationError, match=r"cut\.json: not readable JSON"):
+        reward.read_calibration(tmp_path / "cut.json")
+    (tmp_path / "list.json").write_text("[1, 2]")
+    with pytest.raises(CalibrationError, match=r"list\.json: expected an object with 'calibrated' and 'measured'"):
+        reward.read_calibration(tmp_path / "list.json")
+    missing = {k: v for k, v in CALIBRATED.items() if k != "fall_unmet"}
+    with pytest.raises(CalibrationError, match=r"calibrated: fields missing \['fall_unmet'\], unknown \[\]"):
+        reward.read_calibration(_write(tmp_path / "m.json", missing))
+    with pytest.raises(CalibrationError, match=r"unknown \['squeeze'\]"):
+        reward.read_calibration(_write(tmp_path / "u.json", {**CALIBRATED, "squeeze": 8.0}))
+    with pytest.raises(CalibrationError, match=r"calibrated\.grip: expected a finite number, got '4'"):
+        reward.read_calibration(_write(tmp_path / "s.json", {**CALIBRATED, "grip": "4"}))
+    with pytest.raises(CalibrationError, match=r"calibrated\.fall_unmet: expected a finite number, got True"):
+        reward.read_calibration(_write(tmp_path / "b.json", {**CALIBRATED, "fall_unmet": True}))
+    with pytest.raises(CalibrationError, match=r"calibrated\.change_falls: expected a bool, got 1"):
+        reward.read_calibration(_write(tmp_path / "i.json", {**CALIBRATED, "change_falls": 1}))
+    with pytest.raises(CalibrationError, match=r"measured: expected an object"):
+        reward.read_calibration(_write(tmp_path / "x.json", measured=[0.5]))
+    # an integer is a number: read as a float
+    values, _ = reward.read_calibration(_write(tmp_path / "n.json", {**CALIBRATED, "grip": 4}))
+    assert values["grip"] == 4.0 and type(values["grip"]) is float
+
+
+def test_write_calibration_reads_back_and_refuses_what_is_no_reward(tmp_path):
+    values = dict(grip=2.0, grip_scales_with_mass=False, fall_unmet=0.25, w_wrench_change=1.0, change_falls=False)
+    measured = dict(sets="train+val", backend="c", sequences=40, spearman=0.412)
+    path = reward.write_calibration(tmp_path / "cal.json", values, measured, written="2026-01-02")
+    assert reward.read_calibration(path) == (values, measured)
+    assert json.loads(path.read_text())["written"] == "2026-01-02"
+    with pytest.raises(CalibrationError, match=r"RewardConfig\.fall_unmet: must be > 0, got 0\.0"):
+        reward.write_calibration(tmp_path / "bad.json", {**values, "fall_unmet": 0.0}, measured)
+    with pytest.raises(CalibrationError, match=r"values\.grip: expected a finite number, got nan"):
+        reward.write_calibration(tmp_path / "bad.json", {**values, "grip": float("nan")}, measured)
+    with pytest.raises(CalibrationError, match=r"measured: expected a flat object"):
+        reward.write_calibration(tmp_path / "bad.json", values, dict(rows=[1, 2]))
+    assert not (tmp_path / "bad.json").exists()
+
+
+def test_config_checks_name_the_field():
+    with pytest.raises(ValueError, match=r"RewardConfig\.change_falls: must be a bool, got 1"):
+        RewardConfig(change_falls=1)
+    with pytest.raises(ValueError, match=r"RewardConfig\.w_ik: a weight must be >= 0, got -1"):
+        RewardConfig(w_ik=-1)
+    with pytest.raises(ValueError, match=r"RewardConfig\.r_min: must be < -max_step_cost = -10\.0, got -5"):
+        RewardConfig(r_min=-5)
+    assert RewardConfig(w_wrench_change=0.0, change_falls=False).prices_changes is False
+    assert RewardConfig(w_wrench_change=0.0, change_falls=True).prices_changes is True
+
+
+# ------------------------------------------------------------------------------------------ terms -> reward
+def _random_terms(rng, shape) -> RewardTerms:
+    f = lambda *s: jnp.asarray(rng.uniform(0.0, 2.0, shape + s), jnp.float32)  # noqa: E731
+    b = lambda p: jnp.asarray(rng.uniform(size=shape) < p)  # noqa: E731
+    return RewardTerms(wrench_move=f(), ik_next=f(), wrench_hold=f(), wrench_ext=f(), redundant=f(),
+                       wrench_change=f(), unmet=jnp.asarray(rng.uniform(0.0, 0.6, shape + (4,)), jnp.float32),
+                       motor_unmet=jnp.asarray(rng.uniform(0.0, 0.6, shape), jnp.float32), collision=b(0.1),
+                       fall=b(0.2), reward=f(), invalid=b(0.0))
+
+
+def test_total_is_the_capped_weighted_sum_or_r_min():
+    rng = np.random.default_rng(0)
+    cfg = RewardConfig(w_wrench_move=0.5, w_ik=2.0, w_wrench_hold=1.5, w_wrench_ext=3.0, w_redundant=0.25,
+                       w_wrench_change=4.0, max_step_cost=6.0, r_min=-100.0)
+    terms = _random_terms(rng, (500,))
+    got = np.asarray(reward.total(cfg, terms))
+    t = {k: np.asarray(v, np.float64) for k, v in vars(terms).items()}
+    cost = (0.5 * t["wrench_move"] + 2.0 * t["ik_next"] + 1.5 * t["wrench_hold"] + 3.0 * t["wrench_ext"]
+            + 0.25 * t["redundant"] + 4.0 * t["wrench_change"])
+    expect = np.where(t["collision"].astype(bool) | t["fall"].astype(bool), -100.0, -np.minimum(cost, 6.0))
+    np.testing.assert_allclose(got, expect, rtol=1e-6)
+    assert np.any(expect == -6.0) and np.any((expect > -6.0) & (expect < 0)) and np.any(expect == -100.0)
+
+
+def _arrival(cfg, rng, is_last, motor_unmet=0.1):
+    def res():
+        return types.SimpleNamespace(error=jnp.float32(rng.uniform(0, 50)), unmet=jnp.float32(rng.uniform(0, 0.2)))
+
+    return reward.arrival(cfg, res(), res(), res(), jnp.float32(0.004), jnp.array(False),
+                          None if motor_unmet is None else jnp.float32(motor_unmet), jnp.array(is_last))
+
+
+def test_arrival_normalises_and_masks_the_final_terms():
+    cfg = RewardConfig()
+    rng = np.random.default_rng(1)
+    move = types.SimpleNamespace(error=jnp.float32(3.0), unmet=jnp.float32(0.1))
+    hold = types.SimpleNamespace(error=jnp.float32(5.0), unmet=jnp.float32(0.2))
+    ext = types.SimpleNamespace(error=jnp.float32(7.0), unmet=jnp.float32(0.25))
+    for last in (False, True):
+        a = reward.arrival(cfg, move, hold, ext, jnp.float32(0.02), jnp.array(True), jnp.float32(0.9),
+                           jnp.array(last))
+        np.testing.assert_allclose([float(a.wrench_move), float(a.wrench_hold), float(a.ik_next)],
+                                   [3.0 / cfg.wrench_scale, 5.0 / cfg.wrench_scale, 2.0], rtol=1e-6)
+        np.testing.assert_allclose(float(a.wrench_ext), 7.0 / cfg.wrench_scale if last else 0.0, rtol=1e-6)
+        np.testing.assert_allclose(np.asarray(a.unmet), [0.1, 0.2, 0.25 if last else 0.0, 0.0], rtol=1e-6)
+        np.testing.assert_allclose(float(a.motor_unmet), 0.9 if last else 0.0)
+        assert bool(a.collision) and not bool(a.fall) and float(a.redundant) == 0 and float(a.wrench_change) == 0
+    assert float(_arrival(cfg, rng, True, None).motor_unmet) == 0.0  # no motor check
+
+
+def test_previous_grasp_part_prices_changes_past_the_start_support():
+    """The change term counts only when the grasp changes at t >= supported_steps; it drops the tool (r_min) when
+    more than fall_unmet of it is unmet, and only if change_falls; a final wrench beyond the motors drops it too."""
+    rng = np.random.default_rng(2)
+    cfg = RewardConfig(supported_steps=2)
+    terms = _arrival(cfg, rng, False)
+    base = float(reward.with_previous(cfg, terms, False, False, 0.0, 0.0, 5).reward)
+    for t, changed, expect_change in ((1, True, False), (2, True, True), (5, False, False)):
+        out = reward.with_previous(cfg, terms, False, changed, 0.5, 0.1, t)
+        assert float(out.wrench_change) == (0.5 if expect_change else 0.0)
+        np.testing.assert_allclose(float(out.reward), base - (cfg.w_wrench_change * 0.5 if expect_change else 0.0),
+                                   rtol=1e-6)
+    redundant = reward.with_previous(cfg, terms, True, False, 0.0, 0.0, 5)
+    np.testing.assert_allclose(float(redundant.reward), base - cfg.w_redundant, rtol=1e-6)
+    dropped = reward.with_previous(cfg, terms, False, True, 0.5, cfg.fall_unmet + 0.01, 2)
+    assert bool(dropped.fall) and float(dropped.reward) == cfg.r_min
+    lenient = dataclasses.replace(cfg, change_falls=False)
+    kept = reward.with_previous(lenient, terms, False, True, 0.5, cfg.fall_unmet + 0.01, 2)
+    assert not bool(kept.fall) and float(kept.reward) > cfg.r_min
+    weak = _arrival(cfg, rng, True, motor_unmet=cfg.motor_fall_unmet + 0.01)
+    assert bool(reward.with_previous(cfg, weak, False, False, 0.0, 0.0, 15).fall)
+    assert not bool(reward.with_previous(dataclasses.replace(cfg, motor_fall_unmet=np.inf), weak, False, False, 0.0,
+                                         0.0, 15).fall)
+    invalid = reward.with_invalid(cfg, kept, jnp.array(True))
+    assert bool(invalid.invalid) and float(invalid.reward) == cfg.r_min
+
+
+@pytest.mark.parametrize("cfg", [RewardConfig(), RewardConfig(w_wrench_change=0.0, change_falls=False)])
+def test_transitions_are_the_steps_reward_one_at_a_time(cfg):
+    """`of_transitions` (the DP table's reward) against `with_previous` (the step's) called for each transition
+    with the shared grasp's moving-wrench term as its change term (none where changes are not priced): equal, term
+    by term."""
+    rng = np.random.default_rng(3)
+    n_g, n_a, n_t = 6, 4, 3
+    arrived = _random_terms(rng, (n_g, n_t)).replace(
+        collision=jnp.zeros((n_g, n_t), bool), fall=jnp.zeros((n_g, n_t), bool),
+        redundant=jnp.zeros((n_g, n_t)), wrench_change=jnp.zeros((n_g, n_t)))
+    arrived = arrived.replace(unmet=arrived.unmet.at[..., 3].set(0.0))
+    next_grasp = jnp.asarray(rng.integers(0, n_g, (n_g, n_a)), jnp.int32)
+    shared = jnp.asarray(rng.integers(0, n_g, (n_g, n_a)), jnp.int32)
+    changed = next_grasp != jnp.arange(n_g)[:, None]
+    redundant = ~changed & (jnp.arange(n_a) > 0)
+    ts = jnp.arange(n_t, dtype=jnp.int32)
+    table = jax.jit(lambda *a: reward.of_transitions(cfg, *a))(arrived, next_grasp, redundant, changed, shared, ts)
+    assert table.reward.shape == (n_g, n_a, n_t)
+    one = jax.jit(lambda *a: reward.with_previous(cfg, *a))
+    n_fall = 0
+    for g in range(n_g):
+        for a in range(n_a):
+            for t in range(n_t):
+                new, sh = int(next_grasp[g, a]), int(shared[g, a])
+                # the step solves the shared grasp only where changes are priced (`Surrogate.score`'s `during`)
+                change = (arrived.wrench_move[sh, t], arrived.unmet[sh, t, 0]) if cfg.prices_changes else (0.0, 0.0)
+                step = one(jax.tree.map(lambda x: x[new, t], arrived), redundant[g, a], changed[g, a], *change, t)
+                for name, value in vars(step).items():
+                    np.testing.assert_array_equal(np.asarray(getattr(table, name))[g, a, t], np.asarray(value),
+                                                  err_msg=f"{name} at g={g} a={a} t={t}")
+                n_fall += bool(step.fall)
+    assert n_fall > 0  # some transitions fall, some do not
+    assert n_fall < n_g * n_a * n_t
+
+
+def test_explain_failure_names_the_term():
+    cfg = RewardConfig()
+    ok = RewardTerms.zeros()
+    assert reward.explain_failure(cfg, ok, 3, "T1 I1") is None
+    assert "collides" in reward.explain_failure(cfg, ok.replace(collision=jnp.array(True)), 3, "T1 I1")
+    fell = ok.replace(fall=jnp.array(True), unmet=jnp.asarray([0.1, 0.45, 0.0, 0.0], jnp.float32))
+    assert reward.explain_failure(cfg, fell, 4, "T1 I1") == (
+        "t=4: the hold at the next waypoint (c) is 45% unmet (> 30%) with grasp T1 I1")
+    motors = fell.replace(motor_unmet=jnp.float32(0.5), unmet=jnp.zeros(4, jnp.float32))
+    assert reward.explain_failure(cfg, motors, 15, "T1").startswith("t=15: the external wrench at the final pose (d) "
+                                                                    "is beyond the hand's motors: 50% unmet")

@@ -1,4 +1,4 @@
-"""Tests of experiments/physics/calibrate.py: the candidate tables (IK shared by all candidates, wrench solves by each
+"""Tests of the calibration (`gsp_jax.physics.calibration`, the `calibrate` command): the candidate tables (IK shared by all candidates, wrench solves by each
 grip) equal `dp.build_table` under each candidate's own surrogate; the winner is the fewest DP-optimal
 falls, then the highest correlation; the evaluation episodes are refused."""
 from __future__ import annotations
@@ -16,6 +16,7 @@ import pytest  # noqa: E402
 
 import tolerances as tol  # noqa: E402
 from experiments.physics import calibrate  # noqa: E402
+from gsp_jax.physics import calibration  # noqa: E402
 from gsp_jax import dp, reward, scenario, surrogate  # noqa: E402
 from gsp_jax.reward import RewardConfig  # noqa: E402
 
@@ -29,12 +30,12 @@ def test_candidate_tables_equal_each_candidates_own_table():
                dataclasses.replace(base, grip=2.0, grip_scales_with_mass=True, fall_unmet=0.2, w_wrench_change=5.0,
                                    change_falls=True)]
     ep = scenario.eval_set_b()["mass1.5m0_comy+1cm"].head(3)
-    tables = calibrate.candidate_tables(configs, scenario.stack([ep]))
+    tables = calibration.candidate_tables(configs, scenario.stack([ep]))
     for cfg, tab in zip(configs, tables):
         own = jax.jit(lambda e: dp.build_table(surrogate.Surrogate(reward=cfg), e))(ep)
         np.testing.assert_array_equal(np.asarray(tab.next_grasp[0]), np.asarray(own.next_grasp))
         tol.assert_close_with_rare_ties(np.asarray(tab.reward[0]).ravel(), np.asarray(own.reward).ravel(),
-                                        tol.REWARD_ATOL, f"reward {calibrate.label(cfg)}")
+                                        tol.REWARD_ATOL, f"reward {calibration.label(cfg)}")
     # the candidates do differ: the change term and the stricter threshold fail more transitions
     r0, r1 = (np.asarray(t.reward[0]) for t in tables)
     assert (r1 == base.r_min).sum() > (r0 == base.r_min).sum()
@@ -56,24 +57,10 @@ def test_winner_is_fewest_dp_optimal_falls_then_highest_rho(capsys):
     assert "chosen" in capsys.readouterr().out
 
 
-def test_sign_test_p_is_the_exact_binomial_tail():
-    """8 episodes only the challenger held against 5 only the incumbent did: p = 2 sum_{k<=5} C(13, k) / 2^13."""
-    from math import comb
-
-    fell_c = [False] * 8 + [True] * 5 + [False] * 3 + [True] * 2  # 3 both held, 2 both fell
-    fell_i = [True] * 8 + [False] * 5 + [False] * 3 + [True] * 2
-    wins, losses, p = calibrate.challenger_wins(fell_c, fell_i)
-    assert (wins, losses) == (8, 5)
-    assert p == pytest.approx(2 * sum(comb(13, k) for k in range(6)) / 2**13)
-    assert calibrate.challenger_wins([True, False], [True, False])[2] == 1.0
-    with pytest.raises(ValueError, match="falls of"):
-        calibrate.challenger_wins([True], [True, False])
-
-
 def test_incumbent_stays_unless_the_challenger_falls_significantly_less(capsys):
     """The incumbent (today's calibration, by its label) keeps its place against a challenger whose DP plans hold
     3 episodes more of 20 (p 0.25), and gives it up to one that holds 9 more and loses none (p 0.004)."""
-    incumbent = calibrate.label(RewardConfig())
+    incumbent = calibration.label(RewardConfig())
 
     def sweep(challenger_fell):
         s = _sweep([(0.5, sum(challenger_fell)), (0.3, 12)])

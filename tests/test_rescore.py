@@ -1,5 +1,5 @@
 """Tests of experiments/physics/rescore.py: a recorded pool's sequences rescored step by step equal their returns
-replayed in the DP table (`calibrate.candidate_tables`, itself tested against `dp.build_table`: the table scores
+replayed in the DP table (`calibration.candidate_tables`, itself tested against `dp.build_table`: the table scores
 every (grasp, action, waypoint) through its own path), under the calibrated reward and a variant; bad --reward and --pool inputs are named."""
 from __future__ import annotations
 
@@ -15,7 +15,8 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import tolerances as tol  # noqa: E402
-from experiments.physics import calibrate, rescore  # noqa: E402
+from experiments.physics import rescore  # noqa: E402
+from gsp_jax.physics import calibration  # noqa: E402
 from gsp_jax import dp, scenario, surrogate  # noqa: E402
 from gsp_jax.reward import RewardConfig  # noqa: E402
 
@@ -38,7 +39,7 @@ def test_rescored_returns_equal_the_tables_replay():
                                    change_falls=False),
                dataclasses.replace(base, grip=2.0, grip_scales_with_mass=True, fall_unmet=0.2, w_wrench_change=5.0,
                                    change_falls=True)]
-    tables = calibrate.candidate_tables(configs, batch)
+    tables = calibration.candidate_tables(configs, batch)
     for reward, tab in zip(configs, tables):
         returns, feasible = rescore.score_pool(reward, sur.hand, batch, contacts, index, changed, 7)
         table = jax.tree.map(lambda x: x[0], tab)

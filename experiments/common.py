@@ -70,7 +70,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 def fingerprint(ctx) -> str:
     """Hash of what a saved result of an `evaluation.Context` depends on: the library and model sources, the physics
-    experiments' sources, the episodes, the RL parameters."""
+    experiments' sources, the episodes, the RL parameters (where the context has them)."""
     h = hashlib.sha256()
     package = pathlib.Path(hand.__file__).parent
     sources = [*package.glob("**/*.py"), *hand.MODELS_DIR.glob("*.xml")]
@@ -79,7 +79,7 @@ def fingerprint(ctx) -> str:
         h.update(path.read_bytes())
     h.update(ctx.surrogate.model.digest.encode())  # the model (its scene, includes resolved)
     h.update(repr(ctx.names).encode())
-    for leaf in jax.tree.leaves(ctx.rl.params):
+    for leaf in jax.tree.leaves(ctx.rl.params if ctx.rl is not None else ()):
         h.update(np.asarray(leaf).tobytes())
     return h.hexdigest()[:16]
 

@@ -116,3 +116,12 @@ def test_the_architecture_page_names_every_folder_of_code():
                       for p in (ROOT / top).rglob("*.py")})
     missing = [f for f in folders if f"`{f}/`" not in text]
     assert not missing, f"docs/architecture.md does not name: {missing}"
+
+
+def test_every_folder_of_code_is_a_declared_package():
+    """pyproject.toml lists its packages by name: a new folder of code must be among them, or the wheel lacks it."""
+    import tomllib
+
+    declared = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    folders = {_module(p) for top in ("gsp_jax", "experiments") for p in (ROOT / top).rglob("__init__.py")}
+    assert folders - declared == set(), f"folders of code not in pyproject's packages: {sorted(folders - declared)}"

@@ -124,7 +124,8 @@ def figures(results: dict) -> dict:
 def main(args: argparse.Namespace) -> None:
     common.check_planners(args.policies, "--policies", args.backend)
     common.check_planners(args.bases, "--bases")
-    ctx = evaluation.context(args.set, args.episodes, args.policy_dir)
+    ctx = evaluation.context(args.set, args.episodes, args.policy_dir,  # only what the policies read
+                             **planners.context_flags([*args.policies, *(args.bases if 'L1-physics' in args.policies else ())]))
     print(f"Fig. 4b: {len(ctx.names)} episodes of '{args.set}' in {args.backend} (JAX on {jax.default_backend()}), "
           f"RL policy {ctx.rl_source}", flush=True)
     out = results_dir("fig4b")

@@ -58,7 +58,9 @@ def main(args: argparse.Namespace) -> None:
         raise SystemExit(f"envelope: --random must be >= 0, got {args.random}")
     if args.physics_lookahead < 0:
         raise SystemExit(f"envelope: --physics-lookahead must be >= 0, got {args.physics_lookahead}")
-    ctx = evaluation.context(args.set, args.episodes, args.policy_dir)
+    reads = gsp_planners.context_flags([*args.policies, *(["L1-physics", *args.bases] if args.physics_lookahead else [])])
+    ctx = evaluation.context(args.set, args.episodes, args.policy_dir,  # the tables always: every sequence is scored
+                             **(reads | dict(tables=True, nominal=reads["nominal"] or reads["rl"])))
     sur, N, T = ctx.surrogate, len(ctx.names), ctx.batch.n_steps
     planners = [p for p in args.policies if p != "rl" or ctx.rl is not None]  # a model without a PPO policy: no RL row
     planners += ["L1-physics"] if args.physics_lookahead else []

@@ -73,14 +73,15 @@ def load_plugin(name: str) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     words = sys.argv[1:] if argv is None else argv
-    deterministic_gpu_kernels(next((w for w in words if w in COMMANDS), None))
+    chosen = next((w for w in words if w in COMMANDS), None)  # only its module is imported (the others: help only)
+    deterministic_gpu_kernels(chosen)
     import gsp_jax  # noqa: F401  (turns on XLA's compilation cache on disk: gsp_jax.cache, GSP_JAX_CACHE)
 
     parser = argparse.ArgumentParser(prog="python -m experiments", description=__doc__)
     parser.add_argument("--record", action="store_true",
-                        help="also write the result to docs/data/<name>.json and append it to docs/data/history/")
+                        help="also write the result to docs/data/<name>_<device>.json and append it to "
+                             "docs/data/history/")
     sub = parser.add_subparsers(dest="command", required=True)
-    chosen = next((w for w in words if w in COMMANDS), None)  # only its module is imported (the others: help only)
     module = None
     for name, (path, help_) in COMMANDS.items():
         if name != chosen:
@@ -105,10 +106,10 @@ def main(argv: list[str] | None = None) -> None:
         load_plugin(plugin)
     if getattr(args, "model", None) is not None:
         try:
-            chosen = model_lib.set_default(args.model)
+            model = model_lib.set_default(args.model)
         except model_lib.ModelError as e:
             raise SystemExit(f"--model: {e}") from None
-        print(f"model: {chosen.name} ({chosen.path})", flush=True)
+        print(f"model: {model.name} ({model.path})", flush=True)
     from gsp_jax import files, scenario
 
     try:

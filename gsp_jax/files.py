@@ -146,22 +146,13 @@ def folder_lock(folder):
 
 
 _HELD = contextlib.ExitStack()  # the folders this process holds until it exits (`hold`)
+atexit.register(_HELD.close)
 
 
 def hold(folder) -> pathlib.Path:
     """Take `folder`'s lock (`folder_lock`) for the rest of this process (released at exit; a crash leaves a stale
-    lock that the next run takes over): `FolderInUse` if another live process holds it. Returns the folder."""
-    folder = pathlib.Path(folder)
-    if not (folder / LOCK_NAME).is_file() or _owner_pid(folder) != os.getpid():
-        if not _HELD._exit_callbacks:
-            atexit.register(_HELD.close)
-        _HELD.enter_context(folder_lock(folder))
-    return folder
-
-
-def _owner_pid(folder: pathlib.Path) -> int:
-    try:
-        return int(json.loads((folder / LOCK_NAME).read_text())["pid"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return -1
+    lock that the next run takes over): `FolderInUse` if another live process holds it. Returns the folder. Holding
+    a folder this process already holds changes nothing (`folder_lock` is re-entrant)."""
+    _HELD.enter_context(folder_lock(folder))
+    return pathlib.Path(folder)
 

@@ -25,7 +25,7 @@ LOOKAHEAD = ("table", "cached", "continuous")  # L1 and L2: root and interior in
 
 
 def default_batched(name: str) -> bool:
-    """Whether `planner` batches policy `name`'s transitions by default: DP baseline always, RL on a GPU."""
+    """Whether `plan` batches policy `name`'s transitions by default: DP baseline always, RL on a GPU."""
     return name == "dp-base" or (name == "rl" and jax.default_backend() == "gpu")
 
 
@@ -34,8 +34,7 @@ def default_ahead() -> int:
     return GPU_AHEAD if jax.default_backend() == "gpu" else 1
 
 
-def plan(ctx, name: str, lookahead: str = "table", batched: bool | None = None,
-            ahead: int | None = None):
+def plan(ctx, name: str, lookahead: str = "table", batched: bool | None = None, ahead: int | None = None):
     """episode -> return for policy `name`, planned online on the surrogate. L1 and L2 (`lookahead`): "table"
     builds the unseen episode's table (as DP optimal does) and searches in it, root included: from its start the
     surrogate visits only the table's discrete states, so the root's children are the table's (exact, as for DP
@@ -55,21 +54,21 @@ def plan(ctx, name: str, lookahead: str = "table", batched: bool | None = None,
     if batched is None:
         batched = default_batched(name)
     if name == "dp-opt":  # solve the unseen episode's whole table, then run its policy in that table
-        def plan(ep):
+        def episode(ep):
             table, sol = dp.solve(sur, ep)
             model = TableModel(table, sur.space)  # from its start the surrogate only visits the table's states
             return lookahead_lib.rollout(model, policies.TablePolicy(sol.policy), model.reset(ep))[0]
-        return plan
+        return episode
     policy, _ = planners.make(ctx, name, dict(cached=False))
     if isinstance(policy, policies.Lookahead):  # each decision's search has stepped every action: the episode moves on
-        def plan(ep):                       # to its child (`rollout_planned`) instead of stepping the surrogate again
+        def episode(ep):                    # to its child (`rollout_planned`) instead of stepping the surrogate again
             if lookahead == "continuous":
                 return lookahead_lib.rollout_planned(policy, sur.reset(ep))[0]
             model = TableModel(dp.build_table(sur, ep), sur.space)  # the unseen episode's table, inside the timed call
             if lookahead == "table":
                 return lookahead_lib.rollout_planned(policy.replace(model=model, inner=model), model.reset(ep))[0]
             return lookahead_lib.rollout_planned(policy.replace(inner=model), sur.reset(ep))[0]
-        return plan
+        return episode
     if batched and name in BATCHED:
         ahead = default_ahead() if ahead is None else ahead
         return lambda ep: policies.rollout_batched(sur, policy, ep, ahead)[0]

@@ -146,7 +146,8 @@ def describe() -> list[dict]:
 def returns(ctx, name: str, backend: str = "table", **options):
     """Return of planner `name` on every episode of `ctx` (N,) float32, each episode stepped from its reset in its
     DP table (`backend="table"`: exact for the discrete states the surrogate visits) or in the surrogate itself
-    (`"surrogate"`, a lookahead's tree included). `options` go to `make`."""
+    (`"surrogate"`, a lookahead's tree included). `options` go to `make` as shared options (to the planner only
+    where it takes them, e.g. `cached=True`)."""
     from gsp_jax import lookahead
     from gsp_jax.env import TableModel
 

@@ -32,16 +32,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     common.add_lookahead_argument(p)
 
 
-def returns(ctx: evaluation.Context, name: str, backend: str, cached: bool = True) -> np.ndarray:
-    """Return of policy `name` on every episode of the context (N,), stepping `backend`."""
-    return np.asarray(planners.returns(ctx, name, backend, cached=cached))
-
-
 def run(ctx: evaluation.Context, backend: str, out, cached: bool = True) -> dict:
     rets, wall = {}, {}
     for name in planners.names("paper"):
         t0 = time.perf_counter()
-        rets[name] = returns(ctx, name, backend, cached)
+        rets[name] = np.asarray(planners.returns(ctx, name, backend, cached=cached))
         wall[name] = time.perf_counter() - t0
         print(f"  {name:8s} mean return {rets[name].mean():9.3f}   ({wall[name]:.1f} s incl. compile, {backend})", flush=True)
     gap = float(np.max(np.abs(rets["dp-opt"] - np.asarray(ctx.solutions.ret))))
@@ -49,17 +44,12 @@ def run(ctx: evaluation.Context, backend: str, out, cached: bool = True) -> dict
                   returns={n: r.tolist() for n, r in rets.items()}, dp_opt_rollout_vs_table_max_abs=gap, wall_s=wall,
                   r_min=ctx.surrogate.reward_config.r_min)
     if backend == "surrogate":  # cross-check: the tables give the same returns
-        result["table_vs_surrogate_max_abs"] = {n: float(np.max(np.abs(returns(ctx, n, "table", cached) - rets[n])))
-                                                for n in rets}
-    result |= analyse(result)
+        result["table_vs_surrogate_max_abs"] = {
+            n: float(np.max(np.abs(planners.returns(ctx, n, "table", cached=cached) - rets[n]))) for n in rets}
+    result |= stats.relative_returns(rets, "dp-opt", COMPARED, result["r_min"])  # mean, CI, RM-ANOVA, rank tests
     files.write_json(out / "returns.json", result)
     common.fig4a_png(result["relative"], len(ctx.names), out / "fig4a.png")
     return result
-
-
-def analyse(result: dict) -> dict:
-    """Relative returns with 95% intervals, and the RM-ANOVA with post-hoc tests, from saved `returns`."""
-    return stats.relative_returns(result["returns"], "dp-opt", COMPARED, result["r_min"])
 
 
 def print_result(result: dict) -> None:

@@ -145,12 +145,12 @@ def score_candidates(configs, tables, batch, names, flat, angle, fell):
         per_seq = jax.tree.map(lambda x: x[ep_idx], tab)
         ret = np.asarray(score(per_seq, batch.start_grasp[ep_idx], acts))
         feasible = ret > cfg.r_min + 1e-3 * abs(cfg.r_min)
-        opt = np.asarray(backup(tab, batch.start_grasp).actions)
+        sol = backup(tab, batch.start_grasp)
+        opt = np.asarray(sol.actions)
         opt_idx = [next(i for i, (e2, _, s) in enumerate(flat) if e2 == e and s == tuple(opt[e].tolist()))
                    for e in range(len(names))]
         rho = spearman(ret, -angle)
         held_feasible = float(np.mean(~fell[feasible])) if feasible.any() else float("nan")
-        sol = backup(tab, batch.start_grasp)
         g = np.asarray(sol.grasps)
         changes = float(np.mean(np.sum((g[:, 1:] != g[:, :-1]) & np.asarray(sol.alive), axis=1)))
         results.append(dict(config=dataclasses.asdict(cfg), label=label(cfg), spearman=rho,

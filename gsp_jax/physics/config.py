@@ -158,6 +158,13 @@ def _group_of() -> dict[str, str]:
 GROUP_OF = _group_of()  # field name -> its group's name (every field name is one group's)
 
 
+def _group(name: str) -> str:
+    """The group of PhysicsConfig's field `name`; ValueError naming the fields if there is none."""
+    if name not in GROUP_OF:
+        raise ValueError(f"PhysicsConfig has no field {name!r} (fields: {', '.join(GROUP_OF)})")
+    return GROUP_OF[name]
+
+
 @dataclasses.dataclass(frozen=True)
 class PhysicsConfig:
     """The physics check's settings, one group per concern (see the module docstring)."""
@@ -178,13 +185,9 @@ class PhysicsConfig:
         """A copy with fields of any group changed by their names (`replace(hold=0.5, free_stiffness=2.0)`)."""
         by_group: dict[str, dict] = {}
         for name, value in changes.items():
-            if name not in GROUP_OF:
-                raise ValueError(f"PhysicsConfig has no field {name!r} (fields: {', '.join(GROUP_OF)})")
-            by_group.setdefault(GROUP_OF[name], {})[name] = value
+            by_group.setdefault(_group(name), {})[name] = value
         return dataclasses.replace(self, **{g: dataclasses.replace(getattr(self, g), **kw) for g, kw in by_group.items()})
 
     def value(self, name: str):
         """The value of the field `name` of any group."""
-        if name not in GROUP_OF:
-            raise ValueError(f"PhysicsConfig has no field {name!r} (fields: {', '.join(GROUP_OF)})")
-        return getattr(getattr(self, GROUP_OF[name]), name)
+        return getattr(getattr(self, _group(name)), name)

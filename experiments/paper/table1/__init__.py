@@ -45,7 +45,7 @@ from experiments.common import results_dir
 from experiments.paper.table1 import decisions, episode
 from gsp_jax import evaluation, files, online, planners
 
-PAPER = planners.names("paper")  # Table 1's rows: the paper's five planners, in its order
+PAPER = episode.PAPER
 
 
 def _at_least_one(text: str) -> int:

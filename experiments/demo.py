@@ -222,14 +222,11 @@ def _gif(phys: physics.Physics, ctx, r, stem) -> list[str]:
 def _render_gif(phys: physics.Physics, trace: str) -> None:
     """(The child of `_gif`) the GIF of a saved trace `<stem>_qpos.npy` (a frame each) with its captions
     `<stem>_captions.json`, and its last frame large as `<stem>_keyframe.png`."""
-    import json
-
     from gsp_jax import render
 
     stem = trace.removesuffix("_qpos.npy")
     qpos = np.load(trace)
-    with open(f"{stem}_captions.json") as f:
-        texts = json.load(f)
+    texts = files.read_json(f"{stem}_captions.json")
     render.save_png(f"{stem}_keyframe.png", render.caption(render.frames(phys.model, qpos[-1:], size=(480, 640)),
                                                            texts[-1:], size=18)[0])
     render.save_gif(f"{stem}.gif", render.caption(render.frames(phys.model, qpos), texts), fps=render.GIF_FPS)

@@ -72,18 +72,18 @@ def angle_png(phys, names, res, path, title: str) -> None:
 
 
 def render_episode(phys, qpos: np.ndarray, stem, window=None, key: int = -1) -> list:
-    """Key frame (frame `key`) PNG and a GIF at 25 frames per simulated second (of the time `window`, default all);
-    [] if no GL backend."""
+    """Key frame (frame `key`) PNG and a GIF at `render.GIF_FPS` frames per simulated second (of the time
+    `window`, default all); [] if no GL backend."""
     try:
         from gsp_jax import render
     except Exception as e:  # noqa: BLE001 - rendering is optional
         print(f"rendering skipped: {e}")
         return []
     try:
-        every = max(1, int(round(0.04 / phys.timestep)))
+        every = max(1, int(round(1 / (render.GIF_FPS * phys.timestep))))
         png = render.save_png(f"{stem}_keyframe.png", render.frames(phys.model, qpos[key][None], size=(480, 640))[0])
         lo, hi = (0, len(qpos)) if window is None else (int(window[0] / phys.timestep), int(window[1] / phys.timestep))
-        gif = render.save_gif(f"{stem}.gif", render.frames(phys.model, qpos[lo:hi], every=every), fps=25)
+        gif = render.save_gif(f"{stem}.gif", render.frames(phys.model, qpos[lo:hi], every=every), fps=render.GIF_FPS)
         return [png, gif]
     except Exception as e:  # noqa: BLE001
         print(f"rendering skipped ({type(e).__name__}: {e}); set MUJOCO_GL=egl or osmesa")

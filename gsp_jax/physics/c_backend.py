@@ -24,11 +24,14 @@ from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 from jax.flatten_util import ravel_pytree
-from mujoco import batch as mj_batch
 
+from gsp_jax.physics import native
 from gsp_jax.scenario import Episode
+
+CONTROLLERS = ("native", "jax")  # the controller's tick: compiled to native code, or the JAX program
 
 
 def available_cores() -> int:
@@ -147,76 +150,75 @@ class Snapshot:
 
 
 class Engine:
-    """The episodes of one lockstep in C MuJoCo: a `mujoco.batch.Batch` of the physics model with the per-episode
-    fields (tool mass, inertia, CoM, finger-tool friction, pedestals) expanded per simulation."""
+    """The episodes of one lockstep in C MuJoCo: one `MjModel` per episode (a copy of the physics model with the
+    episode's fields: tool mass, inertia, CoM, finger-tool friction, pedestals; `Scene.c_model`) and its `MjData`,
+    stepped by `mj_step` from native code (`native.step_rows`, `native.segment`: no Python per step). `obs`
+    (n, nq + 2 nv) float32 is every episode's observation: qpos, qvel and qfrc_bias after its last step."""
 
-    def __init__(self, scene, fields, qpos0: np.ndarray, cores: int, log: list | None = None):
+    def __init__(self, scene, fields, qpos0: np.ndarray, log: list | None = None):
         n = qpos0.shape[0]
         self.scene, self.n, self.log = scene, n, log
-        self.batch = b = mj_batch.Batch(scene.model, nsim=n, nthread=max(1, min(cores, n)))
-        body, pairs = scene.tool_body, scene.finger_tool_pairs
-        b.expand("body_mass")[:, body] = fields.mass
-        b.expand("body_inertia")[:, body] = fields.inertia
-        b.expand("body_ipos")[:, body] = fields.com
-        b.expand("pair_friction")[:, pairs, :2] = np.asarray(fields.friction)[:, None, None]
-        self._geom_pos = b.expand("geom_pos")
-        self._pedestals = np.asarray(fields.pedestal_pos, np.float64)  # (n, P, 3) at drop 0
-        self.set_pedestals(0.0)
-        self.qpos, self.qvel, self.ctrl, self.xfrc = b.qpos, b.qvel, b.ctrl, b.xfrc_applied
-        self.qpos[:] = qpos0
-        b.forward()
-        self.bias = b.bind("qfrc_bias")
+        one = lambda e: jax.tree.map(lambda x: np.asarray(x)[e], fields)  # noqa: E731
+        self.models = [scene.c_model(one(e)) for e in range(n)]
+        self.datas = [mujoco.MjData(m) for m in self.models]
         nq, nv = scene.model.nq, scene.model.nv
         self.obs = np.zeros((n, nq + 2 * nv), np.float32)
-        self._cut = (nq, nq + nv)
-        self._restored = None  # an observation restored with the state, read until the next step
+        for e, (m, d) in enumerate(zip(self.models, self.datas)):
+            d.qpos[:] = qpos0[e]
+            mujoco.mj_forward(m, d)
+            self.obs[e] = np.concatenate([d.qpos, d.qvel, d.qfrc_bias])
+        self.addresses = native.addresses(self.models, self.datas, scene.tool_body)
+        self.pedestals = np.ascontiguousarray(fields.pedestal_pos, np.float64)  # (n, P, 3) at drop 0
+        self.geoms = np.asarray(scene.pedestal_geoms, np.int64)
+        self._spec = mujoco.mjtState.mjSTATE_INTEGRATION
+        self.nstate = mujoco.mj_stateSize(scene.model, self._spec)
+
+    def state(self) -> np.ndarray:
+        """(n, nstate) float64: every episode's MuJoCo state (`mjSTATE_INTEGRATION`: time, qpos, qvel, act, the
+        solver's warm start, ctrl, applied forces, ...)."""
+        out = np.empty((self.n, self.nstate))
+        for e, (m, d) in enumerate(zip(self.models, self.datas)):
+            mujoco.mj_getState(m, d, out[e], self._spec)
+        return out
 
     def restore(self, state: np.ndarray, obs: np.ndarray) -> None:
         """Every episode's MuJoCo state rows (n, nstate) and the observation that went with them (its qfrc_bias
         came from the step before: MuJoCo's derived fields are one step behind the state)."""
-        self.batch.state[:] = state
-        self._restored = np.array(obs, np.float32)
+        for e, (m, d) in enumerate(zip(self.models, self.datas)):
+            mujoco.mj_setState(m, d, np.asarray(state[e], np.float64), self._spec)
+        self.obs[:] = obs
 
-    def set_pedestals(self, drop: float) -> None:
-        """The pedestals of every episode `drop` (<= 0) metres below their start."""
-        self._geom_pos[:, self.scene.pedestal_geoms] = self._pedestals + np.array([0.0, 0.0, drop])
-
-    def observe(self) -> np.ndarray:
-        """(n, nq + 2 nv) float32: qpos, qvel and qfrc_bias of every episode."""
-        if self._restored is not None:
-            self.obs[:] = self._restored
-            return self.obs
-        a, b = self._cut
-        self.obs[:, :a], self.obs[:, a:b], self.obs[:, b:] = self.qpos, self.qvel, self.bias
-        return self.obs
-
-    def step(self, ids: np.ndarray, ctrl: np.ndarray, external: np.ndarray) -> None:
-        """Episodes `ids` advance one physics step under motor commands ctrl (n, nu) and the tool's external
-        wrench (n, 6); the others stay as they are."""
-        self.ctrl[ids] = ctrl[ids]
-        self.xfrc[ids, self.scene.tool_body] = external[ids]
+    def step(self, constants, ids: np.ndarray, out: np.ndarray, drop: float, buf: np.ndarray) -> None:
+        """Episodes `ids` advance one physics step under their rows of `out` (n, nu + 6 ...): motor commands
+        and the tool's external wrench, with the pedestals `drop` (<= 0) metres below their start; the others
+        stay as they are. `buf`: float64 scratch of at least max(nq, nv, nu, 6) (one a thread)."""
         if self.log is not None:  # (episodes, their mjSTATE_INTEGRATION rows, pedestal positions) before the step
-            self.log.append((ids.copy(), self.batch.state[ids].copy(), self._geom_pos[ids][:, self.scene.pedestal_geoms]))
-        self.batch.step(ids=ids, nstep=1)
-        self._restored = None
+            self.log.append((ids.copy(), self.state()[ids], self.pedestals[ids] + np.array([0.0, 0.0, drop])))
+        native.step_rows(constants, self.addresses, np.asarray(ids, np.int64), out, self.pedestals, self.geoms,
+                         float(drop), self.obs, buf)
 
 
 class _Lockstep:
-    """The state of `simulate`'s lockstep: M = groups x episodes rows, split into `workers` chunks of contiguous
-    rows, each with its own `Engine`; the recorded trace (numpy) and the controller states (on the CPU device)."""
+    """The state of `simulate`'s lockstep: M = groups x episodes rows in one `Engine`, split into `workers`
+    chunks of contiguous rows that run side by side (threads); the recorded trace and the controller states
+    (flat rows, float32), all numpy."""
 
-    def __init__(self, phys, groups, episodes: Episode, cores: int, workers: int, engine_log: list | None,
-                 start: Snapshot | None = None):
-        self.phys, self.groups, self.episodes = phys, groups, episodes
+    def __init__(self, phys, groups, episodes: Episode, workers: int, engine_log: list | None,
+                 start: Snapshot | None = None, controller: str = "native"):
+        if controller not in CONTROLLERS:
+            raise ValueError(f"controller must be one of {CONTROLLERS}, got {controller!r}")
+        self.phys, self.groups, self.episodes, self.controller = phys, groups, episodes, controller
         scene = phys.scene
         N, T = int(np.shape(episodes.mass)[0]), episodes.n_steps
         G = len(groups)
         M, K, nq = G * N, phys.n_ticks(T), phys.model.nq
         self.T, self.K, self.nq, self.nu, self.n = T, K, nq, phys.model.nu, phys.n_segment
         self.pr = pr = programs(phys, episodes)
-        self.cpu, self.default = jax.devices("cpu")[0], jax.devices()[0]
+        self.native = native_tick(phys)
+        self.default = jax.devices()[0]
         # every group runs on every episode: the lockstep's batch is the groups' episodes one after another
-        ep_flat = jnp.tile(jax.device_put(pr.ravel_episodes(episodes), self.cpu), (G, 1))
+        tile = lambda x: np.tile(np.asarray(x), (G,) + (1,) * (np.ndim(x) - 1))  # noqa: E731
+        self.ep_native = native.Episodes(*(tile(x) for x in self.native.episodes(episodes)))
         end = T + phys.n_hold
         if start is not None and (np.shape(start.state)[0] != M or np.shape(start.qpos0)[0] != M
                                   or not 0 <= start.segment <= end):
@@ -224,35 +226,35 @@ class _Lockstep:
                              f"needed, got {np.shape(start.state)[0]} rows at segment {start.segment}")
         if start is None:
             qpos0, cs = pr.start(episodes)
-            self.qpos0 = np.tile(np.asarray(qpos0, np.float64), (G, 1))
-            self.cs = jax.device_put(jnp.tile(cs, (G, 1)), self.cpu)
+            self.qpos0 = tile(np.asarray(qpos0, np.float64))
+            self.cs = np.ascontiguousarray(tile(cs), np.float32)
         else:  # the start's IK is not run again (its rows were checked above)
             self.qpos0 = np.array(start.qpos0, np.float64)
-        fields = jax.tree.map(lambda x: np.tile(np.asarray(x), (G,) + (1,) * (np.ndim(x) - 1)),
-                              jax.device_get(pr.fields(episodes)))
-        self.chunks = chunks = np.array_split(np.arange(M), workers)  # contiguous rows
+        fields = jax.tree.map(tile, jax.device_get(pr.fields(episodes)))
+        self.chunks = np.array_split(np.arange(M), workers)  # contiguous rows
         if engine_log is not None and workers != 1:
             raise ValueError(f"engine_log needs workers=1, got workers={workers}")
-        self.engines = [Engine(scene, jax.tree.map(lambda x: x[ids], fields), self.qpos0[ids],
-                               max(1, cores // workers), engine_log) for ids in chunks]
-        self.ep_flat, self.ep_chunks = ep_flat, [ep_flat[ids[0]:ids[-1] + 1] for ids in chunks]
+        self.engine = Engine(scene, fields, self.qpos0, engine_log)
+        self.ep_flat = np.asarray(jnp.tile(pr.ravel_episodes(episodes), (G, 1)))
         self.grasp = np.tile(np.asarray(episodes.start_grasp, np.int32), G)
         self.fell, self.fall_tick = np.zeros(M, bool), np.full(M, -1, np.int32)
         self.angle, self.perr = np.zeros((M, K), np.float32), np.zeros((M, K), np.float32)
         self.qpos_trace = np.zeros((M, K, nq), np.float32)
         self.actions, self.grasps = np.zeros((M, T), np.int32), np.zeros((M, T), np.int32)
+        self.out = np.zeros((M, self.nu + 9), np.float32)  # each row's last tick: ctrl | external | status
         self.group_rows = [slice(g * N, (g + 1) * N) for g in range(G)]
         self.decides = [pr.decide(0 if hasattr(policy, "in_physics") else axis) for policy, axis in groups]
         self.pedestal_drop, self.tick = scene.pedestal_drop, phys.timestep
+        m = phys.model
+        self._scratch = [np.zeros(max(m.nq, m.nv, m.nu, 6)) for _ in self.chunks]  # one a thread
         self.segment = 0
         if start is not None:
             self._restore(start)
 
     def _restore(self, start: Snapshot) -> None:
         """Continue from `start` (its rows are this lockstep's rows)."""
-        for eng, ids in zip(self.engines, self.chunks):
-            eng.restore(start.state[ids], start.obs[ids])
-        self.cs = jax.device_put(jnp.asarray(start.cs), self.cpu)
+        self.engine.restore(start.state, start.obs)
+        self.cs = np.array(start.cs, np.float32)
         self.grasp, self.fell, self.fall_tick = (np.array(x) for x in (start.grasp, start.fell, start.fall_tick))
         self.angle, self.perr, self.qpos_trace = (np.array(x) for x in (start.angle, start.perr, start.qpos))
         self.actions, self.grasps = np.array(start.actions), np.array(start.grasps)
@@ -260,9 +262,8 @@ class _Lockstep:
 
     def snapshot(self) -> Snapshot:
         """Every row at the start of the next segment (copies)."""
-        state = np.concatenate([np.array(e.batch.state) for e in self.engines])
-        return Snapshot(segment=self.segment, qpos0=self.qpos0.copy(), state=state,
-                        obs=np.array(self.observe_all()), cs=np.asarray(self.cs), grasp=self.grasp.copy(),
+        return Snapshot(segment=self.segment, qpos0=self.qpos0.copy(), state=self.engine.state(),
+                        obs=self.engine.obs.copy(), cs=self.cs.copy(), grasp=self.grasp.copy(),
                         fell=self.fell.copy(), fall_tick=self.fall_tick.copy(), angle=self.angle.copy(),
                         perr=self.perr.copy(), qpos=self.qpos_trace.copy(), actions=self.actions.copy(),
                         grasps=self.grasps.copy())
@@ -278,23 +279,19 @@ class _Lockstep:
         with ThreadPoolExecutor(max_workers=workers) as pool:
             for k in segments:
                 self.decide(k)
-                cs_chunks = [self.cs[ids[0]:ids[-1] + 1] for ids in self.chunks]
-                self.cs = jnp.concatenate(list(pool.map(self.run_segment, range(workers), [k] * workers, cs_chunks)))
+                list(pool.map(self.run_segment, range(workers), [k] * workers))
                 self.segment = k + 1
 
-    def record(self, rows: slice, j, status, now):
+    def record(self, rows: np.ndarray, j, status, now):
         """Tick j's status (angle, position error, fell) and configuration of the episodes `rows`."""
         fell_now = status[:, 2] > 0.5
-        self.fall_tick[rows][fell_now & ~self.fell[rows]] = j
+        self.fall_tick[rows[fell_now & ~self.fell[rows]]] = j
         self.fell[rows] |= fell_now
         self.angle[rows, j], self.perr[rows, j], self.qpos_trace[rows, j] = status[:, 0], status[:, 1], now
 
-    def observe_all(self):
-        return np.concatenate([e.observe() for e in self.engines])
-
     def decide(self, k: int):
         """Each policy decides for its episodes at segment k (the hold: set-up only); the controller states."""
-        obs, parts, snapshot = self.observe_all(), [], None
+        obs, snapshot = self.engine.obs, None
         for g, (policy, _) in enumerate(self.groups):
             rows, decide = self.group_rows[g], self.decides[g]
             if hasattr(policy, "in_physics"):  # a policy that decides in physics (`physics.verified`): its hook
@@ -308,33 +305,39 @@ class _Lockstep:
             if k < self.T:
                 self.actions[rows, k], self.grasps[rows, k] = np.asarray(act), np.asarray(gr)
             self.grasp[rows] = np.asarray(gr)
-            parts.append(jax.device_put(cs_g, self.cpu))
-        self.cs = jnp.concatenate(parts) if len(parts) > 1 else parts[0]
+            self.cs[rows] = np.asarray(cs_g)
 
-    def run_segment(self, w, k, cs_w):
-        """Chunk w's control ticks of segment k; its controller states after them."""
-        eng, ep_w, ids, nq, nu = self.engines[w], self.ep_chunks[w], self.chunks[w], self.nq, self.nu
-        rows = slice(ids[0], ids[-1] + 1)
-        obs, alive = eng.observe(), np.flatnonzero(~self.fell[rows])
-        for i in range(self.n):
-            j = k * self.n + i
-            eng.set_pedestals(float(self.pedestal_drop(j * self.tick, xp=np)))
-            cs_w, out = self.pr.tick(cs_w, obs, ep_w, j)
-            out = np.asarray(out)
+    def run_segment(self, w, k):
+        """Chunk w's control ticks of segment k."""
+        ids, eng, n = self.chunks[w], self.engine, self.n
+        j0 = k * n
+        drops = np.array([self.pedestal_drop(j * self.tick, xp=np) for j in range(j0, j0 + n)], np.float64)
+        if self.controller == "native" and eng.log is None:  # the whole segment in one native call
+            native.segment(self.native.constants, j0, drops, ids, self.cs, eng.obs, self.ep_native, eng.addresses,
+                           eng.pedestals, eng.geoms, self.fell, self.fall_tick, self.angle, self.perr,
+                           self.qpos_trace, self.out, self._scratch[w])
+            return
+        nu, rows = self.nu, slice(ids[0], ids[-1] + 1)
+        alive = ids[~self.fell[ids]]
+        for i in range(n):  # tick by tick: the JAX controller, or an engine log
+            j = j0 + i
+            if self.controller == "native":
+                self.native(j, ids, self.cs, eng.obs, self.ep_native, self.out)
+            else:
+                cs, out = self.pr.tick(self.cs[rows], eng.obs[rows], self.ep_flat[rows], j)
+                self.cs[rows], self.out[rows] = np.asarray(cs), np.asarray(out)
             if j > 0:
-                self.record(rows, j - 1, out[:, nu + 6:], obs[:, :nq])
-                if out[alive, -1].max(initial=0.0) > 0.5:  # a fall: that episode is no longer stepped
-                    alive = np.flatnonzero(~self.fell[rows])
+                self.record(ids, j - 1, self.out[ids, nu + 6:], eng.obs[ids, :self.nq])
+                alive = ids[~self.fell[ids]]
             if alive.size:
-                eng.step(alive, out[:, :nu], out[:, nu:nu + 6])
-            obs = eng.observe()
-        return cs_w
+                eng.step(self.native.constants, alive, self.out, drops[i], self._scratch[w])
 
     def results(self):
         """The last tick's status, fallen tools' traces held, and a `runner.Result` (numpy) per group."""
-        obs = self.observe_all()
-        self.record(slice(0, len(self.fell)), self.K - 1, np.asarray(self.pr.check(obs, self.ep_flat, self.K - 1)),
-                    obs[:, :self.nq])
+        rows, obs = np.arange(len(self.fell)), self.engine.obs
+        status = np.zeros((len(rows), 3), np.float32)
+        native.status_rows(self.K - 1, rows, obs, self.ep_native, self.native.constants, status)
+        self.record(rows, self.K - 1, status, obs[:, :self.nq])
         for e in np.flatnonzero(self.fell):  # a fallen tool's trace stays where it was before the tick it fell
             f = self.fall_tick[e]
             self.qpos_trace[e, f:] = self.qpos_trace[e, f - 1] if f > 0 else self.qpos0[e]
@@ -344,28 +347,36 @@ class _Lockstep:
             jnp.asarray(self.fall_tick[rows]), self.T)) for rows in self.group_rows]
 
 
+def native_tick(phys) -> native.Tick:
+    """The native tick of `phys` (made once)."""
+    if "native" not in phys._jitted:
+        phys._jitted["native"] = native.Tick(phys)
+    return phys._jitted["native"]
+
+
 def simulate(phys, groups, episodes: Episode, cores: int | None = None, progress: bool = False,
              workers: int | None = None, engine_log: list | None = None, start: Snapshot | None = None,
-             until: int | None = None):
+             until: int | None = None, controller: str = "native"):
     """`Physics.simulate_many(..., backend="c")`: every (policy, policy_axis) of `groups` on every episode of
     `episodes` (leading axis) in one lockstep; a list of `runner.Result`s of numpy arrays, one per group.
 
-    Between two decisions the lockstep's episodes run as `workers` chunks side by side (threads: XLA and MuJoCo
-    both run without Python's lock), each with its own controller call per tick and its own `Engine` on
-    cores / workers threads, so one chunk's physics overlaps another's controller. Default: one chunk per ~32
-    episodes, at most cores / 4 (more chunks are slower: each chunk's Python per tick holds Python's lock, and the
-    controller calls contend; timings per chunk count: docs/physics.md, "Cost").
+    Between two decisions the lockstep's episodes run as `workers` chunks of rows side by side (threads), each
+    chunk's whole segment one call of native code (`native.segment`: the controller's ticks and `mj_step`,
+    without Python's lock). Default: one chunk a core (at most `cores`, default all).
+    `controller="jax"`: the JAX controller (`Physics.tick`, one XLA call a tick and chunk) instead of its native
+    twin: the reference the native one is measured against (tests/test_native.py).
     `engine_log` (a list, one worker only): every step's states are appended to it (`Engine.log`; `experiments
     bench-physics` replays them to time the engine alone).
 
     `until`: stop at the start of segment `until` (before its decision) and return the lockstep's `Snapshot`
     instead of results. `start`: continue from such a snapshot (rows: groups x episodes, the same order) instead
-    of from the episodes' start; with the same groups, episodes and row count the continuation is the original
-    run's, bit for bit (tests/test_physics.py), so a snapshot's rows can be branched under other policies."""
+    of from the episodes' start; with the same groups, episodes and controller the continuation is the original
+    run's, bit for bit, at any row count (tests/test_physics.py), so a snapshot's rows can be branched under
+    other policies."""
     M = len(groups) * int(np.shape(episodes.mass)[0])
     cores = available_cores() if cores is None else cores
-    workers = max(1, min(cores // 4, round(M / 32))) if workers is None else max(1, min(workers, M))
-    run = _Lockstep(phys, groups, episodes, cores, workers, engine_log, start)
+    workers = max(1, min(cores, M)) if workers is None else max(1, min(workers, M))
+    run = _Lockstep(phys, groups, episodes, workers, engine_log, start, controller)
     end = episodes.n_steps + phys.n_hold
     if until is not None and not run.segment <= until <= end:
         raise ValueError(f"until must be a segment in {run.segment}..{end}, got {until!r}")

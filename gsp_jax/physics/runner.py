@@ -213,8 +213,8 @@ class Physics:
                       cores: int | None = None, workers: int | None = None) -> list[Result]:
         """Several policies on the same episodes: `policies` is a list of (policy, policy_axis) pairs (axis as in
         `simulate_batch`); one `Result` per pair. In C MuJoCo every policy's episodes run in one lockstep on
-        `cores` cores, as `workers` chunks side by side (`c_backend.simulate`; defaults: all cores, a chunk per ~32
-        episodes); in MJX one batch per policy."""
+        `cores` cores, as `workers` chunks side by side (`c_backend.simulate`; defaults: all cores, a chunk a
+        core); in MJX one batch per policy."""
         self._check_batch(policies, episodes)
         check_episodes(episodes)
         if backend not in BACKENDS:

@@ -1,0 +1,899 @@
+"""The contact controller's tick in native code (numba), for the C backend: the control law of
+`controller.Controller.control`, `Physics.tick` and `Physics.check`, written once more over plain arrays, so a tick
+of a few episodes costs microseconds instead of an XLA call's fixed cost (~0.15 ms on a CPU core: hundreds of
+small kernels, whatever the batch). It runs without Python's lock, in the threads that step the episodes.
+
+The same numbers as the JAX tick: it reads the same flat controller states (`c_backend._Flat` layout, float32)
+and observations, and writes the same output rows [ctrl (nu) | external wrench (6) | angle, position error, fell
+of the tick before]. The continuous arithmetic runs in float64 (the JAX controller's float32 differs from it in
+the last bits: tests/test_native.py compares the two tick by tick); the timeline (time, phases, load fractions,
+the reference spline's interval) runs in float32 exactly as the JAX tick does, so both switch phase at the same
+tick.
+
+    ctl = native.Tick(phys)                          # the constants of one `Physics`
+    ctl(j, rows, cs, obs, episodes, out)             # tick j of the episodes `rows`: cs updated in place
+"""
+from __future__ import annotations
+
+import glob
+import math
+import os
+from typing import NamedTuple
+
+import jax
+import mujoco
+import numba as nb
+import numpy as np
+from jax.flatten_util import ravel_pytree
+from llvmlite import binding as llvm
+
+from gsp_jax.physics.controller import PATH_TIMES, ControllerState
+
+F32 = np.float32
+
+
+def _mujoco_library() -> str:
+    """The path of the MuJoCo C library the `mujoco` package loads (its own copy, in the package's folder)."""
+    folder = os.path.dirname(mujoco.__file__)
+    for pattern in ("libmujoco.so*", "libmujoco*.dylib", "mujoco.dll"):
+        found = sorted(glob.glob(os.path.join(folder, pattern)))
+        if found:
+            return found[0]
+    raise ImportError(f"gsp_jax.physics.native: no MuJoCo library in {folder}")
+
+
+llvm.load_library_permanently(_mujoco_library())  # its symbols, for native code to call by name
+# MuJoCo's C functions, called by name from native code (pointers passed as integers: `MjModel._address`)
+_mj_step = nb.types.ExternalFunction("mj_step", nb.types.void(nb.types.uint64, nb.types.uint64))
+_mju_copy = nb.types.ExternalFunction("mju_copy", nb.types.void(nb.types.uint64, nb.types.uint64, nb.types.intc))
+# the columns of `addresses`: where one episode's model, data and the arrays a tick reads and writes live
+MODEL, DATA, QPOS, QVEL, QFRC_BIAS, CTRL, XFRC_TOOL, GEOM_POS = range(8)
+
+
+def addresses(models, datas, tool_body: int) -> np.ndarray:
+    """(E, 8) uint64: each episode's mjModel, mjData and arrays (the columns MODEL ... GEOM_POS). The arrays
+    of a model and its data stay where they are for their lifetime: keep `models` and `datas` alive."""
+    return np.array([[m._address, d._address, d.qpos.ctypes.data, d.qvel.ctypes.data, d.qfrc_bias.ctypes.data,
+                      d.ctrl.ctypes.data, d.xfrc_applied[tool_body].ctypes.data, m.geom_pos.ctypes.data]
+                     for m, d in zip(models, datas)], np.uint64)
+
+
+class Constants(NamedTuple):
+    """Everything a tick reads besides its episodes and states (numpy arrays and numbers)."""
+
+    # the hand's kinematic tree (`HandModel`): B bodies, J joints, L contact links, K options a link
+    body_parent: np.ndarray  # (B,) int64
+    body_pos: np.ndarray  # (B, 3)
+    body_mat: np.ndarray  # (B, 3, 3)
+    body_joint: np.ndarray  # (B,) int64, -1: none
+    joint_pos: np.ndarray  # (J, 3)
+    joint_axis: np.ndarray  # (J, 3)
+    joint_moves_body: np.ndarray  # (B, J)
+    link_body: np.ndarray  # (L,) int64
+    link_site: np.ndarray  # (L, 3)
+    link_axis: np.ndarray  # (L, 3)
+    link_half: np.ndarray  # (L,)
+    link_radius: np.ndarray  # (L,)
+    link_finger: np.ndarray  # (L,) int64
+    link_is_tip: np.ndarray  # (L,) bool
+    n_fingers: int
+    targets: np.ndarray  # (L, K, 3) the links' centre-line targets per option, tool frame
+    normals: np.ndarray  # (L, K, 3) inward normals per option, tool frame
+    # the scene
+    hand_qpos: np.ndarray  # (J,) int64
+    hand_dof: np.ndarray  # (J,) int64
+    hand_act: np.ndarray  # (J,) int64
+    tool_qpos: int
+    tool_dof: int
+    nq: int
+    nv: int
+    nu: int
+    tool_corners: np.ndarray  # (C, 3) tool frame
+    ctrl_low: np.ndarray  # (J,)
+    ctrl_high: np.ndarray  # (J,)
+    gravity: np.ndarray  # (3,)
+    # the timeline, float32 as in the JAX tick
+    timestep: np.float32
+    unload: np.float32
+    move: np.float32
+    load_step: np.float32  # timestep / load
+    unload_step: np.float32  # timestep / unload
+    path_times: np.ndarray  # (N_PATH,) float32
+    touch_tol: float
+    reach_tol: float
+    ramp: np.float32
+    n_segment: int
+    # the controller
+    kp: float
+    kd: float
+    feedback_limit: float
+    feedback_floor: float
+    tool_radius: float
+    rotation_step: float
+    grip_force: float
+    friction_margin: float
+    iterations: int
+    rho: float
+    torque_length: float
+    # the fingers
+    finger_kp: float
+    finger_kd: float
+    held_ratio: float
+    free_stiffness: float
+    free_damping: float
+    posture_kp: float
+    # the outcome
+    fall_angle: float
+    fall_distance: float
+    fall_height: float
+    # offsets of the controller state's fields in its flat row (`c_backend._Flat`)
+    cs_options: int
+    cs_previous: int
+    cs_changed: int
+    cs_start: int
+    cs_path: int
+    cs_park: int
+    cs_anchor: int
+    cs_anchored: int
+    cs_load: int
+    cs_f_with: int
+    cs_f_without: int
+    cs_q_rest: int
+
+
+class Episodes(NamedTuple):
+    """The fields of E episodes a tick reads (numpy; `Tick.episodes` makes them from an `Episode` batch)."""
+
+    waypoints: np.ndarray  # (E, T, 3) float32
+    quats: np.ndarray  # (E, T, 4) float32
+    dt: np.ndarray  # (E,) float32
+    w_ext: np.ndarray  # (E, 6) float32
+    mass: np.ndarray  # (E,) float32
+    inertia: np.ndarray  # (E, 3) float32
+    com: np.ndarray  # (E, 3) float32
+    friction: np.ndarray  # (E,) float32
+    hold_time: np.ndarray  # (E,) float32: when the hold starts [s]
+
+
+def state_offsets(one_state: ControllerState) -> dict[str, int]:
+    """Where each field of a `ControllerState` starts in its flat row (`ravel_pytree` order)."""
+    names = list(ControllerState.__dataclass_fields__)
+    marked = one_state.replace(**{n: np.full(np.shape(getattr(one_state, n)), i, np.float32)
+                                  for i, n in enumerate(names)})
+    flat = np.asarray(ravel_pytree(marked)[0])
+    return {n: int(np.flatnonzero(flat == i)[0]) for i, n in enumerate(names)}
+
+
+class Tick:
+    """The native tick of one `runner.Physics` (its hand, scene and config)."""
+
+    def __init__(self, phys):
+        hand, scene, cfg, ctl = phys.hand, phys.scene, phys.config, phys.controller
+        tl, c, fi, out = cfg.timeline, cfg.controller, cfg.fingers, cfg.outcome
+        kp, kd = c.tool_gains
+        zeros = jax.eval_shape(lambda: ctl.start(_dummy_episode(phys), np.zeros(hand.n_joints, np.float32),
+                                                 _dummy_obs(phys)))
+        offsets = state_offsets(jax.tree.map(lambda x: np.zeros(x.shape, x.dtype), zeros))
+        f64 = lambda x: np.ascontiguousarray(x, np.float64)  # noqa: E731
+        i64 = lambda x: np.ascontiguousarray(x, np.int64)  # noqa: E731
+        self.constants = Constants(
+            body_parent=i64(hand.body_parent), body_pos=f64(hand.body_pos), body_mat=f64(hand.body_mat),
+            body_joint=i64(hand.body_joint), joint_pos=f64(hand.joint_pos), joint_axis=f64(hand.joint_axis),
+            joint_moves_body=f64(hand.joint_moves_body), link_body=i64(hand.link_body), link_site=f64(hand.link_site),
+            link_axis=f64(hand.link_axis), link_half=f64(hand.link_half), link_radius=f64(hand.link_radius),
+            link_finger=i64(hand.link_finger), link_is_tip=np.ascontiguousarray(hand.link_is_tip, np.bool_),
+            n_fingers=len(hand.finger_names), targets=f64(ctl.targets_tool), normals=f64(hand.option_normal),
+            hand_qpos=i64(scene.hand_qpos), hand_dof=i64(scene.hand_dof), hand_act=i64(scene.hand_act),
+            tool_qpos=scene.tool_qpos, tool_dof=scene.tool_dof, nq=phys.model.nq, nv=phys.model.nv, nu=phys.model.nu,
+            tool_corners=f64(scene.tool_corners), ctrl_low=f64(scene.ctrl_range[0]), ctrl_high=f64(scene.ctrl_range[1]),
+            gravity=f64(np.asarray(hand.gravity, np.float32)),
+            timestep=F32(phys.timestep), unload=F32(tl.unload), move=F32(tl.move),
+            load_step=F32(phys.timestep / tl.load), unload_step=F32(phys.timestep / tl.unload),
+            path_times=np.ascontiguousarray(PATH_TIMES, np.float32), touch_tol=float(F32(tl.touch_tol)),
+            reach_tol=float(F32(tl.reach_tol)), ramp=F32(tl.ramp), n_segment=phys.n_segment,
+            kp=float(F32(kp)), kd=float(F32(kd)), feedback_limit=float(c.feedback_limit),
+            feedback_floor=float(c.feedback_floor), tool_radius=float(c.tool_radius),
+            rotation_step=float(c.rotation_step), grip_force=float(c.grip_force),
+            friction_margin=float(c.friction_margin), iterations=int(c.force_iterations),
+            rho=float(ctl.wrench_config.force_penalty), torque_length=float(ctl.wrench_config.torque_length),
+            finger_kp=float(fi.finger_kp), finger_kd=float(fi.finger_kd), held_ratio=float(fi.held_stiffness_ratio),
+            free_stiffness=float(fi.free_stiffness), free_damping=float(fi.free_damping),
+            posture_kp=float(fi.posture_kp), fall_angle=float(out.fall_angle), fall_distance=float(out.fall_distance),
+            fall_height=float(out.fall_height),
+            **{f"cs_{n}": offsets[n] for n in ControllerState.__dataclass_fields__})
+        self.phys = phys
+
+    def episodes(self, episodes) -> Episodes:
+        """The `Episodes` of an `Episode` batch (leading axis)."""
+        f32 = lambda x: np.ascontiguousarray(np.asarray(x), np.float32)  # noqa: E731
+        n = np.shape(episodes.mass)[0]
+        hold = np.full(n, F32(self.phys.hold_time(episodes.n_steps)), np.float32)
+        return Episodes(waypoints=f32(episodes.waypoints), quats=f32(episodes.quats), dt=f32(episodes.dt),
+                        w_ext=f32(episodes.w_ext), mass=f32(episodes.mass), inertia=f32(episodes.inertia),
+                        com=f32(episodes.com), friction=f32(episodes.friction), hold_time=hold)
+
+    def __call__(self, j: int, rows: np.ndarray, cs: np.ndarray, obs: np.ndarray, episodes: Episodes,
+                 out: np.ndarray) -> None:
+        """Control tick j of the episodes `rows` (int64 indices into every array's leading axis): their states
+        cs (E, C) float32 updated in place, out (E, nu + 9) float32 written, from observations obs (E, nq + 2 nv)
+        float32. Rows not in `rows` are left as they are."""
+        tick_rows(np.int64(j), rows, cs, obs, episodes, self.constants, out)
+
+
+def _dummy_episode(phys):
+    from gsp_jax.scenario import Episode
+
+    T = 2
+    return Episode(waypoints=np.zeros((T, 3), np.float32), quats=np.tile(np.float32([1, 0, 0, 0]), (T, 1)),
+                   dt=np.float32(0.25), w_ext=np.zeros(6, np.float32), mass=np.float32(0.1),
+                   inertia=np.ones(3, np.float32), com=np.zeros(3, np.float32), friction=np.float32(1.0),
+                   start_grasp=np.int32(0))
+
+
+def _dummy_obs(phys):
+    from gsp_jax.physics.scene import Observation
+
+    J = phys.hand.n_joints
+    return Observation(q=np.zeros(J, np.float32), dq=np.zeros(J, np.float32), tool_pos=np.zeros(3, np.float32),
+                       tool_quat=np.float32([1, 0, 0, 0]), tool_vel=np.zeros(6, np.float32),
+                       bias=np.zeros(J, np.float32))
+
+
+# ------------------------------------------------------------------------------------------ small math
+_jit = nb.njit(cache=True, nogil=True, fastmath=False, error_model="numpy")
+
+
+@_jit
+def _quat_to_mat(q, m):
+    w, x, y, z = q[0], q[1], q[2], q[3]
+    m[0, 0], m[0, 1], m[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+    m[1, 0], m[1, 1], m[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    m[2, 0], m[2, 1], m[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+
+
+@_jit
+def _cross(a, b, out):
+    out[0] = a[1] * b[2] - a[2] * b[1]
+    out[1] = a[2] * b[0] - a[0] * b[2]
+    out[2] = a[0] * b[1] - a[1] * b[0]
+
+
+@_jit
+def _norm3(v):
+    return math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+
+
+@_jit
+def _clip_norm(v, top):
+    """v * min(1, top / (|v| + 1e-9)) in place."""
+    s = min(1.0, top / (_norm3(v) + 1e-9))
+    for i in range(3):
+        v[i] *= s
+
+
+@_jit
+def _rotation_error(q_ref, q, out):
+    """World-frame rotation vector (3,) that turns orientation q into q_ref [rad]."""
+    w1, x1, y1, z1 = q_ref[0], q_ref[1], q_ref[2], q_ref[3]
+    w2, x2, y2, z2 = q[0], -q[1], -q[2], -q[3]
+    e0 = w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2
+    e1 = w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2
+    e2 = w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2
+    e3 = w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2
+    if e0 < 0:
+        e0, e1, e2, e3 = -e0, -e1, -e2, -e3
+    n = math.sqrt(e1 * e1 + e2 * e2 + e3 * e3 + 1e-18)
+    s = 2 * math.atan2(n, e0) / n
+    out[0], out[1], out[2] = s * e1, s * e2, s * e3
+
+
+@_jit
+def _reference(wp, quats, dt, time, pos, vel, acc, quat):
+    """`controller.reference_motion` at float32 `time`: pos, vel, acc (3,), quat (4,) written."""
+    T = wp.shape[0]
+    s = min(max(time / dt, F32(0.0)), F32(T - 1))
+    i = min(int(math.floor(s)), T - 2)
+    u32 = s - F32(i)
+    u = float(u32)
+    moving = time < F32(T - 1) * dt
+    d = float(dt)
+    h0, h1, h2, h3 = 2 * u**3 - 3 * u**2 + 1, u**3 - 2 * u**2 + u, -2 * u**3 + 3 * u**2, u**3 - u**2
+    g0, g1, g2, g3 = 6 * u**2 - 6 * u, 3 * u**2 - 4 * u + 1, -6 * u**2 + 6 * u, 3 * u**2 - 2 * u
+    a0, a1, a2, a3 = 12 * u - 6, 6 * u - 4, -12 * u + 6, 6 * u - 2
+    for c in range(3):
+        lo0, hi0 = max(i - 1, 0), min(i + 1, T - 1)
+        lo1, hi1 = max(i, 0), min(i + 2, T - 1)
+        m0 = (float(wp[hi0, c]) - float(wp[lo0, c])) / ((hi0 - lo0) * d) * d
+        m1 = (float(wp[hi1, c]) - float(wp[lo1, c])) / ((hi1 - lo1) * d) * d
+        p0, p1 = float(wp[i, c]), float(wp[i + 1, c])
+        pos[c] = h0 * p0 + h1 * m0 + h2 * p1 + h3 * m1
+        vel[c] = (g0 * p0 + g1 * m0 + g2 * p1 + g3 * m1) / d if moving else 0.0
+        acc[c] = (a0 * p0 + a1 * m0 + a2 * p1 + a3 * m1) / d**2 if moving else 0.0
+    dot = 0.0
+    for c in range(4):
+        dot += float(quats[i, c]) * float(quats[i + 1, c])
+    sign = -1.0 if dot < 0 else 1.0
+    n = 0.0
+    for c in range(4):
+        quat[c] = (1 - u) * float(quats[i, c]) + u * sign * float(quats[i + 1, c])
+        n += quat[c] * quat[c]
+    n = math.sqrt(n)
+    for c in range(4):
+        quat[c] /= n
+
+
+# ------------------------------------------------------------------------------------------ kinematics
+@_jit
+def _chain(K, q, pos, mat, axes, anchors):
+    """Body poses pos (B, 3), mat (B, 3, 3) and the joints' world axes, anchors (J, 3) at joint angles q."""
+    B = K.body_parent.shape[0]
+    r = np.empty((3, 3))
+    rot = np.empty((3, 3))
+    for b in range(B):
+        pa = K.body_parent[b]
+        if pa < 0:
+            for i in range(3):
+                pos[b, i] = K.body_pos[b, i]
+                for k in range(3):
+                    r[i, k] = K.body_mat[b, i, k]
+        else:
+            for i in range(3):
+                pos[b, i] = pos[pa, i] + mat[pa, i, 0] * K.body_pos[b, 0] + mat[pa, i, 1] * K.body_pos[b, 1] \
+                    + mat[pa, i, 2] * K.body_pos[b, 2]
+                for k in range(3):
+                    r[i, k] = mat[pa, i, 0] * K.body_mat[b, 0, k] + mat[pa, i, 1] * K.body_mat[b, 1, k] \
+                        + mat[pa, i, 2] * K.body_mat[b, 2, k]
+        j = K.body_joint[b]
+        if j < 0:
+            for i in range(3):
+                for k in range(3):
+                    mat[b, i, k] = r[i, k]
+            continue
+        ax, an = K.joint_axis[j], K.joint_pos[j]
+        for i in range(3):
+            anchors[j, i] = pos[b, i] + r[i, 0] * an[0] + r[i, 1] * an[1] + r[i, 2] * an[2]
+            axes[j, i] = r[i, 0] * ax[0] + r[i, 1] * ax[1] + r[i, 2] * ax[2]
+        s, c1 = math.sin(q[j]), 1 - math.cos(q[j])
+        x, y, z = ax[0], ax[1], ax[2]  # Rodrigues: I + s [a]x + (1 - cos) [a]x^2
+        # [a]x^2 = a a^T - |a|^2 I
+        n2 = x * x + y * y + z * z
+        rot[0, 0], rot[0, 1], rot[0, 2] = 1.0 + c1 * (x * x - n2), -s * z + c1 * x * y, s * y + c1 * x * z
+        rot[1, 0], rot[1, 1], rot[1, 2] = s * z + c1 * x * y, 1.0 + c1 * (y * y - n2), -s * x + c1 * y * z
+        rot[2, 0], rot[2, 1], rot[2, 2] = -s * y + c1 * x * z, s * x + c1 * y * z, 1.0 + c1 * (z * z - n2)
+        for i in range(3):
+            for k in range(3):
+                mat[b, i, k] = r[i, 0] * rot[0, k] + r[i, 1] * rot[1, k] + r[i, 2] * rot[2, k]
+        for i in range(3):
+            pos[b, i] = anchors[j, i] - (mat[b, i, 0] * an[0] + mat[b, i, 1] * an[1] + mat[b, i, 2] * an[2])
+
+
+@_jit
+def _links(K, q, near, x, jac, pos, mat, axes, anchors):
+    """The links' centre-line points x (L, 3) nearest the world points `near` (L, 3), and their Jacobians
+    jac (L, 3, J) (`kinematics.closest_on_links_and_jacobians`)."""
+    _chain(K, q, pos, mat, axes, anchors)
+    L, J = K.link_body.shape[0], q.shape[0]
+    centre, axis, d, c = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    for lk in range(L):
+        b = K.link_body[lk]
+        for i in range(3):
+            centre[i] = pos[b, i] + mat[b, i, 0] * K.link_site[lk, 0] + mat[b, i, 1] * K.link_site[lk, 1] \
+                + mat[b, i, 2] * K.link_site[lk, 2]
+            axis[i] = mat[b, i, 0] * K.link_axis[lk, 0] + mat[b, i, 1] * K.link_axis[lk, 1] \
+                + mat[b, i, 2] * K.link_axis[lk, 2]
+        s = 0.0
+        for i in range(3):
+            s += (near[lk, i] - centre[i]) * axis[i]
+        half = K.link_half[lk]
+        s = min(max(s, -half), half)
+        for i in range(3):
+            x[lk, i] = centre[i] + s * axis[i]
+        for jj in range(J):
+            if K.joint_moves_body[b, jj] == 0.0:
+                for i in range(3):
+                    jac[lk, i, jj] = 0.0
+                continue
+            for i in range(3):
+                d[i] = x[lk, i] - anchors[jj, i]
+            _cross(axes[jj], d, c)
+            for i in range(3):
+                jac[lk, i, jj] = c[i] * K.joint_moves_body[b, jj]
+
+
+# ------------------------------------------------------------------------------------------ force solve
+@_jit
+def _project(x, normals, mu, mask):
+    """Each contact's force x[3k:3k+3] projected onto its friction cone (`wrench.project_cone`), 0 if masked."""
+    for k in range(normals.shape[0]):
+        if not mask[k]:
+            x[3 * k], x[3 * k + 1], x[3 * k + 2] = 0.0, 0.0, 0.0
+            continue
+        n0, n1, n2 = normals[k, 0], normals[k, 1], normals[k, 2]
+        f0, f1, f2 = x[3 * k], x[3 * k + 1], x[3 * k + 2]
+        fn = f0 * n0 + f1 * n1 + f2 * n2
+        t0, t1, t2 = f0 - fn * n0, f1 - fn * n1, f2 - fn * n2
+        tn = math.sqrt(t0 * t0 + t1 * t1 + t2 * t2 + 1e-30)
+        if tn <= mu * fn:
+            continue
+        if mu * tn <= -fn:
+            x[3 * k], x[3 * k + 1], x[3 * k + 2] = 0.0, 0.0, 0.0
+            continue
+        fb = (fn + mu * tn) / (1.0 + mu * mu)
+        s = mu * fb / tn
+        x[3 * k], x[3 * k + 1], x[3 * k + 2] = fb * n0 + s * t0, fb * n1 + s * t1, fb * n2 + s * t2
+
+
+@_jit
+def _solve(K, points, normals, active, mu, wrench, center, init, forces):
+    """`wrench.solve` ("apg", `Controller._forces`): cone forces (L, 3) on the `active` links supplying `wrench`
+    (6,) about `center`, pulled towards `grip_force` along each normal, from `init` (L, 3); written to forces.
+
+    The grasp matrix's products are written per contact (its force rows are identities, its torque rows cross
+    products with the contact's lever r_k): G y = (sum y_k, sum r_k x y_k) and (G^T e)_k = e_f + e_t x r_k,
+    with the torque rows scaled by 1 / torque_length as in `wrench._solve`."""
+    L = points.shape[0]
+    s = 1.0 / K.torque_length
+    r = np.zeros((L, 3))  # the scaled levers of the active contacts
+    a = np.zeros((6, 3 * L))  # the scaled grasp matrix, for its largest singular value
+    for k in range(L):
+        if not active[k]:
+            continue
+        for i in range(3):
+            r[k, i] = (points[k, i] - center[i]) * s
+        r0, r1, r2 = r[k, 0], r[k, 1], r[k, 2]
+        a[0, 3 * k], a[1, 3 * k + 1], a[2, 3 * k + 2] = 1.0, 1.0, 1.0
+        a[3, 3 * k + 1], a[3, 3 * k + 2] = -r2, r1
+        a[4, 3 * k], a[4, 3 * k + 2] = r2, -r0
+        a[5, 3 * k], a[5, 3 * k + 1] = -r1, r0
+    b0, b1, b2 = wrench[0], wrench[1], wrench[2]
+    b3, b4, b5 = wrench[3] * s, wrench[4] * s, wrench[5] * s
+    rho = K.rho
+    lip = np.linalg.eigvalsh(a @ a.T)[-1] + rho
+    ks = math.sqrt(lip / rho)
+    beta = (ks - 1.0) / (ks + 1.0)
+    target = np.zeros((L, 3))
+    x = np.zeros(3 * L)
+    for k in range(L):
+        if active[k]:
+            for i in range(3):
+                target[k, i] = K.grip_force * normals[k, i]
+                x[3 * k + i] = init[k, i]
+    _project(x, normals, mu, active)
+    x_prev = x.copy()
+    y = np.zeros(3 * L)
+    for _ in range(K.iterations):
+        e0, e1, e2, e3, e4, e5 = -b0, -b1, -b2, -b3, -b4, -b5  # G y - b
+        for k in range(L):
+            if not active[k]:
+                continue
+            y0 = x[3 * k] + beta * (x[3 * k] - x_prev[3 * k])
+            y1 = x[3 * k + 1] + beta * (x[3 * k + 1] - x_prev[3 * k + 1])
+            y2 = x[3 * k + 2] + beta * (x[3 * k + 2] - x_prev[3 * k + 2])
+            y[3 * k], y[3 * k + 1], y[3 * k + 2] = y0, y1, y2
+            r0, r1, r2 = r[k, 0], r[k, 1], r[k, 2]
+            e0 += y0
+            e1 += y1
+            e2 += y2
+            e3 += r1 * y2 - r2 * y1
+            e4 += r2 * y0 - r0 * y2
+            e5 += r0 * y1 - r1 * y0
+        for k in range(L):
+            if not active[k]:
+                continue
+            r0, r1, r2 = r[k, 0], r[k, 1], r[k, 2]
+            g0 = e0 + (e4 * r2 - e5 * r1) + rho * (y[3 * k] - target[k, 0])
+            g1 = e1 + (e5 * r0 - e3 * r2) + rho * (y[3 * k + 1] - target[k, 1])
+            g2 = e2 + (e3 * r1 - e4 * r0) + rho * (y[3 * k + 2] - target[k, 2])
+            x_prev[3 * k], x_prev[3 * k + 1], x_prev[3 * k + 2] = x[3 * k], x[3 * k + 1], x[3 * k + 2]
+            x[3 * k] = y[3 * k] - g0 / lip
+            x[3 * k + 1] = y[3 * k + 1] - g1 / lip
+            x[3 * k + 2] = y[3 * k + 2] - g2 / lip
+        _project(x, normals, mu, active)
+    for k in range(L):
+        for i in range(3):
+            forces[k, i] = x[3 * k + i]
+
+
+# ------------------------------------------------------------------------------------------ one tick
+@_jit
+def _tool(K, obs, p, quat, vel, w_body, mat):
+    """The tool's pose and velocity in an observation row (`Scene.observe`): p, quat (normalised), vel, w_body
+    (tool frame), mat written; whether the state is finite (`Scene.status`)."""
+    nq = K.nq
+    a0, v0 = K.tool_qpos, nq + K.tool_dof
+    qn = 0.0
+    for i in range(4):
+        quat[i] = obs[a0 + 3 + i]
+        qn += quat[i] * quat[i]
+    qn = math.sqrt(qn)
+    for i in range(4):
+        quat[i] /= qn
+    for i in range(3):
+        p[i], vel[i], w_body[i] = obs[a0 + i], obs[v0 + i], obs[v0 + 3 + i]
+    _quat_to_mat(quat, mat)
+    finite = True
+    for i in range(nq + K.nv):
+        if not math.isfinite(obs[i]):
+            finite = False
+    for i in range(4):
+        if not math.isfinite(quat[i]):
+            finite = False
+    return finite
+
+
+@_jit
+def _status(K, j, obs, wp, quats, dt, out):
+    """`Physics.check` after tick j: out[0:3] = angle error [deg], position error [m], fell (0/1)."""
+    p, quat, vel, w_body, mat = np.empty(3), np.empty(4), np.empty(3), np.empty(3), np.empty((3, 3))
+    finite = _tool(K, obs, p, quat, vel, w_body, mat)
+    ref_pos, ref_vel, ref_acc, ref_quat = np.empty(3), np.empty(3), np.empty(3), np.empty(4)
+    _reference(wp, quats, dt, F32(j + 1) * K.timestep, ref_pos, ref_vel, ref_acc, ref_quat)
+    dot = abs(quat[0] * ref_quat[0] + quat[1] * ref_quat[1] + quat[2] * ref_quat[2] + quat[3] * ref_quat[3])
+    angle = math.degrees(2 * math.acos(min(max(dot, 0.0), 1.0)))
+    perr = math.sqrt((p[0] - ref_pos[0]) ** 2 + (p[1] - ref_pos[1]) ** 2 + (p[2] - ref_pos[2]) ** 2)
+    lowest = np.inf
+    for c in range(K.tool_corners.shape[0]):
+        z = mat[2, 0] * K.tool_corners[c, 0] + mat[2, 1] * K.tool_corners[c, 1] + mat[2, 2] * K.tool_corners[c, 2]
+        lowest = min(lowest, z)
+    lowest += p[2]
+    fell = (not finite) or (j >= K.n_segment and lowest < K.fall_height) or perr > K.fall_distance \
+        or angle > K.fall_angle
+    out[0] = angle if finite else 0.0
+    out[1] = perr if finite else 0.0
+    out[2] = 1.0 if fell else 0.0
+
+
+@_jit
+def _control(K, j, cs, obs, wp, quats, dt, w_ext, mass, inertia_d, com_t, friction, hold_time, out):
+    """`Physics.tick` j of one episode: out[:nu] motor commands, out[nu:nu + 6] the tool's external wrench; its
+    controller state cs (flat, float32) updated in place."""
+    nq, nv, nu = K.nq, K.nv, K.nu
+    J, L = K.hand_qpos.shape[0], K.link_body.shape[0]
+    q, dq, bias = np.empty(J), np.empty(J), np.empty(J)
+    for i in range(J):
+        q[i], dq[i], bias[i] = obs[K.hand_qpos[i]], obs[nq + K.hand_dof[i]], obs[nq + nv + K.hand_dof[i]]
+    p, quat, vel, w_body, mat = np.empty(3), np.empty(4), np.empty(3), np.empty(3), np.empty((3, 3))
+    _tool(K, obs, p, quat, vel, w_body, mat)
+    omega = np.empty(3)
+    for i in range(3):
+        omega[i] = mat[i, 0] * w_body[0] + mat[i, 1] * w_body[1] + mat[i, 2] * w_body[2]
+    ref_pos, ref_vel, ref_acc, ref_quat = np.empty(3), np.empty(3), np.empty(3), np.empty(4)
+    ts = K.timestep
+
+    # ---- Physics.tick: the external wrench and the reference at this tick
+    time = F32(j) * ts
+    held = (F32(j + 1) * ts - hold_time) / K.ramp
+    ramp = float(min(max(held, F32(0.0)), F32(1.0)))
+    ext = np.empty(6)
+    for i in range(6):
+        ext[i] = float(F32(ramp) * w_ext[i])
+    _reference(wp, quats, dt, time, ref_pos, ref_vel, ref_acc, ref_quat)
+
+    # ---- the controller state
+    o = K.cs_options
+    options = np.empty(L, np.int64)
+    previous = np.empty(L, np.int64)
+    changed = np.empty(L, np.bool_)
+    anchored = np.empty(L, np.bool_)
+    load = np.empty(L, np.float32)
+    anchor, park, f_with, f_without = np.empty((L, 3)), np.empty((L, 3)), np.empty((L, 3)), np.empty((L, 3))
+    for lk in range(L):
+        options[lk] = int(round(cs[o + lk]))
+        previous[lk] = int(round(cs[K.cs_previous + lk]))
+        changed[lk] = cs[K.cs_changed + lk] > 0.5
+        anchored[lk] = cs[K.cs_anchored + lk] > 0.5
+        load[lk] = cs[K.cs_load + lk]
+        for i in range(3):
+            anchor[lk, i] = cs[K.cs_anchor + 3 * lk + i]
+            park[lk, i] = cs[K.cs_park + 3 * lk + i]
+            f_with[lk, i] = cs[K.cs_f_with + 3 * lk + i]
+            f_without[lk, i] = cs[K.cs_f_without + 3 * lk + i]
+    start = cs[K.cs_start]
+
+    # ---- _phase (float32)
+    tau_s = time - start
+    u = min(max((tau_s - K.unload) / K.move, F32(0.0)), F32(1.0))
+    times = K.path_times
+    npath = times.shape[0]
+    seg = 0
+    for i in range(npath):
+        if times[i] <= u:
+            seg = i
+    seg = min(max(seg, 0), npath - 2)
+    w = min(max((u - times[seg]) / (times[seg + 1] - times[seg]), F32(0.0)), F32(1.0))
+    w = w * w * (F32(3) - F32(2) * w)
+    wd = float(w)
+    on_path = np.empty(3)
+    for i in range(3):
+        on_path[i] = (1 - wd) * cs[K.cs_path + 3 * seg + i] + wd * cs[K.cs_path + 3 * (seg + 1) + i]
+    before_move = tau_s < K.unload
+    in_move = u < F32(1.0)
+
+    # ---- targets (tool frame), tracked links
+    current = np.empty(L, np.int64)
+    unloading, travelling, moving = np.empty(L, np.bool_), np.empty(L, np.bool_), np.empty(L, np.bool_)
+    tgt = np.empty((L, 3))
+    busy = np.zeros(K.n_fingers, np.bool_)
+    for lk in range(L):
+        unloading[lk] = changed[lk] and before_move
+        travelling[lk] = changed[lk] and in_move
+        moving[lk] = changed[lk] and (not before_move) and in_move
+        current[lk] = previous[lk] if unloading[lk] else options[lk]
+        anchored[lk] = anchored[lk] and not moving[lk]
+        for i in range(3):
+            if anchored[lk]:
+                tgt[lk, i] = anchor[lk, i]
+            elif changed[lk]:
+                tgt[lk, i] = on_path[i]
+            elif current[lk] > 0:
+                tgt[lk, i] = K.targets[lk, current[lk], i]
+            else:
+                tgt[lk, i] = park[lk, i]
+        if current[lk] > 0 or changed[lk]:
+            busy[K.link_finger[lk]] = True
+    tracked = np.empty(L, np.bool_)
+    for lk in range(L):
+        tracked[lk] = current[lk] > 0 or changed[lk] or ((not busy[K.link_finger[lk]]) and K.link_is_tip[lk])
+
+    # ---- targets fixed to the observed tool, the links there
+    x_ref, v_ref, nrm, nrm_t = np.empty((L, 3)), np.empty((L, 3)), np.empty((L, 3)), np.empty((L, 3))
+    d, c = np.empty(3), np.empty(3)
+    for lk in range(L):
+        for i in range(3):
+            x_ref[lk, i] = p[i] + mat[i, 0] * tgt[lk, 0] + mat[i, 1] * tgt[lk, 1] + mat[i, 2] * tgt[lk, 2]
+            nrm_t[lk, i] = K.normals[lk, current[lk], i]
+        for i in range(3):
+            nrm[lk, i] = mat[i, 0] * nrm_t[lk, 0] + mat[i, 1] * nrm_t[lk, 1] + mat[i, 2] * nrm_t[lk, 2]
+            d[i] = x_ref[lk, i] - p[i]
+        _cross(omega, d, c)
+        for i in range(3):
+            v_ref[lk, i] = vel[i] + c[i]
+    B = K.body_parent.shape[0]
+    x, jac = np.empty((L, 3)), np.empty((L, 3, J))
+    _links(K, q, x_ref, x, jac, np.empty((B, 3)), np.empty((B, 3, 3)), np.empty((J, 3)), np.empty((J, 3)))
+    v = np.empty((L, 3))
+    for lk in range(L):
+        for i in range(3):
+            acc = 0.0
+            for jj in range(J):
+                acc += jac[lk, i, jj] * dq[jj]
+            v[lk, i] = acc
+
+    # ---- load fractions: down when a link is to let go, up once an arriving link touches
+    held = np.empty(L, np.bool_)
+    here = np.empty(3)
+    for lk in range(L):
+        cur = current[lk]
+        want = cur > 0 and not unloading[lk] and not travelling[lk]
+        gap = 0.0
+        for i in range(3):
+            gap += (x_ref[lk, i] - x[lk, i]) * nrm[lk, i]
+        across = 0.0
+        for i in range(3):
+            across += (x_ref[lk, i] - x[lk, i] - gap * nrm[lk, i]) ** 2
+        touching = gap < K.touch_tol and math.sqrt(across) < K.reach_tol
+        arrive = cur > 0 and not anchored[lk] and not travelling[lk] and touching
+        if arrive:  # where it touches: its point now (tool frame) moved onto the option's contact level
+            for i in range(3):
+                here[i] = mat[0, i] * (x[lk, 0] - p[0]) + mat[1, i] * (x[lk, 1] - p[1]) + mat[2, i] * (x[lk, 2] - p[2])
+            lev = 0.0
+            for i in range(3):
+                lev += (here[i] - K.targets[lk, cur, i]) * nrm_t[lk, i]
+            for i in range(3):
+                anchor[lk, i] = here[i] - lev * nrm_t[lk, i]
+        anchored[lk] = anchored[lk] or arrive
+        up = min(load[lk] + K.load_step, F32(1.0)) if anchored[lk] else load[lk]
+        load[lk] = up if want else max(load[lk] - K.unload_step, F32(0.0))
+        held[lk] = anchored[lk] and cur > 0
+
+    # ---- tracking forces (`Controller._tracking`)
+    f_track = np.zeros((L, 3))
+    err, derr, jjt = np.empty(3), np.empty(3), np.empty((3, 3))
+    ratio = K.held_ratio
+    for lk in range(L):
+        if not tracked[lk]:
+            continue
+        en, dn = 0.0, 0.0
+        for i in range(3):
+            err[i], derr[i] = x_ref[lk, i] - x[lk, i], v_ref[lk, i] - v[lk, i]
+            en += err[i] * nrm[lk, i]
+            dn += derr[i] * nrm[lk, i]
+        if held[lk]:
+            for i in range(3):
+                e_n, d_n = en * nrm[lk, i], dn * nrm[lk, i]
+                f_track[lk, i] = K.finger_kp * (e_n + ratio * (err[i] - e_n)) \
+                    + K.finger_kd * (d_n + ratio * (derr[i] - d_n))
+        else:
+            for i in range(3):
+                for k in range(3):
+                    acc = 0.0
+                    for jj in range(J):
+                        acc += jac[lk, i, jj] * jac[lk, k, jj]
+                    jjt[i, k] = acc + (K.free_damping**2 if i == k else 0.0)
+            _solve3(jjt, err, d)
+            for i in range(3):
+                f_track[lk, i] = K.free_stiffness * d[i] + K.finger_kd * derr[i]
+
+    # ---- the tool's wrench (`Controller.tool_wrench`)
+    m = float(mass)
+    r_com = np.empty(3)
+    for i in range(3):
+        r_com[i] = mat[i, 0] * com_t[0] + mat[i, 1] * com_t[1] + mat[i, 2] * com_t[2]
+    mat_ref = np.empty((3, 3))
+    _quat_to_mat(ref_quat, mat_ref)
+    _cross(omega, r_com, c)
+    g = K.gravity
+    weight = m * _norm3(g)
+    feedback = np.empty(3)
+    for i in range(3):
+        com_ref = ref_pos[i] + mat_ref[i, 0] * com_t[0] + mat_ref[i, 1] * com_t[1] + mat_ref[i, 2] * com_t[2]
+        feedback[i] = m * (K.kp * (com_ref - (p[i] + r_com[i])) + K.kd * (ref_vel[i] - (vel[i] + c[i])))
+    stiff, damp = np.empty(3), np.empty(3)
+    for i in range(3):
+        stiff[i] = float(inertia_d[i]) + m * K.tool_radius**2
+        damp[i] = min(stiff[i], K.rotation_step / (float(ts) * K.kd) * float(inertia_d[i]))
+    err_r = np.empty(3)
+    _rotation_error(ref_quat, quat, err_r)
+    # world-frame products: (mat diag(s) mat^T) v
+    turn, inertia_w = np.empty(3), np.empty(3)
+    lo_s, lo_d, lo_i = np.empty(3), np.empty(3), np.empty(3)  # in the tool frame
+    for k in range(3):
+        lo_s[k] = K.kp * (mat[0, k] * err_r[0] + mat[1, k] * err_r[1] + mat[2, k] * err_r[2])
+        lo_i[k] = mat[0, k] * omega[0] + mat[1, k] * omega[1] + mat[2, k] * omega[2]
+        lo_d[k] = K.kd * lo_i[k]
+    for i in range(3):
+        turn[i] = 0.0
+        inertia_w[i] = 0.0
+        for k in range(3):
+            turn[i] += mat[i, k] * (stiff[k] * lo_s[k] - damp[k] * lo_d[k])
+            inertia_w[i] += mat[i, k] * (float(inertia_d[k]) * lo_i[k])
+    cap = max(K.feedback_limit * weight, K.feedback_floor)
+    _clip_norm(feedback, cap)
+    _clip_norm(turn, cap * K.tool_radius)
+    _cross(omega, inertia_w, c)
+    required = np.empty(6)
+    for i in range(3):
+        required[i] = m * (ref_acc[i] - g[i]) + feedback[i] - ext[i]
+        required[3 + i] = turn[i] + c[i] - ext[3 + i]
+
+    # ---- the force solves on the observed tool, blended over the changed link's load
+    pts = np.empty((L, 3))
+    surface = np.empty(3)
+    for lk in range(L):
+        cur = current[lk]
+        for i in range(3):
+            surface[i] = (anchor[lk, i] if anchored[lk] else K.targets[lk, cur, i]) + K.link_radius[lk] * nrm_t[lk, i]
+        for i in range(3):
+            pts[lk, i] = p[i] + mat[i, 0] * surface[0] + mat[i, 1] * surface[1] + mat[i, 2] * surface[2]
+    mu = K.friction_margin * float(friction)
+    com_w = p + r_com
+    active, active_b = np.empty(L, np.bool_), np.empty(L, np.bool_)
+    share = F32(0.0)
+    for lk in range(L):
+        active[lk] = current[lk] > 0 and load[lk] > 0
+        active_b[lk] = active[lk] and not changed[lk]
+        if changed[lk]:
+            share += load[lk]
+    f_a, f_b = np.empty((L, 3)), np.empty((L, 3))
+    _solve(K, pts, nrm, active, mu, required, com_w, f_with, f_a)
+    _solve(K, pts, nrm, active_b, mu, required, com_w, f_without, f_b)
+    sh = float(share)
+    tau = np.empty(J)
+    for jj in range(J):
+        acc = 0.0
+        for lk in range(L):
+            for i in range(3):
+                acc += jac[lk, i, jj] * (sh * f_a[lk, i] + (1 - sh) * f_b[lk, i] + f_track[lk, i])
+        tau[jj] = min(max(acc + K.posture_kp * (cs[K.cs_q_rest + jj] - q[jj]) + bias[jj], K.ctrl_low[jj]),
+                      K.ctrl_high[jj])
+
+    # ---- outputs and the next state
+    for i in range(nu):
+        out[i] = 0.0
+    for jj in range(J):
+        out[K.hand_act[jj]] = tau[jj]
+    for i in range(6):
+        out[nu + i] = ext[i]
+    for lk in range(L):
+        cs[K.cs_load + lk] = load[lk]
+        cs[K.cs_anchored + lk] = 1.0 if anchored[lk] else 0.0
+        for i in range(3):
+            cs[K.cs_anchor + 3 * lk + i] = anchor[lk, i]
+            cs[K.cs_f_with + 3 * lk + i] = f_a[lk, i]
+            cs[K.cs_f_without + 3 * lk + i] = f_b[lk, i]
+
+
+@_jit
+def _solve3(m, v, x):
+    """x (3,) with m x = v, by the adjugate (`controller._solve3`)."""
+    c0 = np.empty(3)
+    c1 = np.empty(3)
+    c2 = np.empty(3)
+    _cross(m[1], m[2], c0)
+    _cross(m[2], m[0], c1)
+    _cross(m[0], m[1], c2)
+    det = m[0, 0] * c0[0] + m[0, 1] * c0[1] + m[0, 2] * c0[2]
+    for i in range(3):
+        x[i] = (c0[i] * v[0] + c1[i] * v[1] + c2[i] * v[2]) / det
+
+
+@_jit
+def _control_row(K, j, r, cs, obs, episodes, out):
+    _control(K, j, cs[r], obs[r], episodes.waypoints[r], episodes.quats[r], episodes.dt[r], episodes.w_ext[r],
+             episodes.mass[r], episodes.inertia[r], episodes.com[r], episodes.friction[r], episodes.hold_time[r], out)
+
+
+@_jit
+def tick_rows(j, rows, cs, obs, episodes, K, out):
+    """`Tick.__call__`: the JAX tick's work for the episodes `rows` (the status of tick j - 1, then tick j)."""
+    nu = K.nu
+    for r in rows:
+        _status(K, j - 1, obs[r], episodes.waypoints[r], episodes.quats[r], episodes.dt[r], out[r, nu + 6:])
+        _control_row(K, j, r, cs, obs, episodes, out[r])
+
+
+@_jit
+def status_rows(j, rows, obs, episodes, K, out):
+    """`Physics.check` after tick j of the episodes `rows`: out (E, 3) [angle, position error, fell]."""
+    for r in rows:
+        _status(K, j, obs[r], episodes.waypoints[r], episodes.quats[r], episodes.dt[r], out[r])
+
+
+# ------------------------------------------------------------------------------------------ the engine
+@_jit
+def _step_row(K, addr, r, out, pedestals, geoms, drop, obs, buf):
+    """Episode r's pedestals `drop` metres down, motor commands out[:nu] and external wrench out[nu:nu + 6] in,
+    one `mj_step`, its observation row obs[r] (qpos, qvel, qfrc_bias; float32) read back. buf: float64 scratch."""
+    nq, nv, nu = K.nq, K.nv, K.nu
+    place = buf.ctypes.data
+    for g in range(geoms.shape[0]):
+        buf[0], buf[1], buf[2] = pedestals[r, g, 0], pedestals[r, g, 1], pedestals[r, g, 2] + drop
+        _mju_copy(addr[r, GEOM_POS] + np.uint64(24 * geoms[g]), place, np.intc(3))
+    for i in range(nu):
+        buf[i] = out[i]
+    _mju_copy(addr[r, CTRL], place, np.intc(nu))
+    for i in range(6):
+        buf[i] = out[nu + i]
+    _mju_copy(addr[r, XFRC_TOOL], place, np.intc(6))
+    _mj_step(addr[r, MODEL], addr[r, DATA])
+    _mju_copy(place, addr[r, QPOS], np.intc(nq))
+    for i in range(nq):
+        obs[r, i] = buf[i]
+    _mju_copy(place, addr[r, QVEL], np.intc(nv))
+    for i in range(nv):
+        obs[r, nq + i] = buf[i]
+    _mju_copy(place, addr[r, QFRC_BIAS], np.intc(nv))
+    for i in range(nv):
+        obs[r, nq + nv + i] = buf[i]
+
+
+@_jit
+def step_rows(K, addr, rows, out, pedestals, geoms, drop, obs, buf):
+    """Episodes `rows` one physics step each under their rows of out (E, nu + 6 + ...) (`_step_row`)."""
+    for r in rows:
+        _step_row(K, addr, r, out[r], pedestals, geoms, drop, obs, buf)
+
+
+@_jit
+def segment(K, j0, drops, rows, cs, obs, episodes, addr, pedestals, geoms, fell, fall_tick, angle, perr, qpos,
+            out, buf):
+    """Control ticks j0 .. j0 + len(drops) - 1 of the episodes `rows`, each tick: the status of the tick before
+    recorded (angle, perr (E, K), qpos (E, K, nq) at tick j - 1; fell (E,), fall_tick (E,) at the first fall),
+    then, for an episode that has not fallen, the controller's tick j and one physics step with the pedestals
+    drops[j - j0] metres down. The C backend's segment between two decisions, in one call without Python."""
+    nq, nu = K.nq, K.nu
+    for i in range(drops.shape[0]):
+        j = j0 + i
+        for r in rows:
+            if j > 0:
+                st = out[r, nu + 6:]
+                _status(K, j - 1, obs[r], episodes.waypoints[r], episodes.quats[r], episodes.dt[r], st)
+                if st[2] > 0.5 and not fell[r]:
+                    fell[r], fall_tick[r] = True, j - 1
+                angle[r, j - 1], perr[r, j - 1] = st[0], st[1]
+                for c in range(nq):
+                    qpos[r, j - 1, c] = obs[r, c]
+            if fell[r]:
+                continue
+            _control_row(K, j, r, cs, obs, episodes, out[r])
+            _step_row(K, addr, r, out[r], pedestals, geoms, drops[i], obs, buf)

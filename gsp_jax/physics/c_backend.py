@@ -207,36 +207,43 @@ class _Lockstep:
                  start: Snapshot | None = None, controller: str = "native"):
         if controller not in CONTROLLERS:
             raise ValueError(f"controller must be one of {CONTROLLERS}, got {controller!r}")
-        self.phys, self.groups, self.episodes, self.controller = phys, groups, episodes, controller
+        G = len(groups)
+        per_group = list(episodes) if isinstance(episodes, (list, tuple)) else [episodes] * G
+        if len(per_group) != G or len({int(np.shape(e.mass)[0]) for e in per_group}) != 1 \
+                or len({e.n_steps for e in per_group}) != 1:
+            raise ValueError(f"episodes: one batch for every group, or one batch per group ({G}) of the same size "
+                             f"and length")
+        episodes = per_group[0]
+        self.phys, self.groups, self.episodes, self.controller = phys, groups, per_group, controller
         scene = phys.scene
         N, T = int(np.shape(episodes.mass)[0]), episodes.n_steps
-        G = len(groups)
         M, K, nq = G * N, phys.n_ticks(T), phys.model.nq
         self.T, self.K, self.nq, self.nu, self.n = T, K, nq, phys.model.nu, phys.n_segment
         self.pr = pr = programs(phys, episodes)
         self.native = native_tick(phys)
         self.default = jax.devices()[0]
-        # every group runs on every episode: the lockstep's batch is the groups' episodes one after another
-        tile = lambda x: np.tile(np.asarray(x), (G,) + (1,) * (np.ndim(x) - 1))  # noqa: E731
-        self.ep_native = native.Episodes(*(tile(x) for x in self.native.episodes(episodes)))
+        # the lockstep's batch is the groups' episodes one after another
+        cat = lambda make: jax.tree.map(lambda *x: np.concatenate([np.asarray(a) for a in x]),  # noqa: E731
+                                        *[make(e) for e in per_group])
+        self.ep_native = cat(self.native.episodes)
         end = T + phys.n_hold
         if start is not None and (np.shape(start.state)[0] != M or np.shape(start.qpos0)[0] != M
                                   or not 0 <= start.segment <= end):
             raise ValueError(f"start: a snapshot of {M} rows (groups x episodes) at a segment in 0..{end} is "
                              f"needed, got {np.shape(start.state)[0]} rows at segment {start.segment}")
         if start is None:
-            qpos0, cs = pr.start(episodes)
-            self.qpos0 = tile(np.asarray(qpos0, np.float64))
-            self.cs = np.ascontiguousarray(tile(cs), np.float32)
+            qpos0, cs = cat(lambda e: jax.device_get(pr.start(e)))
+            self.qpos0 = np.asarray(qpos0, np.float64)
+            self.cs = np.ascontiguousarray(cs, np.float32)
         else:  # the start's IK is not run again (its rows were checked above)
             self.qpos0 = np.array(start.qpos0, np.float64)
-        fields = jax.tree.map(tile, jax.device_get(pr.fields(episodes)))
+        fields = cat(lambda e: jax.device_get(pr.fields(e)))
         self.chunks = np.array_split(np.arange(M), workers)  # contiguous rows
         if engine_log is not None and workers != 1:
             raise ValueError(f"engine_log needs workers=1, got workers={workers}")
         self.engine = Engine(scene, fields, self.qpos0, engine_log)
-        self.ep_flat = np.asarray(jnp.tile(pr.ravel_episodes(episodes), (G, 1)))
-        self.grasp = np.tile(np.asarray(episodes.start_grasp, np.int32), G)
+        self.ep_flat = cat(lambda e: np.asarray(pr.ravel_episodes(e)))
+        self.grasp = cat(lambda e: np.asarray(e.start_grasp, np.int32))
         self.fell, self.fall_tick = np.zeros(M, bool), np.full(M, -1, np.int32)
         self.angle, self.perr = np.zeros((M, K), np.float32), np.zeros((M, K), np.float32)
         self.qpos_trace = np.zeros((M, K, nq), np.float32)
@@ -299,9 +306,9 @@ class _Lockstep:
                 if k < self.T:
                     snapshot = self.snapshot() if snapshot is None else snapshot
                 policy = policy.in_physics(self.phys, snapshot if k < self.T else None,
-                                           np.arange(len(self.fell))[rows], obs[rows], self.episodes, k, self.T)
+                                           np.arange(len(self.fell))[rows], obs[rows], self.episodes[g], k, self.T)
             act, gr, cs_g = decide(policy, jax.device_put(self.cs[rows], self.default), obs[rows],
-                                   self.grasp[rows], self.episodes, k)
+                                   self.grasp[rows], self.episodes[g], k)
             if k < self.T:
                 self.actions[rows, k], self.grasps[rows, k] = np.asarray(act), np.asarray(gr)
             self.grasp[rows] = np.asarray(gr)
@@ -354,11 +361,12 @@ def native_tick(phys) -> native.Tick:
     return phys._jitted["native"]
 
 
-def simulate(phys, groups, episodes: Episode, cores: int | None = None, progress: bool = False,
+def simulate(phys, groups, episodes: Episode | list[Episode], cores: int | None = None, progress: bool = False,
              workers: int | None = None, engine_log: list | None = None, start: Snapshot | None = None,
              until: int | None = None, controller: str = "native"):
     """`Physics.simulate_many(..., backend="c")`: every (policy, policy_axis) of `groups` on every episode of
     `episodes` (leading axis) in one lockstep; a list of `runner.Result`s of numpy arrays, one per group.
+    `episodes` may instead be a list of batches, one per group (of one size and length): group g runs on its own.
 
     Between two decisions the lockstep's episodes run as `workers` chunks of rows side by side (threads), each
     chunk's whole segment one call of native code (`native.segment`: the controller's ticks and `mj_step`,
@@ -373,11 +381,12 @@ def simulate(phys, groups, episodes: Episode, cores: int | None = None, progress
     of from the episodes' start; with the same groups, episodes and controller the continuation is the original
     run's, bit for bit, at any row count (tests/test_physics.py), so a snapshot's rows can be branched under
     other policies."""
-    M = len(groups) * int(np.shape(episodes.mass)[0])
+    one = episodes[0] if isinstance(episodes, (list, tuple)) else episodes
+    M = len(groups) * int(np.shape(one.mass)[0])
     cores = available_cores() if cores is None else cores
     workers = max(1, min(cores, M)) if workers is None else max(1, min(workers, M))
     run = _Lockstep(phys, groups, episodes, workers, engine_log, start, controller)
-    end = episodes.n_steps + phys.n_hold
+    end = one.n_steps + phys.n_hold
     if until is not None and not run.segment <= until <= end:
         raise ValueError(f"until must be a segment in {run.segment}..{end}, got {until!r}")
     run.advance(end if until is None else until, progress)

@@ -62,6 +62,8 @@ class Decision:
     chosen: int  # the action taken
     base: int  # the base policy of the branch taken (-1: not branched)
     seconds: float  # wall time of the decision call that made it (every episode of the lockstep at once)
+    branches: int = 0  # branches that call ran in physics (every episode of the lockstep at once): the others'
+    # outcomes were known from earlier branches
 
 
 @dataclasses.dataclass(eq=False)
@@ -80,6 +82,8 @@ class PhysicsLookahead:
     workers: int | None = None  # its chunks (default as `c_backend.simulate`)
     decisions: list = dataclasses.field(default_factory=list)
     _gathered: dict = dataclasses.field(default_factory=dict, repr=False)  # bases per set of branched rows
+    _known: dict = dataclasses.field(default_factory=dict, repr=False)  # (row, base, actions from the start) ->
+    # (fell, angle error): the outcomes of the branches run so far in this episode
 
     def __post_init__(self):
         if not (isinstance(self.k, int) and self.k >= 1):
@@ -160,21 +164,38 @@ def choose(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, obs: np.n
     chosen, chosen_base = best[:, 0].copy(), np.full(n, -1)
     fell, err = np.full((n_base, n, slots), np.nan), np.full((n_base, n, slots), np.nan)
     live = np.flatnonzero(~snapshot.fell[rows]) if n_base * slots > 1 else np.zeros(0, int)
+    known, runs = policy._known, 0
+    if k == 0:
+        known.clear()
     if live.size:
-        # padded to a multiple of a quarter of the episodes (repeating a live one): the branches' programs are
-        # compiled per row count, and tools that fall would otherwise make a new count at every decision
-        quarter = -(-n // 4)
-        padded = np.concatenate([live, np.full(-(-live.size // quarter) * quarter - live.size, live[0])])[:n]
-        groups = [(FirstThen(first=jnp.asarray(cand[b, padded].ravel()), at=jnp.int32(k),
-                             base=_gather(policy, b, padded, slots)), FirstThen(first=0, at=None, base=axis))
-                  for b, (_, axis) in enumerate(policy.bases)]
-        branch_rows = np.tile(np.repeat(rows[padded], slots), n_base)  # the lockstep's rows: base-major
-        results = c_backend.simulate(phys, groups, jax.tree.map(lambda x: np.repeat(np.asarray(x)[padded], slots, 0),
-                                                                episodes),
-                                     cores=policy.cores, workers=policy.workers, start=snapshot.take(branch_rows))
-        for b, res in enumerate(results):
-            fell[b, live] = np.asarray(res.fell).reshape(-1, slots)[:live.size]
-            err[b, live] = np.asarray(res.angle_error).reshape(-1, slots)[:live.size]
+        # a branch whose outcome an earlier branch already gave is not run again: that earlier branch took this
+        # episode's actions so far and then this candidate, under the same base (the physics is deterministic)
+        past = snapshot.actions[rows, :k]
+        todo = [[] for _ in range(n_base)]  # per base: (episode, first action) pairs to run
+        for b in range(n_base):
+            for i in live:
+                for s_ in range(slots):
+                    got = known.get((int(rows[i]), b, tuple(past[i]) + (int(cand[b, i, s_]),)))
+                    if got is not None:
+                        fell[b, i, s_], err[b, i, s_] = got
+                    elif (i, int(cand[b, i, s_])) not in todo[b]:
+                        todo[b].append((i, int(cand[b, i, s_])))
+        runs = sum(len(t) for t in todo)
+        if runs:
+            # every base runs as many branches (a lockstep's groups share their rows), padded to a multiple of a
+            # quarter of the episodes' candidates (the branches' programs are compiled per row count): padding
+            # repeats a branch
+            quarter = -(-n * slots // 4)
+            width = -(-max(len(t) for t in todo) // quarter) * quarter
+            spare = next(t[0] for t in todo if t)
+            padded = [t + [t[0] if t else spare] * (width - len(t)) for t in todo]
+            outcome = _run_branches(policy, phys, snapshot, rows, episodes, k, padded)
+            for b, t in enumerate(todo):
+                for r, (i, a) in enumerate(t):
+                    f, e, acts = outcome[b][0][r], outcome[b][1][r], outcome[b][2][r]
+                    for m in range(k, len(acts)):  # this branch's outcome is every later candidate's on its path
+                        known[(int(rows[i]), b, tuple(int(x) for x in acts[:m + 1]))] = (f, e)
+                    fell[b, i, cand[b, i] == a], err[b, i, cand[b, i] == a] = f, e
         for i in live:  # held first, then the least angle error, then the surrogate's Q (then base, slot order)
             c = cand[:, i].ravel()
             pick = np.lexsort((-q[i, c], err[:, i].ravel(), fell[:, i].ravel()))[0]
@@ -183,5 +204,20 @@ def choose(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, obs: np.n
     for i in range(n):
         b = i in branched
         policy.decisions.append(Decision(int(i), k, np.array(cand[:, i]), q[i], fell[:, i].astype(bool) if b else None,
-                                         err[:, i] if b else None, int(chosen[i]), int(chosen_base[i]), seconds))
+                                         err[:, i] if b else None, int(chosen[i]), int(chosen_base[i]), seconds, runs))
     return chosen
+
+
+def _run_branches(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, episodes, k: int, todo):
+    """Per base b, the branches todo[b] = [(episode, first action), ...] (as many for every base) run from the
+    snapshot to the episode's end in one C MuJoCo lockstep: per base (fell (R,), angle error (R,), actions (R, T))."""
+    from gsp_jax.physics import c_backend
+
+    idx = np.array([[i for i, _ in t] for t in todo])  # (B, R) episodes (indices into rows)
+    first = np.array([[a for _, a in t] for t in todo], np.int32)
+    groups = [(FirstThen(first=jnp.asarray(first[b]), at=jnp.int32(k), base=_gather(policy, b, idx[b], 1)),
+               FirstThen(first=0, at=None, base=axis)) for b, (_, axis) in enumerate(policy.bases)]
+    per_base = [jax.tree.map(lambda x, ib=ib: np.asarray(x)[ib], episodes) for ib in idx]
+    results = c_backend.simulate(phys, groups, per_base, cores=policy.cores, workers=policy.workers,
+                                 start=snapshot.take(rows[idx.ravel()]))
+    return [(np.asarray(r.fell), np.asarray(r.angle_error), np.asarray(r.actions)) for r in results]

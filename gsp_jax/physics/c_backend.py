@@ -318,7 +318,7 @@ class _Lockstep:
         """Chunk w's control ticks of segment k."""
         ids, eng, n = self.chunks[w], self.engine, self.n
         j0 = k * n
-        drops = np.array([self.pedestal_drop(j * self.tick, xp=np) for j in range(j0, j0 + n)], np.float64)
+        drops = np.asarray(self.pedestal_drop(np.arange(j0, j0 + n) * self.tick, xp=np), np.float64)
         if self.controller == "native" and eng.log is None:  # the whole segment in one native call
             native.segment(self.native.constants, j0, drops, ids, self.cs, eng.obs, self.ep_native, eng.addresses,
                            eng.pedestals, eng.geoms, self.fell, self.fall_tick, self.angle, self.perr,

@@ -424,31 +424,52 @@ def _project(x, normals, mu, mask):
 
 
 @_jit
-def _solve(K, points, normals, active, mu, wrench, center, init, forces):
+def _solve(K, points, normals, active, mu, wrench, center, init, forces, lip=-1.0):
     """`wrench.solve` ("apg", `Controller._forces`): cone forces (L, 3) on the `active` links supplying `wrench`
     (6,) about `center`, pulled towards `grip_force` along each normal, from `init` (L, 3); written to forces.
 
     The grasp matrix's products are written per contact (its force rows are identities, its torque rows cross
     products with the contact's lever r_k): G y = (sum y_k, sum r_k x y_k) and (G^T e)_k = e_f + e_t x r_k,
-    with the torque rows scaled by 1 / torque_length as in `wrench._solve`."""
+    with the torque rows scaled by 1 / torque_length as in `wrench._solve`. `lip` > 0: the step's Lipschitz
+    constant, if known (it depends on the active contacts' positions only); the one used is returned."""
     L = points.shape[0]
     s = 1.0 / K.torque_length
     r = np.zeros((L, 3))  # the scaled levers of the active contacts
-    a = np.zeros((6, 3 * L))  # the scaled grasp matrix, for its largest singular value
     for k in range(L):
-        if not active[k]:
-            continue
-        for i in range(3):
-            r[k, i] = (points[k, i] - center[i]) * s
-        r0, r1, r2 = r[k, 0], r[k, 1], r[k, 2]
-        a[0, 3 * k], a[1, 3 * k + 1], a[2, 3 * k + 2] = 1.0, 1.0, 1.0
-        a[3, 3 * k + 1], a[3, 3 * k + 2] = -r2, r1
-        a[4, 3 * k], a[4, 3 * k + 2] = r2, -r0
-        a[5, 3 * k], a[5, 3 * k + 1] = -r1, r0
+        if active[k]:
+            for i in range(3):
+                r[k, i] = (points[k, i] - center[i]) * s
     b0, b1, b2 = wrench[0], wrench[1], wrench[2]
     b3, b4, b5 = wrench[3] * s, wrench[4] * s, wrench[5] * s
     rho = K.rho
-    lip = np.linalg.eigvalsh(a @ a.T)[-1] + rho
+    if lip <= 0.0:  # the largest eigenvalue of G G^T = sum_k [[I, R_k^T], [R_k, R_k R_k^T]], R_k = [r_k]x
+        gg = np.zeros((6, 6))
+        for k in range(L):
+            if not active[k]:
+                continue
+            r0, r1, r2 = r[k, 0], r[k, 1], r[k, 2]
+            n2 = r0 * r0 + r1 * r1 + r2 * r2
+            gg[0, 0] += 1.0
+            gg[1, 1] += 1.0
+            gg[2, 2] += 1.0
+            # R^T = -R: the force-torque block
+            gg[0, 4] += r2
+            gg[0, 5] -= r1
+            gg[1, 3] -= r2
+            gg[1, 5] += r0
+            gg[2, 3] += r1
+            gg[2, 4] -= r0
+            # R R^T = |r|^2 I - r r^T
+            gg[3, 3] += n2 - r0 * r0
+            gg[4, 4] += n2 - r1 * r1
+            gg[5, 5] += n2 - r2 * r2
+            gg[3, 4] -= r0 * r1
+            gg[3, 5] -= r0 * r2
+            gg[4, 5] -= r1 * r2
+        for i in range(6):
+            for j in range(i):
+                gg[i, j] = gg[j, i]
+        lip = np.linalg.eigvalsh(gg)[-1] + rho
     ks = math.sqrt(lip / rho)
     beta = (ks - 1.0) / (ks + 1.0)
     target = np.zeros((L, 3))
@@ -492,6 +513,7 @@ def _solve(K, points, normals, active, mu, wrench, center, init, forces):
     for k in range(L):
         for i in range(3):
             forces[k, i] = x[3 * k + i]
+    return lip
 
 
 # ------------------------------------------------------------------------------------------ one tick
@@ -775,8 +797,11 @@ def _control(K, j, cs, obs, wp, quats, dt, w_ext, mass, inertia_d, com_t, fricti
         if changed[lk]:
             share += load[lk]
     f_a, f_b = np.empty((L, 3)), np.empty((L, 3))
-    _solve(K, pts, nrm, active, mu, required, com_w, f_with, f_a)
-    _solve(K, pts, nrm, active_b, mu, required, com_w, f_without, f_b)
+    lip = _solve(K, pts, nrm, active, mu, required, com_w, f_with, f_a)
+    same = True  # no link changing: both solves have one grasp matrix
+    for lk in range(L):
+        same = same and active[lk] == active_b[lk]
+    _solve(K, pts, nrm, active_b, mu, required, com_w, f_without, f_b, lip if same else -1.0)
     sh = float(share)
     tau = np.empty(J)
     for jj in range(J):

@@ -15,11 +15,8 @@ Writes JSON (`engine_steps_per_s_one_core`, and per row `runner_steps_per_s`, `c
 from __future__ import annotations
 
 import argparse
-import time
-
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 
 from experiments import common
@@ -57,25 +54,6 @@ def _variants(specs) -> list[tuple[str, physics.PhysicsConfig]]:
     return out
 
 
-def engine_alone(phys: physics.Physics, episodes, log) -> tuple[float, int]:
-    """(steps / s of `mj_step` on one core, steps) over the recorded states `log` (`c_backend.Engine.log`)."""
-    fields = jax.device_get(jax.vmap(phys.scene.episode_fields)(episodes))
-    models = [phys.scene.c_model(jax.tree.map(lambda x: x[e], fields)) for e in range(int(episodes.mass.shape[0]))]
-    datas = [mujoco.MjData(m) for m in models]
-    spec = mujoco.mjtState.mjSTATE_INTEGRATION
-    busy, steps = 0.0, 0
-    for ids, states, pedestals in log:
-        for e, state, ped in zip(ids, states, pedestals):
-            m, d = models[e], datas[e]
-            m.geom_pos[phys.scene.pedestal_geoms] = ped
-            mujoco.mj_setState(m, d, state, spec)
-            t0 = time.perf_counter()
-            mujoco.mj_step(m, d)
-            busy += time.perf_counter() - t0
-            steps += 1
-    return steps / busy, steps
-
-
 def main(args: argparse.Namespace) -> None:
     env = surrogate.Surrogate()
     device = jax.devices()[0]
@@ -97,7 +75,7 @@ def main(args: argparse.Namespace) -> None:
         log = []
         phys = physics.Physics(env, config)
         c_backend.simulate(phys, [(policy, None)], batch, cores=1, workers=1, engine_log=log)
-        engine[name], steps = engine_alone(phys, batch, log)
+        engine[name], steps = c_backend.engine_alone(phys, batch, log)
         print(f"{name}: engine alone {engine[name]:,.0f} steps/s on one core ({steps:,} steps)", flush=True)
         for backend in args.backends:
             runs = [(c, w) for c in core_counts for w in args.workers] if backend == "c" else [(None, 0)]

@@ -254,6 +254,7 @@ class _Lockstep:
         self.pedestal_drop, self.tick = scene.pedestal_drop, phys.timestep
         m = phys.model
         self._scratch = [np.zeros(max(m.nq, m.nv, m.nu, 6)) for _ in self.chunks]  # one a thread
+        self.steps = [0] * len(self.chunks)  # physics steps taken, per chunk
         self.segment = 0
         if start is not None:
             self._restore(start)
@@ -320,9 +321,9 @@ class _Lockstep:
         j0 = k * n
         drops = np.asarray(self.pedestal_drop(np.arange(j0, j0 + n) * self.tick, xp=np), np.float64)
         if self.controller == "native" and eng.log is None:  # the whole segment in one native call
-            native.segment(self.native.constants, j0, drops, ids, self.cs, eng.obs, self.ep_native, eng.addresses,
-                           eng.pedestals, eng.geoms, self.fell, self.fall_tick, self.angle, self.perr,
-                           self.qpos_trace, self.out, self._scratch[w])
+            self.steps[w] += native.segment(self.native.constants, j0, drops, ids, self.cs, eng.obs, self.ep_native,
+                                            eng.addresses, eng.pedestals, eng.geoms, self.fell, self.fall_tick,
+                                            self.angle, self.perr, self.qpos_trace, self.out, self._scratch[w])
             return
         nu, rows = self.nu, slice(ids[0], ids[-1] + 1)
         alive = ids[~self.fell[ids]]
@@ -338,6 +339,7 @@ class _Lockstep:
                 alive = ids[~self.fell[ids]]
             if alive.size:
                 eng.step(self.native.constants, alive, self.out, drops[i], self._scratch[w])
+                self.steps[w] += alive.size
 
     def results(self):
         """The last tick's status, fallen tools' traces held, and a `runner.Result` (numpy) per group."""
@@ -363,7 +365,7 @@ def native_tick(phys) -> native.Tick:
 
 def simulate(phys, groups, episodes: Episode | list[Episode], cores: int | None = None, progress: bool = False,
              workers: int | None = None, engine_log: list | None = None, start: Snapshot | None = None,
-             until: int | None = None, controller: str = "native"):
+             until: int | None = None, controller: str = "native", stats: dict | None = None):
     """`Physics.simulate_many(..., backend="c")`: every (policy, policy_axis) of `groups` on every episode of
     `episodes` (leading axis) in one lockstep; a list of `runner.Result`s of numpy arrays, one per group.
     `episodes` may instead be a list of batches, one per group (of one size and length): group g runs on its own.
@@ -373,8 +375,8 @@ def simulate(phys, groups, episodes: Episode | list[Episode], cores: int | None 
     without Python's lock). Default: one chunk a core (at most `cores`, default all).
     `controller="jax"`: the JAX controller (`Physics.tick`, one XLA call a tick and chunk) instead of its native
     twin: the reference the native one is measured against (tests/test_native.py).
-    `engine_log` (a list, one worker only): every step's states are appended to it (`Engine.log`; `experiments
-    bench-physics` replays them to time the engine alone).
+    `engine_log` (a list, one worker only): every step's states are appended to it (`Engine.log`; `engine_alone`
+    replays them to time the engine alone). `stats` (a dict): its "steps" grows by the physics steps taken.
 
     `until`: stop at the start of segment `until` (before its decision) and return the lockstep's `Snapshot`
     instead of results. `start`: continue from such a snapshot (rows: groups x episodes, the same order) instead
@@ -390,4 +392,29 @@ def simulate(phys, groups, episodes: Episode | list[Episode], cores: int | None 
     if until is not None and not run.segment <= until <= end:
         raise ValueError(f"until must be a segment in {run.segment}..{end}, got {until!r}")
     run.advance(end if until is None else until, progress)
+    if stats is not None:
+        stats["steps"] = stats.get("steps", 0) + sum(run.steps)
     return run.snapshot() if until is not None else run.results()
+
+
+def engine_alone(phys, episodes: Episode, log: list) -> tuple[float, int]:
+    """(steps / s of `mujoco.mj_step` on one core, steps) over the states of an engine log (`simulate(...,
+    engine_log=log)` on `episodes`): every logged state is loaded into its episode's own model and data and
+    stepped once; only `mj_step` is timed. The engine's own limit on this machine, for the same steps."""
+    import time
+
+    fields = jax.device_get(jax.vmap(phys.scene.episode_fields)(episodes))
+    models = [phys.scene.c_model(jax.tree.map(lambda x: x[e], fields)) for e in range(int(episodes.mass.shape[0]))]
+    datas = [mujoco.MjData(m) for m in models]
+    spec = mujoco.mjtState.mjSTATE_INTEGRATION
+    busy, steps = 0.0, 0
+    for ids, states, pedestals in log:
+        for e, state, ped in zip(ids, states, pedestals):
+            m, d = models[e], datas[e]
+            m.geom_pos[phys.scene.pedestal_geoms] = ped
+            mujoco.mj_setState(m, d, state, spec)
+            t0 = time.perf_counter()
+            mujoco.mj_step(m, d)
+            busy += time.perf_counter() - t0
+            steps += 1
+    return steps / busy, steps

@@ -905,8 +905,10 @@ def segment(K, j0, drops, rows, cs, obs, episodes, addr, pedestals, geoms, fell,
     """Control ticks j0 .. j0 + len(drops) - 1 of the episodes `rows`, each tick: the status of the tick before
     recorded (angle, perr (E, K), qpos (E, K, nq) at tick j - 1; fell (E,), fall_tick (E,) at the first fall),
     then, for an episode that has not fallen, the controller's tick j and one physics step with the pedestals
-    drops[j - j0] metres down. The C backend's segment between two decisions, in one call without Python."""
+    drops[j - j0] metres down. The C backend's segment between two decisions, in one call without Python.
+    Returns the physics steps taken."""
     nq, nu = K.nq, K.nu
+    steps = 0
     for i in range(drops.shape[0]):
         j = j0 + i
         for r in rows:
@@ -922,3 +924,5 @@ def segment(K, j0, drops, rows, cs, obs, episodes, addr, pedestals, geoms, fell,
                 continue
             _control_row(K, j, r, cs, obs, episodes, out[r])
             _step_row(K, addr, r, out[r], pedestals, geoms, drops[i], obs, buf)
+            steps += 1
+    return steps

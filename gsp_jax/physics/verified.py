@@ -64,6 +64,7 @@ class Decision:
     seconds: float  # wall time of the decision call that made it (every episode of the lockstep at once)
     branches: int = 0  # branches that call ran in physics (every episode of the lockstep at once): the others'
     # outcomes were known from earlier branches
+    steps: int = 0  # the physics steps those branches took
 
 
 @dataclasses.dataclass(eq=False)
@@ -164,7 +165,7 @@ def choose(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, obs: np.n
     chosen, chosen_base = best[:, 0].copy(), np.full(n, -1)
     fell, err = np.full((n_base, n, slots), np.nan), np.full((n_base, n, slots), np.nan)
     live = np.flatnonzero(~snapshot.fell[rows]) if n_base * slots > 1 else np.zeros(0, int)
-    known, runs = policy._known, 0
+    known, runs, stats = policy._known, 0, {"steps": 0}
     if k == 0:
         known.clear()
     if live.size:
@@ -189,7 +190,7 @@ def choose(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, obs: np.n
             width = -(-max(len(t) for t in todo) // quarter) * quarter
             spare = next(t[0] for t in todo if t)
             padded = [t + [t[0] if t else spare] * (width - len(t)) for t in todo]
-            outcome = _run_branches(policy, phys, snapshot, rows, episodes, k, padded)
+            outcome = _run_branches(policy, phys, snapshot, rows, episodes, k, padded, stats)
             for b, t in enumerate(todo):
                 for r, (i, a) in enumerate(t):
                     f, e, acts = outcome[b][0][r], outcome[b][1][r], outcome[b][2][r]
@@ -204,13 +205,15 @@ def choose(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, obs: np.n
     for i in range(n):
         b = i in branched
         policy.decisions.append(Decision(int(i), k, np.array(cand[:, i]), q[i], fell[:, i].astype(bool) if b else None,
-                                         err[:, i] if b else None, int(chosen[i]), int(chosen_base[i]), seconds, runs))
+                                         err[:, i] if b else None, int(chosen[i]), int(chosen_base[i]), seconds, runs,
+                                         stats["steps"]))
     return chosen
 
 
-def _run_branches(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, episodes, k: int, todo):
+def _run_branches(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, episodes, k: int, todo, stats):
     """Per base b, the branches todo[b] = [(episode, first action), ...] (as many for every base) run from the
-    snapshot to the episode's end in one C MuJoCo lockstep: per base (fell (R,), angle error (R,), actions (R, T))."""
+    snapshot to the episode's end in one C MuJoCo lockstep: per base (fell (R,), angle error (R,), actions (R, T));
+    stats["steps"] grows by the physics steps taken."""
     from gsp_jax.physics import c_backend
 
     idx = np.array([[i for i, _ in t] for t in todo])  # (B, R) episodes (indices into rows)
@@ -219,5 +222,5 @@ def _run_branches(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, ep
                FirstThen(first=0, at=None, base=axis)) for b, (_, axis) in enumerate(policy.bases)]
     per_base = [jax.tree.map(lambda x, ib=ib: np.asarray(x)[ib], episodes) for ib in idx]
     results = c_backend.simulate(phys, groups, per_base, cores=policy.cores, workers=policy.workers,
-                                 start=snapshot.take(rows[idx.ravel()]))
+                                 start=snapshot.take(rows[idx.ravel()]), stats=stats)
     return [(np.asarray(r.fell), np.asarray(r.angle_error), np.asarray(r.actions)) for r in results]

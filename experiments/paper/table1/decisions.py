@@ -92,38 +92,52 @@ def physics_lookahead(ctx: evaluation.Context, name: str, k: int, bases, cached:
     from gsp_jax.physics import c_backend
 
     phys = physics.Physics(ctx.surrogate)
+    # the engine's own speed on this machine: mj_step alone on one core, over the states of a four-tip run
+    first = ctx.select([0])
+    log = []
+    c_backend.simulate(phys, [planners.make(first, "four-tips")], first.batch, cores=1, workers=1, engine_log=log)
+    rate, _ = c_backend.engine_alone(phys, first.batch, log)
 
     def episode(i):
         one = ctx.select([i])
         policy, axis = planners.make(one, name, dict(cached=cached, k=k, bases=bases))
         res, wall = timed(lambda: phys.simulate_batch(policy, one.batch, axis, backend="c"))
-        return [d.seconds for d in policy.decisions], wall, res
+        return [d.seconds for d in policy.decisions], [d.steps for d in policy.decisions], wall, res
 
     print(f"  {name} k={k}: compiling (episode 0) ...", flush=True)
     episode(0)
-    decide, per_episode, simulated, falls, angles = [], [], [], 0, []
+    decide, steps, per_episode, engine, simulated, falls, angles = [], [], [], [], [], 0, []
     for i in range(len(ctx.names)):
-        d, wall, res = episode(i)
+        d, n, wall, res = episode(i)
         decide += d
-        per_episode.append(setup[i] + sum(d)), simulated.append(wall)
+        steps += n
+        per_episode.append(setup[i] + sum(d)), simulated.append(wall), engine.append(sum(n) / rate)
         falls += int(np.sum(res.fell))
         angles.append(float(np.asarray(res.angle_error)[0]))
         print(f"  {name} k={k}, episode {i}: {len(d)} decisions, median {np.median(d):.3f} s, planning "
-              f"{per_episode[-1]:.2f} s, simulated in {wall:.2f} s, {'FELL' if res.fell[0] else 'held'}", flush=True)
-    d = np.asarray(decide)
+              f"{per_episode[-1]:.2f} s, simulated in {wall:.2f} s, {'FELL' if res.fell[0] else 'held'}; its branches' "
+              f"{sum(n):,} physics steps take the engine alone {engine[-1]:.2f} s on one core", flush=True)
+    d, n = np.asarray(decide), np.asarray(steps)
     return dict(k=k, bases=list(bases), decisions=len(d), decision_median_s=float(np.median(d)),
                 decision_p99_s=float(np.percentile(d, 99)), setup_median_s=float(np.median(setup)), step_median_s=0.0,
                 episode_median_s=float(np.median(per_episode)), simulated_median_s=float(np.median(simulated)),
-                falls=falls, angle_error_deg=angles, cores=c_backend.available_cores())
+                falls=falls, angle_error_deg=angles, cores=c_backend.available_cores(),
+                engine_steps_per_s_one_core=rate, decision_steps_median=float(np.median(n)),
+                engine_decision_median_s=float(np.median(n) / rate), engine_episode_median_s=float(np.median(engine)))
 
 
 def print_result(result: dict) -> None:
     headers = ["planner", "setup / episode [s]", "decision median [ms]", "decision p99 [ms]", "surrogate step [ms]",
-               "episode [s]", "paper, episode [s]"]
+               "episode [s]", "engine alone: decision [ms]", "engine alone: episode [s]", "paper, episode [s]"]
+    engine = lambda r, key, scale: f"{r[key] * scale:.2f}" if key in r else "-"  # noqa: E731
     rows = [[name, f"{r['setup_median_s']:.3f}", f"{r['decision_median_s'] * 1e3:.2f}", f"{r['decision_p99_s'] * 1e3:.2f}",
              f"{r['step_median_s'] * 1e3:.2f}", f"{r['episode_median_s']:.3f}",
+             engine(r, "engine_decision_median_s", 1e3), engine(r, "engine_episode_median_s", 1.0),
              common.PAPER["table1_s"].get(name.split()[0].removesuffix("-physics"), "-")]
             for name, r in result["policies"].items()]
+    cores = {r["cores"] for r in result["policies"].values() if "cores" in r}
     print(f"Per-decision latency, one episode at a time ({result['device']}, lookahead {result['lookahead']}, "
-          f"{len(result['episodes'])} episodes; medians; paper: {common.PAPER['table1_machine']})")
+          f"{len(result['episodes'])} episodes; medians; paper: {common.PAPER['table1_machine']}; engine alone: "
+          f"mj_step of the same physics steps on one core of this machine, physics planners on "
+          f"{', '.join(map(str, cores)) or '-'} cores)")
     print(table(headers, rows, ".2f"))

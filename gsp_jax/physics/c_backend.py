@@ -204,7 +204,7 @@ class _Lockstep:
     (flat rows, float32), all numpy."""
 
     def __init__(self, phys, groups, episodes: Episode, workers: int, engine_log: list | None,
-                 start: Snapshot | None = None, controller: str = "native"):
+                 start: Snapshot | None = None, controller: str = "native", device=None):
         if controller not in CONTROLLERS:
             raise ValueError(f"controller must be one of {CONTROLLERS}, got {controller!r}")
         G = len(groups)
@@ -221,7 +221,11 @@ class _Lockstep:
         self.T, self.K, self.nq, self.nu, self.n = T, K, nq, phys.model.nu, phys.n_segment
         self.pr = pr = programs(phys, episodes)
         self.native = native_tick(phys)
-        self.default = jax.devices()[0]
+        # the device of the decisions' programs (and the episodes' set-up): JAX's default, or the one named
+        self.device = jax.devices()[0] if device is None else jax.devices(device)[0] if isinstance(device, str) else device
+        if device is not None:
+            groups = [(p if hasattr(p, "in_physics") else jax.device_put(p, self.device), axis) for p, axis in groups]
+            self.groups = groups
         # the lockstep's batch is the groups' episodes one after another
         cat = lambda make: jax.tree.map(lambda *x: np.concatenate([np.asarray(a) for a in x]),  # noqa: E731
                                         *[make(e) for e in per_group])
@@ -232,17 +236,19 @@ class _Lockstep:
             raise ValueError(f"start: a snapshot of {M} rows (groups x episodes) at a segment in 0..{end} is "
                              f"needed, got {np.shape(start.state)[0]} rows at segment {start.segment}")
         if start is None:
-            qpos0, cs = cat(lambda e: jax.device_get(pr.start(e)))
+            with jax.default_device(self.device):
+                qpos0, cs = cat(lambda e: jax.device_get(pr.start(e)))
             self.qpos0 = np.asarray(qpos0, np.float64)
             self.cs = np.ascontiguousarray(cs, np.float32)
         else:  # the start's IK is not run again (its rows were checked above)
             self.qpos0 = np.array(start.qpos0, np.float64)
-        fields = cat(lambda e: jax.device_get(pr.fields(e)))
+        with jax.default_device(self.device):
+            fields = cat(lambda e: jax.device_get(pr.fields(e)))
+            self.ep_flat = cat(lambda e: np.asarray(pr.ravel_episodes(e)))
         self.chunks = np.array_split(np.arange(M), workers)  # contiguous rows
         if engine_log is not None and workers != 1:
             raise ValueError(f"engine_log needs workers=1, got workers={workers}")
         self.engine = Engine(scene, fields, self.qpos0, engine_log)
-        self.ep_flat = cat(lambda e: np.asarray(pr.ravel_episodes(e)))
         self.grasp = cat(lambda e: np.asarray(e.start_grasp, np.int32))
         self.fell, self.fall_tick = np.zeros(M, bool), np.full(M, -1, np.int32)
         self.angle, self.perr = np.zeros((M, K), np.float32), np.zeros((M, K), np.float32)
@@ -308,8 +314,9 @@ class _Lockstep:
                     snapshot = self.snapshot() if snapshot is None else snapshot
                 policy = policy.in_physics(self.phys, snapshot if k < self.T else None,
                                            np.arange(len(self.fell))[rows], obs[rows], self.episodes[g], k, self.T)
-            act, gr, cs_g = decide(policy, jax.device_put(self.cs[rows], self.default), obs[rows],
-                                   self.grasp[rows], self.episodes[g], k)
+            with jax.default_device(self.device):
+                act, gr, cs_g = decide(policy, jax.device_put(self.cs[rows], self.device), obs[rows],
+                                       self.grasp[rows], self.episodes[g], k)
             if k < self.T:
                 self.actions[rows, k], self.grasps[rows, k] = np.asarray(act), np.asarray(gr)
             self.grasp[rows] = np.asarray(gr)
@@ -350,10 +357,11 @@ class _Lockstep:
         for e in np.flatnonzero(self.fell):  # a fallen tool's trace stays where it was before the tick it fell
             f = self.fall_tick[e]
             self.qpos_trace[e, f:] = self.qpos_trace[e, f - 1] if f > 0 else self.qpos0[e]
-        return [jax.device_get(self.phys.result(
-            jnp.asarray(self.actions[rows]), jnp.asarray(self.grasps[rows]), jnp.asarray(self.angle[rows]),
-            jnp.asarray(self.perr[rows]), jnp.asarray(self.qpos_trace[rows]), jnp.asarray(self.fell[rows]),
-            jnp.asarray(self.fall_tick[rows]), self.T)) for rows in self.group_rows]
+        with jax.default_device(self.device):
+            return [jax.device_get(self.phys.result(
+                jnp.asarray(self.actions[rows]), jnp.asarray(self.grasps[rows]), jnp.asarray(self.angle[rows]),
+                jnp.asarray(self.perr[rows]), jnp.asarray(self.qpos_trace[rows]), jnp.asarray(self.fell[rows]),
+                jnp.asarray(self.fall_tick[rows]), self.T)) for rows in self.group_rows]
 
 
 def native_tick(phys) -> native.Tick:
@@ -365,7 +373,7 @@ def native_tick(phys) -> native.Tick:
 
 def simulate(phys, groups, episodes: Episode | list[Episode], cores: int | None = None, progress: bool = False,
              workers: int | None = None, engine_log: list | None = None, start: Snapshot | None = None,
-             until: int | None = None, controller: str = "native", stats: dict | None = None):
+             until: int | None = None, controller: str = "native", stats: dict | None = None, device=None):
     """`Physics.simulate_many(..., backend="c")`: every (policy, policy_axis) of `groups` on every episode of
     `episodes` (leading axis) in one lockstep; a list of `runner.Result`s of numpy arrays, one per group.
     `episodes` may instead be a list of batches, one per group (of one size and length): group g runs on its own.
@@ -375,6 +383,8 @@ def simulate(phys, groups, episodes: Episode | list[Episode], cores: int | None 
     without Python's lock). Default: one chunk a core (at most `cores`, default all).
     `controller="jax"`: the JAX controller (`Physics.tick`, one XLA call a tick and chunk) instead of its native
     twin: the reference the native one is measured against (tests/test_native.py).
+    `device` (a `jax.Device` or a platform name, e.g. "cpu"; default JAX's default device): where the decisions'
+    programs run (cheap policies decide faster on a CPU than a GPU answers a call).
     `engine_log` (a list, one worker only): every step's states are appended to it (`Engine.log`; `engine_alone`
     replays them to time the engine alone). `stats` (a dict): its "steps" grows by the physics steps taken.
 
@@ -387,7 +397,7 @@ def simulate(phys, groups, episodes: Episode | list[Episode], cores: int | None 
     M = len(groups) * int(np.shape(one.mass)[0])
     cores = available_cores() if cores is None else cores
     workers = max(1, min(cores, M)) if workers is None else max(1, min(workers, M))
-    run = _Lockstep(phys, groups, episodes, workers, engine_log, start, controller)
+    run = _Lockstep(phys, groups, episodes, workers, engine_log, start, controller, device)
     end = one.n_steps + phys.n_hold
     if until is not None and not run.segment <= until <= end:
         raise ValueError(f"until must be a segment in {run.segment}..{end}, got {until!r}")

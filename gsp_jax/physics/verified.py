@@ -80,6 +80,8 @@ class PhysicsLookahead:
     base_actions: bool = True  # each base's own action is a candidate too (under that base): never worse than a
     # base (module docstring); without it and with k = 1 the root's action is taken, nothing branched
     cores: int | None = None  # cores of the branches' lockstep (default: all)
+    branch_device: str | None = "cpu"  # where the branches' decisions (the bases' actions) run: a CPU answers a
+    # cheap base (a sequence, a DP table) faster than a GPU answers a call; None: JAX's default device
     workers: int | None = None  # its chunks (default as `c_backend.simulate`)
     decisions: list = dataclasses.field(default_factory=list)
     _gathered: dict = dataclasses.field(default_factory=dict, repr=False)  # bases per set of branched rows
@@ -222,5 +224,5 @@ def _run_branches(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, ep
                FirstThen(first=0, at=None, base=axis)) for b, (_, axis) in enumerate(policy.bases)]
     per_base = [jax.tree.map(lambda x, ib=ib: np.asarray(x)[ib], episodes) for ib in idx]
     results = c_backend.simulate(phys, groups, per_base, cores=policy.cores, workers=policy.workers,
-                                 start=snapshot.take(rows[idx.ravel()]), stats=stats)
+                                 start=snapshot.take(rows[idx.ravel()]), stats=stats, device=policy.branch_device)
     return [(np.asarray(r.fell), np.asarray(r.angle_error), np.asarray(r.actions)) for r in results]

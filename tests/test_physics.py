@@ -359,6 +359,14 @@ def test_physics_lookahead_takes_the_branch_that_does_best_in_physics(phys):
         assert all(later <= before for before, later in zip(taken, taken[1:])), taken  # (fell, angle) never worse
         assert taken[-1] == (res2.fell[e], res2.angle_error[e])  # the last branch taken is the episode, bit for bit
     assert [d.chosen for d in two.decisions if d.episode == 0] == list(res2.actions[0])
+    # branches whose outcome an earlier branch gave are not run again, and that changes nothing
+    every = verified.PhysicsLookahead(root, None, ((keep, None), (change, 0)), k=2, cores=2, reuse=False)
+    res_every = phys.simulate_batch(every, eps, backend="c")
+    assert sum(d.branches for d in two.decisions) < sum(d.branches for d in every.decisions)
+    for a, b in zip(two.decisions, every.decisions):
+        assert (a.chosen, a.base) == (b.chosen, b.base)
+        np.testing.assert_array_equal(a.angle_error, b.angle_error)
+    np.testing.assert_array_equal(res2.qpos, res_every.qpos)
     one = verified.PhysicsLookahead(root, None, ((keep, None),), k=1, base_actions=False, cores=2)
     res1, alone = phys.simulate_batch(one, eps, backend="c"), phys.simulate_batch(root, eps, backend="c")
     assert all(d.fell is None and d.base == -1 for d in one.decisions)  # one candidate: nothing to branch

@@ -18,8 +18,11 @@ holds every episode that either holds.
     policy = PhysicsLookahead(root=L1, root_axis=axis, bases=((rl, None), (four_tips, None)), k=17)
     result = phys.simulate_batch(policy, episodes, backend="c")      # only the C backend can copy its state
 
-The branches of all the lockstep's episodes at one decision run as one lockstep of B x N x slots rows on every
-core.
+The branches of all the lockstep's episodes at one decision run as one lockstep on every core, their decisions
+(the bases' actions) on the CPU (`branch_device`). A branch is run once: the same candidate under the same base
+is one branch, and the branch taken at one decision has already shown, under every base, what each base's own
+action at the next decision leads to (the branches of a decision share the episode's past and continue it bit for
+bit), so those outcomes are reused (`reuse`; `Decision.branches` counts the branches run).
 """
 from __future__ import annotations
 
@@ -80,6 +83,9 @@ class PhysicsLookahead:
     base_actions: bool = True  # each base's own action is a candidate too (under that base): never worse than a
     # base (module docstring); without it and with k = 1 the root's action is taken, nothing branched
     cores: int | None = None  # cores of the branches' lockstep (default: all)
+    reuse: bool = True  # a branch whose outcome an earlier branch of the episode already gave is not run again
+    # (that branch took the episode's actions so far, then this candidate, under the same base: the physics is
+    # deterministic, so its outcome is this one's); False runs every branch (tests/test_physics.py compares)
     branch_device: str | None = "cpu"  # where the branches' decisions (the bases' actions) run: a CPU answers a
     # cheap base (a sequence, a DP table) faster than a GPU answers a call; None: JAX's default device
     workers: int | None = None  # its chunks (default as `c_backend.simulate`)
@@ -178,7 +184,7 @@ def choose(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, obs: np.n
         for b in range(n_base):
             for i in live:
                 for s_ in range(slots):
-                    got = known.get((int(rows[i]), b, tuple(past[i]) + (int(cand[b, i, s_]),)))
+                    got = known.get((int(rows[i]), b, tuple(past[i]) + (int(cand[b, i, s_]),))) if policy.reuse else None
                     if got is not None:
                         fell[b, i, s_], err[b, i, s_] = got
                     elif (i, int(cand[b, i, s_])) not in todo[b]:

@@ -198,6 +198,7 @@ def choose(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, obs: np.n
             width = -(-max(len(t) for t in todo) // quarter) * quarter
             spare = next(t[0] for t in todo if t)
             padded = [t + [t[0] if t else spare] * (width - len(t)) for t in todo]
+            _warm(policy, phys, snapshot, rows, episodes, k, padded, range(quarter, n * slots + 1, quarter))
             outcome = _run_branches(policy, phys, snapshot, rows, episodes, k, padded, stats)
             for b, t in enumerate(todo):
                 for r, (i, a) in enumerate(t):
@@ -218,10 +219,26 @@ def choose(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, obs: np.n
     return chosen
 
 
-def _run_branches(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, episodes, k: int, todo, stats):
+def _warm(policy: PhysicsLookahead, phys, snapshot, rows, episodes, k: int, todo, widths) -> None:
+    """Compile, once per process, the branches' programs for every number of branches a decision can run
+    (`widths` per base): a decision that first meets a new number would otherwise wait for its compiles (seconds,
+    in the tail of the decision times). Each is a one-segment lockstep of the given branches repeated."""
+    key = ("branch-widths", len(rows), len(todo), tuple(axis is None for _, axis in policy.bases),
+           policy.branch_device)
+    done = phys._jitted.setdefault(key, set())
+    done.add(len(todo[0]))
+    for w in widths:
+        if w not in done and k + 1 <= episodes.n_steps:
+            _run_branches(policy, phys, snapshot, rows, episodes, k, [(t * w)[:w] for t in todo], {}, until=k + 1)
+            done.add(w)
+
+
+def _run_branches(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, episodes, k: int, todo, stats,
+                  until: int | None = None):
     """Per base b, the branches todo[b] = [(episode, first action), ...] (as many for every base) run from the
     snapshot to the episode's end in one C MuJoCo lockstep: per base (fell (R,), angle error (R,), actions (R, T));
-    stats["steps"] grows by the physics steps taken."""
+    stats["steps"] grows by the physics steps taken. `until`: stop there instead and return the lockstep's
+    `Snapshot`."""
     from gsp_jax.physics import c_backend
 
     idx = np.array([[i for i, _ in t] for t in todo])  # (B, R) episodes (indices into rows)
@@ -230,5 +247,8 @@ def _run_branches(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, ep
                FirstThen(first=0, at=None, base=axis)) for b, (_, axis) in enumerate(policy.bases)]
     per_base = [jax.tree.map(lambda x, ib=ib: np.asarray(x)[ib], episodes) for ib in idx]
     results = c_backend.simulate(phys, groups, per_base, cores=policy.cores, workers=policy.workers,
-                                 start=snapshot.take(rows[idx.ravel()]), stats=stats, device=policy.branch_device)
+                                 start=snapshot.take(rows[idx.ravel()]), stats=stats, device=policy.branch_device,
+                                 until=until)
+    if until is not None:
+        return results
     return [(np.asarray(r.fell), np.asarray(r.angle_error), np.asarray(r.actions)) for r in results]

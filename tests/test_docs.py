@@ -163,21 +163,21 @@ def test_readme_sentences_are_docs_data():
     fig4b = _file("fig4b_h100")["figures"]["L1-physics"]
     falls, n, angle = _claim(r"evaluation set: (\d+) of (\d+) falls, ([\d.]+)° mean angle error \(H100 host, `fig4b_h100`\)")
     assert (int(falls), int(n), float(angle)) == (fig4b["falls"], fig4b["episodes"], round(fig4b["mean_deg"], 1))
-    stress = _file("envelope_stress_h100")["figures"]
+    stress = _file("envelope_stress_h200")["figures"]
     kinds, pool = stress["summary"]["kinds"], stress["summary"]["pool"]
     got = _claim(r"stress set: (\d+) of (\d+) falls, regret (\d+) \(four tips (\d+), DP optimal (\d+), L1 (\d+); "
-                 r"H100 host, `envelope_stress_h100`\)")
+                 r"H200 host, `envelope_stress_h200`\)")
     assert tuple(map(int, got)) == (kinds["L1-physics"]["falls"], stress["episodes"], kinds["L1-physics"]["regret"],
                                     kinds["four-tips"]["falls"], kinds["dp-opt"]["falls"], kinds["L1"]["falls"])
     got = _claim(r"The stress set has (\d+) episodes.*? The constant four-tip grasp drops (\d+) of them\. For (\d+) of those"
                  r".*?\(DP optimal (\d+), L1 (\d+), L2 (\d+), RL (\d+); L1-physics (\d+)\)\. Of the sequences the "
-                 r"surrogate calls feasible, (\d+)% hold \(the aim is 95%\)\. H100 host, `envelope_stress_h100`")
+                 r"surrogate calls feasible, (\d+)% hold \(the aim is 95%\)\. H200 host, `envelope_stress_h200`")
     four = kinds["four-tips"]
     assert tuple(map(int, got)) == (stress["episodes"], four["falls"], four["controller"],
                                     *(kinds[k]["regret"] for k in ("dp-opt", "L1", "L2", "rl", "L1-physics")),
                                     round(100 * pool["feasible_hold_share"]))
-    rho, auc = _claim(r"Spearman ρ ([\d.]+), AUC ([\d.]+) \(holds against falls\) on the stress pool \(H100 host, "
-                      r"`envelope_stress_h100`\)")
+    rho, auc = _claim(r"Spearman ρ ([\d.]+), AUC ([\d.]+) \(holds against falls\) on the stress pool \(H200 host, "
+                      r"`envelope_stress_h200`\)")
     assert (float(rho), float(auc)) == (round(pool["spearman_pooled"], 2), round(pool["auc_pooled"], 2))
     rl = _file("envelope_eval_h200")["figures"]["summary"]["kinds"]["rl"]
     falls = _claim(r"RL's (\d+) falls are all necessary by the feasibility oracle \(H200 host, `envelope_eval_h200`\)")
@@ -191,7 +191,7 @@ def test_docs_data_has_one_schema_and_a_history_per_result():
     """Every current result in docs/data has the one schema, is named <figure>_<device> after the machine it records,
     and its history (docs/data/history/<name>.jsonl, a row per run) ends with it; nothing else lives there."""
     current = sorted(DATA.glob("*.json"))
-    expected = {f"fig4a_{_gpu()}", f"fig4b_{_gpu()}", f"table1_{_gpu()}", "envelope_stress_h100", "envelope_eval_h200"}
+    expected = {f"fig4a_{_gpu()}", f"fig4b_{_gpu()}", f"table1_{_gpu()}", "envelope_stress_h200", "envelope_eval_h200"}
     assert {p.stem for p in current} >= expected
     assert {p.name for p in DATA.iterdir()} == {p.name for p in current} | {"history"}, sorted(DATA.iterdir())
     for path in current:

@@ -200,9 +200,9 @@ class Engine:
 
 
 class _Lockstep:
-    """The state of `simulate`'s lockstep: M = groups x episodes rows in one `Engine`, split into `workers`
-    chunks of contiguous rows that run side by side (threads); the recorded trace and the controller states
-    (flat rows, float32), all numpy."""
+    """The state of `simulate`'s lockstep: M rows (each group's episodes, one group after another) in one `Engine`,
+    split into `workers` chunks of contiguous rows that run side by side (threads); the recorded trace and the
+    controller states (flat rows, float32), all numpy."""
 
     def __init__(self, phys, groups, episodes: Episode, workers: int, engine_log: list | None,
                  start: Snapshot | None = None, controller: str = "native", device=None):
@@ -210,15 +210,14 @@ class _Lockstep:
             raise ValueError(f"controller must be one of {CONTROLLERS}, got {controller!r}")
         G = len(groups)
         per_group = list(episodes) if isinstance(episodes, (list, tuple)) else [episodes] * G
-        if len(per_group) != G or len({int(np.shape(e.mass)[0]) for e in per_group}) != 1 \
-                or len({e.n_steps for e in per_group}) != 1:
-            raise ValueError(f"episodes: one batch for every group, or one batch per group ({G}) of the same size "
-                             f"and length")
+        if len(per_group) != G or len({e.n_steps for e in per_group}) != 1:
+            raise ValueError(f"episodes: one batch for every group, or one batch per group ({G}) of one length")
         episodes = per_group[0]
+        sizes = [int(np.shape(e.mass)[0]) for e in per_group]
         self.phys, self.groups, self.episodes, self.controller = phys, groups, per_group, controller
         scene = phys.scene
-        N, T = int(np.shape(episodes.mass)[0]), episodes.n_steps
-        M, K, nq = G * N, phys.n_ticks(T), phys.model.nq
+        T = episodes.n_steps
+        M, K, nq = sum(sizes), phys.n_ticks(T), phys.model.nq
         self.T, self.K, self.nq, self.nu, self.n = T, K, nq, phys.model.nu, phys.n_segment
         self.pr = pr = programs(phys, episodes)
         self.native = native_tick(phys)
@@ -234,7 +233,7 @@ class _Lockstep:
         end = T + phys.n_hold
         if start is not None and (np.shape(start.state)[0] != M or np.shape(start.qpos0)[0] != M
                                   or not 0 <= start.segment <= end):
-            raise ValueError(f"start: a snapshot of {M} rows (groups x episodes) at a segment in 0..{end} is "
+            raise ValueError(f"start: a snapshot of {M} rows (the groups' episodes) at a segment in 0..{end} is "
                              f"needed, got {np.shape(start.state)[0]} rows at segment {start.segment}")
         if start is None:
             with jax.default_device(self.device):
@@ -256,7 +255,8 @@ class _Lockstep:
         self.qpos_trace = np.zeros((M, K, nq), np.float32)
         self.actions, self.grasps = np.zeros((M, T), np.int32), np.zeros((M, T), np.int32)
         self.out = np.zeros((M, self.nu + 9), np.float32)  # each row's last tick: ctrl | external | status
-        self.group_rows = [slice(g * N, (g + 1) * N) for g in range(G)]
+        ends = np.cumsum(sizes)
+        self.group_rows = [slice(int(e - n), int(e)) for e, n in zip(ends, sizes)]
         self.decides = [pr.decide(0 if hasattr(policy, "in_physics") else axis) for policy, axis in groups]
         self.pedestal_drop, self.tick = scene.pedestal_drop, phys.timestep
         m = phys.model
@@ -377,7 +377,7 @@ def simulate(phys, groups, episodes: Episode | list[Episode], cores: int | None 
              until: int | None = None, controller: str = "native", stats: dict | None = None, device=None):
     """`Physics.simulate_many(..., backend="c")`: every (policy, policy_axis) of `groups` on every episode of
     `episodes` (leading axis) in one lockstep; a list of `runner.Result`s of numpy arrays, one per group.
-    `episodes` may instead be a list of batches, one per group (of one size and length): group g runs on its own.
+    `episodes` may instead be a list of batches, one per group (of one length, any sizes): group g runs on its own.
 
     Between two decisions the lockstep's episodes run as `workers` chunks of rows side by side (threads), each
     chunk's whole segment one call of native code (`native.segment`: the controller's ticks and `mj_step`,
@@ -395,7 +395,8 @@ def simulate(phys, groups, episodes: Episode | list[Episode], cores: int | None 
     run's, bit for bit, at any row count (tests/test_physics.py), so a snapshot's rows can be branched under
     other policies."""
     one = episodes[0] if isinstance(episodes, (list, tuple)) else episodes
-    M = len(groups) * int(np.shape(one.mass)[0])
+    M = sum(int(np.shape(e.mass)[0]) for e in episodes) if isinstance(episodes, (list, tuple)) \
+        else len(groups) * int(np.shape(one.mass)[0])
     cores = available_cores() if cores is None else cores
     workers = max(1, min(cores, M)) if workers is None else max(1, min(workers, M))
     run = _Lockstep(phys, groups, episodes, workers, engine_log, start, controller, device)

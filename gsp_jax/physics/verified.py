@@ -191,13 +191,10 @@ def choose(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, obs: np.n
                         todo[b].append((i, int(cand[b, i, s_])))
         runs = sum(len(t) for t in todo)
         if runs:
-            # every base runs as many branches (a lockstep's groups share their rows), padded to a multiple of a
-            # quarter of the episodes' candidates (the branches' programs are compiled per row count): padding
-            # repeats a branch
+            # each base's branches padded to a multiple of a quarter of the episodes' candidates (the branches'
+            # programs are compiled per row count: padding repeats a branch; one episode: none)
             quarter = -(-n * slots // 4)
-            width = -(-max(len(t) for t in todo) // quarter) * quarter
-            spare = next(t[0] for t in todo if t)
-            padded = [t + [t[0] if t else spare] * (width - len(t)) for t in todo]
+            padded = [(t * quarter)[:-(-len(t) // quarter) * quarter] for t in todo]  # a base with none: none
             _warm(policy, phys, snapshot, rows, episodes, k, padded, range(quarter, n * slots + 1, quarter))
             outcome = _run_branches(policy, phys, snapshot, rows, episodes, k, padded, stats)
             for b, t in enumerate(todo):
@@ -226,29 +223,38 @@ def _warm(policy: PhysicsLookahead, phys, snapshot, rows, episodes, k: int, todo
     key = ("branch-widths", len(rows), len(todo), tuple(axis is None for _, axis in policy.bases),
            policy.branch_device)
     done = phys._jitted.setdefault(key, set())
-    done.add(len(todo[0]))
+    if all(len(t) == len(todo[0]) for t in todo):
+        done.add(len(todo[0]))
+    some = next(t for t in todo if t)
     for w in widths:
         if w not in done and k + 1 <= episodes.n_steps:
-            _run_branches(policy, phys, snapshot, rows, episodes, k, [(t * w)[:w] for t in todo], {}, until=k + 1)
+            _run_branches(policy, phys, snapshot, rows, episodes, k, [((t or some) * w)[:w] for t in todo], {},
+                          until=k + 1)
             done.add(w)
 
 
 def _run_branches(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, episodes, k: int, todo, stats,
                   until: int | None = None):
-    """Per base b, the branches todo[b] = [(episode, first action), ...] (as many for every base) run from the
-    snapshot to the episode's end in one C MuJoCo lockstep: per base (fell (R,), angle error (R,), actions (R, T));
+    """Per base b, the branches todo[b] = [(episode, first action), ...] run from the
+    snapshot to the episode's end in one C MuJoCo lockstep: per base (fell (R,), angle error (R,), actions (R, T)),
+    None for a base with none;
     stats["steps"] grows by the physics steps taken. `until`: stop there instead and return the lockstep's
-    `Snapshot`."""
+    `Snapshot`. The bases may run different numbers of branches."""
     from gsp_jax.physics import c_backend
 
-    idx = np.array([[i for i, _ in t] for t in todo])  # (B, R) episodes (indices into rows)
-    first = np.array([[a for _, a in t] for t in todo], np.int32)
-    groups = [(FirstThen(first=jnp.asarray(first[b]), at=jnp.int32(k), base=_gather(policy, b, idx[b], 1)),
-               FirstThen(first=0, at=None, base=axis)) for b, (_, axis) in enumerate(policy.bases)]
+    bases = [b for b, t in enumerate(todo) if t]  # a base with no branch to run is left out
+    idx = [np.array([i for i, _ in todo[b]]) for b in bases]  # per base (R_b,) episodes (indices into rows)
+    first = [np.array([a for _, a in todo[b]], np.int32) for b in bases]
+    groups = [(FirstThen(first=jnp.asarray(first[g]), at=jnp.int32(k), base=_gather(policy, b, idx[g], 1)),
+               FirstThen(first=0, at=None, base=policy.bases[b][1])) for g, b in enumerate(bases)]
     per_base = [jax.tree.map(lambda x, ib=ib: np.asarray(x)[ib], episodes) for ib in idx]
+    every = np.concatenate(idx)
     results = c_backend.simulate(phys, groups, per_base, cores=policy.cores, workers=policy.workers,
-                                 start=snapshot.take(rows[idx.ravel()]), stats=stats, device=policy.branch_device,
+                                 start=snapshot.take(rows[every]), stats=stats, device=policy.branch_device,
                                  until=until)
     if until is not None:
         return results
-    return [(np.asarray(r.fell), np.asarray(r.angle_error), np.asarray(r.actions)) for r in results]
+    out = [None] * len(todo)
+    for b, r in zip(bases, results):
+        out[b] = (np.asarray(r.fell), np.asarray(r.angle_error), np.asarray(r.actions))
+    return out

@@ -222,8 +222,9 @@ class _Lockstep:
         self.pr = pr = programs(phys, episodes)
         self.native = native_tick(phys)
         # the device of the decisions' programs (and the episodes' set-up): JAX's default, or the one named
-        self.device = jax.devices()[0] if device is None else jax.devices(device)[0] if isinstance(device, str) else device
-        if device is not None:
+        named = device is not None
+        self.device = jax.devices(device)[0] if device is None or isinstance(device, str) else device
+        if named:
             groups = [(p if hasattr(p, "in_physics") else jax.device_put(p, self.device), axis) for p, axis in groups]
             self.groups = groups
         # the lockstep's batch is the groups' episodes one after another

@@ -184,11 +184,12 @@ def choose(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, obs: np.n
         for b in range(n_base):
             for i in live:
                 for s_ in range(slots):
-                    got = known.get((int(rows[i]), b, tuple(past[i]) + (int(cand[b, i, s_]),))) if policy.reuse else None
+                    a = int(cand[b, i, s_])
+                    got = known.get((int(rows[i]), b, tuple(past[i]) + (a,))) if policy.reuse else None
                     if got is not None:
                         fell[b, i, s_], err[b, i, s_] = got
-                    elif (i, int(cand[b, i, s_])) not in todo[b]:
-                        todo[b].append((i, int(cand[b, i, s_])))
+                    elif (i, a) not in todo[b]:
+                        todo[b].append((i, a))
         runs = sum(len(t) for t in todo)
         if runs:
             # each base's branches padded to a multiple of a quarter of the episodes' candidates (the branches'

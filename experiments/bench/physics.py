@@ -15,6 +15,7 @@ Writes JSON (`engine_steps_per_s_one_core`, and per row `runner_steps_per_s`, `c
 from __future__ import annotations
 
 import argparse
+
 import jax
 import jax.numpy as jnp
 import numpy as np

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import time
 from concurrent.futures import ThreadPoolExecutor
 
 import jax
@@ -61,8 +62,8 @@ class _Flat:
 
 
 class _Programs:
-    """The jitted programs of one `Physics` (built once, shared by every call): start, per-tick control, the final
-    check, and a decision per way a policy is batched."""
+    """The jitted programs of one `Physics` (built once, shared by every call): start, the JAX controller's tick
+    (`controller="jax"`), and a decision per way a policy is batched."""
 
     def __init__(self, phys, one_episode: Episode):
         self.phys, scene = phys, phys.scene
@@ -88,14 +89,9 @@ class _Programs:
             status = jnp.stack([angle, perr, fell.astype(jnp.float32)], -1)
             return self.cs.ravel(cs), jnp.concatenate([ctrl, ext, status], -1)
 
-        def check(obs_flat, ep_flat, j):
-            return jnp.stack(jax.vmap(phys.check, in_axes=(0, 0, None))(observe(obs_flat), self.ep.unravel(ep_flat), j),
-                             -1)
-
         self.observe = observe
         self.start = jax.jit(start)
         self.tick = jax.jit(tick)
-        self.check = jax.jit(check)
         self.fields = jax.jit(jax.vmap(scene.episode_fields))
         self.ravel_episodes = jax.jit(self.ep.ravel)
         self._decide = {}
@@ -174,12 +170,13 @@ class Engine:
         self._spec = mujoco.mjtState.mjSTATE_INTEGRATION
         self.nstate = mujoco.mj_stateSize(scene.model, self._spec)
 
-    def state(self) -> np.ndarray:
+    def state(self, ids=None) -> np.ndarray:
         """(n, nstate) float64: every episode's MuJoCo state (`mjSTATE_INTEGRATION`: time, qpos, qvel, act, the
-        solver's warm start, ctrl, applied forces, ...)."""
-        out = np.empty((self.n, self.nstate))
-        for e, (m, d) in enumerate(zip(self.models, self.datas)):
-            mujoco.mj_getState(m, d, out[e], self._spec)
+        solver's warm start, ctrl, applied forces, ...); with `ids`, those episodes' only."""
+        ids = range(self.n) if ids is None else ids
+        out = np.empty((len(ids), self.nstate))
+        for row, e in zip(out, ids):
+            mujoco.mj_getState(self.models[e], self.datas[e], row, self._spec)
         return out
 
     def restore(self, state: np.ndarray, obs: np.ndarray) -> None:
@@ -194,7 +191,7 @@ class Engine:
         and the tool's external wrench, with the pedestals `drop` (<= 0) metres below their start; the others
         stay as they are. `buf`: float64 scratch of at least max(nq, nv, nu, 6) (one a thread)."""
         if self.log is not None:  # (episodes, their mjSTATE_INTEGRATION rows, pedestal positions) before the step
-            self.log.append((ids.copy(), self.state()[ids], self.pedestals[ids] + np.array([0.0, 0.0, drop])))
+            self.log.append((ids.copy(), self.state(ids), self.pedestals[ids] + np.array([0.0, 0.0, drop])))
         native.step_rows(constants, self.addresses, np.asarray(ids, np.int64), out, self.pedestals, self.geoms,
                          float(drop), self.obs, buf)
 
@@ -245,7 +242,8 @@ class _Lockstep:
             self.qpos0 = np.array(start.qpos0, np.float64)
         with jax.default_device(self.device):
             fields = cat(lambda e: jax.device_get(pr.fields(e)))
-            self.ep_flat = cat(lambda e: np.asarray(pr.ravel_episodes(e)))
+            # the episodes as the JAX tick reads them (flat rows); the native tick reads `ep_native`
+            self.ep_flat = cat(lambda e: np.asarray(pr.ravel_episodes(e))) if controller == "jax" else None
         self.chunks = np.array_split(np.arange(M), workers)  # contiguous rows
         if engine_log is not None and workers != 1:
             raise ValueError(f"engine_log needs workers=1, got workers={workers}")
@@ -414,18 +412,14 @@ def engine_alone(phys, episodes: Episode, log: list) -> tuple[float, int]:
     """(steps / s of `mujoco.mj_step` on one core, steps) over the states of an engine log (`simulate(...,
     engine_log=log)` on `episodes`): every logged state is loaded into its episode's own model and data and
     stepped once; only `mj_step` is timed. The engine's own limit on this machine, for the same steps."""
-    import time
-
     fields = jax.device_get(jax.vmap(phys.scene.episode_fields)(episodes))
-    models = [phys.scene.c_model(jax.tree.map(lambda x: x[e], fields)) for e in range(int(episodes.mass.shape[0]))]
-    datas = [mujoco.MjData(m) for m in models]
-    spec = mujoco.mjtState.mjSTATE_INTEGRATION
+    eng = Engine(phys.scene, fields, np.tile(phys.model.qpos0, (int(np.shape(episodes.mass)[0]), 1)))
     busy, steps = 0.0, 0
     for ids, states, pedestals in log:
         for e, state, ped in zip(ids, states, pedestals):
-            m, d = models[e], datas[e]
+            m, d = eng.models[e], eng.datas[e]
             m.geom_pos[phys.scene.pedestal_geoms] = ped
-            mujoco.mj_setState(m, d, state, spec)
+            mujoco.mj_setState(m, d, state, eng._spec)
             t0 = time.perf_counter()
             mujoco.mj_step(m, d)
             busy += time.perf_counter() - t0

@@ -27,6 +27,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from llvmlite import binding as llvm
 
+from gsp_jax import scenario
 from gsp_jax.physics.controller import PATH_TIMES, ControllerState
 
 F32 = np.float32
@@ -171,8 +172,11 @@ class Tick:
         hand, scene, cfg, ctl = phys.hand, phys.scene, phys.config, phys.controller
         tl, c, fi, out = cfg.timeline, cfg.controller, cfg.fingers, cfg.outcome
         kp, kd = c.tool_gains
-        zeros = jax.eval_shape(lambda: ctl.start(_dummy_episode(phys), np.zeros(hand.n_joints, np.float32),
-                                                 _dummy_obs(phys)))
+        # the controller state's layout, as `c_backend` flattens it (its shapes only: nothing runs)
+        m = phys.model
+        rest = scene.observe(m.qpos0, np.zeros(m.nv), np.zeros(m.nv))
+        zeros = jax.eval_shape(ctl.start, scenario.make_episode(model=phys.surrogate.model),
+                               np.zeros(hand.n_joints, np.float32), rest)
         offsets = state_offsets(jax.tree.map(lambda x: np.zeros(x.shape, x.dtype), zeros))
         f64 = lambda x: np.ascontiguousarray(x, np.float64)  # noqa: E731
         i64 = lambda x: np.ascontiguousarray(x, np.int64)  # noqa: E731
@@ -218,25 +222,6 @@ class Tick:
         cs (E, C) float32 updated in place, out (E, nu + 9) float32 written, from observations obs (E, nq + 2 nv)
         float32. Rows not in `rows` are left as they are."""
         tick_rows(np.int64(j), rows, cs, obs, episodes, self.constants, out)
-
-
-def _dummy_episode(phys):
-    from gsp_jax.scenario import Episode
-
-    T = 2
-    return Episode(waypoints=np.zeros((T, 3), np.float32), quats=np.tile(np.float32([1, 0, 0, 0]), (T, 1)),
-                   dt=np.float32(0.25), w_ext=np.zeros(6, np.float32), mass=np.float32(0.1),
-                   inertia=np.ones(3, np.float32), com=np.zeros(3, np.float32), friction=np.float32(1.0),
-                   start_grasp=np.int32(0))
-
-
-def _dummy_obs(phys):
-    from gsp_jax.physics.scene import Observation
-
-    J = phys.hand.n_joints
-    return Observation(q=np.zeros(J, np.float32), dq=np.zeros(J, np.float32), tool_pos=np.zeros(3, np.float32),
-                       tool_quat=np.float32([1, 0, 0, 0]), tool_vel=np.zeros(6, np.float32),
-                       bias=np.zeros(J, np.float32))
 
 
 # ------------------------------------------------------------------------------------------ small math

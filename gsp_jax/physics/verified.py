@@ -236,11 +236,10 @@ def _warm(policy: PhysicsLookahead, phys, snapshot, rows, episodes, k: int, todo
 
 def _run_branches(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, episodes, k: int, todo, stats,
                   until: int | None = None):
-    """Per base b, the branches todo[b] = [(episode, first action), ...] run from the
+    """Per base b, the branches todo[b] = [(episode, first action), ...] (any number, none included) run from the
     snapshot to the episode's end in one C MuJoCo lockstep: per base (fell (R,), angle error (R,), actions (R, T)),
-    None for a base with none;
-    stats["steps"] grows by the physics steps taken. `until`: stop there instead and return the lockstep's
-    `Snapshot`. The bases may run different numbers of branches."""
+    None for a base with none; stats["steps"] grows by the physics steps taken. `until`: stop there instead and
+    return the lockstep's `Snapshot`."""
     from gsp_jax.physics import c_backend
 
     bases = [b for b, t in enumerate(todo) if t]  # a base with no branch to run is left out

@@ -65,20 +65,12 @@ def build_table(sur: Surrogate, episode: Episode) -> Table:
 
 def realise_all(sur: Surrogate, episode: Episode) -> Contacts:
     """Every grasp realised by IK at every waypoint: leaves (G, T, ...). All G x T solves as one batch: on a CPU
-    in the batch-last form (`ik_lanes`, where `sur.ik_config.lanes` allows), elsewhere `sur.realise` vmapped."""
-    grasps = jnp.arange(sur.space.n_grasps, dtype=jnp.int32)
-    vmapped = lambda: jax.vmap(jax.vmap(sur.realise, (None, 0, 0)), (0, None, None))(  # noqa: E731
-        grasps, episode.waypoints, episode.quats)
-    lanes = sur.ik_config.lanes
-    if lanes is False:
-        return vmapped()
-    batched = lambda: sur.realise_batch(  # noqa: E731
-        jnp.broadcast_to(grasps[:, None], (len(grasps), episode.n_steps)),
-        jnp.broadcast_to(episode.waypoints, (len(grasps),) + episode.waypoints.shape),
-        jnp.broadcast_to(episode.quats, (len(grasps),) + episode.quats.shape))
-    if lanes:
-        return batched()
-    return platform.by_platform(cpu=batched, default=vmapped)
+    in the batch-last form (`ik_lanes`, where `sur.ik_config.lanes` allows), elsewhere `sur.realise` vmapped
+    (`Surrogate.realise_many`)."""
+    shape = (sur.space.n_grasps, episode.n_steps)
+    grasps = jnp.broadcast_to(jnp.arange(sur.space.n_grasps, dtype=jnp.int32)[:, None], shape)
+    return sur.realise_many(grasps, jnp.broadcast_to(episode.waypoints, shape + (3,)),
+                            jnp.broadcast_to(episode.quats, shape + (4,)))
 
 
 def grasp_terms(sur: Surrogate, episode: Episode, contacts: Contacts) -> RewardTerms:

@@ -115,6 +115,16 @@ class GraspSpace:
         current = (g // place) % np.asarray(self.n_options)[link]
         return np.where(a == NULL, g, g + (self.action_option[a] - current) * place).astype(np.int32)
 
+    @functools.cached_property
+    def shared_grasps(self) -> np.ndarray:
+        """(G, A) int32, numpy: `shared(g, a)` for every grasp and action (static work, as `transitions`)."""
+        g, a = np.arange(self.n_grasps)[:, None], np.arange(self.n_actions)[None]
+        link = np.maximum(self.action_link[a], 0)
+        place = self.radix[link]
+        current = (g // place) % np.asarray(self.n_options)[link]
+        moves = (a != NULL) & (self.action_option[a] != current)
+        return np.where(moves, g - current * place, g).astype(np.int32)
+
     def shared(self, grasp: jax.Array, action: jax.Array) -> jax.Array:
         """The grasp that holds the tool while `action` is executed from `grasp` (broadcast): `grasp` with the
         link the action moves released (the contact controller unloads it, moves it, then loads it again). The

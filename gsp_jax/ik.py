@@ -67,7 +67,9 @@ class IKConfig:
     collision_tol: float = 0.002  # penetration [m] beyond which the result counts as a collision
     lanes: bool | None = None  # an episode's table (`dp.realise_all`) solves its G x T problems in the batch-last
     # form (`ik_lanes`: the same solve, to float32 rounding; on a CPU faster to run and slower to compile than
-    # `solve` vmapped, docs/performance.md): None on a CPU only, True everywhere, False never (`solve` vmapped)
+    # `solve` vmapped, docs/performance.md): None on a CPU only, True everywhere, False never (`solve` vmapped).
+    # True also for a lookahead root's few problems (`Surrogate.step_every`; None: vmapped there, as its ~20 s
+    # compile outweighs what a few dozen problems save, except online: `planners` L1-physics on a CPU)
     lanes_chunk: int = 288  # the batch-last form solves its batch this many problems at a time (`lax.map` over
     # chunks, each chunk's iterations run to the end before the next starts): a chunk's arrays stay in the CPU's
     # caches, where the whole batch at once goes to memory every operation (docs/performance.md); the same

@@ -132,8 +132,10 @@ def search(model, state: State, base, depth: int = 1, horizon: int | None = None
 def _expand(model, state: State, depth: int, n_a: int, inner):
     """Every action path of length `depth` from `state`: (children (A leading), their rewards (A,)) and (the leaf
     states (A^depth leading), path rewards (A^depth,)). The first step in `model`, the deeper ones in `inner`."""
-    actions = jnp.arange(n_a, dtype=jnp.int32)
-    children, rewards, _ = jax.vmap(model.step, (None, 0))(state, actions)
+    if hasattr(model, "step_every"):  # the model steps every action at once (`Surrogate.step_every`)
+        children, rewards, _ = model.step_every(state)
+    else:
+        children, rewards, _ = jax.vmap(model.step, (None, 0))(state, jnp.arange(n_a, dtype=jnp.int32))
     if depth == 1:
         return (children, rewards), (children, rewards)
     _, (leaves, sub) = jax.vmap(lambda s: _expand(inner, s, depth - 1, n_a, inner))(children)  # (A, A^(d-1), ...)

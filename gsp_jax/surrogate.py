@@ -16,13 +16,14 @@ physics check carries the full rigid-body dynamics.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from gsp_jax import grasps, ik, ik_lanes, kinematics, wrench
+from gsp_jax import grasps, ik, ik_lanes, kinematics, platform, wrench
 from gsp_jax import hand as hand_lib, model as model_lib, reward as reward_lib
 from gsp_jax.reward import RewardConfig, RewardTerms
 from gsp_jax.scenario import Episode, unstack, validate
@@ -114,6 +115,24 @@ class Surrogate:
         realised = active & (res.link_error < self.reward_config.contact_tol)
         out = Contacts(ik=res, points=points, normals=normals, realised=realised)
         return jax.tree.map(lambda x: x.reshape(grasp.shape + x.shape[1:]), out)
+
+    def realise_many(self, grasp: jax.Array, tool_pos: jax.Array, tool_quat: jax.Array,
+                     lanes: bool | None = None) -> Contacts:
+        """`realise` of a batch: grasps (...), tool poses (..., 3), (..., 4) -> `Contacts` (...). In the batch-last
+        form (`realise_batch`) where `ik_config.lanes` says so (None: on a CPU), else `realise` vmapped; both agree
+        to float32 rounding. `lanes` (not None) overrides `ik_config.lanes`."""
+        lanes = self.ik_config.lanes if lanes is None else lanes
+
+        def vmapped():
+            realise = self.realise
+            for _ in range(grasp.ndim):
+                realise = jax.vmap(realise)
+            return realise(grasp, tool_pos, tool_quat)
+
+        batched = lambda: self.realise_batch(grasp, tool_pos, tool_quat)  # noqa: E731
+        if lanes is not None:
+            return (batched if lanes else vmapped)()
+        return platform.by_platform(cpu=batched, default=vmapped)
 
     def wrench_error(
         self, contacts: Contacts, episode: Episode, tool_pos, tool_quat, required: jax.Array
@@ -265,6 +284,52 @@ class Surrogate:
         moved = self._move(episode, jnp.asarray(grasp, jnp.int32), t, episode.waypoints[t], episode.quats[t], action)
         return moved, moved.terms.reward, moved.done
 
+    def step_every(self, state: State) -> tuple[State, jax.Array, jax.Array]:
+        """`step(state, a)` for every action a at once: (next states, rewards, done), each with a leading axis A.
+        The same terms, with each distinct grasp realised once: from one grasp the actions reach few distinct
+        grasps (a redundant action keeps the grasp, a shared grasp is often another action's new grasp), so this
+        solves at most `every_sizes` IK problems (11 + 11 for the shipped hand) where A vmapped steps solve 3 A
+        (the lookahead's root expansion: `lookahead.search`)."""
+        moved = self._move_every(state.episode, state.grasp, state.t, state.tool_pos, state.tool_quat)
+        out = jax.tree.map(lambda old, new: jnp.where(state.done, old, new), state, moved)
+        reward = jnp.where(state.done, 0.0, moved.terms.reward)
+        return out, reward, out.done
+
+    @functools.cached_property
+    def every_sizes(self) -> tuple[int, int]:
+        """(most distinct grasps realised at the current pose, at the next waypoint) by `step_every` from any grasp:
+        the new grasps and shared grasps of every action, and the new grasps (static, from the grasp space)."""
+        new = self.space.transitions
+        keys = np.concatenate([new, self.space.shared_grasps], 1) if self.reward_config.prices_changes else new
+        distinct = lambda x: max(len(np.unique(row)) for row in x)  # noqa: E731
+        return distinct(keys), distinct(new)
+
+    @jax.jit
+    def _move_every(self, ep: Episode, grasp, t, tool_pos, tool_quat) -> State:
+        """`_move` of every action (leading axis A), each distinct grasp realised once at each pose."""
+        actions = jnp.arange(self.space.n_actions, dtype=jnp.int32)
+        new_grasp, redundant = self.space.apply(grasp, actions)
+        t_next = jnp.minimum(t + 1, ep.n_steps - 1)
+        pos_n, quat_n = ep.waypoints[t_next], ep.quats[t_next]
+        shared = self.space.shared(grasp, actions) if self.reward_config.prices_changes else None
+        n_now, n_next = self.every_sizes
+        now_keys = new_grasp if shared is None else jnp.concatenate([new_grasp, shared])
+        now_grasps, now_of = jnp.unique(now_keys, size=n_now, fill_value=grasp, return_inverse=True)
+        next_grasps, next_of = jnp.unique(new_grasp, size=n_next, fill_value=grasp, return_inverse=True)
+        # every distinct (grasp, pose) pair in one batch of IK solves (the batch-last form only where
+        # `ik_config.lanes` is True: its compile costs more than it saves on a few dozen problems)
+        pos = jnp.concatenate([jnp.broadcast_to(tool_pos, (n_now, 3)), jnp.broadcast_to(pos_n, (n_next, 3))])
+        quat = jnp.concatenate([jnp.broadcast_to(tool_quat, (n_now, 4)), jnp.broadcast_to(quat_n, (n_next, 4))])
+        grasps_in = jnp.concatenate([now_grasps, next_grasps])
+        realised = (self.realise_many(grasps_in, pos, quat, lanes=None) if self.ik_config.lanes
+                    else jax.vmap(self.realise)(grasps_in, pos, quat))
+        at_now, at_next = now_of.reshape(-1), n_now + next_of.reshape(-1)
+        now = jax.tree.map(lambda x: x[at_now[:len(actions)]], realised)
+        nxt = jax.tree.map(lambda x: x[at_next], realised)
+        during = None if shared is None else jax.tree.map(lambda x: x[at_now[len(actions):]], realised)
+        return jax.vmap(self._arrive, (None, None, None, None, None, 0, 0, 0, 0, 0 if during is not None else None))(
+            ep, grasp, t, tool_pos, tool_quat, new_grasp, redundant, now, nxt, during)
+
     @jax.jit
     def _move(self, ep: Episode, grasp, t, tool_pos, tool_quat, action) -> State:
         """The state after `action` from grasp `grasp` at waypoint `t` with the tool at (tool_pos, tool_quat)."""
@@ -279,6 +344,14 @@ class Surrogate:
         realised = jax.vmap(self.realise)(jnp.stack(grasp_in), jnp.stack(pos_in), jnp.stack(quat_in))
         now, nxt, *rest = (jax.tree.map(lambda x, i=i: x[i], realised) for i in range(len(grasp_in)))
         during = rest[0] if rest else None
+        return self._arrive(ep, grasp, t, tool_pos, tool_quat, new_grasp, redundant, now, nxt, during)
+
+    def _arrive(self, ep: Episode, grasp, t, tool_pos, tool_quat, new_grasp, redundant, now: Contacts, nxt: Contacts,
+                during: Contacts | None) -> State:
+        """The state after moving from `grasp` at waypoint t (tool at tool_pos, tool_quat) to `new_grasp`, its
+        contacts realised: `now` at the current pose, `nxt` at waypoint t + 1, `during` (the shared grasp's) now."""
+        t_next = jnp.minimum(t + 1, ep.n_steps - 1)
+        pos_n, quat_n = ep.waypoints[t_next], ep.quats[t_next]
         changed = new_grasp != grasp
         terms = self.score(ep, t, tool_pos, tool_quat, now, nxt, redundant, during, changed)
         invalid = ~episode_ok(ep, self.space.n_grasps)  # traced inputs cannot raise: r_min and a flag, never NaN

@@ -182,7 +182,14 @@ def test_vmapped_step_equals_looped_step(sur, fns, batch):
     rare IK bifurcations, and in the fall flag wherever unmet is clear of the threshold."""
     singles = [fns["step"](single, action) for single, action in zip(batch["singles"], batch["actions"])]
     one = jax.tree.map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *[s for s, _, _ in singles])
-    out = jax.tree.map(np.asarray, batch["out"])
+    _assert_steps_agree(sur, (batch["out"], batch["reward"], batch["done"]),
+                        (one, [float(r) for _, r, _ in singles], [bool(d) for _, _, d in singles]))
+
+
+def _assert_steps_agree(sur, got, want, clear_fraction=0.9):
+    """Two computations of the same steps (next states, rewards, done; leading axis) agree to the solvers' float32
+    precision: the discrete transition exactly, the rest as `test_vmapped_step_equals_looped_step` says."""
+    out, one = (jax.tree.map(np.asarray, x[0]) for x in (got, want))
     np.testing.assert_array_equal(out.grasp, one.grasp)
     np.testing.assert_array_equal(out.t, one.t)
     np.testing.assert_array_equal(out.tool_pos, one.tool_pos)
@@ -192,13 +199,57 @@ def test_vmapped_step_equals_looped_step(sur, fns, batch):
         tol.assert_close_with_rare_ties(getattr(out.terms, name), getattr(one.terms, name), tol.WRENCH_ATOL, name)
     tol.assert_close_with_rare_ties(out.terms.unmet, one.terms.unmet, tol.WRENCH_ATOL, "unmet")
     agree = tol.assert_close_with_rare_ties(out.terms.ik_next, one.terms.ik_next, tol.REWARD_ATOL, "ik_next")
-    tol.assert_close_with_rare_ties(batch["reward"], [float(r) for _, r, _ in singles], tol.REWARD_ATOL, "reward")
+    tol.assert_close_with_rare_ties(got[1], want[1], tol.REWARD_ATOL, "reward")
     np.testing.assert_allclose(out.q[agree], one.q[agree], atol=tol.Q_ATOL)
     clear = np.all(np.abs(one.terms.unmet - sur.reward_config.fall_unmet) > tol.UNMET_MARGIN, axis=-1)
-    assert clear.mean() > 0.9  # ties at the fall threshold are rare
+    assert clear.mean() > clear_fraction  # ties at the fall threshold are rare
     np.testing.assert_array_equal(out.terms.fall[clear], one.terms.fall[clear])
     tol.assert_close_with_rare_ties(out.terms.collision, one.terms.collision, 0.0, "collision", tol.FLIP_FRACTION)
-    tol.assert_close_with_rare_ties(batch["done"], [bool(d) for _, _, d in singles], 0.0, "done", tol.FLIP_FRACTION)
+    tol.assert_close_with_rare_ties(got[2], want[2], 0.0, "done", tol.FLIP_FRACTION)
+
+
+def test_step_every_equals_a_step_per_action(sur, fns, batch):
+    """`step_every` (each distinct grasp realised once, the lookahead's root) against a step per action (vmapped),
+    from states of several grasps, waypoints and both episodes: the same transitions, terms, rewards and joint
+    angles to the solvers' precision, with the vmapped IK a step uses (on a CPU `step_every` runs the batch-last
+    form by default, `ik_lanes`, compared with it in tests/test_ik_lanes.py and through the lookahead in
+    tests/test_lookahead.py). A finished state stays as it is, reward 0."""
+    vmapped_ik = dataclasses.replace(sur.ik_config, lanes=False)
+    every = jax.jit(surrogate.Surrogate(sur.hand, sur.reward_config, vmapped_ik, sur.wrench_config).step_every)
+    actions = jnp.arange(sur.n_actions, dtype=jnp.int32)
+    picks = [0, 3, 4, 5, 8, 9]  # (episode, grasp, t) of CASES: four-tips, index alone, head pinch, ...
+    got, want = [], []
+    for i in picks:
+        state = batch["singles"][i].replace(tool_pos=batch["singles"][i].tool_pos + jnp.float32(0.0015))  # off the
+        # waypoint, as a simulated tool is
+        got.append(every(state))
+        want.append(fns["vstep"](jax.tree.map(lambda x: jnp.broadcast_to(x, (sur.n_actions,) + x.shape), state),
+                                 actions))
+    cat = lambda xs: jax.tree.map(lambda *x: np.concatenate([np.asarray(a) for a in x]), *xs)  # noqa: E731
+    _assert_steps_agree(sur, cat(got), cat(want), clear_fraction=0.8)
+    done = batch["singles"][0].replace(done=jnp.array(True))
+    out, reward, finished = every(done)
+    np.testing.assert_array_equal(np.asarray(reward), 0.0)
+    assert np.all(np.asarray(finished))
+    np.testing.assert_array_equal(np.asarray(out.grasp), int(done.grasp))
+
+
+def test_step_every_sizes_bound_the_distinct_grasps(sur):
+    """`every_sizes` against the grasp algebra written out here: from every grasp, the distinct new grasps and
+    shared grasps (the moving link released: option 0) of all actions, and the distinct new grasps."""
+    n_opts = sur.space.n_options
+    table = _np_action_table(n_opts)
+    now, nxt = 0, 0
+    for g in range(sur.space.n_grasps):
+        opts = _np_decode(g, n_opts)
+        new, shared = set(), set()
+        for a in table:
+            moved, released = list(opts), list(opts)
+            if a is not None and opts[a[0]] != a[1]:
+                moved[a[0]], released[a[0]] = a[1], 0
+            new.add(_np_encode(moved, n_opts)), shared.add(_np_encode(released, n_opts))
+        now, nxt = max(now, len(new | shared)), max(nxt, len(new))
+    assert sur.every_sizes == (now, nxt)
 
 
 def test_step_transition_grasp_time_pose(sur, batch):

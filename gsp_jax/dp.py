@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from gsp_jax import platform, reward as reward_lib
+from gsp_jax import reward as reward_lib
 from gsp_jax.grasps import NULL, GraspSpace
 from gsp_jax.reward import RewardTerms
 from gsp_jax.scenario import Episode

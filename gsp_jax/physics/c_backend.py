@@ -30,7 +30,7 @@ import mujoco
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from gsp_jax.physics import native
+from gsp_jax.physics import native, runner as runner_lib
 from gsp_jax.scenario import Episode
 
 CONTROLLERS = ("native", "jax")  # the controller's tick: compiled to native code, or the JAX program
@@ -257,6 +257,8 @@ class _Lockstep:
         ends = np.cumsum(sizes)
         self.group_rows = [slice(int(e - n), int(e)) for e, n in zip(ends, sizes)]
         self.decides = [pr.decide(0 if hasattr(policy, "in_physics") else axis) for policy, axis in groups]
+        # the decisions' episodes on their device once (a call would otherwise send every leaf again)
+        self.episodes_on_device = [jax.device_put(e, self.device) for e in per_group]
         self.pedestal_drop, self.tick = scene.pedestal_drop, phys.timestep
         m = phys.model
         self._scratch = [np.zeros(max(m.nq, m.nv, m.nu, 6)) for _ in self.chunks]  # one a thread
@@ -316,7 +318,7 @@ class _Lockstep:
                                            np.arange(len(self.fell))[rows], obs[rows], self.episodes[g], k, self.T)
             with jax.default_device(self.device):
                 act, gr, cs_g = decide(policy, jax.device_put(self.cs[rows], self.device), obs[rows],
-                                       self.grasp[rows], self.episodes[g], k)
+                                       self.grasp[rows], self.episodes_on_device[g], k)
             if k < self.T:
                 self.actions[rows, k], self.grasps[rows, k] = np.asarray(act), np.asarray(gr)
             self.grasp[rows] = np.asarray(gr)
@@ -348,12 +350,20 @@ class _Lockstep:
                 eng.step(self.native.constants, alive, self.out, drops[i], self._scratch[w])
                 self.steps[w] += alive.size
 
-    def results(self):
-        """The last tick's status, fallen tools' traces held, and a `runner.Result` (numpy) per group."""
+    def results(self, outcomes: bool = False):
+        """The last tick's status, fallen tools' traces held, and a `runner.Result` (numpy) per group; `outcomes`:
+        only (fell (R,), angle error (R,), actions (R, T)) per group, the same values without the rest of a
+        `Result` (its traces are not sent through JAX: a branch needs only these)."""
         rows, obs = np.arange(len(self.fell)), self.engine.obs
         status = np.zeros((len(rows), 3), np.float32)
         native.status_rows(self.K - 1, rows, obs, self.ep_native, self.native.constants, status)
         self.record(rows, self.K - 1, status, obs[:, :self.nq])
+        if outcomes:  # `Physics.result`'s angle error, by the same operations
+            with jax.default_device(self.device):
+                return [(self.fell[g].copy(), np.asarray(jnp.where(
+                    jnp.asarray(self.fell[g]), runner_lib.FALLEN_ERROR,
+                    jnp.mean(jnp.asarray(self.angle[g])[..., self.T * self.n:], -1))), self.actions[g].copy())
+                    for g in self.group_rows]
         for e in np.flatnonzero(self.fell):  # a fallen tool's trace stays where it was before the tick it fell
             f = self.fall_tick[e]
             self.qpos_trace[e, f:] = self.qpos_trace[e, f - 1] if f > 0 else self.qpos0[e]
@@ -373,7 +383,8 @@ def native_tick(phys) -> native.Tick:
 
 def simulate(phys, groups, episodes: Episode | list[Episode], cores: int | None = None, progress: bool = False,
              workers: int | None = None, engine_log: list | None = None, start: Snapshot | None = None,
-             until: int | None = None, controller: str = "native", stats: dict | None = None, device=None):
+             until: int | None = None, controller: str = "native", stats: dict | None = None, device=None,
+             outcomes: bool = False):
     """`Physics.simulate_many(..., backend="c")`: every (policy, policy_axis) of `groups` on every episode of
     `episodes` (leading axis) in one lockstep; a list of `runner.Result`s of numpy arrays, one per group.
     `episodes` may instead be a list of batches, one per group (of one length, any sizes): group g runs on its own.
@@ -388,6 +399,7 @@ def simulate(phys, groups, episodes: Episode | list[Episode], cores: int | None 
     `engine_log` (a list, one worker only): every step's states are appended to it (`Engine.log`; `engine_alone`
     replays them to time the engine alone). `stats` (a dict): its "steps" grows by the physics steps taken.
 
+    `outcomes`: per group only (fell (R,), angle error (R,) [deg], actions (R, T)), numpy, instead of `Result`s.
     `until`: stop at the start of segment `until` (before its decision) and return the lockstep's `Snapshot`
     instead of results. `start`: continue from such a snapshot (rows: groups x episodes, the same order) instead
     of from the episodes' start; with the same groups, episodes and controller the continuation is the original
@@ -405,7 +417,7 @@ def simulate(phys, groups, episodes: Episode | list[Episode], cores: int | None 
     run.advance(end if until is None else until, progress)
     if stats is not None:
         stats["steps"] = stats.get("steps", 0) + sum(run.steps)
-    return run.snapshot() if until is not None else run.results()
+    return run.snapshot() if until is not None else run.results(outcomes)
 
 
 def engine_alone(phys, episodes: Episode, log: list) -> tuple[float, int]:

@@ -251,10 +251,10 @@ def _run_branches(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, ep
     every = np.concatenate(idx)
     results = c_backend.simulate(phys, groups, per_base, cores=policy.cores, workers=policy.workers,
                                  start=snapshot.take(rows[every]), stats=stats, device=policy.branch_device,
-                                 until=until)
+                                 until=until, outcomes=True)
     if until is not None:
         return results
     out = [None] * len(todo)
     for b, r in zip(bases, results):
-        out[b] = (np.asarray(r.fell), np.asarray(r.angle_error), np.asarray(r.actions))
+        out[b] = r
     return out

@@ -299,8 +299,9 @@ def test_c_lockstep_of_several_policies_is_each_policy_alone(phys, batch, runs):
 def test_c_continuation_from_a_snapshot_is_the_original_run(phys, batch, runs):
     """`c_backend.simulate(..., until=2)` stops at the start of segment 2 with a `Snapshot` (MuJoCo's state rows,
     the observation, the controller states, the traces so far); continued from it (`start=`) the run is the
-    uninterrupted one bit for bit. Branched from it under another policy (the middle tip kept from segment 2 on
-    instead of changed), the rows share the past and part from segment 2 on."""
+    uninterrupted one bit for bit, and so are its outcomes alone (`outcomes=True`). Branched from it under another
+    policy (the middle tip kept from segment 2 on instead of changed), the rows share the past and part from segment
+    2 on."""
     from gsp_jax.physics import c_backend
 
     episodes, policy, _ = batch
@@ -309,6 +310,10 @@ def test_c_continuation_from_a_snapshot_is_the_original_run(phys, batch, runs):
     cont, ref = c_backend.simulate(phys, [(policy, 0)], episodes, start=snap)[0], runs["c"]
     for f in ("qpos", "angle", "fell", "fall_time", "actions", "grasps", "angle_error", "position_error"):
         np.testing.assert_array_equal(getattr(cont, f), getattr(ref, f), err_msg=f)
+    # a branch's outcomes alone (`outcomes=True`, what L1-physics reads) are the full result's, bit for bit
+    (fell, error, actions), = c_backend.simulate(phys, [(policy, 0)], episodes, start=snap, outcomes=True)
+    for got, want in ((fell, ref.fell), (error, ref.angle_error), (actions, ref.actions)):
+        np.testing.assert_array_equal(got, want)
     acts = np.array(policy.actions)
     acts[4, 2:] = acts[4, 1]  # keep the grasp of segment 1 (the original changes the middle tip at every waypoint)
     other = c_backend.simulate(phys, [(policies.SequencePolicy(jnp.asarray(acts)), 0)], episodes, start=snap)[0]

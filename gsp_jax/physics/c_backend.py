@@ -30,7 +30,7 @@ import mujoco
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from gsp_jax.physics import native, runner as runner_lib
+from gsp_jax.physics import native
 from gsp_jax.scenario import Episode
 
 CONTROLLERS = ("native", "jax")  # the controller's tick: compiled to native code, or the JAX program
@@ -358,11 +358,10 @@ class _Lockstep:
         status = np.zeros((len(rows), 3), np.float32)
         native.status_rows(self.K - 1, rows, obs, self.ep_native, self.native.constants, status)
         self.record(rows, self.K - 1, status, obs[:, :self.nq])
-        if outcomes:  # `Physics.result`'s angle error, by the same operations
+        if outcomes:  # `Physics.result`'s angle error (`hold_error`)
             with jax.default_device(self.device):
-                return [(self.fell[g].copy(), np.asarray(jnp.where(
-                    jnp.asarray(self.fell[g]), runner_lib.FALLEN_ERROR,
-                    jnp.mean(jnp.asarray(self.angle[g])[..., self.T * self.n:], -1))), self.actions[g].copy())
+                return [(self.fell[g].copy(), np.asarray(self.phys.hold_error(
+                    jnp.asarray(self.angle[g]), jnp.asarray(self.fell[g]), self.T)), self.actions[g].copy())
                     for g in self.group_rows]
         for e in np.flatnonzero(self.fell):  # a fallen tool's trace stays where it was before the tick it fell
             f = self.fall_tick[e]

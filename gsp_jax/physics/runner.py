@@ -130,11 +130,16 @@ class Physics:
         ref = reference_motion(episode, (j + 1) * self.timestep)
         return self.scene.status(obs, ref.pos, ref.quat, j >= self.n_segment)
 
+    def hold_error(self, angle, fell, n_steps: int) -> jax.Array:
+        """(...) [deg] the mean tool angle error over the hold of episodes of n_steps waypoints (`angle` (..., K) a
+        tick), FALLEN_ERROR where `fell` (...): `Result.angle_error`."""
+        return jnp.where(fell, FALLEN_ERROR, jnp.mean(angle[..., n_steps * self.n_segment:], -1))
+
     def result(self, actions, grasps, angle, perr, qpos, fell, fall_tick, n_steps) -> Result:
         n_before = n_steps * self.n_segment
         return Result(
             actions=actions, grasps=grasps,
-            angle_error=jnp.where(fell, FALLEN_ERROR, jnp.mean(angle[..., n_before:], -1)),
+            angle_error=self.hold_error(angle, fell, n_steps),
             position_error=jnp.mean(perr[..., n_before:], -1),
             max_angle=jnp.where(fell & (fall_tick < n_before), FALLEN_ERROR, jnp.max(angle[..., :n_before], -1)),
             fell=fell, fall_time=jnp.where(fell, (fall_tick + 1).astype(jnp.float32) * self.timestep, -1.0),

@@ -89,48 +89,41 @@ class GraspSpace:
         self.check_actions(action, field)
         return jnp.clip(jnp.asarray(action, jnp.int32), 0, self.n_actions - 1)
 
-    def _parts(self, grasp: jax.Array, action: jax.Array):
+    def _parts(self, grasp: jax.Array, action: jax.Array, xp=jnp):
         """(grasp, null?, option set, place value and current option of the action's link); broadcast, actions
-        clipped into [0, n_actions) (traced: no check possible)."""
-        grasp = jnp.asarray(grasp, jnp.int32)
-        action = jnp.clip(jnp.asarray(action, jnp.int32), 0, self.n_actions - 1)
-        link = jnp.maximum(jnp.asarray(self.action_link)[action], 0)
-        place = jnp.asarray(self.radix)[link]
-        current = (grasp // place) % jnp.asarray(self.n_options, jnp.int32)[link]
-        return grasp, action == NULL, jnp.asarray(self.action_option)[action], place, current
+        clipped into [0, n_actions) (traced: no check possible). `xp`: jax.numpy, or numpy for static tables."""
+        grasp = xp.asarray(grasp, xp.int32)
+        action = xp.clip(xp.asarray(action, xp.int32), 0, self.n_actions - 1)
+        link = xp.maximum(xp.asarray(self.action_link)[action], 0)
+        place = xp.asarray(self.radix)[link]
+        current = (grasp // place) % xp.asarray(self.n_options, xp.int32)[link]
+        return grasp, action == NULL, xp.asarray(self.action_option)[action], place, current
 
-    def apply(self, grasp: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array]:
+    def apply(self, grasp: jax.Array, action: jax.Array, xp=jnp) -> tuple[jax.Array, jax.Array]:
         """(next grasp, redundant?) after `action` from `grasp`; both broadcast. The null action keeps the grasp
         and is not redundant. Actions outside [0, n_actions) are clipped (see the module docstring)."""
-        grasp, null, opt, place, current = self._parts(grasp, action)
-        return jnp.where(null, grasp, grasp + (opt - current) * place), ~null & (opt == current)
+        grasp, null, opt, place, current = self._parts(grasp, action, xp)
+        return xp.where(null, grasp, grasp + (opt - current) * place), ~null & (opt == current)
 
     @functools.cached_property
     def transitions(self) -> np.ndarray:
         """(G, A) int32, numpy: `apply(g, a)`'s next grasp for every grasp and action, for static work at trace time
         (e.g. the lookahead's distinct leaves) without running JAX operations."""
         g, a = np.arange(self.n_grasps)[:, None], np.arange(self.n_actions)[None]
-        link = np.maximum(self.action_link[a], 0)
-        place = self.radix[link]
-        current = (g // place) % np.asarray(self.n_options)[link]
-        return np.where(a == NULL, g, g + (self.action_option[a] - current) * place).astype(np.int32)
+        return self.apply(g, a, np)[0].astype(np.int32)
 
     @functools.cached_property
     def shared_grasps(self) -> np.ndarray:
         """(G, A) int32, numpy: `shared(g, a)` for every grasp and action (static work, as `transitions`)."""
         g, a = np.arange(self.n_grasps)[:, None], np.arange(self.n_actions)[None]
-        link = np.maximum(self.action_link[a], 0)
-        place = self.radix[link]
-        current = (g // place) % np.asarray(self.n_options)[link]
-        moves = (a != NULL) & (self.action_option[a] != current)
-        return np.where(moves, g - current * place, g).astype(np.int32)
+        return self.shared(g, a, np).astype(np.int32)
 
-    def shared(self, grasp: jax.Array, action: jax.Array) -> jax.Array:
+    def shared(self, grasp: jax.Array, action: jax.Array, xp=jnp) -> jax.Array:
         """The grasp that holds the tool while `action` is executed from `grasp` (broadcast): `grasp` with the
         link the action moves released (the contact controller unloads it, moves it, then loads it again). The
         null action and a redundant one move nothing: `grasp` itself."""
-        grasp, null, opt, place, current = self._parts(grasp, action)
-        return jnp.where(~null & (opt != current), grasp - current * place, grasp)
+        grasp, null, opt, place, current = self._parts(grasp, action, xp)
+        return xp.where(~null & (opt != current), grasp - current * place, grasp)
 
     @functools.cached_property
     def _changes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

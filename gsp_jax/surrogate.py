@@ -255,10 +255,8 @@ class Surrogate:
         """One decision. A finished state is absorbing (reward 0, done). A concrete action outside
         [0, n_actions) raises ValueError; a traced one is clipped into range (`grasps`)."""
         self.space.check_actions(action)
-        moved = self._move(state.episode, state.grasp, state.t, state.tool_pos, state.tool_quat, action)
-        out = jax.tree.map(lambda old, new: jnp.where(state.done, old, new), state, moved)
-        reward = jnp.where(state.done, 0.0, moved.terms.reward)
-        return out, reward, out.done
+        return _absorbing(state, self._move(state.episode, state.grasp, state.t, state.tool_pos, state.tool_quat,
+                                            action))
 
     def explain(self, episode: Episode, actions) -> str | None:
         """Why a sequence fails in the surrogate, in words, or None if it does not: the first step (from the start
@@ -290,10 +288,8 @@ class Surrogate:
         grasps (a redundant action keeps the grasp, a shared grasp is often another action's new grasp), so this
         solves at most `every_sizes` IK problems (11 + 11 for the shipped hand) where A vmapped steps solve 3 A
         (the lookahead's root expansion: `lookahead.search`)."""
-        moved = self._move_every(state.episode, state.grasp, state.t, state.tool_pos, state.tool_quat)
-        out = jax.tree.map(lambda old, new: jnp.where(state.done, old, new), state, moved)
-        reward = jnp.where(state.done, 0.0, moved.terms.reward)
-        return out, reward, out.done
+        return _absorbing(state, self._move_every(state.episode, state.grasp, state.t, state.tool_pos,
+                                                  state.tool_quat))
 
     @functools.cached_property
     def every_sizes(self) -> tuple[int, int]:
@@ -321,8 +317,7 @@ class Surrogate:
         pos = jnp.concatenate([jnp.broadcast_to(tool_pos, (n_now, 3)), jnp.broadcast_to(pos_n, (n_next, 3))])
         quat = jnp.concatenate([jnp.broadcast_to(tool_quat, (n_now, 4)), jnp.broadcast_to(quat_n, (n_next, 4))])
         grasps_in = jnp.concatenate([now_grasps, next_grasps])
-        realised = (self.realise_many(grasps_in, pos, quat, lanes=None) if self.ik_config.lanes
-                    else jax.vmap(self.realise)(grasps_in, pos, quat))
+        realised = self.realise_many(grasps_in, pos, quat, lanes=self.ik_config.lanes is True)
         at_now, at_next = now_of.reshape(-1), n_now + next_of.reshape(-1)
         now = jax.tree.map(lambda x: x[at_now[:len(actions)]], realised)
         nxt = jax.tree.map(lambda x: x[at_next], realised)
@@ -369,6 +364,13 @@ class Surrogate:
             done=done,
             terms=terms,
         )
+
+
+def _absorbing(state: State, moved: State) -> tuple[State, jax.Array, jax.Array]:
+    """(next state, reward, done) of a step from `state` to `moved` (leading axes broadcast): a finished state is
+    absorbing, reward 0."""
+    out = jax.tree.map(lambda old, new: jnp.where(state.done, old, new), state, moved)
+    return out, jnp.where(state.done, 0.0, moved.terms.reward), out.done
 
 
 def episode_ok(episode: Episode, n_grasps: int) -> jax.Array:

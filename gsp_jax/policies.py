@@ -52,6 +52,11 @@ class TablePolicy:
     def act(self, state: State) -> jax.Array:
         return self.table[state.grasp, jnp.minimum(state.t, self.table.shape[1] - 1)]
 
+    def act_table(self, n_grasps: int, n_steps: int) -> np.ndarray:
+        """(..., n_grasps, n_steps) int32 numpy: `act` at every grasp and waypoint (it reads nothing else)."""
+        table = np.asarray(self.table, np.int32)
+        return table[..., np.minimum(np.arange(n_steps), table.shape[-1] - 1)]
+
 
 @struct.dataclass
 class SequencePolicy:
@@ -66,6 +71,12 @@ class SequencePolicy:
 
     def act(self, state: State) -> jax.Array:
         return self.actions[jnp.minimum(state.t, self.actions.shape[0] - 1)]
+
+    def act_table(self, n_grasps: int, n_steps: int) -> np.ndarray:
+        """(..., n_grasps, n_steps) int32 numpy: `act` at every grasp and waypoint (it reads nothing else)."""
+        actions = np.asarray(self.actions, np.int32)
+        actions = actions[..., np.minimum(np.arange(n_steps), actions.shape[-1] - 1)]
+        return np.broadcast_to(actions[..., None, :], actions.shape[:-1] + (n_grasps, n_steps))
 
 
 @struct.dataclass

@@ -15,6 +15,7 @@ import jax.numpy as jnp  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+from flax import struct  # noqa: E402
 from mujoco import mjx  # noqa: E402
 
 from gsp_jax import physics, policies, scenario  # noqa: E402
@@ -296,6 +297,38 @@ def test_c_lockstep_of_several_policies_is_each_policy_alone(phys, batch, runs):
     assert not np.array_equal(both[0][1].grasps, alone.grasps)  # the second group ran its own policy
 
 
+@struct.dataclass
+class _Opaque:
+    """A policy that hides its base's `act_table`: the C lockstep decides it by the JAX decision at every segment."""
+
+    base: object
+
+    def act(self, state):
+        return self.base.act(state)
+
+
+def test_c_lockstep_decides_table_policies_in_numpy_as_jax_does(phys, batch, runs):
+    """A policy that reads only its grasp and waypoint (`act_table`: sequences, DP tables) is decided in numpy by
+    the C lockstep, and a segment whose grasp stays the same restarts the controller's timeline in numpy
+    (`native.keep_grasp`) without a JAX call: the same run, bit for bit, as the JAX decision at every segment (the
+    batch's sequences keep the grasp at some segments and change it at others, in the hold none does)."""
+    from gsp_jax.physics import c_backend
+
+    episodes, policy, _ = batch
+    kept = np.asarray(phys.space.transitions)[np.asarray(runs["c"].grasps)[:, :-1], np.asarray(policy.actions)[:, 1:]]
+    assert np.any(kept == np.asarray(runs["c"].grasps)[:, :-1]) and np.any(kept != runs["c"].grasps[:, :-1])
+    table = c_backend.action_table(policy, 0, T, phys.space.n_grasps, T)
+    assert table is not None and c_backend.action_table(_Opaque(policy), _Opaque(0), T, phys.space.n_grasps, T) is None
+    jax_run = jax.device_get(phys.simulate_batch(_Opaque(policy), episodes, policy_axis=_Opaque(0), backend="c"))
+    from_table = c_backend.simulate(phys, [(c_backend.ActionTable(np.array(table)), 0)], episodes)[0]
+    for f in ("qpos", "angle", "fell", "actions", "grasps", "angle_error"):
+        np.testing.assert_array_equal(getattr(runs["c"], f), getattr(jax_run, f), err_msg=f)
+        np.testing.assert_array_equal(getattr(from_table, f), getattr(jax_run, f), err_msg=f)
+    start = jax.jit(lambda k: jnp.asarray(k * phys.n_segment * phys.timestep, jnp.float32))  # as `Physics.decide`
+    for k in range(40):
+        assert phys.segment_start(k) == start(k), k
+
+
 def test_c_continuation_from_a_snapshot_is_the_original_run(phys, batch, runs):
     """`c_backend.simulate(..., until=2)` stops at the start of segment 2 with a `Snapshot` (MuJoCo's state rows,
     the observation, the controller states, the traces so far); continued from it (`start=`) the run is the
@@ -372,6 +405,16 @@ def test_physics_lookahead_takes_the_branch_that_does_best_in_physics(phys):
         assert (a.chosen, a.base) == (b.chosen, b.base)
         np.testing.assert_array_equal(a.angle_error, b.angle_error)
     np.testing.assert_array_equal(res2.qpos, res_every.qpos)
+    # bases that read only their grasp and waypoint run as one group decided in numpy (`_run_tabled`): the same
+    # decisions and outcomes, bit for bit, as each base's own group decided by JAX at every segment
+    hidden = verified.PhysicsLookahead(root, None, ((_Opaque(keep), None), (_Opaque(change), _Opaque(0))), k=2,
+                                       cores=2)
+    assert verified._tables(two, phys, eps) is not None and verified._tables(hidden, phys, eps) is None
+    res_hidden = phys.simulate_batch(hidden, eps, backend="c")
+    for a, b in zip(two.decisions, hidden.decisions):
+        assert (a.chosen, a.base, a.branches, a.steps) == (b.chosen, b.base, b.branches, b.steps)
+        np.testing.assert_array_equal(a.angle_error, b.angle_error)
+    np.testing.assert_array_equal(res2.qpos, res_hidden.qpos)
     one = verified.PhysicsLookahead(root, None, ((keep, None),), k=1, base_actions=False, cores=2)
     res1, alone = phys.simulate_batch(one, eps, backend="c"), phys.simulate_batch(root, eps, backend="c")
     assert all(d.fell is None and d.base == -1 for d in one.decisions)  # one candidate: nothing to branch

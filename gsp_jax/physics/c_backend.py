@@ -31,6 +31,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from gsp_jax.physics import native
+from gsp_jax.policies import SequencePolicy
 from gsp_jax.scenario import Episode
 
 CONTROLLERS = ("native", "jax")  # the controller's tick: compiled to native code, or the JAX program
@@ -221,8 +222,10 @@ class _Lockstep:
         # the device of the decisions' programs (and the episodes' set-up): JAX's default, or the one named
         named = device is not None
         self.device = jax.devices(device)[0] if device is None or isinstance(device, str) else device
+        original = groups
         if named:
-            groups = [(p if hasattr(p, "in_physics") else jax.device_put(p, self.device), axis) for p, axis in groups]
+            groups = [(p if hasattr(p, "in_physics") or isinstance(p, ActionTable) else jax.device_put(p, self.device),
+                       axis) for p, axis in groups]
             self.groups = groups
         # the lockstep's batch is the groups' episodes one after another
         cat = lambda make: jax.tree.map(lambda *x: np.concatenate([np.asarray(a) for a in x]),  # noqa: E731
@@ -256,7 +259,12 @@ class _Lockstep:
         self.out = np.zeros((M, self.nu + 9), np.float32)  # each row's last tick: ctrl | external | status
         ends = np.cumsum(sizes)
         self.group_rows = [slice(int(e - n), int(e)) for e, n in zip(ends, sizes)]
-        self.decides = [pr.decide(0 if hasattr(policy, "in_physics") else axis) for policy, axis in groups]
+        self.decides = [pr.decide(0 if hasattr(policy, "in_physics") or isinstance(policy, ActionTable) else axis)
+                        for policy, axis in groups]
+        # a policy that reads only its grasp and waypoint decides in numpy (`ActionTable`), without a JAX call
+        self.tables = [action_table(policy, axis, n, phys.space.n_grasps, T) for (policy, axis), n
+                       in zip(original, sizes)]
+        self.transitions = phys.space.transitions
         # the decisions' episodes on their device once (a call would otherwise send every leaf again)
         self.episodes_on_device = [jax.device_put(e, self.device) for e in per_group]
         self.pedestal_drop, self.tick = scene.pedestal_drop, phys.timestep
@@ -309,13 +317,20 @@ class _Lockstep:
         """Each policy decides for its episodes at segment k (the hold: set-up only); the controller states."""
         obs, snapshot = self.engine.obs, None
         for g, (policy, _) in enumerate(self.groups):
-            rows, decide = self.group_rows[g], self.decides[g]
+            rows, decide, table = self.group_rows[g], self.decides[g], self.tables[g]
             if hasattr(policy, "in_physics"):  # a policy that decides in physics (`physics.verified`): its hook
                 # gets the lockstep's state and gives this segment's policy (one per episode, axis 0)
                 if k < self.T:
                     snapshot = self.snapshot() if snapshot is None else snapshot
                 policy = policy.in_physics(self.phys, snapshot if k < self.T else None,
                                            np.arange(len(self.fell))[rows], obs[rows], self.episodes[g], k, self.T)
+                table = action_table(policy, 0, rows.stop - rows.start, self.phys.space.n_grasps, self.T)
+            if table is not None:
+                action = self._decide_in_numpy(rows, table, k)
+                if action is None:
+                    continue
+                if isinstance(policy, ActionTable):  # a grasp changes: the JAX decision, with these actions
+                    policy = SequencePolicy(np.repeat(action[:, None], self.T, 1))
             with jax.default_device(self.device):
                 act, gr, cs_g = decide(policy, jax.device_put(self.cs[rows], self.device), obs[rows],
                                        self.grasp[rows], self.episodes_on_device[g], k)
@@ -323,6 +338,20 @@ class _Lockstep:
                 self.actions[rows, k], self.grasps[rows, k] = np.asarray(act), np.asarray(gr)
             self.grasp[rows] = np.asarray(gr)
             self.cs[rows] = np.asarray(cs_g)
+
+    def _decide_in_numpy(self, rows: slice, table: np.ndarray, k: int):
+        """The decision at segment k of the episodes `rows` from their action tables (R, G, T): made here if no
+        grasp changes (then `begin_segment` only restarts the timeline: `native.keep_grasp`), and None returned;
+        else their actions (R,), for the JAX decision (a link's new path)."""
+        grasp = self.grasp[rows]
+        if k < self.T:
+            action = table[np.arange(len(grasp)), grasp, k]
+            if np.any(self.transitions[grasp, action] != grasp):
+                return action
+            self.actions[rows, k], self.grasps[rows, k] = action, grasp
+        ids = np.arange(rows.start, rows.stop)
+        native.keep_grasp(self.native.constants, ids, self.cs, self.phys.segment_start(k))
+        return None
 
     def run_segment(self, w, k):
         """Chunk w's control ticks of segment k."""
@@ -371,6 +400,30 @@ class _Lockstep:
                 jnp.asarray(self.actions[rows]), jnp.asarray(self.grasps[rows]), jnp.asarray(self.angle[rows]),
                 jnp.asarray(self.perr[rows]), jnp.asarray(self.qpos_trace[rows]), jnp.asarray(self.fell[rows]),
                 jnp.asarray(self.fall_tick[rows]), self.T)) for rows in self.group_rows]
+
+
+@dataclasses.dataclass(frozen=True)
+class ActionTable:
+    """A policy given as its actions (not a JAX policy): each episode's action at every grasp and waypoint, for a
+    group whose decisions read nothing else (e.g. a branch's first action, then a DP table). The lockstep decides
+    it in numpy; policy axis 0 (one table per episode)."""
+
+    table: np.ndarray  # (R, G, T) int32
+
+
+def action_table(policy, axis, rows: int, n_grasps: int, n_steps: int) -> np.ndarray | None:
+    """(rows, G, T) int32: the actions of a policy that reads only its grasp and waypoint (`ActionTable`, or one
+    with `act_table`: `policies.SequencePolicy`, `TablePolicy`) at policy_axis None (one for every row) or 0 (one
+    a row); None for any other policy."""
+    if isinstance(policy, ActionTable):
+        return policy.table
+    if not hasattr(policy, "act_table") or axis not in (None, 0) \
+            or any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves(policy)):
+        return None
+    table = policy.act_table(n_grasps, n_steps)
+    if table.ndim != (2 if axis is None else 3) or (axis == 0 and table.shape[0] != rows):
+        return None
+    return np.broadcast_to(table, (rows, n_grasps, n_steps))
 
 
 def native_tick(phys) -> native.Tick:

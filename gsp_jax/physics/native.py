@@ -911,3 +911,15 @@ def segment(K, j0, drops, rows, cs, obs, episodes, addr, pedestals, geoms, fell,
             _step_row(K, addr, r, out[r], pedestals, geoms, drops[i], obs, buf)
             steps += 1
     return steps
+
+
+# ------------------------------------------------------------------------------------------ a decision
+def keep_grasp(K: Constants, rows, cs: np.ndarray, start: np.float32) -> None:
+    """`Controller.begin_segment` for the episodes `rows` whose reference grasp stays the same at a segment that
+    starts at `start` [s] (float32): no link moves, so only the timeline's fields change (previous options = the
+    current ones, nothing changed, the segment's start), the same numbers as the JAX decision's
+    (tests/test_physics.py). cs (E, C) float32 flat controller states, updated in place."""
+    L = K.link_body.shape[0]
+    cs[rows, K.cs_previous:K.cs_previous + L] = cs[rows, K.cs_options:K.cs_options + L]
+    cs[rows, K.cs_changed:K.cs_changed + L] = 0.0
+    cs[rows, K.cs_start] = start

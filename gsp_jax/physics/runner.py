@@ -83,6 +83,10 @@ class Physics:
         """Control ticks of an episode with n_steps waypoints (the length of `Result.angle`)."""
         return (n_steps + self.n_hold) * self.n_segment
 
+    def segment_start(self, k: int) -> np.float32:
+        """[s] when segment k starts, float32 as `decide` computes it in JAX (k n_segment, then times the tick)."""
+        return np.float32(k * self.n_segment) * np.float32(self.timestep)
+
     def hold_time(self, n_steps: int) -> float:
         """Simulated time at which the hold starts [s]."""
         return n_steps * self.n_segment * self.timestep

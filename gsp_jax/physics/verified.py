@@ -91,6 +91,7 @@ class PhysicsLookahead:
     workers: int | None = None  # its chunks (default as `c_backend.simulate`)
     decisions: list = dataclasses.field(default_factory=list)
     _gathered: dict = dataclasses.field(default_factory=dict, repr=False)  # bases per set of branched rows
+    _tables: dict = dataclasses.field(default_factory=dict, repr=False)  # waypoints -> `_tables`
     _known: dict = dataclasses.field(default_factory=dict, repr=False)  # (row, base, actions from the start) ->
     # (fell, angle error): the outcomes of the branches run so far in this episode
 
@@ -191,19 +192,22 @@ def choose(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, obs: np.n
                     elif (i, a) not in todo[b]:
                         todo[b].append((i, a))
         runs = sum(len(t) for t in todo)
-        if runs:
+        tables = _tables(policy, phys, episodes)
+        if runs and tables is not None:  # every base reads only its grasp and waypoint: decided in numpy
+            outcome = _run_tabled(policy, phys, snapshot, rows, episodes, k, todo, tables, n_base * n * slots, stats)
+        elif runs:
             # each base's branches padded to a multiple of a quarter of the episodes' candidates (the branches'
             # programs are compiled per row count: padding repeats a branch; one episode: none)
             quarter = -(-n * slots // 4)
             padded = [(t * quarter)[:-(-len(t) // quarter) * quarter] for t in todo]  # a base with none: none
             _warm(policy, phys, snapshot, rows, episodes, k, padded, range(quarter, n * slots + 1, quarter))
             outcome = _run_branches(policy, phys, snapshot, rows, episodes, k, padded, stats)
-            for b, t in enumerate(todo):
-                for r, (i, a) in enumerate(t):
-                    f, e, acts = outcome[b][0][r], outcome[b][1][r], outcome[b][2][r]
-                    for m in range(k, len(acts)):  # this branch's outcome is every later candidate's on its path
-                        known[(int(rows[i]), b, tuple(int(x) for x in acts[:m + 1]))] = (f, e)
-                    fell[b, i, cand[b, i] == a], err[b, i, cand[b, i] == a] = f, e
+        for b, t in enumerate(todo):
+            for r, (i, a) in enumerate(t):
+                f, e, acts = outcome[b][0][r], outcome[b][1][r], outcome[b][2][r]
+                for m in range(k, len(acts)):  # this branch's outcome is every later candidate's on its path
+                    known[(int(rows[i]), b, tuple(int(x) for x in acts[:m + 1]))] = (f, e)
+                fell[b, i, cand[b, i] == a], err[b, i, cand[b, i] == a] = f, e
         for i in live:  # held first, then the least angle error, then the surrogate's Q (then base, slot order)
             c = cand[:, i].ravel()
             pick = np.lexsort((-q[i, c], err[:, i].ravel(), fell[:, i].ravel()))[0]
@@ -215,6 +219,60 @@ def choose(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, obs: np.n
                                          err[:, i] if b else None, int(chosen[i]), int(chosen_base[i]), seconds, runs,
                                          stats["steps"]))
     return chosen
+
+
+def _tables(policy: PhysicsLookahead, phys, episodes) -> list | None:
+    """Per base, its actions at every grasp and waypoint ((E, G, T) at axis 0, else (1, G, T); kept), if every base
+    reads only its grasp and waypoint (`c_backend.action_table`); else None."""
+    from gsp_jax.physics import c_backend
+
+    if episodes.n_steps not in policy._tables:
+        E, G = int(np.shape(episodes.mass)[0]), phys.space.n_grasps
+        made = [c_backend.action_table(base, axis, E if axis == 0 else 1, G, episodes.n_steps)
+                for base, axis in policy.bases]
+        policy._tables[episodes.n_steps] = None if any(t is None for t in made) else made
+    return policy._tables[episodes.n_steps]
+
+
+def _run_tabled(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, episodes, k: int, todo, tables,
+                most: int, stats, warm_width: int | None = None):
+    """`_run_branches` for bases that read only their grasp and waypoint (`tables`, per base (E or 1, G, T)): every
+    branch of every base one row of a single group (`c_backend.ActionTable`: its first action at segment k, then
+    its base's table), decided in numpy; only a segment where a grasp changes calls JAX (the new link's path).
+    The rows are padded to a multiple of an eighth of `most` (the programs are compiled per row count: padding
+    repeats a branch) and each count's programs compiled once per process (`warm_width`: a one-segment run of that
+    many rows whose grasps all change, to compile them; returns nothing)."""
+    from gsp_jax.physics import c_backend
+
+    flat = [(b, i, a) for b, t in enumerate(todo) for i, a in t]
+    quarter = max(1, most // 8)
+    if warm_width is None:
+        key = ("tabled-widths", len(rows), most, policy.branch_device)
+        done = phys._jitted.setdefault(key, set())
+        for w in range(quarter, -(-most // quarter) * quarter + 1, quarter):
+            if w not in done:
+                _run_tabled(policy, phys, snapshot, rows, episodes, k, todo, tables, most, {}, warm_width=w)
+                done.add(w)
+        width = -(-len(flat) // quarter) * quarter
+    else:
+        width = warm_width
+    flat = (flat * width)[:width]  # padding repeats branches
+    b_, i_, a_ = (np.array(x) for x in zip(*flat))
+    table = np.stack([tables[b][i if len(tables[b]) > 1 else 0] for b, i in zip(b_, i_)])  # (R, G, T) a copy
+    if warm_width is not None:  # a first action that changes the grasp: the JAX decision runs (and compiles)
+        g = snapshot.grasp[rows[i_]]
+        a_ = np.argmax(phys.space.transitions[g] != g[:, None], 1).astype(np.int32)
+    table[:, :, k] = a_[:, None]
+    sub = jax.tree.map(lambda x: np.asarray(x)[i_], episodes)
+    result = c_backend.simulate(phys, [(c_backend.ActionTable(table), 0)], [sub], cores=policy.cores,
+                                workers=policy.workers, start=snapshot.take(rows[i_]), stats=stats,
+                                device=policy.branch_device, until=k + 1 if warm_width else None, outcomes=True)
+    if warm_width is not None:
+        return None
+    fell, err, acts = result[0]
+    ends = np.cumsum([len(t) for t in todo])
+    return [None if not t else (fell[e - len(t):e], err[e - len(t):e], acts[e - len(t):e])
+            for t, e in zip(todo, ends)]
 
 
 def _warm(policy: PhysicsLookahead, phys, snapshot, rows, episodes, k: int, todo, widths) -> None:

@@ -332,7 +332,8 @@ def test_c_lockstep_decides_table_policies_in_numpy_as_jax_does(phys, batch, run
 def test_c_continuation_from_a_snapshot_is_the_original_run(phys, batch, runs):
     """`c_backend.simulate(..., until=2)` stops at the start of segment 2 with a `Snapshot` (MuJoCo's state rows,
     the observation, the controller states, the traces so far); continued from it (`start=`) the run is the
-    uninterrupted one bit for bit, and so are its outcomes alone (`outcomes=True`). Branched from it under another
+    uninterrupted one bit for bit, and so are its outcomes alone (`outcomes=True`), run on engines used before.
+    Branched from it under another
     policy (the middle tip kept from segment 2 on instead of changed), the rows share the past and part from segment
     2 on."""
     from gsp_jax.physics import c_backend
@@ -343,7 +344,9 @@ def test_c_continuation_from_a_snapshot_is_the_original_run(phys, batch, runs):
     cont, ref = c_backend.simulate(phys, [(policy, 0)], episodes, start=snap)[0], runs["c"]
     for f in ("qpos", "angle", "fell", "fall_time", "actions", "grasps", "angle_error", "position_error"):
         np.testing.assert_array_equal(getattr(cont, f), getattr(ref, f), err_msg=f)
-    # a branch's outcomes alone (`outcomes=True`, what L1-physics reads) are the full result's, bit for bit
+    # a branch's outcomes alone (`outcomes=True`, what L1-physics reads) are the full result's, bit for bit, from
+    # the models and datas the continuation above left in the pool (`c_backend.Pool`: used, not new)
+    assert phys._jitted["c-pool"]._count >= 5
     (fell, error, actions), = c_backend.simulate(phys, [(policy, 0)], episodes, start=snap, outcomes=True)
     for got, want in ((fell, ref.fell), (error, ref.angle_error), (actions, ref.actions)):
         np.testing.assert_array_equal(got, want)

@@ -19,6 +19,7 @@ reference the native tick is tested against (tests/test_native.py).
 """
 from __future__ import annotations
 
+import collections
 import dataclasses
 import os
 import time
@@ -94,6 +95,7 @@ class _Programs:
         self.start = jax.jit(start)
         self.tick = jax.jit(tick)
         self.fields = jax.jit(jax.vmap(scene.episode_fields))
+        self.hold_error = jax.jit(phys.hold_error, static_argnums=2)
         self.ravel_episodes = jax.jit(self.ep.ravel)
         self._decide = {}
 
@@ -147,21 +149,61 @@ class Snapshot:
                                             if f.name != "segment"})
 
 
+class Pool:
+    """C models and datas kept for reuse, per episode (its fields): a lockstep that starts from a snapshot (a
+    branch of L1-physics) sets every state it reads (`mj_setState` of the whole integration state, and the
+    pedestals, controls and applied wrench before every step), so a model and data used before serve as a new
+    copy would (bit for bit: tests/test_physics.py), without the ~0.6 ms a row of making them."""
+
+    def __init__(self, most: int = 256):
+        self.most, self._free, self._count = most, collections.OrderedDict(), 0  # at most `most` pairs kept
+
+    @staticmethod
+    def key(fields) -> bytes:
+        """One episode's fields (numpy) as a key."""
+        return b"".join(np.ascontiguousarray(x).tobytes() for x in jax.tree.leaves(fields))
+
+    def take(self, scene, key: bytes, fields):
+        """A (model, data) of the episode `key`: a kept one, else made (`fields()`: its fields)."""
+        free = self._free.get(key)
+        if free:
+            self._count -= 1
+            return free.pop()
+        m = scene.c_model(fields())
+        return m, mujoco.MjData(m)
+
+    def give(self, key: bytes, model, data) -> None:
+        self._free.setdefault(key, []).append((model, data))
+        self._free.move_to_end(key)
+        self._count += 1
+        while self._count > self.most:  # the episode used longest ago first
+            first = next(iter(self._free))
+            self._free[first].pop()
+            self._count -= 1
+            if not self._free[first]:
+                del self._free[first]
+
+
 class Engine:
     """The episodes of one lockstep in C MuJoCo: one `MjModel` per episode (a copy of the physics model with the
     episode's fields: tool mass, inertia, CoM, finger-tool friction, pedestals; `Scene.c_model`) and its `MjData`,
     stepped by `mj_step` from native code (`native.step_rows`, `native.segment`: no Python per step). `obs`
     (n, nq + 2 nv) float32 is every episode's observation: qpos, qvel and qfrc_bias after its last step."""
 
-    def __init__(self, scene, fields, qpos0: np.ndarray, log: list | None = None):
+    def __init__(self, scene, fields, qpos0: np.ndarray, log: list | None = None, pool: "Pool | None" = None):
         n = qpos0.shape[0]
-        self.scene, self.n, self.log = scene, n, log
+        self.scene, self.n, self.log, self.pool = scene, n, log, pool
         one = lambda e: jax.tree.map(lambda x: np.asarray(x)[e], fields)  # noqa: E731
-        self.models = [scene.c_model(one(e)) for e in range(n)]
-        self.datas = [mujoco.MjData(m) for m in self.models]
+        if pool is None:
+            self.models = [scene.c_model(one(e)) for e in range(n)]
+            self.datas = [mujoco.MjData(m) for m in self.models]
+        else:  # the pool's, for a lockstep that restores its states from a snapshot (`restore`)
+            self.keys = [Pool.key(one(e)) for e in range(n)]
+            self.models, self.datas = map(list, zip(*[pool.take(scene, k, lambda e=e: one(e))
+                                                      for e, k in enumerate(self.keys)]))
         nq, nv = scene.model.nq, scene.model.nv
         self.obs = np.zeros((n, nq + 2 * nv), np.float32)
-        for e, (m, d) in enumerate(zip(self.models, self.datas)):
+        for e, (m, d) in enumerate(zip(self.models, self.datas) if pool is None else ()):
             d.qpos[:] = qpos0[e]
             mujoco.mj_forward(m, d)
             self.obs[e] = np.concatenate([d.qpos, d.qvel, d.qfrc_bias])
@@ -170,6 +212,13 @@ class Engine:
         self.geoms = np.asarray(scene.pedestal_geoms, np.int64)
         self._spec = mujoco.mjtState.mjSTATE_INTEGRATION
         self.nstate = mujoco.mj_stateSize(scene.model, self._spec)
+
+    def release(self) -> None:
+        """Give a pool's models and datas back to it (this engine is not stepped again)."""
+        if self.pool is not None:
+            for k, m, d in zip(self.keys, self.models, self.datas):
+                self.pool.give(k, m, d)
+            self.models, self.datas = [], []
 
     def state(self, ids=None) -> np.ndarray:
         """(n, nstate) float64: every episode's MuJoCo state (`mjSTATE_INTEGRATION`: time, qpos, qvel, act, the
@@ -250,7 +299,8 @@ class _Lockstep:
         self.chunks = np.array_split(np.arange(M), workers)  # contiguous rows
         if engine_log is not None and workers != 1:
             raise ValueError(f"engine_log needs workers=1, got workers={workers}")
-        self.engine = Engine(scene, fields, self.qpos0, engine_log)
+        pool = phys._jitted.setdefault("c-pool", Pool()) if start is not None and engine_log is None else None
+        self.engine = Engine(scene, fields, self.qpos0, engine_log, pool)
         self.grasp = cat(lambda e: np.asarray(e.start_grasp, np.int32))
         self.fell, self.fall_tick = np.zeros(M, bool), np.full(M, -1, np.int32)
         self.angle, self.perr = np.zeros((M, K), np.float32), np.zeros((M, K), np.float32)
@@ -389,9 +439,8 @@ class _Lockstep:
         self.record(rows, self.K - 1, status, obs[:, :self.nq])
         if outcomes:  # `Physics.result`'s angle error (`hold_error`)
             with jax.default_device(self.device):
-                return [(self.fell[g].copy(), np.asarray(self.phys.hold_error(
-                    jnp.asarray(self.angle[g]), jnp.asarray(self.fell[g]), self.T)), self.actions[g].copy())
-                    for g in self.group_rows]
+                return [(self.fell[g].copy(), np.asarray(self.pr.hold_error(self.angle[g], self.fell[g], self.T)),
+                         self.actions[g].copy()) for g in self.group_rows]
         for e in np.flatnonzero(self.fell):  # a fallen tool's trace stays where it was before the tick it fell
             f = self.fall_tick[e]
             self.qpos_trace[e, f:] = self.qpos_trace[e, f - 1] if f > 0 else self.qpos0[e]
@@ -469,7 +518,9 @@ def simulate(phys, groups, episodes: Episode | list[Episode], cores: int | None 
     run.advance(end if until is None else until, progress)
     if stats is not None:
         stats["steps"] = stats.get("steps", 0) + sum(run.steps)
-    return run.snapshot() if until is not None else run.results(outcomes)
+    out = run.snapshot() if until is not None else run.results(outcomes)
+    run.engine.release()
+    return out
 
 
 def engine_alone(phys, episodes: Episode, log: list) -> tuple[float, int]:

@@ -5,7 +5,9 @@ docs/performance.md).
 
 One lockstep runs every episode of every policy given (Fig. 4b's 5 policies x 27 episodes are one batch of 135):
 
-  at each segment start   each policy decides for its own episodes (one jitted call per policy, on `device`);
+  at each segment start   each policy decides for its own episodes (one jitted call per policy, on `device`; a
+                          policy that reads only its grasp and waypoint, e.g. a sequence or a DP table, in
+                          numpy, and JAX only where a grasp changes: `ActionTable`);
   between decisions       the episodes run as chunks of rows side by side (threads; `workers`, default one a
                           core), each chunk's whole segment one call of native code (`native.segment`): at every
                           control tick the contact controller's tick (`native`, the JAX controller's control law

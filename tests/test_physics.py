@@ -329,6 +329,26 @@ def test_c_lockstep_decides_table_policies_in_numpy_as_jax_does(phys, batch, run
         assert phys.segment_start(k) == start(k), k
 
 
+def test_c_pool_keeps_at_most_its_size_the_episode_used_longest_ago_dropped_first(phys):
+    """`c_backend.Pool`: a pair given back is taken again for the same episode (its fields' key), a new one is made
+    for another episode, and beyond `most` pairs the episode given back longest ago loses its pairs first."""
+    from gsp_jax.physics import c_backend
+
+    fields = jax.device_get(phys.scene.episode_fields(scenario.make_episode()))
+    other = jax.device_get(phys.scene.episode_fields(scenario.make_episode(mass_factor=2.0)))
+    pool, a, b = c_backend.Pool(most=2), c_backend.Pool.key(fields), c_backend.Pool.key(other)
+    assert a != b
+    m, d = pool.take(phys.scene, a, lambda: fields)
+    assert m.body_mass[phys.scene.tool_body] == pytest.approx(float(fields.mass))
+    pool.give(a, m, d)
+    assert pool.take(phys.scene, a, lambda: fields) == (m, d)  # the same objects again
+    assert pool.take(phys.scene, b, lambda: other)[0] is not m
+    pool.give(a, m, d)
+    pool.give(b, "model b1", "data b1")
+    pool.give(b, "model b2", "data b2")  # three kept: episode a's pair (given back longest ago) goes
+    assert pool._count == 2 and a not in pool._free and len(pool._free[b]) == 2
+
+
 def test_c_continuation_from_a_snapshot_is_the_original_run(phys, batch, runs):
     """`c_backend.simulate(..., until=2)` stops at the start of segment 2 with a `Snapshot` (MuJoCo's state rows,
     the observation, the controller states, the traces so far); continued from it (`start=`) the run is the

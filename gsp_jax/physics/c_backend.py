@@ -196,19 +196,19 @@ class Engine:
         n = qpos0.shape[0]
         self.scene, self.n, self.log, self.pool = scene, n, log, pool
         one = lambda e: jax.tree.map(lambda x: np.asarray(x)[e], fields)  # noqa: E731
-        if pool is None:
+        nq, nv = scene.model.nq, scene.model.nv
+        self.obs = np.zeros((n, nq + 2 * nv), np.float32)
+        if pool is None:  # new copies, at the episodes' start
             self.models = [scene.c_model(one(e)) for e in range(n)]
             self.datas = [mujoco.MjData(m) for m in self.models]
+            for e, (m, d) in enumerate(zip(self.models, self.datas)):
+                d.qpos[:] = qpos0[e]
+                mujoco.mj_forward(m, d)
+                self.obs[e] = np.concatenate([d.qpos, d.qvel, d.qfrc_bias])
         else:  # the pool's, for a lockstep that restores its states from a snapshot (`restore`)
             self.keys = [Pool.key(one(e)) for e in range(n)]
             self.models, self.datas = map(list, zip(*[pool.take(scene, k, lambda e=e: one(e))
                                                       for e, k in enumerate(self.keys)]))
-        nq, nv = scene.model.nq, scene.model.nv
-        self.obs = np.zeros((n, nq + 2 * nv), np.float32)
-        for e, (m, d) in enumerate(zip(self.models, self.datas) if pool is None else ()):
-            d.qpos[:] = qpos0[e]
-            mujoco.mj_forward(m, d)
-            self.obs[e] = np.concatenate([d.qpos, d.qvel, d.qfrc_bias])
         self.addresses = native.addresses(self.models, self.datas, scene.tool_body)
         self.pedestals = np.ascontiguousarray(fields.pedestal_pos, np.float64)  # (n, P, 3) at drop 0
         self.geoms = np.asarray(scene.pedestal_geoms, np.int64)

@@ -245,15 +245,15 @@ def _run_tabled(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, epis
     from gsp_jax.physics import c_backend
 
     flat = [(b, i, a) for b, t in enumerate(todo) for i, a in t]
-    quarter = max(1, most // 8)
+    step = max(1, most // 8)
     if warm_width is None:
         key = ("tabled-widths", len(rows), most, policy.branch_device)
         done = phys._jitted.setdefault(key, set())
-        for w in range(quarter, -(-most // quarter) * quarter + 1, quarter):
+        for w in range(step, -(-most // step) * step + 1, step):
             if w not in done:
                 _run_tabled(policy, phys, snapshot, rows, episodes, k, todo, tables, most, {}, warm_width=w)
                 done.add(w)
-        width = -(-len(flat) // quarter) * quarter
+        width = -(-len(flat) // step) * step
     else:
         width = warm_width
     flat = (flat * width)[:width]  # padding repeats branches

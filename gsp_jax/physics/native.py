@@ -786,7 +786,12 @@ def _control(K, j, cs, obs, wp, quats, dt, w_ext, mass, inertia_d, com_t, fricti
     same = True  # no link changing: both solves have one grasp matrix
     for lk in range(L):
         same = same and active[lk] == active_b[lk]
-    _solve(K, pts, nrm, active_b, mu, required, com_w, f_without, f_b, lip if same else -1.0)
+    if same and _same_bits(f_with, f_without):  # one problem from one start: the first solve's forces, bit for bit
+        for lk in range(L):
+            for i in range(3):
+                f_b[lk, i] = f_a[lk, i]
+    else:
+        _solve(K, pts, nrm, active_b, mu, required, com_w, f_without, f_b, lip if same else -1.0)
     sh = float(share)
     tau = np.empty(J)
     for jj in range(J):
@@ -811,6 +816,17 @@ def _control(K, j, cs, obs, wp, quats, dt, w_ext, mass, inertia_d, com_t, fricti
             cs[K.cs_anchor + 3 * lk + i] = anchor[lk, i]
             cs[K.cs_f_with + 3 * lk + i] = f_a[lk, i]
             cs[K.cs_f_without + 3 * lk + i] = f_b[lk, i]
+
+
+@_jit
+def _same_bits(a, b):
+    """Whether float arrays a and b (L, 3) hold the same numbers bit for bit (a NaN never matches)."""
+    for lk in range(a.shape[0]):
+        for i in range(3):
+            x, y = a[lk, i], b[lk, i]
+            if x != y or math.copysign(1.0, x) != math.copysign(1.0, y):
+                return False
+    return True
 
 
 @_jit
@@ -894,9 +910,9 @@ def segment(K, j0, drops, rows, cs, obs, episodes, addr, pedestals, geoms, fell,
     Returns the physics steps taken."""
     nq, nu = K.nq, K.nu
     steps = 0
-    for i in range(drops.shape[0]):
-        j = j0 + i
-        for r in rows:
+    for r in rows:  # a row's ticks one after another (its model and data stay in the cache): rows are independent
+        for i in range(drops.shape[0]):
+            j = j0 + i
             if j > 0:
                 st = out[r, nu + 6:]
                 _status(K, j - 1, obs[r], episodes.waypoints[r], episodes.quats[r], episodes.dt[r], st)

@@ -320,8 +320,7 @@ class _Lockstep:
         # the decisions' episodes on their device once (a call would otherwise send every leaf again)
         self.episodes_on_device = [jax.device_put(e, self.device) for e in per_group]
         self.pedestal_drop, self.tick = scene.pedestal_drop, phys.timestep
-        m = phys.model
-        self._scratch = [np.zeros(max(m.nq, m.nv, m.nu, 6)) for _ in self.chunks]  # one a thread
+        self._scratch = [native.scratch(self.native.constants) for _ in self.chunks]  # one a thread
         self.steps = [0] * len(self.chunks)  # physics steps taken, per chunk
         self.segment = 0
         if start is not None:
@@ -428,7 +427,7 @@ class _Lockstep:
                 self.record(ids, j - 1, self.out[ids, nu + 6:], eng.obs[ids, :self.nq])
                 alive = ids[~self.fell[ids]]
             if alive.size:
-                eng.step(self.native.constants, alive, self.out, drops[i], self._scratch[w])
+                eng.step(self.native.constants, alive, self.out, drops[i], self._scratch[w].buf)
                 self.steps[w] += alive.size
 
     def results(self, outcomes: bool = False):
@@ -437,7 +436,7 @@ class _Lockstep:
         `Result` (its traces are not sent through JAX: a branch needs only these)."""
         rows, obs = np.arange(len(self.fell)), self.engine.obs
         status = np.zeros((len(rows), 3), np.float32)
-        native.status_rows(self.K - 1, rows, obs, self.ep_native, self.native.constants, status)
+        native.status_rows(self.K - 1, rows, obs, self.ep_native, self.native.constants, status, self._scratch[0])
         self.record(rows, self.K - 1, status, obs[:, :self.nq])
         if outcomes:  # `Physics.result`'s angle error (`hold_error`)
             with jax.default_device(self.device):

@@ -156,6 +156,34 @@ class Episodes(NamedTuple):
     hold_time: np.ndarray  # (E,) float32: when the hold starts [s]
 
 
+N_VEC3 = 33  # Scratch.v3's leading 3-vectors (named in `_control`); its (L, 3), (J, 3) and (B, 3) blocks follow
+N_BLOCKS = 17  # Scratch.v3's (L, 3) blocks (`_control` 0..14, `_solve` 15 and 16)
+
+
+class Scratch(NamedTuple):
+    """One thread's working arrays for a tick (`_control`, `_status`, `_solve`) and a step (`_step_row`), so that
+    neither allocates: made once a thread by `scratch`, float64 unless named."""
+
+    v3: np.ndarray  # (N_VEC3 + N_BLOCKS L + 2 J + B, 3): 3-vectors, then (L, 3), (J, 3) and (B, 3) blocks
+    m3: np.ndarray  # (5 + B, 3, 3): 3x3 matrices, then the bodies' rotations
+    f: np.ndarray  # (4 J + 20 + 9 L,): J-, 4-, 6- and 3L-vectors
+    gg: np.ndarray  # (6, 6)
+    jac: np.ndarray  # (L, 3, J)
+    i: np.ndarray  # (3 L,) int64
+    b: np.ndarray  # (9 L + n_fingers,) bool
+    load: np.ndarray  # (L,) float32
+    buf: np.ndarray  # (max(nq, nv, nu, 6),): `_step_row`'s copies in and out of MuJoCo
+
+
+def scratch(K: Constants) -> Scratch:
+    """A `Scratch` for the hand and scene of `K` (one a thread: a tick writes all of it)."""
+    J, L, B = K.hand_qpos.shape[0], K.link_body.shape[0], K.body_parent.shape[0]
+    return Scratch(v3=np.zeros((N_VEC3 + N_BLOCKS * L + 2 * J + B, 3)), m3=np.zeros((5 + B, 3, 3)),
+                   f=np.zeros(4 * J + 20 + 9 * L), gg=np.zeros((6, 6)), jac=np.zeros((L, 3, J)),
+                   i=np.zeros(3 * L, np.int64), b=np.zeros(9 * L + K.n_fingers, np.bool_), load=np.zeros(L, F32),
+                   buf=np.zeros(max(K.nq, K.nv, K.nu, 6)))
+
+
 def state_offsets(one_state: ControllerState) -> dict[str, int]:
     """Where each field of a `ControllerState` starts in its flat row (`ravel_pytree` order)."""
     names = list(ControllerState.__dataclass_fields__)
@@ -221,7 +249,7 @@ class Tick:
         """Control tick j of the episodes `rows` (int64 indices into every array's leading axis): their states
         cs (E, C) float32 updated in place, out (E, nu + 9) float32 written, from observations obs (E, nq + 2 nv)
         float32. Rows not in `rows` are left as they are."""
-        tick_rows(np.int64(j), rows, cs, obs, episodes, self.constants, out)
+        tick_rows(np.int64(j), rows, cs, obs, episodes, self.constants, out, scratch(self.constants))
 
 
 # ------------------------------------------------------------------------------------------ small math
@@ -309,11 +337,10 @@ def _reference(wp, quats, dt, time, pos, vel, acc, quat):
 
 # ------------------------------------------------------------------------------------------ kinematics
 @_jit
-def _chain(K, q, pos, mat, axes, anchors):
-    """Body poses pos (B, 3), mat (B, 3, 3) and the joints' world axes, anchors (J, 3) at joint angles q."""
+def _chain(K, q, pos, mat, axes, anchors, r, rot):
+    """Body poses pos (B, 3), mat (B, 3, 3) and the joints' world axes, anchors (J, 3) at joint angles q.
+    r, rot: (3, 3) scratch."""
     B = K.body_parent.shape[0]
-    r = np.empty((3, 3))
-    rot = np.empty((3, 3))
     for b in range(B):
         pa = K.body_parent[b]
         if pa < 0:
@@ -353,12 +380,12 @@ def _chain(K, q, pos, mat, axes, anchors):
 
 
 @_jit
-def _links(K, q, near, x, jac, pos, mat, axes, anchors):
+def _links(K, q, near, x, jac, pos, mat, axes, anchors, S):
     """The links' centre-line points x (L, 3) nearest the world points `near` (L, 3), and their Jacobians
-    jac (L, 3, J) (`kinematics.closest_on_links_and_jacobians`)."""
-    _chain(K, q, pos, mat, axes, anchors)
+    jac (L, 3, J) (`kinematics.closest_on_links_and_jacobians`). S: `Scratch` (its rows 26..29, m3[3:5])."""
+    _chain(K, q, pos, mat, axes, anchors, S.m3[3], S.m3[4])
     L, J = K.link_body.shape[0], q.shape[0]
-    centre, axis, d, c = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    centre, axis, d, c = S.v3[26], S.v3[27], S.v3[28], S.v3[29]
     for lk in range(L):
         b = K.link_body[lk]
         for i in range(3):
@@ -409,17 +436,22 @@ def _project(x, normals, mu, mask):
 
 
 @_jit
-def _solve(K, points, normals, active, mu, wrench, center, init, forces, lip=-1.0):
+def _solve(K, points, normals, active, mu, wrench, center, init, forces, S, lip=-1.0):
     """`wrench.solve` ("apg", `Controller._forces`): cone forces (L, 3) on the `active` links supplying `wrench`
     (6,) about `center`, pulled towards `grip_force` along each normal, from `init` (L, 3); written to forces.
 
     The grasp matrix's products are written per contact (its force rows are identities, its torque rows cross
     products with the contact's lever r_k): G y = (sum y_k, sum r_k x y_k) and (G^T e)_k = e_f + e_t x r_k,
     with the torque rows scaled by 1 / torque_length as in `wrench._solve`. `lip` > 0: the step's Lipschitz
-    constant, if known (it depends on the active contacts' positions only); the one used is returned."""
+    constant, if known (it depends on the active contacts' positions only); the one used is returned. S: `Scratch`
+    (its f[4J + 20:], gg and (L, 3) blocks 15 and 16)."""
     L = points.shape[0]
     s = 1.0 / K.torque_length
-    r = np.zeros((L, 3))  # the scaled levers of the active contacts
+    r = S.v3[N_VEC3 + 15 * L:N_VEC3 + 16 * L]  # the scaled levers of the active contacts
+    target = S.v3[N_VEC3 + 16 * L:N_VEC3 + 17 * L]
+    at = 4 * K.hand_qpos.shape[0] + 20
+    x, x_prev, y = S.f[at:at + 3 * L], S.f[at + 3 * L:at + 6 * L], S.f[at + 6 * L:at + 9 * L]
+    r[:] = 0.0
     for k in range(L):
         if active[k]:
             for i in range(3):
@@ -428,7 +460,8 @@ def _solve(K, points, normals, active, mu, wrench, center, init, forces, lip=-1.
     b3, b4, b5 = wrench[3] * s, wrench[4] * s, wrench[5] * s
     rho = K.rho
     if lip <= 0.0:  # the largest eigenvalue of G G^T = sum_k [[I, R_k^T], [R_k, R_k R_k^T]], R_k = [r_k]x
-        gg = np.zeros((6, 6))
+        gg = S.gg
+        gg[:] = 0.0
         for k in range(L):
             if not active[k]:
                 continue
@@ -457,16 +490,16 @@ def _solve(K, points, normals, active, mu, wrench, center, init, forces, lip=-1.
         lip = np.linalg.eigvalsh(gg)[-1] + rho
     ks = math.sqrt(lip / rho)
     beta = (ks - 1.0) / (ks + 1.0)
-    target = np.zeros((L, 3))
-    x = np.zeros(3 * L)
+    target[:] = 0.0
+    x[:] = 0.0
     for k in range(L):
         if active[k]:
             for i in range(3):
                 target[k, i] = K.grip_force * normals[k, i]
                 x[3 * k + i] = init[k, i]
     _project(x, normals, mu, active)
-    x_prev = x.copy()
-    y = np.zeros(3 * L)
+    x_prev[:] = x
+    y[:] = 0.0
     for _ in range(K.iterations):
         e0, e1, e2, e3, e4, e5 = -b0, -b1, -b2, -b3, -b4, -b5  # G y - b
         for k in range(L):
@@ -529,11 +562,12 @@ def _tool(K, obs, p, quat, vel, w_body, mat):
 
 
 @_jit
-def _status(K, j, obs, wp, quats, dt, out):
-    """`Physics.check` after tick j: out[0:3] = angle error [deg], position error [m], fell (0/1)."""
-    p, quat, vel, w_body, mat = np.empty(3), np.empty(4), np.empty(3), np.empty(3), np.empty((3, 3))
+def _status(K, j, obs, wp, quats, dt, out, S):
+    """`Physics.check` after tick j: out[0:3] = angle error [deg], position error [m], fell (0/1). S: `Scratch`."""
+    J, v3 = K.hand_qpos.shape[0], S.v3
+    p, quat, vel, w_body, mat = v3[0], S.f[4 * J:4 * J + 4], v3[1], v3[2], S.m3[0]
     finite = _tool(K, obs, p, quat, vel, w_body, mat)
-    ref_pos, ref_vel, ref_acc, ref_quat = np.empty(3), np.empty(3), np.empty(3), np.empty(4)
+    ref_pos, ref_vel, ref_acc, ref_quat = v3[4], v3[5], v3[6], S.f[4 * J + 4:4 * J + 8]
     _reference(wp, quats, dt, F32(j + 1) * K.timestep, ref_pos, ref_vel, ref_acc, ref_quat)
     dot = abs(quat[0] * ref_quat[0] + quat[1] * ref_quat[1] + quat[2] * ref_quat[2] + quat[3] * ref_quat[3])
     angle = math.degrees(2 * math.acos(min(max(dot, 0.0), 1.0)))
@@ -551,39 +585,39 @@ def _status(K, j, obs, wp, quats, dt, out):
 
 
 @_jit
-def _control(K, j, cs, obs, wp, quats, dt, w_ext, mass, inertia_d, com_t, friction, hold_time, out):
+def _control(K, j, cs, obs, wp, quats, dt, w_ext, mass, inertia_d, com_t, friction, hold_time, out, S):
     """`Physics.tick` j of one episode: out[:nu] motor commands, out[nu:nu + 6] the tool's external wrench; its
-    controller state cs (flat, float32) updated in place."""
+    controller state cs (flat, float32) updated in place. S: `Scratch` (every array below is one of its views)."""
     nq, nv, nu = K.nq, K.nv, K.nu
-    J, L = K.hand_qpos.shape[0], K.link_body.shape[0]
-    q, dq, bias = np.empty(J), np.empty(J), np.empty(J)
+    J, L, B = K.hand_qpos.shape[0], K.link_body.shape[0], K.body_parent.shape[0]
+    v3, m3, f, ints, bools = S.v3, S.m3, S.f, S.i, S.b
+    blocks = v3[N_VEC3:N_VEC3 + N_BLOCKS * L]
+    q, dq, bias, tau = f[0:J], f[J:2 * J], f[2 * J:3 * J], f[3 * J:4 * J]
     for i in range(J):
         q[i], dq[i], bias[i] = obs[K.hand_qpos[i]], obs[nq + K.hand_dof[i]], obs[nq + nv + K.hand_dof[i]]
-    p, quat, vel, w_body, mat = np.empty(3), np.empty(4), np.empty(3), np.empty(3), np.empty((3, 3))
+    p, quat, vel, w_body, mat = v3[0], f[4 * J:4 * J + 4], v3[1], v3[2], m3[0]
     _tool(K, obs, p, quat, vel, w_body, mat)
-    omega = np.empty(3)
+    omega = v3[3]
     for i in range(3):
         omega[i] = mat[i, 0] * w_body[0] + mat[i, 1] * w_body[1] + mat[i, 2] * w_body[2]
-    ref_pos, ref_vel, ref_acc, ref_quat = np.empty(3), np.empty(3), np.empty(3), np.empty(4)
+    ref_pos, ref_vel, ref_acc, ref_quat = v3[4], v3[5], v3[6], f[4 * J + 4:4 * J + 8]
     ts = K.timestep
 
     # ---- Physics.tick: the external wrench and the reference at this tick
     time = F32(j) * ts
     held = (F32(j + 1) * ts - hold_time) / K.ramp
     ramp = float(min(max(held, F32(0.0)), F32(1.0)))
-    ext = np.empty(6)
+    ext = f[4 * J + 8:4 * J + 14]
     for i in range(6):
         ext[i] = float(F32(ramp) * w_ext[i])
     _reference(wp, quats, dt, time, ref_pos, ref_vel, ref_acc, ref_quat)
 
     # ---- the controller state
     o = K.cs_options
-    options = np.empty(L, np.int64)
-    previous = np.empty(L, np.int64)
-    changed = np.empty(L, np.bool_)
-    anchored = np.empty(L, np.bool_)
-    load = np.empty(L, np.float32)
-    anchor, park, f_with, f_without = np.empty((L, 3)), np.empty((L, 3)), np.empty((L, 3)), np.empty((L, 3))
+    options, previous = ints[0:L], ints[L:2 * L]
+    changed, anchored = bools[0:L], bools[L:2 * L]
+    load = S.load
+    anchor, park, f_with, f_without = blocks[0:L], blocks[L:2 * L], blocks[2 * L:3 * L], blocks[3 * L:4 * L]
     for lk in range(L):
         options[lk] = int(round(cs[o + lk]))
         previous[lk] = int(round(cs[K.cs_previous + lk]))
@@ -610,17 +644,18 @@ def _control(K, j, cs, obs, wp, quats, dt, w_ext, mass, inertia_d, com_t, fricti
     w = min(max((u - times[seg]) / (times[seg + 1] - times[seg]), F32(0.0)), F32(1.0))
     w = w * w * (F32(3) - F32(2) * w)
     wd = float(w)
-    on_path = np.empty(3)
+    on_path = v3[7]
     for i in range(3):
         on_path[i] = (1 - wd) * cs[K.cs_path + 3 * seg + i] + wd * cs[K.cs_path + 3 * (seg + 1) + i]
     before_move = tau_s < K.unload
     in_move = u < F32(1.0)
 
     # ---- targets (tool frame), tracked links
-    current = np.empty(L, np.int64)
-    unloading, travelling, moving = np.empty(L, np.bool_), np.empty(L, np.bool_), np.empty(L, np.bool_)
-    tgt = np.empty((L, 3))
-    busy = np.zeros(K.n_fingers, np.bool_)
+    current = ints[2 * L:3 * L]
+    unloading, travelling, moving = bools[2 * L:3 * L], bools[3 * L:4 * L], bools[4 * L:5 * L]
+    tgt = blocks[4 * L:5 * L]
+    busy = bools[9 * L:9 * L + K.n_fingers]
+    busy[:] = False
     for lk in range(L):
         unloading[lk] = changed[lk] and before_move
         travelling[lk] = changed[lk] and in_move
@@ -638,13 +673,13 @@ def _control(K, j, cs, obs, wp, quats, dt, w_ext, mass, inertia_d, com_t, fricti
                 tgt[lk, i] = park[lk, i]
         if current[lk] > 0 or changed[lk]:
             busy[K.link_finger[lk]] = True
-    tracked = np.empty(L, np.bool_)
+    tracked = bools[5 * L:6 * L]
     for lk in range(L):
         tracked[lk] = current[lk] > 0 or changed[lk] or ((not busy[K.link_finger[lk]]) and K.link_is_tip[lk])
 
     # ---- targets fixed to the observed tool, the links there
-    x_ref, v_ref, nrm, nrm_t = np.empty((L, 3)), np.empty((L, 3)), np.empty((L, 3)), np.empty((L, 3))
-    d, c = np.empty(3), np.empty(3)
+    x_ref, v_ref, nrm, nrm_t = blocks[5 * L:6 * L], blocks[6 * L:7 * L], blocks[7 * L:8 * L], blocks[8 * L:9 * L]
+    d, c = v3[8], v3[9]
     for lk in range(L):
         for i in range(3):
             x_ref[lk, i] = p[i] + mat[i, 0] * tgt[lk, 0] + mat[i, 1] * tgt[lk, 1] + mat[i, 2] * tgt[lk, 2]
@@ -655,10 +690,10 @@ def _control(K, j, cs, obs, wp, quats, dt, w_ext, mass, inertia_d, com_t, fricti
         _cross(omega, d, c)
         for i in range(3):
             v_ref[lk, i] = vel[i] + c[i]
-    B = K.body_parent.shape[0]
-    x, jac = np.empty((L, 3)), np.empty((L, 3, J))
-    _links(K, q, x_ref, x, jac, np.empty((B, 3)), np.empty((B, 3, 3)), np.empty((J, 3)), np.empty((J, 3)))
-    v = np.empty((L, 3))
+    x, jac = blocks[9 * L:10 * L], S.jac
+    at = N_VEC3 + N_BLOCKS * L  # the (J, 3) and (B, 3) blocks
+    _links(K, q, x_ref, x, jac, v3[at + 2 * J:at + 2 * J + B], m3[5:5 + B], v3[at:at + J], v3[at + J:at + 2 * J], S)
+    v = blocks[10 * L:11 * L]
     for lk in range(L):
         for i in range(3):
             acc = 0.0
@@ -667,8 +702,8 @@ def _control(K, j, cs, obs, wp, quats, dt, w_ext, mass, inertia_d, com_t, fricti
             v[lk, i] = acc
 
     # ---- load fractions: down when a link is to let go, up once an arriving link touches
-    held = np.empty(L, np.bool_)
-    here = np.empty(3)
+    held = bools[6 * L:7 * L]
+    here = v3[10]
     for lk in range(L):
         cur = current[lk]
         want = cur > 0 and not unloading[lk] and not travelling[lk]
@@ -694,8 +729,9 @@ def _control(K, j, cs, obs, wp, quats, dt, w_ext, mass, inertia_d, com_t, fricti
         held[lk] = anchored[lk] and cur > 0
 
     # ---- tracking forces (`Controller._tracking`)
-    f_track = np.zeros((L, 3))
-    err, derr, jjt = np.empty(3), np.empty(3), np.empty((3, 3))
+    f_track = blocks[11 * L:12 * L]
+    f_track[:] = 0.0
+    err, derr, jjt = v3[11], v3[12], m3[2]
     ratio = K.held_ratio
     for lk in range(L):
         if not tracked[lk]:
@@ -717,33 +753,33 @@ def _control(K, j, cs, obs, wp, quats, dt, w_ext, mass, inertia_d, com_t, fricti
                     for jj in range(J):
                         acc += jac[lk, i, jj] * jac[lk, k, jj]
                     jjt[i, k] = acc + (K.free_damping**2 if i == k else 0.0)
-            _solve3(jjt, err, d)
+            _solve3(jjt, err, d, v3[30], v3[31], v3[32])
             for i in range(3):
                 f_track[lk, i] = K.free_stiffness * d[i] + K.finger_kd * derr[i]
 
     # ---- the tool's wrench (`Controller.tool_wrench`)
     m = float(mass)
-    r_com = np.empty(3)
+    r_com = v3[13]
     for i in range(3):
         r_com[i] = mat[i, 0] * com_t[0] + mat[i, 1] * com_t[1] + mat[i, 2] * com_t[2]
-    mat_ref = np.empty((3, 3))
+    mat_ref = m3[1]
     _quat_to_mat(ref_quat, mat_ref)
     _cross(omega, r_com, c)
     g = K.gravity
     weight = m * _norm3(g)
-    feedback = np.empty(3)
+    feedback = v3[14]
     for i in range(3):
         com_ref = ref_pos[i] + mat_ref[i, 0] * com_t[0] + mat_ref[i, 1] * com_t[1] + mat_ref[i, 2] * com_t[2]
         feedback[i] = m * (K.kp * (com_ref - (p[i] + r_com[i])) + K.kd * (ref_vel[i] - (vel[i] + c[i])))
-    stiff, damp = np.empty(3), np.empty(3)
+    stiff, damp = v3[15], v3[16]
     for i in range(3):
         stiff[i] = float(inertia_d[i]) + m * K.tool_radius**2
         damp[i] = min(stiff[i], K.rotation_step / (float(ts) * K.kd) * float(inertia_d[i]))
-    err_r = np.empty(3)
+    err_r = v3[17]
     _rotation_error(ref_quat, quat, err_r)
     # world-frame products: (mat diag(s) mat^T) v
-    turn, inertia_w = np.empty(3), np.empty(3)
-    lo_s, lo_d, lo_i = np.empty(3), np.empty(3), np.empty(3)  # in the tool frame
+    turn, inertia_w = v3[18], v3[19]
+    lo_s, lo_d, lo_i = v3[20], v3[21], v3[22]  # in the tool frame
     for k in range(3):
         lo_s[k] = K.kp * (mat[0, k] * err_r[0] + mat[1, k] * err_r[1] + mat[2, k] * err_r[2])
         lo_i[k] = mat[0, k] * omega[0] + mat[1, k] * omega[1] + mat[2, k] * omega[2]
@@ -758,14 +794,14 @@ def _control(K, j, cs, obs, wp, quats, dt, w_ext, mass, inertia_d, com_t, fricti
     _clip_norm(feedback, cap)
     _clip_norm(turn, cap * K.tool_radius)
     _cross(omega, inertia_w, c)
-    required = np.empty(6)
+    required = f[4 * J + 14:4 * J + 20]
     for i in range(3):
         required[i] = m * (ref_acc[i] - g[i]) + feedback[i] - ext[i]
         required[3 + i] = turn[i] + c[i] - ext[3 + i]
 
     # ---- the force solves on the observed tool, blended over the changed link's load
-    pts = np.empty((L, 3))
-    surface = np.empty(3)
+    pts = blocks[12 * L:13 * L]
+    surface = v3[23]
     for lk in range(L):
         cur = current[lk]
         for i in range(3):
@@ -773,16 +809,18 @@ def _control(K, j, cs, obs, wp, quats, dt, w_ext, mass, inertia_d, com_t, fricti
         for i in range(3):
             pts[lk, i] = p[i] + mat[i, 0] * surface[0] + mat[i, 1] * surface[1] + mat[i, 2] * surface[2]
     mu = K.friction_margin * float(friction)
-    com_w = p + r_com
-    active, active_b = np.empty(L, np.bool_), np.empty(L, np.bool_)
+    com_w = v3[24]
+    for i in range(3):
+        com_w[i] = p[i] + r_com[i]
+    active, active_b = bools[7 * L:8 * L], bools[8 * L:9 * L]
     share = F32(0.0)
     for lk in range(L):
         active[lk] = current[lk] > 0 and load[lk] > 0
         active_b[lk] = active[lk] and not changed[lk]
         if changed[lk]:
             share += load[lk]
-    f_a, f_b = np.empty((L, 3)), np.empty((L, 3))
-    lip = _solve(K, pts, nrm, active, mu, required, com_w, f_with, f_a)
+    f_a, f_b = blocks[13 * L:14 * L], blocks[14 * L:15 * L]
+    lip = _solve(K, pts, nrm, active, mu, required, com_w, f_with, f_a, S)
     same = True  # no link changing: both solves have one grasp matrix
     for lk in range(L):
         same = same and active[lk] == active_b[lk]
@@ -791,9 +829,8 @@ def _control(K, j, cs, obs, wp, quats, dt, w_ext, mass, inertia_d, com_t, fricti
             for i in range(3):
                 f_b[lk, i] = f_a[lk, i]
     else:
-        _solve(K, pts, nrm, active_b, mu, required, com_w, f_without, f_b, lip if same else -1.0)
+        _solve(K, pts, nrm, active_b, mu, required, com_w, f_without, f_b, S, lip if same else -1.0)
     sh = float(share)
-    tau = np.empty(J)
     for jj in range(J):
         acc = 0.0
         for lk in range(L):
@@ -830,11 +867,8 @@ def _same_bits(a, b):
 
 
 @_jit
-def _solve3(m, v, x):
-    """x (3,) with m x = v, by the adjugate (`controller._solve3`)."""
-    c0 = np.empty(3)
-    c1 = np.empty(3)
-    c2 = np.empty(3)
+def _solve3(m, v, x, c0, c1, c2):
+    """x (3,) with m x = v, by the adjugate (`controller._solve3`); c0, c1, c2 (3,) scratch."""
     _cross(m[1], m[2], c0)
     _cross(m[2], m[0], c1)
     _cross(m[0], m[1], c2)
@@ -844,25 +878,25 @@ def _solve3(m, v, x):
 
 
 @_jit
-def _control_row(K, j, r, cs, obs, episodes, out):
+def _control_row(K, j, r, cs, obs, episodes, out, S):
     _control(K, j, cs[r], obs[r], episodes.waypoints[r], episodes.quats[r], episodes.dt[r], episodes.w_ext[r],
-             episodes.mass[r], episodes.inertia[r], episodes.com[r], episodes.friction[r], episodes.hold_time[r], out)
+             episodes.mass[r], episodes.inertia[r], episodes.com[r], episodes.friction[r], episodes.hold_time[r], out, S)
 
 
 @_jit
-def tick_rows(j, rows, cs, obs, episodes, K, out):
+def tick_rows(j, rows, cs, obs, episodes, K, out, S):
     """`Tick.__call__`: the JAX tick's work for the episodes `rows` (the status of tick j - 1, then tick j)."""
     nu = K.nu
     for r in rows:
-        _status(K, j - 1, obs[r], episodes.waypoints[r], episodes.quats[r], episodes.dt[r], out[r, nu + 6:])
-        _control_row(K, j, r, cs, obs, episodes, out[r])
+        _status(K, j - 1, obs[r], episodes.waypoints[r], episodes.quats[r], episodes.dt[r], out[r, nu + 6:], S)
+        _control_row(K, j, r, cs, obs, episodes, out[r], S)
 
 
 @_jit
-def status_rows(j, rows, obs, episodes, K, out):
+def status_rows(j, rows, obs, episodes, K, out, S):
     """`Physics.check` after tick j of the episodes `rows`: out (E, 3) [angle, position error, fell]."""
     for r in rows:
-        _status(K, j, obs[r], episodes.waypoints[r], episodes.quats[r], episodes.dt[r], out[r])
+        _status(K, j, obs[r], episodes.waypoints[r], episodes.quats[r], episodes.dt[r], out[r], S)
 
 
 # ------------------------------------------------------------------------------------------ the engine
@@ -902,12 +936,12 @@ def step_rows(K, addr, rows, out, pedestals, geoms, drop, obs, buf):
 
 @_jit
 def segment(K, j0, drops, rows, cs, obs, episodes, addr, pedestals, geoms, fell, fall_tick, angle, perr, qpos,
-            out, buf):
+            out, S):
     """Control ticks j0 .. j0 + len(drops) - 1 of the episodes `rows`, each tick: the status of the tick before
     recorded (angle, perr (E, K), qpos (E, K, nq) at tick j - 1; fell (E,), fall_tick (E,) at the first fall),
     then, for an episode that has not fallen, the controller's tick j and one physics step with the pedestals
     drops[j - j0] metres down. The C backend's segment between two decisions, in one call without Python.
-    Returns the physics steps taken."""
+    S: the thread's `Scratch`. Returns the physics steps taken."""
     nq, nu = K.nq, K.nu
     steps = 0
     for r in rows:  # a row's ticks one after another (its model and data stay in the cache): rows are independent
@@ -915,7 +949,7 @@ def segment(K, j0, drops, rows, cs, obs, episodes, addr, pedestals, geoms, fell,
             j = j0 + i
             if j > 0:
                 st = out[r, nu + 6:]
-                _status(K, j - 1, obs[r], episodes.waypoints[r], episodes.quats[r], episodes.dt[r], st)
+                _status(K, j - 1, obs[r], episodes.waypoints[r], episodes.quats[r], episodes.dt[r], st, S)
                 if st[2] > 0.5 and not fell[r]:
                     fell[r], fall_tick[r] = True, j - 1
                 angle[r, j - 1], perr[r, j - 1] = st[0], st[1]
@@ -923,8 +957,8 @@ def segment(K, j0, drops, rows, cs, obs, episodes, addr, pedestals, geoms, fell,
                     qpos[r, j - 1, c] = obs[r, c]
             if fell[r]:
                 continue
-            _control_row(K, j, r, cs, obs, episodes, out[r])
-            _step_row(K, addr, r, out[r], pedestals, geoms, drops[i], obs, buf)
+            _control_row(K, j, r, cs, obs, episodes, out[r], S)
+            _step_row(K, addr, r, out[r], pedestals, geoms, drops[i], obs, S.buf)
             steps += 1
     return steps
 

@@ -275,8 +275,7 @@ class _Lockstep:
         self.device = jax.devices(device)[0] if device is None or isinstance(device, str) else device
         original = groups
         if named:
-            groups = [(p if hasattr(p, "in_physics") or isinstance(p, ActionTable) else jax.device_put(p, self.device),
-                       axis) for p, axis in groups]
+            groups = [(p if _outside_jax(p) else jax.device_put(p, self.device), axis) for p, axis in groups]
             self.groups = groups
         # the lockstep's batch is the groups' episodes one after another
         cat = lambda make: jax.tree.map(lambda *x: np.concatenate([np.asarray(a) for a in x]),  # noqa: E731
@@ -311,8 +310,7 @@ class _Lockstep:
         self.out = np.zeros((M, self.nu + 9), np.float32)  # each row's last tick: ctrl | external | status
         ends = np.cumsum(sizes)
         self.group_rows = [slice(int(e - n), int(e)) for e, n in zip(ends, sizes)]
-        self.decides = [pr.decide(0 if hasattr(policy, "in_physics") or isinstance(policy, ActionTable) else axis)
-                        for policy, axis in groups]
+        self.decides = [pr.decide(0 if _outside_jax(policy) else axis) for policy, axis in groups]
         # a policy that reads only its grasp and waypoint decides in numpy (`ActionTable`), without a JAX call
         self.tables = [action_table(policy, axis, n, phys.space.n_grasps, T) for (policy, axis), n
                        in zip(original, sizes)]
@@ -419,7 +417,7 @@ class _Lockstep:
         for i in range(n):  # tick by tick: the JAX controller, or an engine log
             j = j0 + i
             if self.controller == "native":
-                self.native(j, ids, self.cs, eng.obs, self.ep_native, self.out)
+                self.native(j, ids, self.cs, eng.obs, self.ep_native, self.out, self._scratch[w])
             else:
                 cs, out = self.pr.tick(self.cs[rows], eng.obs[rows], self.ep_flat[rows], j)
                 self.cs[rows], self.out[rows] = np.asarray(cs), np.asarray(out)
@@ -459,6 +457,12 @@ class ActionTable:
     it in numpy; policy axis 0 (one table per episode)."""
 
     table: np.ndarray  # (R, G, T) int32
+
+
+def _outside_jax(policy) -> bool:
+    """A group's policy that is not a JAX policy as given: one that decides in physics (its hook gives each
+    segment's policy, per episode) or an `ActionTable` (decided in numpy)."""
+    return hasattr(policy, "in_physics") or isinstance(policy, ActionTable)
 
 
 def action_table(policy, axis, rows: int, n_grasps: int, n_steps: int) -> np.ndarray | None:

@@ -156,32 +156,40 @@ class Episodes(NamedTuple):
     hold_time: np.ndarray  # (E,) float32: when the hold starts [s]
 
 
-N_VEC3 = 33  # Scratch.v3's leading 3-vectors (named in `_control`); its (L, 3), (J, 3) and (B, 3) blocks follow
-N_BLOCKS = 17  # Scratch.v3's (L, 3) blocks (`_control` 0..14, `_solve` 15 and 16)
+N_VEC3 = 25  # Scratch.v3's leading 3-vectors (named in `_control`; `_status` uses rows 0..6 as `_control` does)
+N_BLOCKS = 15  # Scratch.v3's (L, 3) blocks after them (named in `_control`)
 
 
 class Scratch(NamedTuple):
-    """One thread's working arrays for a tick (`_control`, `_status`, `_solve`) and a step (`_step_row`), so that
-    neither allocates: made once a thread by `scratch`, float64 unless named."""
+    """One thread's working arrays for a tick and a step, so that neither allocates: made once a thread by
+    `scratch`, float64 unless named. `_control` names its views of v3, m3, f, i and b; the helpers it calls have
+    fields of their own (a tick runs `_status`, then `_control`: they share v3's first rows, m3[0] and q4)."""
 
     v3: np.ndarray  # (N_VEC3 + N_BLOCKS L + 2 J + B, 3): 3-vectors, then (L, 3), (J, 3) and (B, 3) blocks
-    m3: np.ndarray  # (5 + B, 3, 3): 3x3 matrices, then the bodies' rotations
-    f: np.ndarray  # (4 J + 20 + 9 L,): J-, 4-, 6- and 3L-vectors
-    gg: np.ndarray  # (6, 6)
+    m3: np.ndarray  # (3 + B, 3, 3): 3x3 matrices, then the bodies' rotations
+    f: np.ndarray  # (4 J + 12,): J- and 6-vectors
+    q4: np.ndarray  # (2, 4): the tool's quaternion and the reference's
     jac: np.ndarray  # (L, 3, J)
     i: np.ndarray  # (3 L,) int64
     b: np.ndarray  # (9 L + n_fingers,) bool
     load: np.ndarray  # (L,) float32
+    kin_v: np.ndarray  # (4, 3): `_links`' centre, axis and two temporaries
+    kin_m: np.ndarray  # (2, 3, 3): `_chain`'s rotations
+    adj: np.ndarray  # (3, 3): `_solve3`'s cofactor rows
+    gg: np.ndarray  # (6, 6): `_solve`'s G G^T
+    lever: np.ndarray  # (2, L, 3): `_solve`'s scaled levers and preferred forces
+    apg: np.ndarray  # (3, 3 L): `_solve`'s iterate, the one before and the extrapolated point
     buf: np.ndarray  # (max(nq, nv, nu, 6),): `_step_row`'s copies in and out of MuJoCo
 
 
 def scratch(K: Constants) -> Scratch:
     """A `Scratch` for the hand and scene of `K` (one a thread: a tick writes all of it)."""
     J, L, B = K.hand_qpos.shape[0], K.link_body.shape[0], K.body_parent.shape[0]
-    return Scratch(v3=np.zeros((N_VEC3 + N_BLOCKS * L + 2 * J + B, 3)), m3=np.zeros((5 + B, 3, 3)),
-                   f=np.zeros(4 * J + 20 + 9 * L), gg=np.zeros((6, 6)), jac=np.zeros((L, 3, J)),
-                   i=np.zeros(3 * L, np.int64), b=np.zeros(9 * L + K.n_fingers, np.bool_), load=np.zeros(L, F32),
-                   buf=np.zeros(max(K.nq, K.nv, K.nu, 6)))
+    return Scratch(v3=np.zeros((N_VEC3 + N_BLOCKS * L + 2 * J + B, 3)), m3=np.zeros((3 + B, 3, 3)),
+                   f=np.zeros(4 * J + 12), q4=np.zeros((2, 4)), jac=np.zeros((L, 3, J)), i=np.zeros(3 * L, np.int64),
+                   b=np.zeros(9 * L + K.n_fingers, np.bool_), load=np.zeros(L, F32), kin_v=np.zeros((4, 3)),
+                   kin_m=np.zeros((2, 3, 3)), adj=np.zeros((3, 3)), gg=np.zeros((6, 6)), lever=np.zeros((2, L, 3)),
+                   apg=np.zeros((3, 3 * L)), buf=np.zeros(max(K.nq, K.nv, K.nu, 6)))
 
 
 def state_offsets(one_state: ControllerState) -> dict[str, int]:
@@ -245,11 +253,13 @@ class Tick:
                         com=f32(episodes.com), friction=f32(episodes.friction), hold_time=hold)
 
     def __call__(self, j: int, rows: np.ndarray, cs: np.ndarray, obs: np.ndarray, episodes: Episodes,
-                 out: np.ndarray) -> None:
+                 out: np.ndarray, work: Scratch | None = None) -> None:
         """Control tick j of the episodes `rows` (int64 indices into every array's leading axis): their states
         cs (E, C) float32 updated in place, out (E, nu + 9) float32 written, from observations obs (E, nq + 2 nv)
-        float32. Rows not in `rows` are left as they are."""
-        tick_rows(np.int64(j), rows, cs, obs, episodes, self.constants, out, scratch(self.constants))
+        float32. Rows not in `rows` are left as they are. `work`: the calling thread's `Scratch` (default: a new
+        one)."""
+        tick_rows(np.int64(j), rows, cs, obs, episodes, self.constants, out,
+                  scratch(self.constants) if work is None else work)
 
 
 # ------------------------------------------------------------------------------------------ small math
@@ -382,10 +392,10 @@ def _chain(K, q, pos, mat, axes, anchors, r, rot):
 @_jit
 def _links(K, q, near, x, jac, pos, mat, axes, anchors, S):
     """The links' centre-line points x (L, 3) nearest the world points `near` (L, 3), and their Jacobians
-    jac (L, 3, J) (`kinematics.closest_on_links_and_jacobians`). S: `Scratch` (its rows 26..29, m3[3:5])."""
-    _chain(K, q, pos, mat, axes, anchors, S.m3[3], S.m3[4])
+    jac (L, 3, J) (`kinematics.closest_on_links_and_jacobians`). S: `Scratch` (its kin_v, kin_m)."""
+    _chain(K, q, pos, mat, axes, anchors, S.kin_m[0], S.kin_m[1])
     L, J = K.link_body.shape[0], q.shape[0]
-    centre, axis, d, c = S.v3[26], S.v3[27], S.v3[28], S.v3[29]
+    centre, axis, d, c = S.kin_v[0], S.kin_v[1], S.kin_v[2], S.kin_v[3]
     for lk in range(L):
         b = K.link_body[lk]
         for i in range(3):
@@ -444,13 +454,11 @@ def _solve(K, points, normals, active, mu, wrench, center, init, forces, S, lip=
     products with the contact's lever r_k): G y = (sum y_k, sum r_k x y_k) and (G^T e)_k = e_f + e_t x r_k,
     with the torque rows scaled by 1 / torque_length as in `wrench._solve`. `lip` > 0: the step's Lipschitz
     constant, if known (it depends on the active contacts' positions only); the one used is returned. S: `Scratch`
-    (its f[4J + 20:], gg and (L, 3) blocks 15 and 16)."""
+    (its gg, lever and apg)."""
     L = points.shape[0]
     s = 1.0 / K.torque_length
-    r = S.v3[N_VEC3 + 15 * L:N_VEC3 + 16 * L]  # the scaled levers of the active contacts
-    target = S.v3[N_VEC3 + 16 * L:N_VEC3 + 17 * L]
-    at = 4 * K.hand_qpos.shape[0] + 20
-    x, x_prev, y = S.f[at:at + 3 * L], S.f[at + 3 * L:at + 6 * L], S.f[at + 6 * L:at + 9 * L]
+    r, target = S.lever[0], S.lever[1]  # the scaled levers of the active contacts, the preferred forces
+    x, x_prev, y = S.apg[0], S.apg[1], S.apg[2]
     r[:] = 0.0
     for k in range(L):
         if active[k]:
@@ -564,10 +572,10 @@ def _tool(K, obs, p, quat, vel, w_body, mat):
 @_jit
 def _status(K, j, obs, wp, quats, dt, out, S):
     """`Physics.check` after tick j: out[0:3] = angle error [deg], position error [m], fell (0/1). S: `Scratch`."""
-    J, v3 = K.hand_qpos.shape[0], S.v3
-    p, quat, vel, w_body, mat = v3[0], S.f[4 * J:4 * J + 4], v3[1], v3[2], S.m3[0]
+    v3 = S.v3
+    p, quat, vel, w_body, mat = v3[0], S.q4[0], v3[1], v3[2], S.m3[0]
     finite = _tool(K, obs, p, quat, vel, w_body, mat)
-    ref_pos, ref_vel, ref_acc, ref_quat = v3[4], v3[5], v3[6], S.f[4 * J + 4:4 * J + 8]
+    ref_pos, ref_vel, ref_acc, ref_quat = v3[4], v3[5], v3[6], S.q4[1]
     _reference(wp, quats, dt, F32(j + 1) * K.timestep, ref_pos, ref_vel, ref_acc, ref_quat)
     dot = abs(quat[0] * ref_quat[0] + quat[1] * ref_quat[1] + quat[2] * ref_quat[2] + quat[3] * ref_quat[3])
     angle = math.degrees(2 * math.acos(min(max(dot, 0.0), 1.0)))
@@ -595,19 +603,19 @@ def _control(K, j, cs, obs, wp, quats, dt, w_ext, mass, inertia_d, com_t, fricti
     q, dq, bias, tau = f[0:J], f[J:2 * J], f[2 * J:3 * J], f[3 * J:4 * J]
     for i in range(J):
         q[i], dq[i], bias[i] = obs[K.hand_qpos[i]], obs[nq + K.hand_dof[i]], obs[nq + nv + K.hand_dof[i]]
-    p, quat, vel, w_body, mat = v3[0], f[4 * J:4 * J + 4], v3[1], v3[2], m3[0]
+    p, quat, vel, w_body, mat = v3[0], S.q4[0], v3[1], v3[2], m3[0]
     _tool(K, obs, p, quat, vel, w_body, mat)
     omega = v3[3]
     for i in range(3):
         omega[i] = mat[i, 0] * w_body[0] + mat[i, 1] * w_body[1] + mat[i, 2] * w_body[2]
-    ref_pos, ref_vel, ref_acc, ref_quat = v3[4], v3[5], v3[6], f[4 * J + 4:4 * J + 8]
+    ref_pos, ref_vel, ref_acc, ref_quat = v3[4], v3[5], v3[6], S.q4[1]
     ts = K.timestep
 
     # ---- Physics.tick: the external wrench and the reference at this tick
     time = F32(j) * ts
     held = (F32(j + 1) * ts - hold_time) / K.ramp
     ramp = float(min(max(held, F32(0.0)), F32(1.0)))
-    ext = f[4 * J + 8:4 * J + 14]
+    ext = f[4 * J:4 * J + 6]
     for i in range(6):
         ext[i] = float(F32(ramp) * w_ext[i])
     _reference(wp, quats, dt, time, ref_pos, ref_vel, ref_acc, ref_quat)
@@ -692,7 +700,7 @@ def _control(K, j, cs, obs, wp, quats, dt, w_ext, mass, inertia_d, com_t, fricti
             v_ref[lk, i] = vel[i] + c[i]
     x, jac = blocks[9 * L:10 * L], S.jac
     at = N_VEC3 + N_BLOCKS * L  # the (J, 3) and (B, 3) blocks
-    _links(K, q, x_ref, x, jac, v3[at + 2 * J:at + 2 * J + B], m3[5:5 + B], v3[at:at + J], v3[at + J:at + 2 * J], S)
+    _links(K, q, x_ref, x, jac, v3[at + 2 * J:at + 2 * J + B], m3[3:3 + B], v3[at:at + J], v3[at + J:at + 2 * J], S)
     v = blocks[10 * L:11 * L]
     for lk in range(L):
         for i in range(3):
@@ -753,7 +761,7 @@ def _control(K, j, cs, obs, wp, quats, dt, w_ext, mass, inertia_d, com_t, fricti
                     for jj in range(J):
                         acc += jac[lk, i, jj] * jac[lk, k, jj]
                     jjt[i, k] = acc + (K.free_damping**2 if i == k else 0.0)
-            _solve3(jjt, err, d, v3[30], v3[31], v3[32])
+            _solve3(jjt, err, d, S.adj[0], S.adj[1], S.adj[2])
             for i in range(3):
                 f_track[lk, i] = K.free_stiffness * d[i] + K.finger_kd * derr[i]
 
@@ -794,7 +802,7 @@ def _control(K, j, cs, obs, wp, quats, dt, w_ext, mass, inertia_d, com_t, fricti
     _clip_norm(feedback, cap)
     _clip_norm(turn, cap * K.tool_radius)
     _cross(omega, inertia_w, c)
-    required = f[4 * J + 14:4 * J + 20]
+    required = f[4 * J + 6:4 * J + 12]
     for i in range(3):
         required[i] = m * (ref_acc[i] - g[i]) + feedback[i] - ext[i]
         required[3 + i] = turn[i] + c[i] - ext[3 + i]

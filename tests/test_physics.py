@@ -353,9 +353,8 @@ def test_c_continuation_from_a_snapshot_is_the_original_run(phys, batch, runs):
     """`c_backend.simulate(..., until=2)` stops at the start of segment 2 with a `Snapshot` (MuJoCo's state rows,
     the observation, the controller states, the traces so far); continued from it (`start=`) the run is the
     uninterrupted one bit for bit, and so are its outcomes alone (`outcomes=True`), run on engines used before.
-    Branched from it under another
-    policy (the middle tip kept from segment 2 on instead of changed), the rows share the past and part from segment
-    2 on."""
+    Branched from it under another policy (the middle tip kept from segment 2 on instead of changed), the rows share
+    the past and part from segment 2 on."""
     from gsp_jax.physics import c_backend
 
     episodes, policy, _ = batch

@@ -30,6 +30,7 @@ COMMANDS = {  # command -> (module, one-line help)
     "ik-spikes": ("experiments.diagnostics.ik_spikes", "IK local minima: spikes between converged neighbours, with and without extra starts"),
     "precision": ("experiments.diagnostics.precision", "float32 reward spread across CPUs, 1-ulp inputs and float64 (test tolerances)"),
     "reproduce": ("experiments.paper.reproduce", "everything above in sequence, one Markdown report (--quick on CPU)"),
+    "figures": ("experiments.paper.figures", "every figure the README shows, each by its documented command and size; --stale: which records the code has moved past"),
 }
 
 
@@ -102,6 +103,7 @@ def main(argv: list[str] | None = None) -> None:
     from gsp_jax import model as model_lib
 
     common.RECORD = common.RECORD or args.record  # a command run by another (`common.run_command`) keeps it
+    common.COMMAND = common.COMMAND or list(words)  # the command a record names: the outermost one
     for plugin in args.plugin:
         load_plugin(plugin)
     if getattr(args, "model", None) is not None:
@@ -113,6 +115,8 @@ def main(argv: list[str] | None = None) -> None:
     from gsp_jax import files, scenario
 
     try:
+        for parts in getattr(module, "results_folders", lambda _: [])(args):  # its results folders, locked before
+            common.results_dir(*parts)  # any set-up: a busy one stops it here (its own results_dir calls: no-ops)
         module.main(args)
     except (files.FolderInUse, scenario.EpisodeError) as e:  # a user's input or a busy folder: the message, no trace
         raise SystemExit(f"{args.command}: {e}") from None

@@ -86,6 +86,7 @@ def fingerprint(ctx) -> str:
 
 DATA = ROOT / "docs" / "data"  # the current result of each benchmark and figure, and their histories
 RECORD = False  # `python -m experiments --record <command>`: `record` writes to DATA (off: runs leave docs alone)
+COMMAND: list[str] | None = None  # the words of the command a record names (set by the outermost `main`)
 
 
 def device_slug() -> str:
@@ -109,11 +110,11 @@ def record(name: str, figures: dict, data: pathlib.Path | None = None) -> dict |
         dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
                                text=True).stdout.strip()
         commit += "+dirty" if dirty else ""
-    except (OSError, subprocess.CalledProcessError):
-        commit = "unknown"
+    except (OSError, subprocess.CalledProcessError):  # a copy without git's history (a cluster's, a GPU host's)
+        commit = os.environ.get("GSP_JAX_COMMIT", "unknown")  # the commit the copy was made from, where one says so
     row = dict(name=name, date=datetime.datetime.now().isoformat(timespec="minutes"), commit=commit,
                device=f"{jax.devices()[0].device_kind} ({jax.default_backend()}, {os.cpu_count()} cores)",
-               command="python -m experiments " + " ".join(sys.argv[1:]), figures=figures)
+               command="python -m experiments " + " ".join(COMMAND or sys.argv[1:]), figures=figures)
     text = json.dumps(row, default=float)
     (data / "history").mkdir(parents=True, exist_ok=True)
     files.write_json(data / f"{name}.json", json.loads(text))

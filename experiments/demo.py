@@ -232,6 +232,11 @@ def _render_gif(phys: physics.Physics, trace: str) -> None:
     render.save_gif(f"{stem}.gif", render.caption(render.frames(phys.model, qpos), texts), fps=render.GIF_FPS)
 
 
+def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
+    """The `results_dir` parts of the folders it writes: `python -m experiments` locks them before its set-up."""
+    return [] if args.gif_from else [("demo",)]  # the GIF child renders for its parent
+
+
 def main(args: argparse.Namespace) -> None:
     if args.gif_from:
         _render_gif(physics.Physics(Surrogate()), args.gif_from)

@@ -148,6 +148,13 @@ def test_results_table_is_docs_data():
         table1["paper_s"][p] for p in ORDER]
 
 
+def _named(prefix: str) -> str:
+    """The one docs/data record whose name starts with `prefix` that the README cites."""
+    names = {n for unit in _units() for n in _cited(unit) if n.startswith(prefix)}
+    assert len(names) == 1, f"README.md cites {sorted(names)} for {prefix}*"
+    return names.pop()
+
+
 def _claim(pattern: str) -> tuple[str, ...]:
     found = re.findall(pattern, " ".join(README.read_text().split()))
     assert len(found) == 1, f"README.md states {pattern!r} {len(found)} times"
@@ -163,24 +170,25 @@ def test_readme_sentences_are_docs_data():
     fig4b = _file("fig4b_h100")["figures"]["L1-physics"]
     falls, n, angle = _claim(r"evaluation set: (\d+) of (\d+) falls, ([\d.]+)° mean angle error \(H100 host, `fig4b_h100`\)")
     assert (int(falls), int(n), float(angle)) == (fig4b["falls"], fig4b["episodes"], round(fig4b["mean_deg"], 1))
-    stress = _file("envelope_stress_h200")["figures"]
+    stress_name, eval_name = _named("envelope_stress_"), _named("envelope_eval_")
+    stress = _file(stress_name)["figures"]
     kinds, pool = stress["summary"]["kinds"], stress["summary"]["pool"]
     got = _claim(r"stress set: (\d+) of (\d+) falls, regret (\d+) \(four tips (\d+), DP optimal (\d+), L1 (\d+); "
-                 r"H200 host, `envelope_stress_h200`\)")
+                 rf"H\d+ host, `{stress_name}`\)")
     assert tuple(map(int, got)) == (kinds["L1-physics"]["falls"], stress["episodes"], kinds["L1-physics"]["regret"],
                                     kinds["four-tips"]["falls"], kinds["dp-opt"]["falls"], kinds["L1"]["falls"])
     got = _claim(r"The stress set has (\d+) episodes.*? The constant four-tip grasp drops (\d+) of them\. For (\d+) of those"
                  r".*?\(DP optimal (\d+), L1 (\d+), L2 (\d+), RL (\d+); L1-physics (\d+)\)\. Of the sequences the "
-                 r"surrogate calls feasible, (\d+)% hold \(the aim is 95%\)\. H200 host, `envelope_stress_h200`")
+                 rf"surrogate calls feasible, (\d+)% hold \(the aim is 95%\)\. H\d+ host, `{stress_name}`")
     four = kinds["four-tips"]
     assert tuple(map(int, got)) == (stress["episodes"], four["falls"], four["controller"],
                                     *(kinds[k]["regret"] for k in ("dp-opt", "L1", "L2", "rl", "L1-physics")),
                                     round(100 * pool["feasible_hold_share"]))
-    rho, auc = _claim(r"Spearman ρ ([\d.]+), AUC ([\d.]+) \(holds against falls\) on the stress pool \(H200 host, "
-                      r"`envelope_stress_h200`\)")
+    rho, auc = _claim(r"Spearman ρ ([\d.]+), AUC ([\d.]+) \(holds against falls\) on the stress pool \(H\d+ host, "
+                      rf"`{stress_name}`\)")
     assert (float(rho), float(auc)) == (round(pool["spearman_pooled"], 2), round(pool["auc_pooled"], 2))
-    rl = _file("envelope_eval_h200")["figures"]["summary"]["kinds"]["rl"]
-    falls = _claim(r"RL's (\d+) falls are all necessary by the feasibility oracle \(H200 host, `envelope_eval_h200`\)")
+    rl = _file(eval_name)["figures"]["summary"]["kinds"]["rl"]
+    falls = _claim(rf"RL's (\d+) falls are all necessary by the feasibility oracle \(H\d+ host, `{eval_name}`\)")
     assert int(falls[0]) == rl["falls"] == rl["necessary"]
     holm = {(p["a"], p["b"]): p["p_holm"] for p in _report()["fig4a"]["anova"]["posthoc"]}
     bound = float(_claim(r"L1 and L2 beat RL and DP baseline in the surrogate \(Holm-corrected p ≤ ([\d.]+)\)")[0])
@@ -191,7 +199,8 @@ def test_docs_data_has_one_schema_and_a_history_per_result():
     """Every current result in docs/data has the one schema, is named <figure>_<device> after the machine it records,
     and its history (docs/data/history/<name>.jsonl, a row per run) ends with it; nothing else lives there."""
     current = sorted(DATA.glob("*.json"))
-    expected = {f"fig4a_{_gpu()}", f"fig4b_{_gpu()}", f"table1_{_gpu()}", "envelope_stress_h200", "envelope_eval_h200"}
+    expected = {f"fig4a_{_gpu()}", f"fig4b_{_gpu()}", f"table1_{_gpu()}", _named("envelope_stress_"),
+                _named("envelope_eval_")}
     assert {p.stem for p in current} >= expected
     assert {p.name for p in DATA.iterdir()} == {p.name for p in current} | {"history"}, sorted(DATA.iterdir())
     for path in current:
@@ -238,3 +247,58 @@ def test_record_writes_the_current_result_and_appends_its_history(tmp_path, monk
     assert json.loads((tmp_path / f"bench_x_{slug}.json").read_text()) == second
     rows = [json.loads(line) for line in (tmp_path / "history" / f"bench_x_{slug}.jsonl").read_text().splitlines()]
     assert rows == [first, second]
+
+
+def test_no_readme_figure_is_stale():
+    """Every docs/data record the README cites was made by its figure's documented command (`experiments/paper/figures.py`)
+    at a commit whose code it measures is the code here: a change to that code since (`git diff`), a record from a
+    tree with uncommitted changes or by another command makes the figure stale until `python -m experiments --record
+    figures` records it again."""
+    import subprocess
+
+    import pytest
+
+    from experiments.paper import figures
+
+    if subprocess.run(["git", "rev-parse", "--is-shallow-repository"], cwd=ROOT, capture_output=True,
+                      text=True).stdout.strip() != "false":
+        pytest.skip("needs the project's whole git history (a full clone)")
+    cited = sorted({name for unit in _units() for name in _cited(unit)})
+    assert cited, "the README cites no docs/data record"
+    stale = {name: why for name in cited if (why := figures.stale(_file(name)))}
+    assert not stale, "stale README figures (python -m experiments --record figures):\n" + "\n".join(
+        f"{name}: {'; '.join(why)}" for name, why in stale.items())
+
+
+def test_staleness_sees_a_change_to_the_code_a_record_measures(tmp_path):
+    """`figures.stale` on a record of the current commit: current as long as the code it measures is unchanged; a
+    changed measured file, a dirty tree or another command make it stale (git in a scratch clone)."""
+    import shutil
+    import subprocess
+
+    import pytest
+
+    from experiments import common
+    from experiments.paper import figures
+
+    if shutil.which("git") is None or not (ROOT / ".git").exists():
+        pytest.skip("needs git and the project's repository")
+    clone = tmp_path / "clone"
+    subprocess.run(["git", "clone", "-q", "--depth", "1", f"file://{ROOT}", str(clone)], check=True)
+    head = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=clone, capture_output=True, text=True,
+                          check=True).stdout.strip()
+    fig = next(f for f in figures.FIGURES if f.name == "envelope-stress")
+    row = dict(name="envelope_stress_h100", commit=head, command="python -m experiments --record " + " ".join(fig.command))
+    original = common.ROOT
+    try:
+        common.ROOT = clone
+        assert figures.stale(row) == []
+        assert figures.stale(dict(row, commit=head + "+dirty")) and figures.stale(dict(row, command="python -m "
+                                                                                     "experiments envelope"))
+        (clone / "README.md").write_text("not measured\n")
+        assert figures.stale(row) == []
+        with open(clone / "gsp_jax" / "reward.py", "a") as f:
+            f.write("\n# changed\n")
+        assert any("gsp_jax/reward.py" in why for why in figures.stale(row))
+    finally:
+        common.ROOT = original

@@ -136,3 +136,62 @@ def test_a_results_folder_is_one_commands_at_a_time(tmp_path):
                           cwd=tmp_path, env=env, capture_output=True, text=True)  # takes over the stale lock
     assert done.returncode == 0 and "stale lock" in done.stderr, done.stderr
     assert not (tmp_path / "results" / "fig4b" / files.LOCK_NAME).exists()  # released at exit
+
+
+FOLDERS_HOLD = """
+import sys, time
+from experiments.common import results_dir
+for part in sys.argv[1:]:
+    results_dir(part)
+print("holding", flush=True)
+time.sleep(120)
+"""
+
+
+def test_a_command_takes_its_folders_before_its_set_up(tmp_path, monkeypatch):
+    """A second command on a busy results folder is refused before its set-up (`results_folders`, locked by
+    `python -m experiments`), not after minutes of DP tables: `train --out X` and `envelope`."""
+    from experiments import __main__ as cli, common
+    from experiments.physics import envelope
+
+    env = {**os.environ, "PYTHONPATH": str(pathlib.Path(__file__).resolve().parents[1]), "JAX_PLATFORMS": "cpu"}
+    owner = subprocess.Popen([sys.executable, "-c", FOLDERS_HOLD, "train-x", "envelope"], cwd=tmp_path, env=env,
+                             stdout=subprocess.PIPE, text=True)
+    try:
+        assert owner.stdout.readline().strip() == "holding"
+        try:  # before the change: the DP tables first (minutes), then the refusal
+            second = subprocess.run([sys.executable, "-m", "experiments", "train", "--out", "train-x", "--seeds", "1",
+                                     "--iterations", "1"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                                    timeout=90)
+        except subprocess.TimeoutExpired:
+            pytest.fail("train --out train-x on a busy folder was not refused before its set-up")
+        assert second.returncode != 0
+        assert f"train: results/train-x: in use by process {owner.pid}" in second.stderr, second.stderr
+        assert "preset" not in second.stdout and not (tmp_path / "results" / "tables").exists()  # no set-up
+
+        def set_up(*args, **kwargs):
+            raise AssertionError("envelope set up on a busy folder")
+
+        monkeypatch.chdir(tmp_path)
+        monkeypatch.setattr(common, "COMMAND", None)  # main sets it: not left to the other tests
+        monkeypatch.setattr(envelope.evaluation, "context", set_up)
+        with pytest.raises(SystemExit) as stop:
+            cli.main(["envelope", "--set", "eval", "--episodes", "1", "--random", "0"])
+        assert f"envelope: results/envelope: in use by process {owner.pid}" in str(stop.value), stop.value
+    finally:
+        owner.kill()
+        owner.wait()
+
+
+def test_every_command_writing_results_declares_its_folders():
+    """A command module that calls `results_dir` says which folders it writes (`results_folders(args)`), so that
+    `python -m experiments` takes their locks before the command's work."""
+    import importlib.util
+
+    from experiments.__main__ import COMMANDS
+
+    for command, (module, _) in COMMANDS.items():
+        spec = importlib.util.find_spec(module)
+        source = pathlib.Path(spec.origin).read_text() if spec and spec.origin else ""
+        if "results_dir(" in source:
+            assert "\ndef results_folders(args" in source, f"{command} ({module}): no results_folders(args)"

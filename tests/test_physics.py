@@ -349,6 +349,51 @@ def test_c_pool_keeps_at_most_its_size_the_episode_used_longest_ago_dropped_firs
     assert pool._count == 2 and a not in pool._free and len(pool._free[b]) == 2
 
 
+def test_c_pool_past_its_size_keeps_no_episode_without_a_pair(phys):
+    """`c_backend.Pool` beyond `most`: an episode whose last pair was taken (and not yet given back) leaves the pool,
+    so the pairs dropped first are always kept ones (the pool once kept such an episode first in line and failed to
+    drop from it)."""
+    from gsp_jax.physics import c_backend
+
+    pool, a, b = c_backend.Pool(most=2), b"episode a", b"episode b"
+    pool.give(a, "model a1", "data a1")
+    pool.give(b, "model b1", "data b1")
+    assert pool.take(phys.scene, a, lambda: None) == ("model a1", "data a1")  # a's last pair: a is not kept
+    assert a not in pool._free
+    pool.give(b, "model b2", "data b2")
+    pool.give(b, "model b3", "data b3")  # three pairs kept: one of b's goes
+    assert pool._count == 2 and list(pool._free) == [b] and len(pool._free[b]) == 2
+    pool.give(a, "model a1", "data a1")  # a given back last: b, given back longest ago, loses a pair
+    assert pool._count == 2 and list(pool._free) == [b, a] and len(pool._free[b]) == 1
+
+
+def test_c_branches_on_a_pool_past_its_size_are_the_runs_without_it(phys, batch, runs, monkeypatch):
+    """L1-physics' pattern on a pool of 3 pairs: each episode's snapshot branched twice (two rows of each episode, one
+    after the other), three times over: take, give, take again, drop the pairs beyond 3 (with an episode's last pair
+    out in a branch while others are given back). Every branch is the uninterrupted run without a pool, bit for bit,
+    and the pool never keeps more than its size."""
+    from gsp_jax.physics import c_backend
+
+    episodes, policy, _ = batch
+    snap = c_backend.simulate(phys, [(policy, 0)], episodes, until=2)
+    rows = np.repeat(np.arange(5), 2)
+    pick = lambda tree: jax.tree.map(lambda x: np.asarray(x)[rows], tree)  # noqa: E731
+    fields = jax.device_get(jax.vmap(phys.scene.episode_fields)(episodes))
+    assert len({c_backend.Pool.key(jax.tree.map(lambda x: x[e], fields)) for e in range(5)}) >= 3
+    pool = c_backend.Pool(most=3)
+    monkeypatch.setitem(phys._jitted, "c-pool", pool)
+    ref = pick(runs["c"])
+    for outcomes in (False, True, False):
+        out, = c_backend.simulate(phys, [(pick(policy), 0)], pick(episodes), start=snap.take(rows), outcomes=outcomes)
+        if outcomes:
+            for got, want in zip(out, (ref.fell, ref.angle_error, ref.actions)):
+                np.testing.assert_array_equal(got, want)
+        else:
+            for f in ("qpos", "angle", "fell", "fall_time", "actions", "grasps", "angle_error"):
+                np.testing.assert_array_equal(getattr(out, f), getattr(ref, f), err_msg=f)
+        assert pool._count == sum(map(len, pool._free.values())) == 3 and all(pool._free.values())
+
+
 def test_c_continuation_from_a_snapshot_is_the_original_run(phys, batch, runs):
     """`c_backend.simulate(..., until=2)` stops at the start of segment 2 with a `Snapshot` (MuJoCo's state rows,
     the observation, the controller states, the traces so far); continued from it (`start=`) the run is the

@@ -23,6 +23,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=None)
 
 
+def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
+    """The `results_dir` parts of the folders it writes: `python -m experiments` locks them before its set-up."""
+    return [] if args.out else [()]  # results/ itself
+
+
 def main(args: argparse.Namespace) -> None:
     env = surrogate.Surrogate()
     evals = list(scenario.episode_set("eval").values())[: args.episodes]

@@ -55,6 +55,11 @@ def _variants(specs) -> list[tuple[str, physics.PhysicsConfig]]:
     return out
 
 
+def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
+    """The `results_dir` parts of the folders it writes: `python -m experiments` locks them before its set-up."""
+    return [] if args.out else [("bench",)]
+
+
 def main(args: argparse.Namespace) -> None:
     env = surrogate.Surrogate()
     device = jax.devices()[0]

@@ -72,6 +72,11 @@ def run_child(cache: str, args) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
+    """The `results_dir` parts of the folders it writes: `python -m experiments` locks them before its set-up."""
+    return [] if args.out else [("bench",)]
+
+
 def main(args: argparse.Namespace) -> None:
     from experiments import common
 

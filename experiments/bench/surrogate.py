@@ -23,6 +23,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=None, help="JSON file for the results (default results/bench_surrogate.json)")
 
 
+def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
+    """The `results_dir` parts of the folders it writes: `python -m experiments` locks them before its set-up."""
+    return [] if args.out else [()]  # results/ itself
+
+
 def main(args: argparse.Namespace) -> None:
     ep = scenario.make_episode()
     env = surrogate.Surrogate()

@@ -52,6 +52,11 @@ def spikes(err: np.ndarray, col: np.ndarray) -> np.ndarray:
     return (mid > SPIKE) & (err[..., :-2] < NEIGHBOUR) & (err[..., 2:] < NEIGHBOUR) & ~col[..., 1:-1]
 
 
+def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
+    """The `results_dir` parts of the folders it writes: `python -m experiments` locks them before its set-up."""
+    return [("ik",)]
+
+
 def main(args: argparse.Namespace) -> None:
     episodes = scenario.episode_set(args.set)
     batch = scenario.stack(list(episodes.values()))

@@ -146,6 +146,11 @@ def _compare(ref: dict, other: dict, episodes) -> dict:
     )
 
 
+def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
+    """The `results_dir` parts of the folders it writes: `python -m experiments` locks them before its set-up."""
+    return [] if args.worker else [("precision",), ("precision", "raw")]  # a worker writes for its parent
+
+
 def main(args) -> None:
     if args.worker:
         return _worker(args)

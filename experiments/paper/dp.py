@@ -63,6 +63,11 @@ def timeline_png(env, name: str, grasps: np.ndarray, alive: np.ndarray, path) ->
     plt.close(fig)
 
 
+def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
+    """The `results_dir` parts of the folders it writes: `python -m experiments` locks them before its set-up."""
+    return [()]  # results/ itself
+
+
 def main(args: argparse.Namespace) -> None:
     env = surrogate.Surrogate()
     episodes = scenario.episode_set(args.set)

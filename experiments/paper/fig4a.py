@@ -66,6 +66,11 @@ def figures(result: dict) -> dict:
                 relative=result["relative"])
 
 
+def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
+    """The `results_dir` parts of the folders it writes: `python -m experiments` locks them before its set-up."""
+    return [("fig4a",)]
+
+
 def main(args: argparse.Namespace) -> None:
     backend = args.backend or ("surrogate" if jax.default_backend() == "gpu" else "table")
     ctx = evaluation.context(args.set, args.episodes, args.policy_dir)

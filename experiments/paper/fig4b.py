@@ -121,6 +121,11 @@ def figures(results: dict) -> dict:
                        backend=r.get("backend")) for name, r in results.items()}
 
 
+def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
+    """The `results_dir` parts of the folders it writes: `python -m experiments` locks them before its set-up."""
+    return [("fig4b",)]
+
+
 def main(args: argparse.Namespace) -> None:
     common.check_planners(args.policies, "--policies", args.backend)
     common.check_planners(args.bases, "--bases")

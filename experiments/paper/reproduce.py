@@ -52,6 +52,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="rebuild REPORT.md from the saved results (e.g. copied back from a GPU run) without rerunning")
 
 
+def _trains(args: argparse.Namespace, p: dict) -> bool:
+    """Whether the run trains the PPO policy first (--train, or the preset trains and no policy is there)."""
+    have_policy = evaluation.TRAINED_POLICY.exists() or evaluation.SHIPPED_POLICY.exists()
+    return args.policy_dir is None and (args.train or (p["train"] and not have_policy))
+
+
+def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
+    """The `results_dir` parts of the folders it writes: `python -m experiments` locks them before its set-up (its
+    stages' commands then hold them already)."""
+    if args.report_only:
+        return []
+    train = [("train",)] if _trains(args, PRESETS[args.preset or "quick"]) else []
+    return train + [(stage,) for stage in ("fig4a", "table1", "fig4b") if stage not in args.skip]
+
+
 def main(args: argparse.Namespace) -> None:
     preset = args.preset or "quick"
     p = PRESETS[preset]
@@ -62,8 +77,7 @@ def main(args: argparse.Namespace) -> None:
     t_start = time.perf_counter()
     device = jax.devices()[0]
     print(f"reproduce --{preset} on {device.device_kind} ({device.platform}); report -> {out / 'REPORT.md'}", flush=True)
-    have_policy = evaluation.TRAINED_POLICY.exists() or evaluation.SHIPPED_POLICY.exists()
-    if args.policy_dir is None and (args.train or (p["train"] and not have_policy)):
+    if _trains(args, p):
         print("[0/3] training the PPO policy (DP pretraining, full preset, seed 0)", flush=True)
         common.run_command(["train", "--pretrain", "dp", "--seeds", "1", "--preset", "full"])
     command = f"python -m experiments reproduce --{preset}" + (f" --policy-dir {args.policy_dir}" if args.policy_dir else "")

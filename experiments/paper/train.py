@@ -29,6 +29,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="train", help="folder under results/ (<folder>-<model> for another --model)")
 
 
+def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
+    """The `results_dir` parts of the folders it writes: `python -m experiments` locks them before its set-up."""
+    return [(args.out,)]
+
+
 def main(args: argparse.Namespace) -> None:
     preset = args.preset or ("full" if jax.default_backend() == "gpu" else "quick")
     s = setup(preset, args.iterations, args.envs, args.patience)

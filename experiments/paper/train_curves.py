@@ -109,6 +109,11 @@ def plot(runs: dict, reference: dict, path) -> None:
     plt.close(fig)
 
 
+def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
+    """The `results_dir` parts of the folders it writes: `python -m experiments` locks them before its set-up."""
+    return [(args.out,)]
+
+
 def main(args: argparse.Namespace) -> None:
     root = results_dir(args.out)
     runs = load_runs(root)

@@ -65,6 +65,11 @@ def _from_sweep(path: str, write: bool) -> None:
     choose_and_write(summary, write)
 
 
+def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
+    """The `results_dir` parts of the folders it writes: `python -m experiments` locks them before its set-up."""
+    return [("calibrate",)]
+
+
 def main(args: argparse.Namespace) -> None:
     if args.from_sweep:
         return _from_sweep(args.from_sweep, args.write)

@@ -96,6 +96,11 @@ def _agreement(fa, fb, d) -> list:
             float(d.max()) if d.size else float("nan"), int(np.sum(d > 2.0))]
 
 
+def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
+    """The `results_dir` parts of the folders it writes: `python -m experiments` locks them before its set-up."""
+    return [("physics",)]  # --compare reads it
+
+
 def main(args: argparse.Namespace) -> None:
     if args.compare:
         return compare(args.set, args.compare)

@@ -1,16 +1,19 @@
 """`python -m experiments envelope --set stress|eval [--random 8]`: do the plans hold where holding is possible?
 
-Every episode of the set runs in C MuJoCo (one lockstep, `Physics.simulate_many`) under the constant four-tip grasp,
-DP optimal, L1, L2 and RL (closed loop), and a pool of `--random` random surrogate-feasible grasp sequences (half of
-them keeping each grasp with probability 0.8). Every fall is classified by the feasibility oracle
-(`gsp_jax.physics.oracle`) on the grasps the run held: *necessary* (at some point no forces in the friction cones hold
-the tool within the motors' limits), *controller* (forces exist everywhere: the controller let it fall) or
-*undetermined* (the cone's outer and inner pyramids disagree). Beside it the oracle is asked at the configurations
-the run *reached* (`Oracle.simulated`, the simulated joint angles and tool pose before each decision and at the
-hold's start, up to the fall): a necessary fall *before* the point the oracle calls impossible is counted as
-`early` (the controller dropped the tool before the grasp became impossible to hold). A planner's *regret* counts
-the episodes where it fell while some other sequence of the pool (the four tips, another planner, a random one)
-held.
+Every episode of the set runs in C MuJoCo under the constant four-tip grasp, DP optimal, L1, L2 and RL (closed
+loop), and a pool of `--random` random surrogate-feasible grasp sequences (half of them keeping each grasp with
+probability 0.8), in chunks of `--chunk` episodes, each one lockstep (`Physics.simulate_many`). Each finished chunk's
+outcomes are kept at once in results/envelope/<set>.parts/, named by a hash of what they depend on (`parts_key`): a
+run that stops part-way says where in one line and leaves them, and the same command runs again only the rest.
+
+Every fall is classified by the feasibility oracle (`gsp_jax.physics.oracle`) on the grasps the run held:
+*necessary* (at some point no forces in the friction cones hold the tool within the motors' limits), *controller*
+(forces exist everywhere: the controller let it fall) or *undetermined* (the cone's outer and inner pyramids
+disagree). Beside it the oracle is asked at the configurations the run *reached* (`Oracle.simulated`, the simulated
+joint angles and tool pose before each decision and at the hold's start, up to the fall): a necessary fall *before*
+the point the oracle calls impossible is counted as `early` (the controller dropped the tool before the grasp became
+impossible to hold). A planner's *regret* counts the episodes where it fell while some other sequence of the pool
+(the four tips, another planner, a random one) held.
 
 On the pool the surrogate is judged as a predictor of physics: the share of the sequences it calls feasible that
 hold, and how well its return separates holds from falls (AUC, pooled and within episodes) and ranks the angle
@@ -19,8 +22,13 @@ errors (Spearman). Writes results/envelope/<set>.json; prints the table last.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import os
+import pathlib
+import sys
 import time
+import warnings
+import zipfile
 
 import jax
 import jax.numpy as jnp
@@ -33,6 +41,8 @@ from gsp_jax.physics.envelope import classify, summarise
 from gsp_jax import planners as gsp_planners
 
 PLANNERS = ("four-tips", "dp-opt", "L1", "L2", "rl")
+CHUNK = 30  # episodes per lockstep by default: the stress set's 120 run as 4 chunks, each kept when it finishes
+FIELDS = ("fell", "angle_error", "actions", "grasps", "fall_time", "reached")  # a chunk's kept outcomes (`outcomes`)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -47,7 +57,79 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--jobs", type=int, default=None, help="processes classifying falls (default: the CPU cores)")
     p.add_argument("--physics-lookahead", type=int, default=0, metavar="K",
                    help="also L1-physics, branching L1's K best actions in physics at each decision (0: not run)")
+    p.add_argument("--chunk", type=int, default=CHUNK, metavar="N",
+                   help=f"episodes per lockstep (default {CHUNK}); each finished chunk is kept in "
+                        "results/envelope/<set>.parts/, and the same command run again continues from them")
     common.add_bases_argument(p)
+
+
+# ---------------------------------------------------------------------------------------------------- chunks
+def chunks(n: int, size: int) -> list[np.ndarray]:
+    """The episode indices of each chunk, (size,) int: consecutive runs of `size` of the `n` episodes, the last one
+    shorter."""
+    return [np.arange(i, min(i + size, n)) for i in range(0, n, size)]
+
+
+def parts_key(ctx, args: argparse.Namespace, kinds: list[str]) -> str:
+    """A hash (16 hex digits) of everything a chunk's outcomes depend on: the context (`common.fingerprint`: the
+    library and model sources, the model's digest, the episodes' names, the RL policy), this file, the sequences'
+    kinds, --random, --seed, --physics-lookahead, --bases and --chunk."""
+    h = hashlib.sha256(common.fingerprint(ctx).encode())
+    h.update(pathlib.Path(__file__).read_bytes())
+    h.update(repr((kinds, args.random, args.seed, args.physics_lookahead, tuple(args.bases), args.chunk)).encode())
+    return h.hexdigest()[:16]
+
+
+def part_path(folder: pathlib.Path, key: str, idx: np.ndarray) -> pathlib.Path:
+    """Where the chunk of episodes `idx` (0-based, consecutive) is kept: <folder>/<key>_episodes<first>-<last>.npz,
+    1-based."""
+    return folder / f"{key}_episodes{idx[0] + 1}-{idx[-1] + 1}.npz"
+
+
+def outcomes(results, n_seg: int, T: int) -> dict[str, np.ndarray]:
+    """What the classification and the summary read of a chunk's `Result`s (G groups on n episodes), stacked:
+    fell (G, n) bool, angle_error (G, n) [deg], actions and grasps (G, n, T) int, fall_time (G, n) [s] (-1: held),
+    and reached (G, n, T, nq), the configuration at the end of each of the first T segments (before each decision
+    t >= 1 and at the hold's start; `n_seg` control ticks a segment), not the whole traces."""
+    out = {k: np.stack([np.asarray(getattr(r, k)) for r in results]) for k in FIELDS if k != "reached"}
+    out["reached"] = np.stack([np.asarray(r.qpos)[:, n_seg - 1 :: n_seg][:, :T] for r in results])
+    return out
+
+
+def load_part(path: pathlib.Path, shape: tuple[int, int]) -> dict[str, np.ndarray] | None:
+    """A kept chunk's outcomes (`outcomes`, and its physics time "seconds" [s]), or None where there is none; one
+    that cannot be read (truncated, not an .npz of these fields) or whose (G, n) is not `shape` is named in a warning
+    and None returned, so that its episodes run again."""
+    if not path.exists():
+        return None
+    try:
+        with np.load(path) as d:
+            part = {k: d[k] for k in (*FIELDS, "seconds")}
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as e:
+        warnings.warn(f"{path}: cannot be read ({e}): running its episodes again", stacklevel=2)
+        return None
+    if any(part[k].shape[:2] != shape for k in FIELDS):
+        warnings.warn(f"{path}: not the outcomes of {shape[0]} sequences x {shape[1]} episodes: running its episodes "
+                      "again", stacklevel=2)
+        return None
+    return part
+
+
+def stopped(idx: np.ndarray, n: int, c: int, n_chunks: int, error: BaseException, kept: int,
+            folder: pathlib.Path) -> str:
+    """The one line that says where a run stopped: the failed chunk `c` (0-based) of episodes `idx` of `n`, the
+    cause (the exception's type and the first line of its message) and the `kept` finished episodes in `folder`."""
+    message = str(error).strip().splitlines()
+    cause = type(error).__name__ + (f": {message[0]}" if message else "")
+    first, last = idx[0] + 1, idx[-1] + 1
+    where = f"episode {first}" if first == last else f"episodes {first}–{last}"
+    return (f"envelope: stopped in {where} of {n} (chunk {c + 1} of {n_chunks}): "
+            f"{cause}; {kept} finished episodes kept in {folder} (the same command continues from them)")
+
+
+def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
+    """The `results_dir` parts of the folders it writes: `python -m experiments` locks them before its set-up."""
+    return [("envelope",)]
 
 
 # ---------------------------------------------------------------------------------------------------- main
@@ -58,29 +140,52 @@ def main(args: argparse.Namespace) -> None:
         raise SystemExit(f"envelope: --random must be >= 0, got {args.random}")
     if args.physics_lookahead < 0:
         raise SystemExit(f"envelope: --physics-lookahead must be >= 0, got {args.physics_lookahead}")
+    if args.chunk < 1:
+        raise SystemExit(f"envelope: --chunk must be >= 1, got {args.chunk}")
     reads = gsp_planners.context_flags([*args.policies, *(["L1-physics", *args.bases] if args.physics_lookahead else [])])
     ctx = evaluation.context(args.set, args.episodes, args.policy_dir,  # the tables always: every sequence is scored
                              **(reads | dict(tables=True, nominal=reads["nominal"] or reads["rl"])))
     sur, N, T = ctx.surrogate, len(ctx.names), ctx.batch.n_steps
     planners = [p for p in args.policies if p != "rl" or ctx.rl is not None]  # a model without a PPO policy: no RL row
     planners += ["L1-physics"] if args.physics_lookahead else []
-    groups = [gsp_planners.make(ctx, name, dict(k=args.physics_lookahead or 1, bases=tuple(args.bases)))
-              for name in planners]
     keys = jax.random.split(jax.random.PRNGKey(args.seed), N * args.random).reshape(N, args.random, 2)
     holds = jnp.where(jnp.arange(args.random) % 2 == 0, 0.0, 0.8)
     rand = jax.vmap(jax.vmap(dp.random_sequence, (None, None, 0, None, 0)), (0, 0, 0, None, None))(
         ctx.tables, ctx.batch.start_grasp, keys, sur.reward_config.r_min, holds)  # (N, R, T)
-    groups += [(policies.SequencePolicy(rand[:, r]), 0) for r in range(args.random)]
     kinds = planners + [f"random{r}" for r in range(args.random)]
     phys = physics.Physics(sur)
-    print(f"envelope: {N} episodes of '{args.set}' x {len(kinds)} sequences = {N * len(kinds)} episodes in C MuJoCo "
-          f"(JAX on {jax.default_backend()})", flush=True)
-    t0 = time.perf_counter()
-    res = phys.simulate_many(groups, ctx.batch, backend="c", progress=True)
-    t_phys = time.perf_counter() - t0
-    fell = np.stack([np.asarray(r.fell) for r in res])
-    angle = np.stack([np.asarray(r.angle_error) for r in res])
-    actions = jnp.stack([jnp.asarray(r.actions) for r in res])  # (G, N, T)
+    n_seg, tick = phys.n_segment, phys.timestep
+    pieces = chunks(N, args.chunk)
+    folder = results_dir("envelope") / f"{args.set}.parts"
+    key = parts_key(ctx, args, kinds)
+    done = {c: part for c, idx in enumerate(pieces)
+            if (part := load_part(part_path(folder, key, idx), (len(kinds), len(idx)))) is not None}
+    print(f"envelope: {N} episodes of '{args.set}' x {len(kinds)} sequences = {N * len(kinds)} episodes in C MuJoCo, "
+          f"{len(pieces)} chunk{'s' * (len(pieces) > 1)} of up to {args.chunk} episodes (JAX on "
+          f"{jax.default_backend()})", flush=True)
+    if done:
+        print(f"  reusing {sum(len(pieces[c]) for c in done)} finished episodes of {N} from {folder}", flush=True)
+    for c, idx in enumerate(pieces):
+        if c in done:
+            continue
+        try:
+            sub = ctx.select(idx)
+            groups = [gsp_planners.make(sub, name, dict(k=args.physics_lookahead or 1, bases=tuple(args.bases)))
+                      for name in planners]
+            groups += [(policies.SequencePolicy(rand[idx, r]), 0) for r in range(args.random)]
+            t0 = time.perf_counter()
+            res = phys.simulate_many(groups, sub.batch, backend="c", progress=True)
+            part = dict(outcomes(res, n_seg, T), seconds=np.float64(time.perf_counter() - t0))
+            files.savez(part_path(folder, key, idx), **part)
+        except BaseException as e:
+            kept = sum(len(pieces[i]) for i in done)
+            print(stopped(idx, N, c, len(pieces), e, kept, folder), file=sys.stderr, flush=True)
+            raise
+        done[c] = part
+    sim = {k: np.concatenate([done[c][k] for c in range(len(pieces))], axis=1) for k in FIELDS}
+    t_phys = float(sum(done[c]["seconds"] for c in done))  # this result's physics, over the runs that made it
+    fell, angle = sim["fell"], sim["angle_error"]
+    actions = jnp.asarray(sim["actions"])  # (G, N, T)
     rewards = jax.vmap(jax.vmap(dp.sequence_rewards), (None, 0, 0))(ctx.tables, jnp.broadcast_to(
         ctx.batch.start_grasp, actions.shape[:2]), actions)  # (G, N, T)
     feasible = np.asarray(jnp.all(rewards > sur.reward_config.r_min, -1))
@@ -89,14 +194,12 @@ def main(args: argparse.Namespace) -> None:
     episodes = scenario.unstack(ctx.batch)
     falls = [(g, e) for g in range(len(kinds)) for e in range(N) if fell[g, e]]
     t1 = time.perf_counter()
-    n_seg, tick = phys.n_segment, phys.timestep
 
     def reached(g, e):  # the configurations before each decision t >= 1 and at the hold's start; rows before the fall
-        rows = np.asarray(res[g].qpos[e, n_seg - 1 :: n_seg][:T])
-        fall_tick = int(round(float(res[g].fall_time[e]) / tick))
-        return rows, int(np.sum(np.arange(1, T + 1) * n_seg - 1 < fall_tick))
+        fall_tick = int(round(float(sim["fall_time"][g, e]) / tick))
+        return sim["reached"][g, e], int(np.sum(np.arange(1, T + 1) * n_seg - 1 < fall_tick))
 
-    verdicts = classify(episodes, [(e, [int(x) for x in np.asarray(res[g].grasps[e])], *reached(g, e))
+    verdicts = classify(episodes, [(e, [int(x) for x in sim["grasps"][g, e]], *reached(g, e))
                                    for g, e in falls], args.jobs or os.cpu_count() or 1)
     classes = {ge: v[0] for ge, v in zip(falls, verdicts)}
     summary = summarise(kinds, fell, angle, feasible, returns, classes, {ge: v[3] for ge, v in zip(falls, verdicts)})
@@ -105,17 +208,17 @@ def main(args: argparse.Namespace) -> None:
     def row(g, e):
         r = dict(kind=kinds[g], episode=ctx.names[e], fell=bool(fell[g, e]), angle_deg=float(angle[g, e]),
                  surrogate_feasible=bool(feasible[g, e]), surrogate_return=float(returns[g, e]),
-                 grasps=[int(x) for x in np.asarray(res[g].grasps[e])])
+                 grasps=[int(x) for x in sim["grasps"][g, e]])
         if (g, e) in verdict:
             r["oracle"] = dict(zip(("class", "worst_point", "worst_ratio", "early", "reached_worst_point",
                                     "reached_worst_ratio"), verdict[g, e]))
-            r["fall_time"] = float(res[g].fall_time[e])
+            r["fall_time"] = float(sim["fall_time"][g, e])
         return r
 
     out = dict(set=args.set, episodes=ctx.names, kinds=kinds, physics_s=t_phys, oracle_s=time.perf_counter() - t1,
                platform=jax.default_backend(), rl_policy=ctx.rl_source, summary=summary,
                sequences=[row(g, e) for g in range(len(kinds)) for e in range(N)])
-    path = results_dir("envelope") / f"{args.set}.json"
+    path = folder.parent / f"{args.set}.json"
     files.write_json(path, out)
     print(f"wrote {path}\n")
     common.record(f"envelope_{args.set}", dict(episodes=N, random=args.random, summary=summary))

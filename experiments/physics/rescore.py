@@ -141,6 +141,11 @@ def score_pool(reward: reward_lib.RewardConfig, hand, batch, contacts, index, ch
     return np.sum(np.where(alive, r, 0.0), -1), ~np.any(end, -1)
 
 
+def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
+    """The `results_dir` parts of the folders it writes: `python -m experiments` locks them before its set-up."""
+    return [("rescore",)]
+
+
 def main(args: argparse.Namespace) -> None:
     if args.batch < 1:
         raise SystemExit(f"--batch must be >= 1, got {args.batch}")

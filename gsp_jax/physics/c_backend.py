@@ -166,19 +166,25 @@ class Pool:
         return b"".join(np.ascontiguousarray(x).tobytes() for x in jax.tree.leaves(fields))
 
     def take(self, scene, key: bytes, fields):
-        """A (model, data) of the episode `key`: a kept one, else made (`fields()`: its fields)."""
+        """A (model, data) of the episode `key`: a kept one, else made (`fields()`: its fields). An episode whose
+        last kept pair is taken leaves the pool (every key kept holds at least one pair)."""
         free = self._free.get(key)
         if free:
             self._count -= 1
-            return free.pop()
+            pair = free.pop()
+            if not free:
+                del self._free[key]
+            return pair
         m = scene.c_model(fields())
         return m, mujoco.MjData(m)
 
     def give(self, key: bytes, model, data) -> None:
+        """Keep (model, data) for the episode `key`; beyond `most` pairs, the episode given back longest ago loses
+        its pairs first."""
         self._free.setdefault(key, []).append((model, data))
         self._free.move_to_end(key)
         self._count += 1
-        while self._count > self.most:  # the episode used longest ago first
+        while self._count > self.most:
             first = next(iter(self._free))
             self._free[first].pop()
             self._count -= 1

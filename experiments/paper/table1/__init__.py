@@ -79,6 +79,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     common.add_bases_argument(g)
 
 
+def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
+    """The `results_dir` parts of the folders it writes: `python -m experiments` locks them before its set-up."""
+    return [("bench_latency",)] if args.per_decision else [("table1",)]
+
+
 def main(args: argparse.Namespace) -> None:
     names = args.policies or list(PAPER)
     if args.per_decision:

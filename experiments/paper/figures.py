@@ -1,0 +1,164 @@
+"""`python -m experiments --record figures [--machine gpu|cpu] [--only NAME ...]`: every published figure, each by
+its documented command at its documented size, recorded at the current commit; `figures --stale` says which
+records the code has moved past, `figures --list` what each figure runs.
+
+A *figure* here is a command behind the current records in `docs/data/` (the README's figures and the docs' that
+cite a record): its words after `python -m experiments --record`, the records it writes (`<name>_<device>`), the
+machine it belongs on (`gpu`: an H100/H200 host; `cpu`: the 2-core CPU the README names) and the code it measures
+(git pathspecs). A record is *stale* when that code differs between the record's commit and the working tree
+(`git diff`), when it was made from a tree with uncommitted changes (`+dirty`), or when it was made by another
+command than the figure's; `tests/test_docs.py` fails on a stale record the README cites.
+
+The figures run one after another (a failure is reported and the next one runs; the command exits non-zero at the
+end if any failed). Prints a table last: each figure, its records, minutes and outcome.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import subprocess
+import sys
+import time
+import traceback
+
+import jax
+
+from experiments import common
+
+_LIBRARY = ("gsp_jax", "models", "experiments/common.py", "experiments/__main__.py", "pyproject.toml",
+            "requirements.lock")
+
+
+@dataclasses.dataclass(frozen=True)
+class Figure:
+    """One command behind published records. `command`: its words after `python -m experiments --record`;
+    `records`: the record names it writes (without the device suffix); `machine`: "gpu" or "cpu"; `measures`: git
+    pathspecs of the code its numbers depend on; `minutes`: about how long it runs on its machine."""
+
+    name: str
+    command: tuple[str, ...]
+    records: tuple[str, ...]
+    machine: str
+    measures: tuple[str, ...]
+    minutes: float
+
+
+FIGURES = (
+    Figure("paper", ("reproduce", "--full", "--backend", "c", "--out", "docs/report"), ("fig4a", "table1", "fig4b"),
+           "gpu", (*_LIBRARY, "experiments/paper"), 7.0),
+    Figure("latency", ("table1", "--per-decision", "--episodes", "7", "--policies", "dp-base", "rl", "L1", "L2",
+                       "dp-opt", "L1-physics"), ("bench_latency",), "gpu", (*_LIBRARY, "experiments/paper/table1"), 2.5),
+    Figure("latency-cpu", ("table1", "--per-decision", "--episodes", "7", "--policies", "dp-base", "rl", "L1", "L2",
+                           "dp-opt", "L1-physics"), ("bench_latency",), "cpu", (*_LIBRARY, "experiments/paper/table1"),
+           12.0),
+    Figure("envelope-stress", ("envelope", "--set", "stress", "--random", "8", "--physics-lookahead", "2", "--bases",
+                               "four-tips", "dp-opt"), ("envelope_stress",), "gpu",
+           (*_LIBRARY, "experiments/physics/envelope.py"), 9.0),
+    Figure("envelope-eval", ("envelope", "--set", "eval", "--random", "8", "--physics-lookahead", "2", "--bases",
+                             "four-tips", "dp-opt"), ("envelope_eval",), "gpu",
+           (*_LIBRARY, "experiments/physics/envelope.py"), 3.0),
+    Figure("physics-cpu", ("bench-physics", "--backends", "c"), ("bench_physics",), "cpu",
+           (*_LIBRARY, "experiments/bench/physics.py"), 6.0),
+)
+# the surrogate's figures (Fig. 4a, Table 1) come from the same run as Fig. 4b, so `paper` measures the physics too
+
+
+def machine() -> str:
+    """"gpu" where JAX has a GPU, else "cpu"."""
+    return "gpu" if jax.default_backend() == "gpu" else "cpu"
+
+
+def by_record(name: str) -> Figure:
+    """The figure whose command writes the record `name` (`<record>_<device>`, e.g. envelope_stress_h100)."""
+    stem, _, device = name.rpartition("_")
+    kind = "cpu" if device == "cpu" else "gpu"
+    for fig in FIGURES:
+        if stem in fig.records and fig.machine == kind:
+            return fig
+    raise KeyError(f"no figure writes the record {name!r} (experiments/paper/figures.py: FIGURES)")
+
+
+def _git(*words: str) -> subprocess.CompletedProcess:
+    return subprocess.run(["git", *words], cwd=common.ROOT, capture_output=True, text=True)
+
+
+def stale(record: dict) -> list[str]:
+    """Why a record (a docs/data row: {name, commit, command, ...}) no longer stands for the code in the working
+    tree: [] if it does. Needs the project's git history (a clone, not an archive)."""
+    fig = by_record(record["name"])
+    want = "python -m experiments --record " + " ".join(fig.command)
+    why = [] if record["command"] == want else [f"made by `{record['command']}`, not `{want}`"]
+    commit = record["commit"]
+    if commit.endswith("+dirty"):
+        return why + [f"made at {commit}: a tree with uncommitted changes"]
+    if _git("cat-file", "-e", f"{commit}^{{commit}}").returncode:
+        return why + [f"its commit {commit} is not in this repository's history"]
+    changed = _git("diff", "--name-only", commit, "--", *fig.measures)
+    if changed.returncode:
+        raise RuntimeError(f"git diff failed: {changed.stderr.strip()}")
+    files = changed.stdout.split()
+    return why + ([f"the code it measures changed since {commit}: {', '.join(files[:6])}"
+                   + (f" and {len(files) - 6} more" if len(files) > 6 else "")] if files else [])
+
+
+def records() -> dict[str, dict]:
+    """Every current record in docs/data: {name: row}."""
+    return {p.stem: json.loads(p.read_text()) for p in sorted(common.DATA.glob("*.json"))}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--machine", choices=["gpu", "cpu"], default=None,
+                   help="run the figures that belong on this machine (default: this one's)")
+    p.add_argument("--only", nargs="+", default=None, metavar="NAME", choices=[f.name for f in FIGURES],
+                   help="only these figures")
+    p.add_argument("--stale", action="store_true", help="only list the records and whether each is stale")
+    p.add_argument("--list", action="store_true", help="only list the figures and their commands")
+
+
+def main(args: argparse.Namespace) -> None:
+    if args.list:
+        print(common.table(["figure", "machine", "minutes", "records", "command"],
+                           [[f.name, f.machine, f.minutes, " ".join(f.records), "python -m experiments --record "
+                             + " ".join(f.command)] for f in FIGURES], ".1f"))
+        return
+    if args.stale:
+        rows, reasons = [], []
+        for name, row in records().items():
+            try:
+                why, kind = stale(row), ("stale" if stale(row) else "current")
+            except KeyError:
+                why, kind = [], "no figure (kept as it is)"
+            rows.append([name, row["commit"], kind])
+            reasons += [f"{name}: {w}" for w in why]
+        print("\n".join(reasons) + "\n" if reasons else "", end="")
+        print(common.table(["record", "commit", "state"], rows))
+        return
+    if not common.RECORD:
+        print("figures: without --record the runs write no records (python -m experiments --record figures)",
+              flush=True)
+    where = args.machine or machine()
+    chosen = [f for f in FIGURES if f.name in args.only] if args.only else [f for f in FIGURES if f.machine == where]
+    print(f"figures: {len(chosen)} to run on this {where} host, about {sum(f.minutes for f in chosen):.0f} min: "
+          f"{', '.join(f.name for f in chosen)}", flush=True)
+    rows, failed = [], []
+    for i, fig in enumerate(chosen):
+        words = (["--record"] if common.RECORD else []) + list(fig.command)
+        print(f"\n[{i + 1}/{len(chosen)}] {fig.name}: python -m experiments {' '.join(words)}", flush=True)
+        t0, outer = time.perf_counter(), common.COMMAND
+        common.COMMAND = words  # its records name its own command
+        try:
+            common.run_command(list(fig.command))
+            outcome = "done"
+        except (Exception, SystemExit) as e:  # one figure's failure does not stop the others
+            cause = f"{type(e).__name__}: {e}".splitlines()[0]
+            print(f"figures: {fig.name} failed: {cause}", file=sys.stderr, flush=True)
+            traceback.print_exc()
+            outcome, failed = f"FAILED ({cause[:60]})", failed + [fig.name]
+        finally:
+            common.COMMAND = outer
+        rows.append([fig.name, " ".join(fig.records), (time.perf_counter() - t0) / 60, outcome])
+    print()
+    print(common.table(["figure", "records", "minutes", "outcome"], rows, ".1f"))
+    if failed:
+        raise SystemExit(f"figures: {len(failed)} of {len(chosen)} failed: {', '.join(failed)}")

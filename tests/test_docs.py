@@ -271,8 +271,9 @@ def test_no_readme_figure_is_stale():
 
 
 def test_staleness_sees_a_change_to_the_code_a_record_measures(tmp_path):
-    """`figures.stale` on a record of the current commit: current as long as the code it measures is unchanged; a
-    changed measured file, a dirty tree or another command make it stale (git in a scratch clone)."""
+    """`figures.stale` on a record of the current commit: current as long as the code it measures is unchanged (a
+    file outside it changed, a new file no measured one imports); a measured file changed or deleted, a dirty tree or
+    another command make it stale (git in a scratch clone)."""
     import shutil
     import subprocess
 
@@ -296,9 +297,56 @@ def test_staleness_sees_a_change_to_the_code_a_record_measures(tmp_path):
         assert figures.stale(dict(row, commit=head + "+dirty")) and figures.stale(dict(row, command="python -m "
                                                                                      "experiments envelope"))
         (clone / "README.md").write_text("not measured\n")
+        (clone / "gsp_jax" / "new_module.py").write_text("x = 1\n")  # added: reached only through an import
+        subprocess.run(["git", "add", "-A"], cwd=clone, check=True)
         assert figures.stale(row) == []
+        subprocess.run(["git", "rm", "-q", "gsp_jax/stats.py"], cwd=clone, check=True)
+        assert any("gsp_jax/stats.py" in why for why in figures.stale(row))
+        subprocess.run(["git", "reset", "-q", "--hard"], cwd=clone, check=True)
         with open(clone / "gsp_jax" / "reward.py", "a") as f:
             f.write("\n# changed\n")
         assert any("gsp_jax/reward.py" in why for why in figures.stale(row))
     finally:
         common.ROOT = original
+
+
+def test_a_figures_run_records_the_commit_it_started_from(tmp_path, monkeypatch):
+    """`figures`: its records and report are tracked files, so the second figure of a run would find the tree
+    changed by the first; every record of the run names the commit the run started from (clean: the records and the
+    report aside), and a change to the code makes it `+dirty` (git in a scratch clone)."""
+    import argparse
+    import shutil
+    import subprocess
+
+    import pytest
+
+    from experiments import common
+    from experiments.paper import figures
+
+    if shutil.which("git") is None or not (ROOT / ".git").exists():
+        pytest.skip("needs git and the project's repository")
+    clone = tmp_path / "clone"
+    subprocess.run(["git", "clone", "-q", "--depth", "1", f"file://{ROOT}", str(clone)], check=True)
+    head = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=clone, capture_output=True, text=True,
+                          check=True).stdout.strip()
+    cpu = [f for f in figures.FIGURES if f.machine == "cpu"]
+    tracked = [p.stem.rsplit("_", 1)[0] for p in sorted((clone / "docs/data").glob("*_cpu.json"))]
+    assert len(cpu) >= 2 and tracked
+
+    def run_command(words):  # each figure records one tracked record: the tree differs from HEAD after the first
+        common.record(tracked[0], {"words": len(words)})
+
+    for k, v in dict(ROOT=clone, DATA=clone / "docs/data", RECORD=True, COMMAND=None, run_command=run_command).items():
+        monkeypatch.setattr(common, k, v)
+    monkeypatch.setattr(common, "device_slug", lambda: "cpu")
+    args = argparse.Namespace(list=False, stale=False, machine="cpu", only=None)
+    figures.main(args)
+    rows = [json.loads(line) for line in (clone / f"docs/data/history/{tracked[0]}_cpu.jsonl").read_text().splitlines()]
+    assert [r["commit"] for r in rows[-len(cpu):]] == [head] * len(cpu)
+    assert [r["command"] for r in rows[-len(cpu):]] == ["python -m experiments --record " + " ".join(f.command)
+                                                        for f in cpu]
+    with open(clone / "gsp_jax" / "reward.py", "a") as f:
+        f.write("\n# changed\n")
+    figures.main(argparse.Namespace(list=False, stale=False, machine="cpu", only=[cpu[0].name]))
+    last = json.loads((clone / f"docs/data/{tracked[0]}_cpu.json").read_text())
+    assert last["commit"] == head + "+dirty"

@@ -6,7 +6,7 @@ A *figure* here is a command behind the current records in `docs/data/` (the REA
 cite a record): its words after `python -m experiments --record`, the records it writes (`<name>_<device>`), the
 machine it belongs on (`gpu`: an H100/H200 host; `cpu`: the 2-core CPU the README names) and the code it measures
 (git pathspecs). A record is *stale* when that code differs between the record's commit and the working tree
-(`git diff`), when it was made from a tree with uncommitted changes (`+dirty`), or when it was made by another
+(`git diff`: a file changed, deleted or renamed; a new file counts once a measured one imports it), when it was made from a tree with uncommitted changes (`+dirty`), or when it was made by another
 command than the figure's; `tests/test_docs.py` fails on a stale record the README cites.
 
 The figures run one after another (a failure is reported and the next one runs; the command exits non-zero at the
@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import subprocess
 import sys
 import time
@@ -26,6 +27,8 @@ import jax
 
 from experiments import common
 
+_PAPER = ("experiments/paper/reproduce.py", "experiments/paper/fig4a.py", "experiments/paper/fig4b.py",
+          "experiments/paper/table1")  # what `reproduce` runs (it trains only where no PPO policy is shipped)
 _LIBRARY = ("gsp_jax", "models", "experiments/common.py", "experiments/__main__.py", "pyproject.toml",
             "requirements.lock")
 
@@ -46,7 +49,7 @@ class Figure:
 
 FIGURES = (
     Figure("paper", ("reproduce", "--full", "--backend", "c", "--out", "docs/report"), ("fig4a", "table1", "fig4b"),
-           "gpu", (*_LIBRARY, "experiments/paper"), 7.0),
+           "gpu", (*_LIBRARY, *_PAPER), 7.0),
     Figure("latency", ("table1", "--per-decision", "--episodes", "7", "--policies", "dp-base", "rl", "L1", "L2",
                        "dp-opt", "L1-physics"), ("bench_latency",), "gpu", (*_LIBRARY, "experiments/paper/table1"), 2.5),
     Figure("latency-cpu", ("table1", "--per-decision", "--episodes", "7", "--policies", "dp-base", "rl", "L1", "L2",
@@ -94,12 +97,24 @@ def stale(record: dict) -> list[str]:
         return why + [f"made at {commit}: a tree with uncommitted changes"]
     if _git("cat-file", "-e", f"{commit}^{{commit}}").returncode:
         return why + [f"its commit {commit} is not in this repository's history"]
-    changed = _git("diff", "--name-only", commit, "--", *fig.measures)
+    changed = _git("diff", "--name-only", "--diff-filter=a", commit, "--", *fig.measures)  # a file added since is
+    # reached only through a change to one it measures (an import), which counts
     if changed.returncode:
         raise RuntimeError(f"git diff failed: {changed.stderr.strip()}")
     files = changed.stdout.split()
     return why + ([f"the code it measures changed since {commit}: {', '.join(files[:6])}"
                    + (f" and {len(files) - 6} more" if len(files) > 6 else "")] if files else [])
+
+
+def start_commit() -> str | None:
+    """The commit a figures run starts from (12 hex digits; `+dirty` where a tracked file other than the records and
+    the report, docs/data and docs/report, differs from it), or None without git."""
+    head = _git("rev-parse", "--short=12", "HEAD")
+    if head.returncode:
+        return None
+    dirty = _git("status", "--porcelain", "--untracked-files=no", "--", ".", ":(exclude)docs/data",
+                 ":(exclude)docs/report")
+    return head.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
 
 
 def records() -> dict[str, dict]:
@@ -141,6 +156,30 @@ def main(args: argparse.Namespace) -> None:
     chosen = [f for f in FIGURES if f.name in args.only] if args.only else [f for f in FIGURES if f.machine == where]
     print(f"figures: {len(chosen)} to run on this {where} host, about {sum(f.minutes for f in chosen):.0f} min: "
           f"{', '.join(f.name for f in chosen)}", flush=True)
+    # every record of the run names the commit it started from: the records and the report the run writes itself
+    # (tracked files) would otherwise make the later ones `+dirty` (`common.record` reads GSP_JAX_COMMIT where git
+    # cannot answer)
+    saved = {k: os.environ.get(k) for k in ("GSP_JAX_COMMIT", "GIT_DIR")}
+    commit = start_commit()
+    if commit is not None:
+        os.environ.update(GSP_JAX_COMMIT=commit, GIT_DIR=os.devnull)
+    try:
+        rows, failed = _run(chosen)
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    print()
+    print(common.table(["figure", "records", "minutes", "outcome"], rows, ".1f"))
+    if failed:
+        raise SystemExit(f"figures: {len(failed)} of {len(chosen)} failed: {', '.join(failed)}")
+
+
+def _run(chosen: list[Figure]) -> tuple[list[list], list[str]]:
+    """Run each figure's command in this process (its records naming its own command): the table's rows and the
+    names of the figures that failed."""
     rows, failed = [], []
     for i, fig in enumerate(chosen):
         words = (["--record"] if common.RECORD else []) + list(fig.command)
@@ -158,7 +197,4 @@ def main(args: argparse.Namespace) -> None:
         finally:
             common.COMMAND = outer
         rows.append([fig.name, " ".join(fig.records), (time.perf_counter() - t0) / 60, outcome])
-    print()
-    print(common.table(["figure", "records", "minutes", "outcome"], rows, ".1f"))
-    if failed:
-        raise SystemExit(f"figures: {len(failed)} of {len(chosen)} failed: {', '.join(failed)}")
+    return rows, failed

@@ -23,6 +23,7 @@ QUICKEST = {
     "your-model": [(["check-model", "hammer"], []),
                    (["demo", "--no-gif", "--model", "hammer"], ["results/demo-hammer/demo.png"])],
     "planners": [(["planners"], [])],
+    "figures": [(["figures", "--list"], []), (["figures", "--stale"], [])],
     "surrogate": [(["surrogate", "--episode", "nominal", "--waypoints", "0"], [])],
     "bench-startup": [(["bench-startup", "--no-off", "--out", "s.json"], ["s.json"])],
     "bench-surrogate": [(["bench-surrogate", "--loop-steps", "17", "--repeats", "1", "--out", "b.json"], ["b.json"])],

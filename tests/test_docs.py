@@ -270,17 +270,12 @@ def test_no_readme_figure_is_stale():
         f"{name}: {'; '.join(why)}" for name, why in stale.items())
 
 
-def test_staleness_sees_a_change_to_the_code_a_record_measures(tmp_path):
-    """`figures.stale` on a record of the current commit: current as long as the code it measures is unchanged (a
-    file outside it changed, a new file no measured one imports); a measured file changed or deleted, a dirty tree or
-    another command make it stale (git in a scratch clone)."""
+def _scratch_clone(tmp_path):
+    """(a clone of the project's last commit in tmp_path, its commit in 12 hex digits); skips without git."""
     import shutil
     import subprocess
 
     import pytest
-
-    from experiments import common
-    from experiments.paper import figures
 
     if shutil.which("git") is None or not (ROOT / ".git").exists():
         pytest.skip("needs git and the project's repository")
@@ -288,6 +283,19 @@ def test_staleness_sees_a_change_to_the_code_a_record_measures(tmp_path):
     subprocess.run(["git", "clone", "-q", "--depth", "1", f"file://{ROOT}", str(clone)], check=True)
     head = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=clone, capture_output=True, text=True,
                           check=True).stdout.strip()
+    return clone, head
+
+
+def test_staleness_sees_a_change_to_the_code_a_record_measures(tmp_path):
+    """`figures.stale` on a record of the current commit: current as long as the code it measures is unchanged (a
+    file outside it changed, a new file no measured one imports); a measured file changed or deleted, a dirty tree or
+    another command make it stale (git in a scratch clone)."""
+    import subprocess
+
+    from experiments import common
+    from experiments.paper import figures
+
+    clone, head = _scratch_clone(tmp_path)
     fig = next(f for f in figures.FIGURES if f.name == "envelope-stress")
     row = dict(name="envelope_stress_h100", commit=head, command="python -m experiments --record " + " ".join(fig.command))
     original = common.ROOT
@@ -315,20 +323,11 @@ def test_a_figures_run_records_the_commit_it_started_from(tmp_path, monkeypatch)
     changed by the first; every record of the run names the commit the run started from (clean: the records and the
     report aside), and a change to the code makes it `+dirty` (git in a scratch clone)."""
     import argparse
-    import shutil
-    import subprocess
-
-    import pytest
 
     from experiments import common
     from experiments.paper import figures
 
-    if shutil.which("git") is None or not (ROOT / ".git").exists():
-        pytest.skip("needs git and the project's repository")
-    clone = tmp_path / "clone"
-    subprocess.run(["git", "clone", "-q", "--depth", "1", f"file://{ROOT}", str(clone)], check=True)
-    head = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=clone, capture_output=True, text=True,
-                          check=True).stdout.strip()
+    clone, head = _scratch_clone(tmp_path)
     cpu = [f for f in figures.FIGURES if f.machine == "cpu"]
     tracked = [p.stem.rsplit("_", 1)[0] for p in sorted((clone / "docs/data").glob("*_cpu.json"))]
     assert len(cpu) >= 2 and tracked

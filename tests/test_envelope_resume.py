@@ -14,11 +14,12 @@ import pytest
 from experiments import common
 from experiments.__main__ import main
 from experiments.physics import envelope
-from gsp_jax import evaluation, physics
+from gsp_jax import evaluation, physics, scenario
 
 # 2 evaluation episodes x (the four tips, 1 random sequence), one episode a chunk: 2 chunks; falls classified here
 LINE = ["envelope", "--set", "eval", "--episodes", "2", "--random", "1", "--policies", "four-tips", "--chunk", "1",
         "--jobs", "1"]
+WAYPOINTS = 3
 
 
 class Fault(RuntimeError):
@@ -39,6 +40,9 @@ def run(monkeypatch, folder: pathlib.Path, fail_at: int | None = None) -> int:
 
     folder.mkdir(exist_ok=True)
     monkeypatch.chdir(folder)
+    episode_set = scenario.episode_set  # the set's episodes to their first WAYPOINTS (a quick table and physics)
+    monkeypatch.setattr(scenario, "episode_set", lambda name, model=None: {
+        k: e.head(WAYPOINTS) for k, e in episode_set(name, model).items()})
     monkeypatch.setattr(common, "COMMAND", None)  # main sets it: not left to the other tests
     monkeypatch.setattr(physics.Physics, "simulate_many", counted)
     try:

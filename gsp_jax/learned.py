@@ -1,0 +1,221 @@
+"""A learned physics term: the probability that a transition's segment ends in a fall, fitted on a physics corpus.
+
+A discrete-time hazard: for each transition a run reached (`alive`), the chance that the tool falls during its
+segment given the surrogate's features (`gsp_jax.physics.corpus.FEATURES`): a small MLP over standardised features,
+its logit trained by binary cross-entropy on the risk sets (optax Adam), split by episode into train / validation
+/ test, stopped early on the validation loss.
+
+    fitted = learned.fit(data["features"], data["fell_here"], data["alive"], data["episode"], key, model.digest)
+    p = learned.hazard(fitted, features)          # (..., T) probability of a fall in each segment
+    learned.save(fitted, path); learned.load(path, model)   # refused for another model, by name
+
+`reliability` bins predicted against observed rates (a calibration picture); `auc` ranks falls against holds.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import pathlib
+from typing import Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import struct
+
+from gsp_jax import files
+
+
+class LearnedTermError(ValueError):
+    """Weights that cannot serve: another model's, another feature set, a missing field."""
+
+
+@dataclasses.dataclass(frozen=True)
+class FitConfig:
+    hidden: Sequence[int] = (64, 64)  # ReLU MLP widths
+    learning_rate: float = 3e-3
+    weight_decay: float = 1e-4
+    batch: int = 1024  # transitions per step
+    epochs: int = 200  # at most, over the training transitions
+    patience: int = 20  # epochs without a better validation loss before stopping
+    split: tuple[float, float] = (0.7, 0.15)  # train, validation shares of the episodes (the rest: test)
+
+
+class _MLP(nn.Module):
+    hidden: Sequence[int]
+
+    @nn.compact
+    def __call__(self, x):
+        for width in self.hidden:
+            x = nn.relu(nn.Dense(width)(x))
+        return nn.Dense(1)(x)[..., 0]
+
+
+@struct.dataclass
+class Fitted:
+    """A fitted hazard: the network's parameters, the features' mean and std (F,), and what it was fitted for."""
+
+    params: dict
+    mean: jax.Array  # (F,)
+    std: jax.Array  # (F,)
+    hidden: tuple = struct.field(pytree_node=False)
+    features: tuple = struct.field(pytree_node=False)  # the feature names, in order
+    digest: str = struct.field(pytree_node=False)  # the model's digest (`gsp_jax.model.Model.digest`)
+    history: tuple = struct.field(pytree_node=False, default=())  # (epoch, train loss, validation loss) per epoch
+    split: dict = struct.field(pytree_node=False, default_factory=dict)  # {"train"|"val"|"test": episode ids}
+
+
+def logit(fitted: Fitted, features: jax.Array) -> jax.Array:
+    """(...,) the fall's logit of each transition's features (..., F)."""
+    x = (features - fitted.mean) / fitted.std
+    return _MLP(fitted.hidden).apply(fitted.params, x)
+
+
+def hazard(fitted: Fitted, features: jax.Array) -> jax.Array:
+    """(...,) probability in [0, 1] that the tool falls in each transition's segment (features (..., F))."""
+    return jax.nn.sigmoid(logit(fitted, features))
+
+
+def split_episodes(episode: np.ndarray, key: jax.Array, shares=(0.7, 0.15)) -> dict[str, np.ndarray]:
+    """The episode ids of `episode` (M,) shuffled by `key` into train / val / test (at least one each where there
+    are three episodes or more): whole episodes, so no episode's runs are on both sides of a split."""
+    ids = np.unique(episode)
+    order = np.asarray(jax.random.permutation(key, len(ids)))
+    n_train = max(1, int(round(shares[0] * len(ids))))
+    n_val = max(1 if len(ids) >= 3 else 0, int(round(shares[1] * len(ids))))
+    n_train = min(n_train, len(ids) - n_val - (1 if len(ids) >= 3 else 0))
+    return dict(train=ids[order[:n_train]], val=ids[order[n_train:n_train + n_val]],
+                test=ids[order[n_train + n_val:]])
+
+
+def _loss(params, hidden, x, y, w):
+    z = _MLP(hidden).apply(params, x)
+    return jnp.sum(w * optax.sigmoid_binary_cross_entropy(z, y)) / jnp.maximum(jnp.sum(w), 1.0)
+
+
+def fit(features: np.ndarray, fell_here: np.ndarray, alive: np.ndarray, episode: np.ndarray, key: jax.Array,
+        digest: str, names: Sequence[str] = (), config: FitConfig = FitConfig(), progress: bool = False) -> Fitted:
+    """Fit the hazard on M runs of T transitions: features (M, T, F), fell_here and alive (M, T) bool (a corpus's
+    labels: only alive transitions count), episode (M,) ids for the split. Every draw from `key`. The parameters
+    of the epoch with the lowest validation loss."""
+    features = np.asarray(features, np.float32)
+    if features.ndim != 3 or fell_here.shape != features.shape[:2] or alive.shape != features.shape[:2]:
+        raise ValueError(f"fit: features (M, T, F) with fell_here and alive (M, T), got {features.shape}, "
+                         f"{np.shape(fell_here)}, {np.shape(alive)}")
+    if not np.all(np.isfinite(features[alive])):
+        raise ValueError("fit: the features of alive transitions must be finite")
+    k_split, k_init, k_data = jax.random.split(key, 3)
+    split = split_episodes(np.asarray(episode), k_split, config.split)
+
+    def rows(ids):
+        runs = np.isin(episode, ids)
+        keep = alive[runs]
+        return features[runs][keep], fell_here[runs][keep].astype(np.float32)
+
+    (x_tr, y_tr), (x_va, y_va) = rows(split["train"]), rows(split["val"] if len(split["val"]) else split["train"])
+    mean, std = x_tr.mean(0), np.maximum(x_tr.std(0), 1e-6)
+    norm = lambda x: (x - mean) / std  # noqa: E731
+    net = _MLP(tuple(config.hidden))
+    params = net.init(k_init, jnp.zeros((1, features.shape[-1])))
+    opt = optax.adamw(config.learning_rate, weight_decay=config.weight_decay)
+    state = opt.init(params)
+    B = min(config.batch, len(x_tr))
+    n_batches = max(1, len(x_tr) // B)
+    x_tr_n, x_va_n = jnp.asarray(norm(x_tr)), jnp.asarray(norm(x_va))
+    y_tr, y_va, ones_va = jnp.asarray(y_tr), jnp.asarray(y_va), jnp.ones(len(x_va))
+
+    @jax.jit
+    def epoch(params, state, key):
+        perm = jax.random.permutation(key, len(x_tr))[: n_batches * B].reshape(n_batches, B)
+
+        def step(carry, idx):
+            params, state = carry
+            loss, grad = jax.value_and_grad(_loss)(params, net.hidden, x_tr_n[idx], y_tr[idx], jnp.ones(B))
+            updates, state = opt.update(grad, state, params)
+            return (optax.apply_updates(params, updates), state), loss
+
+        (params, state), losses = jax.lax.scan(step, (params, state), perm)
+        return params, state, jnp.mean(losses), _loss(params, net.hidden, x_va_n, y_va, ones_va)
+
+    best, best_loss, since, history = params, np.inf, 0, []
+    for e, k in enumerate(jax.random.split(k_data, config.epochs)):
+        params, state, train_loss, val_loss = epoch(params, state, k)
+        history.append((e, float(train_loss), float(val_loss)))
+        if float(val_loss) < best_loss - 1e-6:
+            best, best_loss, since = params, float(val_loss), 0
+        else:
+            since += 1
+        if progress and e % 10 == 0:
+            print(f"  epoch {e}: train {float(train_loss):.4f}, validation {float(val_loss):.4f}", flush=True)
+        if since >= config.patience:
+            break
+    return Fitted(best, jnp.asarray(mean), jnp.asarray(std), tuple(config.hidden), tuple(names), digest,
+                  tuple(history), {k: [int(i) for i in v] for k, v in split.items()})
+
+
+def auc(score: np.ndarray, positive: np.ndarray) -> float:
+    """The probability that a random positive scores above a random negative (ties count half)."""
+    score, positive = np.asarray(score, np.float64), np.asarray(positive, bool)
+    ranks = np.empty(len(score))
+    order = np.argsort(score, kind="stable")
+    ranks[order] = np.arange(1, len(score) + 1)
+    for s in np.unique(score):  # ties: their mean rank
+        tie = score == s
+        ranks[tie] = ranks[tie].mean()
+    n_pos, n_neg = positive.sum(), (~positive).sum()
+    if n_pos == 0 or n_neg == 0:
+        return float("nan")
+    return float((ranks[positive].sum() - n_pos * (n_pos + 1) / 2) / (n_pos * n_neg))
+
+
+def reliability(p: np.ndarray, event: np.ndarray, bins: int = 10) -> list[dict]:
+    """Predicted against observed: per probability bin (equal width in [0, 1]) its count, mean prediction and
+    observed rate (a calibrated hazard has them equal)."""
+    p, event = np.asarray(p, np.float64), np.asarray(event, bool)
+    which = np.minimum((p * bins).astype(int), bins - 1)
+    return [dict(low=b / bins, high=(b + 1) / bins, n=int(np.sum(which == b)),
+                 predicted=float(p[which == b].mean()) if np.any(which == b) else float("nan"),
+                 observed=float(event[which == b].mean()) if np.any(which == b) else float("nan"))
+            for b in range(bins)]
+
+
+# ---------------------------------------------------------------------------------------------------- files
+def save(fitted: Fitted, path) -> pathlib.Path:
+    """Weights and their context in one .npz (written whole): parameters, mean, std, and a JSON header (the
+    hidden widths, feature names, the model's digest, the history, the split)."""
+    leaves, treedef = jax.tree.flatten(fitted.params)
+    header = dict(hidden=list(fitted.hidden), features=list(fitted.features), digest=fitted.digest,
+                  history=[list(h) for h in fitted.history], split=fitted.split, treedef=str(treedef))
+    arrays = {f"param{i}": np.asarray(x) for i, x in enumerate(leaves)}
+    return files.savez(path, mean=np.asarray(fitted.mean), std=np.asarray(fitted.std),
+                       header=np.array(json.dumps(header)), **arrays)
+
+
+def load(path, model, names: Sequence[str] | None = None) -> Fitted:
+    """Weights saved by `save`, for `model` (a `gsp_jax.model.Model`): `LearnedTermError` naming the model where
+    they were fitted for another model (its digest), other features than `names`, or lack a field."""
+    path = pathlib.Path(path)
+    try:
+        with np.load(path) as d:
+            data = {k: d[k] for k in d.files}
+    except (OSError, ValueError) as e:
+        raise LearnedTermError(f"{path}: not readable weights ({e})") from None
+    for field in ("mean", "std", "header"):
+        if field not in data:
+            raise LearnedTermError(f"{path}: no field {field!r}")
+    header = json.loads(str(data["header"]))
+    if header["digest"] != model.digest:
+        raise LearnedTermError(f"{path}: fitted for another model (digest {header['digest'][:12]}), not "
+                               f"{model.name!r} (digest {model.digest[:12]})")
+    if names is not None and list(names) != header["features"]:
+        raise LearnedTermError(f"{path}: fitted on features {header['features']}, not {list(names)}")
+    template = _MLP(tuple(header["hidden"])).init(jax.random.PRNGKey(0), jnp.zeros((1, len(data["mean"]))))
+    leaves, treedef = jax.tree.flatten(template)
+    got = [data.get(f"param{i}") for i in range(len(leaves))]
+    if any(g is None or g.shape != t.shape for g, t in zip(got, leaves)):
+        raise LearnedTermError(f"{path}: its parameters are not those of a {header['hidden']} network")
+    return Fitted(jax.tree.unflatten(treedef, [jnp.asarray(g) for g in got]), jnp.asarray(data["mean"]),
+                  jnp.asarray(data["std"]), tuple(header["hidden"]), tuple(header["features"]), header["digest"],
+                  tuple(tuple(h) for h in header["history"]), header["split"])

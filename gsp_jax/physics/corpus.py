@@ -1,0 +1,322 @@
+"""A physics corpus of one model: surrogate features of grasp-sequence transitions with what C MuJoCo did.
+
+What a learned physics term is fitted on. Tools and tasks are drawn from `Distribution` (wider than the stress set
+on every axis; no episode of a named set enters it), sequences come from the planners' tables (the four tips, DP
+optimal), random surrogate-feasible ones and perturbations of those, and each runs closed loop in C MuJoCo. Per
+transition (decision t of a sequence on an episode) it keeps the surrogate's features (`FEATURES`: the step's
+reward terms, the motor check, the grasp change, the episode's parameters) and the physics outcome: the segment it
+fell in, the episode's angle error and fall time.
+
+    store = corpus.Store.open("results/corpus-wrench", sur.model)    # refuses another model's corpus, by name
+    corpus.extend(store, sur, seeds=range(4), episodes=32)            # a shard a seed; a rerun skips the done ones
+
+A `Store` is a folder of shards (`shard-<seed>.npz`, each written whole) and `manifest.json` (model name and
+digest, the distribution, the features' names, per shard its seed, counts and hash); a shard is listed only once
+written, so a killed run loses at most the shard it was making and a rerun neither repeats nor loses one.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import pathlib
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gsp_jax import dp, evaluation, files, scenario
+from gsp_jax import surrogate as surrogate_lib
+
+VERSION = 1
+HELD_OUT = ("stress", "stress-cal", "eval", "val", "variations")  # sets whose episodes never enter a corpus
+EPISODE_FEATURES = ("mass", "friction", "force_x", "force_y", "force_z", "torque_x", "torque_y", "torque_z", "com_x",
+                    "com_y", "com_z", "rise", "lateral")
+STEP_FEATURES = ("t", "changed", "redundant", "wrench_move", "ik_next", "wrench_hold", "wrench_ext", "wrench_change",
+                 "unmet_move", "unmet_hold", "unmet_ext", "unmet_change", "motor_unmet", "collision", "fall",
+                 "reward", "links")
+FEATURES = STEP_FEATURES + EPISODE_FEATURES  # one transition's features, in this order (float32)
+LABELS = ("fell_here", "alive")  # per transition: fell in its segment; executed (the tool was held when it began)
+
+
+class CorpusError(ValueError):
+    """A corpus that cannot serve: another model's, a missing field, an unreadable shard."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Distribution:
+    """Tools and tasks, each parameter drawn independently and uniformly (the mass log-uniformly): mass factor
+    [m0], finger-tool friction, final torque [x the model's torque] about a uniformly drawn axis (x, y, z or any unit
+    vector), CoM offsets [cm], start/end height shift [mm], lateral end point [mm] along a path drawn from vertical,
+    lateral x, lateral y and diagonal. The stress set spans 0.25-3 m0, mu 0.3-2, +-2 torques about x, y or z,
+    +-2 cm, -6..12 mm and +-15 mm (`scenario.stress_set`)."""
+
+    mass: tuple[float, float] = (0.2, 3.5)
+    friction: tuple[float, float] = (0.25, 2.2)
+    torque: tuple[float, float] = (-2.4, 2.4)
+    com_cm: tuple[float, float] = (-2.5, 2.5)
+    shift_mm: tuple[float, float] = (-8.0, 14.0)
+    lateral_mm: tuple[float, float] = (-18.0, 18.0)
+
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            lo, hi = getattr(self, f.name)
+            if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+                raise ValueError(f"Distribution.{f.name}: expected (low, high) with low < high, got {(lo, hi)}")
+        if self.mass[0] <= 0 or self.friction[0] <= 0:
+            raise ValueError(f"Distribution: mass and friction must be positive, got mass {self.mass}, "
+                             f"friction {self.friction}")
+
+
+def _torque_axis(rng: np.random.Generator):
+    kind = int(rng.integers(4))
+    if kind < 3:
+        return "xyz"[kind]
+    v = rng.normal(size=3)
+    return tuple(float(x) for x in v / np.linalg.norm(v))
+
+
+def draw(dist: Distribution, seed: int, n: int, model=None) -> dict[str, scenario.Episode]:
+    """`n` episodes of `model`'s tool drawn from `dist` with the seed `seed` (one seed, one set), named
+    corpus<seed>-<i>. An episode equal to one of a held-out set's (`HELD_OUT`) is drawn again."""
+    if n < 1:
+        raise ValueError(f"n: at least one episode, got {n}")
+    rng = np.random.default_rng([VERSION, seed])
+    held = _held_out(model)
+    t0 = scenario._torque(model)
+    out = {}
+    while len(out) < n:
+        path = ("vertical", "lateral-x", "lateral-y", "diagonal")[int(rng.integers(4))]
+        lat = rng.uniform(*dist.lateral_mm)
+        dx = lat if path in ("lateral-x", "diagonal") else 0.0
+        dy = lat if path == "lateral-y" else -lat if path == "diagonal" else 0.0
+        ep = scenario.make_episode(
+            model=model, shift_mm=float(rng.uniform(*dist.shift_mm)), torque=float(rng.uniform(*dist.torque) * t0),
+            mass_factor=float(np.exp(rng.uniform(*np.log(dist.mass)))), friction=float(rng.uniform(*dist.friction)),
+            com_x_cm=float(rng.uniform(*dist.com_cm)), com_y_cm=float(rng.uniform(*dist.com_cm)),
+            lateral_mm=(float(dx), float(dy)), torque_axis=_torque_axis(rng))
+        if _key(ep) not in held:
+            out[f"corpus{seed}-{len(out):04d}"] = ep
+    return out
+
+
+def _key(ep: scenario.Episode) -> bytes:
+    return b"".join(np.asarray(x, np.float32).round(6).tobytes() for x in jax.tree.leaves(ep))
+
+
+def _held_out(model) -> set[bytes]:
+    return {_key(ep) for name in HELD_OUT for ep in scenario.episode_set(name, model).values()}
+
+
+def episode_features(ep: scenario.Episode) -> jax.Array:
+    """(len(EPISODE_FEATURES),) float32 of one episode: mass [kg], friction, the final external force [N] and torque
+    [N m], the CoM offset [m], the rise and the lateral travel of the path [m]."""
+    wp = ep.waypoints
+    return jnp.concatenate([jnp.stack([ep.mass, ep.friction]), ep.w_ext, ep.com,
+                            jnp.stack([wp[-1, 2] - wp[0, 2], jnp.linalg.norm(wp[-1, :2] - wp[0, :2])])]
+                           ).astype(jnp.float32)
+
+
+@jax.jit
+def features(sur: surrogate_lib.Surrogate, episode: scenario.Episode, actions: jax.Array) -> jax.Array:
+    """(T, len(FEATURES)) float32: each transition's features (`FEATURES`) along `actions` (T,) int32 from the
+    episode's start: the surrogate's terms of the step (its IK and wrench solves), then the episode's parameters."""
+    states, terms = surrogate_lib._replay(sur, episode, actions)
+    new, _ = sur.space.apply(states.grasp, actions)
+    changed, links = new != states.grasp, jnp.sum(sur.space.decode(new) > 0, -1)  # links in contact (option 0: off)
+    cols = [states.t, changed, terms.redundant, terms.wrench_move, terms.ik_next, terms.wrench_hold, terms.wrench_ext,
+            terms.wrench_change, *terms.unmet.T, terms.motor_unmet, terms.collision, terms.fall, terms.reward, links]
+    steps = jnp.stack([jnp.asarray(c, jnp.float32) for c in cols], -1)
+    return jnp.concatenate([steps, jnp.broadcast_to(episode_features(episode), (steps.shape[0],
+                                                                                len(EPISODE_FEATURES)))], -1)
+
+
+def labels(fell: np.ndarray, fall_time: np.ndarray, T: int, n_segment: int, timestep: float) -> dict[str, np.ndarray]:
+    """Per transition of M runs (fell (M,) bool, fall_time (M,) [s], -1 if held): `fell_here` (M, T) bool, the tool
+    fell during segment t (for t = T - 1 the hold after it too), and `alive` (M, T) bool, it had not fallen when
+    segment t began: a discrete-time hazard's events and risk sets."""
+    tick = np.where(fell, np.round(np.asarray(fall_time) / timestep), np.inf)
+    start = np.arange(T) * n_segment
+    end = np.append(start[1:], np.inf)
+    alive = tick[:, None] >= start[None]
+    return dict(fell_here=alive & (tick[:, None] < end[None]), alive=alive)
+
+
+def sequences(tables: dp.Table, solutions: dp.Solution, batch: scenario.Episode, space, r_min: float, seed: int,
+              n_random: int, n_perturbed: int) -> tuple[list[str], np.ndarray]:
+    """(kinds, actions (S, N, T) int32) for N episodes: the four tips, DP optimal, `n_random` random
+    surrogate-feasible sequences (half keeping each grasp with probability 0.8) and `n_perturbed` perturbations (a
+    DP-optimal or random sequence with one step's action replaced by another feasible one). Every draw from `seed`."""
+    N, T = np.shape(batch.mass)[0], batch.n_steps
+    four = np.broadcast_to(evaluation.four_tips(space, T), (N, T))
+    kinds, seqs = ["four-tips", "dp-opt"], [four, np.asarray(solutions.actions)]
+    if n_random:
+        keys = jax.random.split(jax.random.PRNGKey(seed), N * n_random).reshape(N, n_random, 2)
+        holds = jnp.where(jnp.arange(n_random) % 2 == 0, 0.0, 0.8)
+        rand = jax.vmap(jax.vmap(dp.random_sequence, (None, None, 0, None, 0)), (0, 0, 0, None, None))(
+            tables, batch.start_grasp, keys, r_min, holds)
+        seqs += list(np.moveaxis(np.asarray(rand), 1, 0))
+        kinds += [f"random{r}" for r in range(n_random)]
+    base = np.stack(seqs[1:])  # DP optimal and the random ones
+    rng = np.random.default_rng([VERSION, seed, 1])
+    transitions = np.asarray(space.transitions)
+    reward = np.asarray(tables.reward)
+    for p in range(n_perturbed):
+        out = np.empty((N, T), np.int32)
+        for e in range(N):
+            acts = base[rng.integers(len(base)), e].copy()
+            t = int(rng.integers(T))
+            g = int(np.asarray(batch.start_grasp)[e])
+            for s in range(t):
+                g = int(transitions[g, acts[s]])
+            ok = np.flatnonzero(reward[e, g, :, t] > r_min)
+            ok = ok[ok != acts[t]] if ok.size > 1 else ok
+            if ok.size:
+                acts[t] = rng.choice(ok)
+            out[e] = acts
+        seqs.append(out)
+        kinds.append(f"perturbed{p}")
+    return kinds, np.stack(seqs).astype(np.int32)
+
+
+# ---------------------------------------------------------------------------------------------------- the store
+@dataclasses.dataclass
+class Store:
+    """A corpus folder of one model: `manifest` (the parsed manifest.json) and its shards."""
+
+    folder: pathlib.Path
+    manifest: dict
+
+    @classmethod
+    def open(cls, folder, model, dist: Distribution | None = None) -> "Store":
+        """The corpus in `folder` (created empty where there is none) for `model` (a `gsp_jax.model.Model`).
+        `CorpusError` naming both where it holds another model's corpus (name and digest), another distribution,
+        or a manifest without a field it needs."""
+        folder = pathlib.Path(folder)
+        path = folder / "manifest.json"
+        dist = dist or Distribution()
+        if not path.exists():
+            manifest = dict(version=VERSION, model=model.name, digest=model.digest, features=list(FEATURES),
+                            labels=list(LABELS), distribution=dataclasses.asdict(dist), shards=[])
+            folder.mkdir(parents=True, exist_ok=True)
+            files.write_json(path, manifest)
+            return cls(folder, manifest)
+        try:
+            manifest = files.read_json(path)
+        except (OSError, ValueError) as e:
+            raise CorpusError(f"{path}: not a readable manifest ({e})") from None
+        for field in ("version", "model", "digest", "features", "labels", "distribution", "shards"):
+            if field not in manifest:
+                raise CorpusError(f"{path}: the manifest has no field {field!r}")
+        if manifest["digest"] != model.digest:
+            raise CorpusError(f"{path}: a corpus of model {manifest['model']!r} (digest {manifest['digest'][:12]}), "
+                              f"not of {model.name!r} (digest {model.digest[:12]})")
+        if manifest["features"] != list(FEATURES) or manifest["version"] != VERSION:
+            raise CorpusError(f"{path}: made with other features (version {manifest['version']}); start a new folder")
+        if manifest["distribution"] != json.loads(json.dumps(dataclasses.asdict(dist))):
+            raise CorpusError(f"{path}: drawn from {manifest['distribution']}, not {dataclasses.asdict(dist)}")
+        return cls(folder, manifest)
+
+    @property
+    def seeds(self) -> set[int]:
+        return {s["seed"] for s in self.manifest["shards"]}
+
+    def add(self, seed: int, arrays: dict[str, np.ndarray]) -> None:
+        """Write the shard of `seed` whole, then list it in the manifest (whole): a kill between the two leaves an
+        unlisted shard that the next `add` of that seed replaces."""
+        if seed in self.seeds:
+            raise CorpusError(f"{self.folder}: shard {seed} is already in the corpus")
+        name = f"shard-{seed:06d}.npz"
+        files.savez(self.folder / name, **arrays)
+        digest = hashlib.sha256((self.folder / name).read_bytes()).hexdigest()[:16]
+        alive = arrays["alive"]
+        self.manifest["shards"].append(dict(file=name, seed=int(seed), episodes=int(len(arrays["episode_names"])),
+                                            runs=int(alive.shape[0]), transitions=int(alive.sum()),
+                                            falls=int(arrays["fell"].sum()), sha256=digest))
+        files.write_json(self.folder / "manifest.json", self.manifest)
+
+    def load(self) -> dict[str, np.ndarray]:
+        """Every shard's arrays, concatenated along the runs (`episode_names` and `kinds` per run; `episode` is
+        renumbered over the corpus, so a split by episode stays one). `CorpusError` naming a shard that is missing,
+        altered (its hash) or lacks a field."""
+        parts, offset = [], 0
+        for s in self.manifest["shards"]:
+            path = self.folder / s["file"]
+            if not path.exists():
+                raise CorpusError(f"{path}: listed in the manifest but missing")
+            if hashlib.sha256(path.read_bytes()).hexdigest()[:16] != s["sha256"]:
+                raise CorpusError(f"{path}: not the shard the manifest lists (its hash differs)")
+            with np.load(path) as d:
+                missing = [k for k in SHARD_FIELDS if k not in d.files]
+                if missing:
+                    raise CorpusError(f"{path}: no field {missing[0]!r}")
+                part = {k: d[k] for k in SHARD_FIELDS}
+            part["episode"] = part["episode"] + offset
+            offset += len(part["episode_names"])
+            parts.append(part)
+        if not parts:
+            raise CorpusError(f"{self.folder}: an empty corpus")
+        out = {k: np.concatenate([p[k] for p in parts]) for k in SHARD_FIELDS if k != "episode_names"}
+        out["episode_names"] = np.concatenate([p["episode_names"] for p in parts])
+        return out
+
+
+solve_batch = jax.jit(jax.vmap(dp.solve, (None, 0)))  # (tables, solutions) of a batch of episodes, one program
+
+
+# a shard: M runs (episode x sequence) of T transitions, F features
+SHARD_FIELDS = ("features", "fell_here", "alive", "fell", "angle_error", "fall_time", "actions", "grasps", "episode",
+                "kind", "kinds", "episode_names")
+
+
+def shard(phys, seed: int, n_episodes: int, dist: Distribution, n_random: int, n_perturbed: int,
+          cores: int | None = None, progress: bool = False, n_steps: int | None = None) -> dict[str, np.ndarray]:
+    """One shard: `n_episodes` drawn with `seed`, their DP tables, the sequences (`sequences`) run closed loop in C
+    MuJoCo, each transition's features and labels. Arrays: features (M, T, F) float32, fell_here and alive (M, T)
+    bool, fell (M,), angle_error (M,) [deg], fall_time (M,) [s], actions and grasps (M, T) int32, episode and kind
+    (M,) int32 (indices into episode_names (N,) and kinds (S,)), M = N S runs. `n_steps`: the episodes' first
+    waypoints only (a quick corpus; None: all)."""
+    sur = phys.surrogate
+    eps = draw(dist, seed, n_episodes, sur.model)
+    if n_steps is not None:
+        eps = {k: e.head(n_steps) for k, e in eps.items()}
+    batch = scenario.stack(list(eps.values()))
+    tables, solutions = solve_batch(sur, batch)
+    kinds, acts = sequences(tables, solutions, batch, sur.space, sur.reward_config.r_min, seed, n_random,
+                            n_perturbed)  # (S, N, T)
+    from gsp_jax import policies
+
+    groups = [(policies.SequencePolicy(jnp.asarray(a)), 0) for a in acts]
+    res = phys.simulate_many(groups, batch, backend="c", cores=cores, progress=progress)
+    S, N, T = acts.shape
+    fell = np.stack([np.asarray(r.fell) for r in res]).reshape(-1)
+    fall_time = np.stack([np.asarray(r.fall_time) for r in res]).reshape(-1)
+    run_actions = np.stack([np.asarray(r.actions) for r in res]).reshape(-1, T)
+    runs = jax.tree.map(lambda x: jnp.concatenate([x] * S), batch)  # run i: episode i % N, sequence i // N
+    per_run = np.asarray(jax.jit(jax.vmap(features, (None, 0, 0)))(sur, runs, jnp.asarray(acts.reshape(S * N, T))))
+    lab = labels(fell, fall_time, T, phys.n_segment, phys.timestep)
+    return dict(features=per_run.astype(np.float32), **lab, fell=fell, fall_time=fall_time,
+                angle_error=np.stack([np.asarray(r.angle_error) for r in res]).reshape(-1),
+                actions=run_actions.astype(np.int32),
+                grasps=np.stack([np.asarray(r.grasps) for r in res]).reshape(-1, T).astype(np.int32),
+                episode=np.tile(np.arange(N, dtype=np.int32), S), kind=np.repeat(np.arange(S, dtype=np.int32), N),
+                kinds=np.array(kinds), episode_names=np.array(list(eps)))
+
+
+def extend(store: Store, phys, seeds, episodes: int, n_random: int = 4, n_perturbed: int = 2,
+           cores: int | None = None, progress: bool = True, n_steps: int | None = None) -> list[int]:
+    """Add the shard of each seed in `seeds` that the corpus does not hold (`shard`, then `Store.add`): a run
+    killed part-way loses only the shard it was making, and the same call again adds the rest. The seeds added."""
+    dist = Distribution(**{k: tuple(v) for k, v in store.manifest["distribution"].items()})
+    added = []
+    for seed in seeds:
+        if seed in store.seeds:
+            continue
+        arrays = shard(phys, seed, episodes, dist, n_random, n_perturbed, cores, progress, n_steps)
+        store.add(seed, arrays)
+        added.append(seed)
+        if progress:
+            m = store.manifest["shards"][-1]
+            print(f"corpus: shard {seed}: {m['runs']} runs, {m['transitions']} transitions, {m['falls']} falls "
+                  f"({len(store.seeds)} shards)", flush=True)
+    return added

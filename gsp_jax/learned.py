@@ -9,7 +9,7 @@ its logit trained by binary cross-entropy on the risk sets (optax Adam), split b
     p = learned.hazard(fitted, features)          # (..., T) probability of a fall in each segment
     learned.save(fitted, path); learned.load(path, model)   # refused for another model, by name
 
-`reliability` bins predicted against observed rates (a calibration picture); `auc` ranks falls against holds.
+`reliability` bins predicted against observed rates (a calibration picture); `gsp_jax.stats.auc` ranks them.
 """
 from __future__ import annotations
 
@@ -153,21 +153,6 @@ def fit(features: np.ndarray, fell_here: np.ndarray, alive: np.ndarray, episode:
             break
     return Fitted(best, jnp.asarray(mean), jnp.asarray(std), tuple(config.hidden), tuple(names), digest,
                   tuple(history), {k: [int(i) for i in v] for k, v in split.items()})
-
-
-def auc(score: np.ndarray, positive: np.ndarray) -> float:
-    """The probability that a random positive scores above a random negative (ties count half)."""
-    score, positive = np.asarray(score, np.float64), np.asarray(positive, bool)
-    ranks = np.empty(len(score))
-    order = np.argsort(score, kind="stable")
-    ranks[order] = np.arange(1, len(score) + 1)
-    for s in np.unique(score):  # ties: their mean rank
-        tie = score == s
-        ranks[tie] = ranks[tie].mean()
-    n_pos, n_neg = positive.sum(), (~positive).sum()
-    if n_pos == 0 or n_neg == 0:
-        return float("nan")
-    return float((ranks[positive].sum() - n_pos * (n_pos + 1) / 2) / (n_pos * n_neg))
 
 
 def reliability(p: np.ndarray, event: np.ndarray, bins: int = 10) -> list[dict]:

@@ -29,6 +29,8 @@ from experiments import common
 
 _PAPER = ("experiments/paper/reproduce.py", "experiments/paper/fig4a.py", "experiments/paper/fig4b.py",
           "experiments/paper/table1")  # what `reproduce` runs (it trains only where no PPO policy is shipped)
+_LATENCY = ("table1", "--per-decision", "--episodes", "7", "--policies", "dp-base", "rl", "L1", "L2", "dp-opt",
+            "L1-physics")  # one episode at a time, on either machine
 _LIBRARY = ("gsp_jax", "models", "experiments/common.py", "experiments/__main__.py", "pyproject.toml",
             "requirements.lock")
 
@@ -50,11 +52,8 @@ class Figure:
 FIGURES = (
     Figure("paper", ("reproduce", "--full", "--backend", "c", "--out", "docs/report"), ("fig4a", "table1", "fig4b"),
            "gpu", (*_LIBRARY, *_PAPER), 7.0),
-    Figure("latency", ("table1", "--per-decision", "--episodes", "7", "--policies", "dp-base", "rl", "L1", "L2",
-                       "dp-opt", "L1-physics"), ("bench_latency",), "gpu", (*_LIBRARY, "experiments/paper/table1"), 2.5),
-    Figure("latency-cpu", ("table1", "--per-decision", "--episodes", "7", "--policies", "dp-base", "rl", "L1", "L2",
-                           "dp-opt", "L1-physics"), ("bench_latency",), "cpu", (*_LIBRARY, "experiments/paper/table1"),
-           12.0),
+    Figure("latency", _LATENCY, ("bench_latency",), "gpu", (*_LIBRARY, "experiments/paper/table1"), 2.5),
+    Figure("latency-cpu", _LATENCY, ("bench_latency",), "cpu", (*_LIBRARY, "experiments/paper/table1"), 12.0),
     Figure("envelope-stress", ("envelope", "--set", "stress", "--random", "8", "--physics-lookahead", "2", "--bases",
                                "four-tips", "dp-opt"), ("envelope_stress",), "gpu",
            (*_LIBRARY, "experiments/physics/envelope.py"), 9.0),
@@ -141,7 +140,8 @@ def main(args: argparse.Namespace) -> None:
         rows, reasons = [], []
         for name, row in records().items():
             try:
-                why, kind = stale(row), ("stale" if stale(row) else "current")
+                why = stale(row)
+                kind = "stale" if why else "current"
             except KeyError:
                 why, kind = [], "no figure (kept as it is)"
             rows.append([name, row["commit"], kind])

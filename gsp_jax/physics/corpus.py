@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gsp_jax import dp, evaluation, files, scenario
+from gsp_jax import dp, evaluation, files, policies, scenario
 from gsp_jax import surrogate as surrogate_lib
 
 VERSION = 1
@@ -284,8 +284,6 @@ def shard(phys, seed: int, n_episodes: int, dist: Distribution, n_random: int, n
     tables, solutions = solve_batch(sur, batch)
     kinds, acts = sequences(tables, solutions, batch, sur.space, sur.reward_config.r_min, seed, n_random,
                             n_perturbed)  # (S, N, T)
-    from gsp_jax import policies
-
     groups = [(policies.SequencePolicy(jnp.asarray(a)), 0) for a in acts]
     res = phys.simulate_many(groups, batch, backend="c", cores=cores, progress=progress)
     S, N, T = acts.shape

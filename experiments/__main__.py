@@ -23,6 +23,7 @@ COMMANDS = {  # command -> (module, one-line help)
     "bench-physics": ("experiments.bench.physics", "the physics check against the engine alone, on 1, 2 and all cores"),
     "envelope": ("experiments.physics.envelope", "the stress envelope in physics: falls classified by the oracle, regret"),
     "rescore": ("experiments.physics.rescore", "surrogate against physics: a recorded envelope pool scored under rewards (rho, AUC), no new physics"),
+    "corpus": ("experiments.physics.corpus", "a physics corpus of the model: surrogate features of grasp sequences with what C MuJoCo did (shards, resumable)"),
     "calibrate": ("experiments.physics.calibrate", "the reward's weights and thresholds against physics (train + val episodes)"),
     "fig4a": ("experiments.paper.fig4a", "Fig. 4a: surrogate returns relative to DP optimal, 95% CI, RM-ANOVA"),
     "fig4b": ("experiments.paper.fig4b", "Fig. 4b: the same policies closed loop in C MuJoCo (or MJX), angle error under the torque"),
@@ -98,6 +99,10 @@ def main(argv: list[str] | None = None) -> None:
             sp.add_argument("--model", default=None, metavar="NAME_OR_PATH",
                             help="the hand + tool scene: a shipped model (wrench, hammer, allegro) or a scene file "
                                  "(default: wrench); checked first (check-model)")
+        if name not in ("check-model", "corpus", "calibrate", "figures"):
+            sp.add_argument("--learned", action="store_true",
+                            help="plan with the learned physics term (the model's weights, `calibrate --learn`); "
+                                 "results and records are named -learned")
     args = parser.parse_args(argv)
     from experiments import common
     from gsp_jax import model as model_lib
@@ -112,6 +117,16 @@ def main(argv: list[str] | None = None) -> None:
         except model_lib.ModelError as e:
             raise SystemExit(f"--model: {e}") from None
         print(f"model: {model.name} ({model.path})", flush=True)
+    from gsp_jax import learned
+
+    was_learned = learned._DEFAULT[0]  # a command another runs (`common.run_command`) inherits it; restored after
+    if getattr(args, "learned", False):
+        try:
+            learned.resolve(True, model_lib.load_model())
+        except learned.LearnedTermError as e:
+            raise SystemExit(f"--learned: {e}") from None
+        learned.set_default(True)
+        print(f"learned physics term: {learned.path_of(model_lib.load_model())}", flush=True)
     from gsp_jax import files, scenario
 
     try:
@@ -120,6 +135,8 @@ def main(argv: list[str] | None = None) -> None:
         module.main(args)
     except (files.FolderInUse, scenario.EpisodeError) as e:  # a user's input or a busy folder: the message, no trace
         raise SystemExit(f"{args.command}: {e}") from None
+    finally:
+        learned.set_default(was_learned)
 
 
 if __name__ == "__main__":

@@ -21,16 +21,26 @@ RESULTS = pathlib.Path("results")
 
 def results_dir(*parts: str) -> pathlib.Path:
     """results/<parts> (created, and locked for this process); a command run for another model than the wrench (`--model`) writes to
-    results/<first part>-<model>/... (results/<model> for no parts) instead: no model's results overwrite another's."""
+    results/<first part>-<model>/... (results/<model> for no parts) instead, and one with the learned physics term
+    (`--learned`) to results/<first part>-learned/...: no model's or surrogate's results overwrite another's."""
     from gsp_jax import model as model_lib
 
     name = model_lib.load_model().name
     if name != model_lib.DEFAULT:
         parts = (f"{parts[0]}-{name}", *parts[1:]) if parts else (name,)
+    if learned_on():
+        parts = (f"{parts[0]}-learned", *parts[1:]) if parts else ("learned",)
     path = RESULTS.joinpath(*parts)
     path.mkdir(parents=True, exist_ok=True)
     files.hold(path)  # one command at a time writes a results folder (`files.FolderInUse` for a second)
     return path
+
+
+def learned_on() -> bool:
+    """Whether this process's surrogates have the learned physics term (`--learned`, `gsp_jax.learned.set_default`)."""
+    from gsp_jax import learned
+
+    return learned._DEFAULT[0]
 
 
 def run_command(words: list[str]) -> None:
@@ -78,6 +88,7 @@ def fingerprint(ctx) -> str:
     for path in sorted(sources):
         h.update(path.read_bytes())
     h.update(ctx.surrogate.model.digest.encode())  # the model (its scene, includes resolved)
+    h.update(ctx.surrogate.learned_tag.encode())  # the learned physics term ("" without one)
     h.update(repr(ctx.names).encode())
     for leaf in jax.tree.leaves(ctx.rl.params if ctx.rl is not None else ()):
         h.update(np.asarray(leaf).tobytes())
@@ -103,7 +114,7 @@ def record(name: str, figures: dict, data: pathlib.Path | None = None) -> dict |
     if not RECORD:
         return None
     data = DATA if data is None else pathlib.Path(data)
-    name = f"{name}_{device_slug()}"
+    name = f"{name}{'_learned' * learned_on()}_{device_slug()}"  # the learned physics term's figures beside the paper's
     try:
         commit = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=ROOT, capture_output=True, text=True,
                                 check=True).stdout.strip()

@@ -97,6 +97,7 @@ def table_from_terms(sur: Surrogate, episode: Episode, plain: RewardTerms, conta
     changed = next_grasp != grasps[:, None]  # (G, A)
     shared = sur.space.shared(grasps[:, None], actions[None, :])  # (G, A)
     terms = reward_lib.of_transitions(sur.reward_config, plain, next_grasp, is_redundant, changed, shared, ts)
+    terms = sur.with_learned(episode, ts, next_grasp[..., None], changed[..., None], terms)  # (G, A, T)
     terminal = terms.collision | terms.fall | (ts == n_t - 1)[None, None, :]
     return Table(reward=terms.reward, next_grasp=next_grasp, terminal=terminal, ik_error=contacts.ik.error, q=contacts.ik.q)
 

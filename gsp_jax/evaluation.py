@@ -110,6 +110,7 @@ def dp_tables(sur: Surrogate, set_name: str, episodes: dict, batch_size: int = 4
     for leaf in jax.tree.leaves(batch):
         h.update(np.asarray(leaf).tobytes())
     h.update(sur.model.digest.encode())  # the model's content (its files, includes resolved)
+    h.update(sur.learned_tag.encode())  # the learned physics term's weights ("" without one)
     for cfg in (sur.reward_config, sur.ik_config, sur.wrench_config):
         h.update(repr(dataclasses.asdict(cfg)).encode())
     path = None if cache is None else pathlib.Path(cache) / f"{set_name}_{h.hexdigest()[:12]}.npz"

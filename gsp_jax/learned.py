@@ -1,7 +1,7 @@
 """A learned physics term: the probability that a transition's segment ends in a fall, fitted on a physics corpus.
 
 A discrete-time hazard: for each transition a run reached (`alive`), the chance that the tool falls during its
-segment given the surrogate's features (`gsp_jax.physics.corpus.FEATURES`): a small MLP over standardised features,
+segment given the surrogate's features (`FEATURES`, `transition_features`): a small MLP over standardised features,
 its logit trained by binary cross-entropy on the risk sets (optax Adam), split by episode into train / validation
 / test, stopped early on the validation loss.
 
@@ -10,10 +10,13 @@ its logit trained by binary cross-entropy on the risk sets (optax Adam), split b
     learned.save(fitted, path); learned.load(path, model)   # refused for another model, by name
 
 `reliability` bins predicted against observed rates (a calibration picture); `gsp_jax.stats.auc` ranks them.
+The reward turns the hazard into its learned physics term (`gsp_jax.reward.with_risk`); the weights of a model sit
+beside its scene file (`path_of`: models/scene.learned.npz for the shipped wrench).
 """
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import pathlib
 from typing import Sequence
@@ -28,15 +31,44 @@ from flax import struct
 from gsp_jax import files
 
 
+EPISODE_FEATURES = ("mass", "friction", "force_x", "force_y", "force_z", "torque_x", "torque_y", "torque_z", "com_x",
+                    "com_y", "com_z", "rise", "lateral")
+STEP_FEATURES = ("t", "changed", "redundant", "wrench_move", "ik_next", "wrench_hold", "wrench_ext", "wrench_change",
+                 "unmet_move", "unmet_hold", "unmet_ext", "unmet_change", "motor_unmet", "collision", "fall",
+                 "reward", "links")
+FEATURES = STEP_FEATURES + EPISODE_FEATURES  # one transition's features, in this order (float32)
+
+
+def episode_features(ep) -> jax.Array:
+    """(len(EPISODE_FEATURES),) float32 of one episode (`scenario.Episode`): mass [kg], friction, the final external
+    force [N] and torque [N m], the CoM offset [m], the rise and the lateral travel of the path [m]."""
+    wp = ep.waypoints
+    return jnp.concatenate([jnp.stack([ep.mass, ep.friction]), ep.w_ext, ep.com,
+                            jnp.stack([wp[-1, 2] - wp[0, 2], jnp.linalg.norm(wp[-1, :2] - wp[0, :2])])]
+                           ).astype(jnp.float32)
+
+
+def transition_features(terms, t, changed, links, episode: jax.Array) -> jax.Array:
+    """(..., len(FEATURES)) float32: the features of transitions from their analytic reward terms
+    (`reward.RewardTerms`, leaves (...) and unmet (..., 4)), waypoint `t`, `changed` (the grasp changes), `links`
+    (links in contact in the new grasp) and the episode's features (len(EPISODE_FEATURES),); all broadcast."""
+    cols = [t, changed, terms.redundant, terms.wrench_move, terms.ik_next, terms.wrench_hold, terms.wrench_ext,
+            terms.wrench_change, *jnp.moveaxis(terms.unmet, -1, 0), terms.motor_unmet, terms.collision, terms.fall,
+            terms.reward, links]
+    cols = jnp.broadcast_arrays(*[jnp.asarray(c, jnp.float32) for c in cols])
+    steps = jnp.stack(cols, -1)
+    return jnp.concatenate([steps, jnp.broadcast_to(episode, steps.shape[:-1] + episode.shape)], -1)
+
+
 class LearnedTermError(ValueError):
     """Weights that cannot serve: another model's, another feature set, a missing field."""
 
 
 @dataclasses.dataclass(frozen=True)
 class FitConfig:
-    hidden: Sequence[int] = (64, 64)  # ReLU MLP widths
+    hidden: Sequence[int] = (128, 128)  # ReLU MLP widths
     learning_rate: float = 3e-3
-    weight_decay: float = 1e-4
+    weight_decay: float = 1e-2  # AdamW's (decoupled): the corpus overfits 64x64 at 1e-4 by epoch 20
     batch: int = 1024  # transitions per step
     epochs: int = 200  # at most, over the training transitions
     patience: int = 20  # epochs without a better validation loss before stopping
@@ -155,6 +187,30 @@ def fit(features: np.ndarray, fell_here: np.ndarray, alive: np.ndarray, episode:
                   tuple(history), {k: [int(i) for i in v] for k, v in split.items()})
 
 
+def surrogate_alive(features: np.ndarray) -> np.ndarray:
+    """(M, T) bool: the analytic surrogate had not ended the run before transition t (no collision or fall at an
+    earlier step) -- the transitions a planner with the learned term can meet (features (M, T, F), `FEATURES`)."""
+    ended = np.maximum(features[..., FEATURES.index("fall")], features[..., FEATURES.index("collision")]) > 0
+    return np.cumsum(np.concatenate([np.zeros_like(ended[:, :1]), ended[:, :-1]], 1), 1) == 0
+
+
+def returns(features: np.ndarray, fall_risk: np.ndarray | None, cfg) -> tuple[np.ndarray, np.ndarray]:
+    """(return (M,), feasible (M,) bool) of M runs of T transitions under the reward `cfg` (`reward.RewardConfig`)
+    from their analytic features (M, T, F) and, with the learned term, each transition's fall risk (M, T) (None:
+    without): the steps up to the first that ends the run (collision, analytic fall or a risk above
+    `cfg.risk_falls`: r_min), each analytic reward less its risk cost (`reward.total`)."""
+    reward = np.asarray(features[..., FEATURES.index("reward")], np.float64)
+    ends = (np.maximum(features[..., FEATURES.index("fall")], features[..., FEATURES.index("collision")]) > 0)
+    risk_cost = np.zeros_like(reward)
+    if fall_risk is not None:
+        fall_risk = np.asarray(fall_risk, np.float64)
+        ends = ends | (fall_risk > cfg.risk_falls)
+        risk_cost = cfg.w_risk * -np.log1p(-np.minimum(fall_risk, cfg.risk_falls))
+    before = np.cumsum(ends, 1) - ends == 0  # no earlier step ended the run
+    step = np.where(ends, cfg.r_min, reward - risk_cost)
+    return np.sum(np.where(before, step, 0.0), 1), ~np.any(ends, 1)
+
+
 def reliability(p: np.ndarray, event: np.ndarray, bins: int = 10) -> list[dict]:
     """Predicted against observed: per probability bin (equal width in [0, 1]) its count, mean prediction and
     observed rate (a calibrated hazard has them equal)."""
@@ -167,6 +223,50 @@ def reliability(p: np.ndarray, event: np.ndarray, bins: int = 10) -> list[dict]:
 
 
 # ---------------------------------------------------------------------------------------------------- files
+_DEFAULT = [False]  # the learned term of `Surrogate(learned=None)` in this process (`set_default`)
+
+
+def set_default(on: bool) -> None:
+    """Whether a `Surrogate` built without `learned` has the learned physics term (the model's own weights) in this
+    process (the CLI's ``--learned``)."""
+    _DEFAULT[0] = bool(on)
+
+
+def resolve(learned, model) -> "Fitted | None":
+    """The weights a `Surrogate(learned=...)` uses for `model`: None (off) for False, or for None while
+    `set_default` is off; the model's own (`path_of`) for True or None while on; a `Fitted` or a weights file as
+    given (checked: fitted for this model). `LearnedTermError` naming the model and the file where there are none."""
+    if learned is None:
+        learned = _DEFAULT[0]
+    if learned is False:
+        return None
+    if learned is True:
+        path = path_of(model)
+        if not path.exists():
+            raise LearnedTermError(f"model {model.name!r} has no learned physics term ({path} is missing): "
+                                   f"`python -m experiments calibrate --learn --model {model.path}` makes it")
+        return load(path, model, FEATURES)
+    if isinstance(learned, Fitted):
+        if learned.digest != model.digest:
+            raise LearnedTermError(f"learned term fitted for another model (digest {learned.digest[:12]}), not "
+                                   f"{model.name!r} (digest {model.digest[:12]})")
+        return learned
+    return load(learned, model, FEATURES)
+
+
+def path_of(model) -> pathlib.Path:
+    """Where a model's weights live: beside its scene file, `<scene stem>.learned.npz` (a `gsp_jax.model.Model`)."""
+    return model.path.with_name(model.path.stem + ".learned.npz")
+
+
+def tag(fitted: Fitted) -> str:
+    """A short hash of the weights (what a cache of results made with them is keyed on)."""
+    h = hashlib.sha256(fitted.digest.encode())
+    for leaf in jax.tree.leaves((fitted.params, fitted.mean, fitted.std)):
+        h.update(np.asarray(leaf).tobytes())
+    return h.hexdigest()[:12]
+
+
 def save(fitted: Fitted, path) -> pathlib.Path:
     """Weights and their context in one .npz (written whole): parameters, mean, std, and a JSON header (the
     hidden widths, feature names, the model's digest, the history, the split)."""

@@ -27,7 +27,6 @@ import jax
 import jax.numpy as jnp
 
 from gsp_jax import dp, evaluation, platform, policies
-from gsp_jax.surrogate import Surrogate
 
 NEEDS = ("tables", "solutions", "rl", "nominal", "base")
 GROUPS = ("paper", "reference", "verified", "user")
@@ -250,8 +249,7 @@ def _l1_physics(ctx: evaluation.Context, *, k: int = evaluation.L1_PHYSICS["k"],
     if model is None and platform.current() == "cpu":  # online, the root's few dozen IK problems in the batch-last
         # form: 3x faster on a CPU, after a ~20 s compile that the disk cache keeps (`gsp_jax.cache`)
         sur = ctx.surrogate
-        root_model = Surrogate(sur.hand, sur.reward_config, dataclasses.replace(sur.ik_config, lanes=True),
-                               sur.wrench_config)
+        root_model = sur.replace(ik_config=dataclasses.replace(sur.ik_config, lanes=True))
     root, axis = _lookahead(ctx, 1, root_model, cached)
     made = []
     for b in bases:

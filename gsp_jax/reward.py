@@ -25,6 +25,12 @@ wrench term leaves more than `fall_unmet` of its wrench unmet (the tool falls; (
 the last step the forces the hand's motors can give leave more than `motor_fall_unmet` of (d) unmet
 (`RewardTerms.motor_unmet`); `r_min` ends the episode.
 
+The learned physics term (`Surrogate(learned=...)`, off by default: the paper's surrogate): a network fitted on a
+physics corpus of the model (`gsp_jax.learned`) gives each transition its probability p of a fall in the segment
+(`RewardTerms.fall_risk`). A transition with p above `risk_falls` is a fall; below it costs
+w_risk * -log(1 - p) beside the capped analytic cost, so a sequence's risk costs sum to -w_risk log(predicted
+chance to hold through). The analytic terms stay: the network reads them (`learned.FEATURES`) and corrects them.
+
 The calibrated defaults (`CALIBRATED_FIELDS`) are read from the data file `models/reward_calibration.json`
 (`CALIBRATION_JSON`), which `python -m experiments calibrate --write` writes through `write_calibration`.
 """
@@ -125,8 +131,10 @@ class RewardConfig:
     motor_fall_unmet: float = 0.3  # > 0, a fraction (inf: no motor check): unmet share of the final wrench (d) under
     # the hand's motors' torque limits (`RewardTerms.motor_unmet`) above which the tool falls
     motor_iterations: int = 150  # int >= 1: iterations of that motor-limited wrench solve ("apg")
-    max_step_cost: float = 10.0  # > 0: cap on a non-failing step's cost ...
+    max_step_cost: float = 10.0  # > 0: cap on a non-failing step's analytic cost ...
     r_min: float = -200.0  # < -max_step_cost: the reward of a failing step, below any T non-failing steps' sum
+    risk_falls: float = 0.3  # in (0, 1): a transition whose learned fall probability exceeds this is a fall
+    w_risk: float = 5.0  # >= 0: cost of a transition's learned fall risk p, per unit of -log(1 - p)
 
     def __post_init__(self):
         for name in ("w_wrench_move", "w_ik", "w_wrench_hold", "w_wrench_ext", "w_redundant", "w_wrench_change"):
@@ -144,13 +152,23 @@ class RewardConfig:
             raise ValueError(f"RewardConfig.motor_iterations: must be an int >= 1, got {self.motor_iterations!r}")
         if not (isinstance(self.supported_steps, int) and self.supported_steps >= 0):
             raise ValueError(f"RewardConfig.supported_steps: must be an int >= 0, got {self.supported_steps!r}")
+        if not 0 < self.risk_falls < 1:
+            raise ValueError(f"RewardConfig.risk_falls: must be in (0, 1), got {self.risk_falls}")
+        if not self.w_risk >= 0:
+            raise ValueError(f"RewardConfig.w_risk: a weight must be >= 0, got {self.w_risk}")
         if not self.r_min < -self.max_step_cost:
             raise ValueError(f"RewardConfig.r_min: must be < -max_step_cost = {-self.max_step_cost}, got {self.r_min}")
 
     @property
     def max_waypoints(self) -> int:
-        """The most waypoints T an episode may have: failing (r_min) costs more than any T held steps."""
-        return int(np.ceil(-self.r_min / self.max_step_cost)) - 1
+        """The most waypoints T an episode may have: failing (r_min) costs more than any T held steps (each at most
+        the capped analytic cost and the learned term's largest risk cost)."""
+        return int(np.ceil(-self.r_min / (self.max_step_cost + self.max_risk_cost))) - 1
+
+    @property
+    def max_risk_cost(self) -> float:
+        """The largest cost of a transition's learned fall risk (at p = risk_falls)."""
+        return float(self.w_risk * -np.log1p(-self.risk_falls))
 
     @property
     def prices_changes(self) -> bool:
@@ -175,12 +193,13 @@ class RewardTerms:
     fall: jax.Array  # () bool
     reward: jax.Array  # () the step's reward
     invalid: jax.Array  # () bool, the episode's inputs are out of range (`surrogate.episode_ok`): reward r_min, done
+    fall_risk: jax.Array  # () the learned physics term's probability of a fall in this segment (0 without one)
 
     @classmethod
     def zeros(cls) -> "RewardTerms":
         z = jnp.zeros((), jnp.float32)
         f = jnp.array(False)
-        return cls(z, z, z, z, z, z, jnp.zeros(4, jnp.float32), z, f, f, z, f)
+        return cls(z, z, z, z, z, z, jnp.zeros(4, jnp.float32), z, f, f, z, f, z)
 
 
 def wrench_term(cfg: RewardConfig, solved) -> tuple[jax.Array, jax.Array]:
@@ -210,6 +229,7 @@ def arrival(cfg: RewardConfig, move, hold, ext, ik_next: jax.Array, collision: j
         fall=jnp.array(False),
         reward=jnp.zeros(()),
         invalid=jnp.array(False),
+        fall_risk=zero,
     )
 
 
@@ -247,9 +267,17 @@ def of_transitions(cfg: RewardConfig, arrived: RewardTerms, next_grasp, redundan
     return with_previous(cfg, terms, redundant[..., None], changed[..., None], change_error, change_unmet, t)
 
 
+def with_risk(cfg: RewardConfig, terms: RewardTerms, fall_risk: jax.Array) -> RewardTerms:
+    """`terms` with the learned physics term: `fall_risk` (same shape) the predicted probability of a fall in the
+    segment; above `risk_falls` the step is a fall, and the reward is recomputed (`total`). Broadcasts."""
+    fall_risk = jnp.asarray(fall_risk, jnp.float32)
+    terms = terms.replace(fall_risk=fall_risk, fall=terms.fall | (fall_risk > cfg.risk_falls))
+    return terms.replace(reward=total(cfg, terms))
+
+
 def total(cfg: RewardConfig, terms: RewardTerms) -> jax.Array:
-    """The shaped reward from a step's terms: -(weighted sum) capped at `max_step_cost`, or `r_min` where
-    `terms.fall` or `terms.collision`. Broadcasts."""
+    """The shaped reward from a step's terms: -(weighted sum capped at `max_step_cost` + the learned risk's cost,
+    w_risk * -log(1 - fall_risk)), or `r_min` where `terms.fall` or `terms.collision`. Broadcasts."""
     cost = (
         cfg.w_wrench_move * terms.wrench_move
         + cfg.w_ik * terms.ik_next
@@ -258,7 +286,8 @@ def total(cfg: RewardConfig, terms: RewardTerms) -> jax.Array:
         + cfg.w_redundant * terms.redundant
         + cfg.w_wrench_change * terms.wrench_change
     )
-    return jnp.where(terms.collision | terms.fall, cfg.r_min, -jnp.minimum(cost, cfg.max_step_cost))
+    risk = cfg.w_risk * -jnp.log1p(-jnp.minimum(terms.fall_risk, cfg.risk_falls))
+    return jnp.where(terms.collision | terms.fall, cfg.r_min, -(jnp.minimum(cost, cfg.max_step_cost) + risk))
 
 
 def with_invalid(cfg: RewardConfig, terms: RewardTerms, invalid) -> RewardTerms:
@@ -278,6 +307,9 @@ def explain_failure(cfg: RewardConfig, terms: RewardTerms, t: int, grasp: str) -
         return (f"t={t}: {UNMET_TERMS[2]} is beyond the hand's motors: {100 * float(terms.motor_unmet):.0f}% unmet "
                 f"with forces within their torque limits (> {100 * cfg.motor_fall_unmet:.0f}%) with grasp {grasp}")
     unmet = np.asarray(terms.unmet)
+    if not np.any(unmet[:4 if cfg.change_falls else 3] > cfg.fall_unmet):
+        return (f"t={t}: the learned physics term gives a fall {100 * float(terms.fall_risk):.0f}% likely "
+                f"(> {100 * cfg.risk_falls:.0f}%) with grasp {grasp}")
     k = int(np.argmax(unmet - cfg.fall_unmet > 0))
     return f"t={t}: {UNMET_TERMS[k]} is {100 * unmet[k]:.0f}% unmet (> {100 * cfg.fall_unmet:.0f}%) with grasp {grasp}"
 

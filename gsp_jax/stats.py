@@ -139,11 +139,11 @@ def spearman(x, y) -> float:
 def auc(score_hold, score_fall) -> float:
     """P(a hold's score > a fall's score), ties half (the Mann-Whitney U over the product); nan if either is
     empty."""
-    a, b = np.asarray(score_hold, float), np.asarray(score_fall, float)
+    a, b = np.asarray(score_hold, float).ravel(), np.asarray(score_fall, float).ravel()
     if not len(a) or not len(b):
         return float("nan")
-    diff = a[:, None] - b[None, :]
-    return float(np.mean((diff > 0) + 0.5 * (diff == 0)))
+    ranks = stats.rankdata(np.concatenate([a, b]))  # ties get their mean rank: half a win each
+    return float((ranks[: len(a)].sum() - len(a) * (len(a) + 1) / 2) / (len(a) * len(b)))
 
 
 def cluster_bootstrap_se(x, y, cluster, seed: int, n: int = 200) -> float:

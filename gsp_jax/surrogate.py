@@ -24,7 +24,7 @@ import numpy as np
 from flax import struct
 
 from gsp_jax import grasps, ik, ik_lanes, kinematics, platform, wrench
-from gsp_jax import hand as hand_lib, model as model_lib, reward as reward_lib
+from gsp_jax import hand as hand_lib, learned as learned_lib, model as model_lib, reward as reward_lib
 from gsp_jax.reward import RewardConfig, RewardTerms
 from gsp_jax.scenario import Episode, unstack, validate
 
@@ -67,18 +67,49 @@ class Surrogate:
         reward: RewardConfig = RewardConfig(),
         ik_config: ik.IKConfig = ik.IKConfig(),
         wrench_config: wrench.WrenchConfig = wrench.WrenchConfig(),
+        learned=None,
     ):
         """`hand`: the model, as a shipped name, a scene path, a `gsp_jax.model.Model` or a loaded `HandModel`
-        (None: the shipped wrench, `gsp_jax.model.DEFAULT`)."""
+        (None: the shipped wrench, `gsp_jax.model.DEFAULT`). `learned`: the learned physics term
+        (`gsp_jax.reward.with_risk`): False off (the paper's surrogate), True the model's own weights
+        (`learned.path_of`), a `learned.Fitted` or a weights file; None: this process's default
+        (`learned.set_default`, the CLI's ``--learned``; off unless set). Weights of another model are refused."""
         self.hand = hand if isinstance(hand, hand_lib.HandModel) else model_lib.load_model(hand).hand
         self.space = grasps.space_of(self.hand)
         self.reward_config, self.ik_config, self.wrench_config = reward, ik_config, wrench_config
+        self.learned = learned_lib.resolve(learned, self.model) if learned is not False else None
+        self.learned_tag = "" if self.learned is None else learned_lib.tag(self.learned)
         self.gravity = jnp.asarray(self.hand.gravity, jnp.float32)
         self.torque_limit = jnp.asarray(self.hand.joint_torque_limit, jnp.float32)  # (J,)
         self.link_joints = jnp.asarray(self.hand.joint_moves_body[self.hand.link_body] > 0)  # (L, J)
 
     def _key(self):
-        return id(self.hand), self.reward_config, self.ik_config, self.wrench_config
+        return id(self.hand), self.reward_config, self.ik_config, self.wrench_config, self.learned_tag
+
+    @functools.cached_property
+    def analytic(self) -> "Surrogate":
+        """This surrogate without the learned physics term (itself where it has none)."""
+        return self if self.learned is None else self.replace(learned=False)
+
+    def replace(self, **changes) -> "Surrogate":
+        """This surrogate with some of `reward`, `ik_config`, `wrench_config`, `learned` (as `__init__` takes them)
+        replaced; the rest, the learned term included, kept."""
+        kept = dict(reward=self.reward_config, ik_config=self.ik_config, wrench_config=self.wrench_config,
+                    learned=False if self.learned is None else self.learned)
+        return Surrogate(self.hand, **(kept | changes))
+
+    def links(self, grasp: jax.Array) -> jax.Array:
+        """(...) int32: the links in contact in grasps (...) (option 0 is off)."""
+        return jnp.sum(self.space.decode(grasp) > 0, -1)
+
+    def with_learned(self, episode: Episode, t, new_grasp, changed, terms: RewardTerms) -> RewardTerms:
+        """`terms` (analytic, leaves broadcasting with t, new_grasp, changed) with the learned physics term where the
+        surrogate has one (`reward.with_risk`), else unchanged."""
+        if self.learned is None:
+            return terms
+        x = learned_lib.transition_features(terms, t, changed, self.links(new_grasp),
+                                            learned_lib.episode_features(episode))
+        return reward_lib.with_risk(self.reward_config, terms, learned_lib.hazard(self.learned, x))
 
     def __eq__(self, other) -> bool:
         return isinstance(other, Surrogate) and self._key() == other._key()
@@ -349,6 +380,7 @@ class Surrogate:
         pos_n, quat_n = ep.waypoints[t_next], ep.quats[t_next]
         changed = new_grasp != grasp
         terms = self.score(ep, t, tool_pos, tool_quat, now, nxt, redundant, during, changed)
+        terms = self.with_learned(ep, t, new_grasp, changed, terms)
         invalid = ~episode_ok(ep, self.space.n_grasps)  # traced inputs cannot raise: r_min and a flag, never NaN
         terms = reward_lib.with_invalid(self.reward_config, terms, invalid)
         done = terms.collision | terms.fall | (t + 1 >= ep.n_steps) | invalid

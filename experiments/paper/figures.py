@@ -62,6 +62,15 @@ FIGURES = (
            (*_LIBRARY, "experiments/physics/envelope.py"), 3.0),
     Figure("physics-cpu", ("bench-physics", "--backends", "c"), ("bench_physics",), "cpu",
            (*_LIBRARY, "experiments/bench/physics.py"), 6.0),
+    # the same with the learned physics term (`--learned`: the model's weights, `calibrate --learn`)
+    Figure("envelope-stress-learned", ("envelope", "--set", "stress", "--random", "8", "--physics-lookahead", "2",
+                                       "--bases", "four-tips", "dp-opt", "--learned"), ("envelope_stress_learned",),
+           "gpu", (*_LIBRARY, "experiments/physics/envelope.py"), 6.0),
+    Figure("envelope-eval-learned", ("envelope", "--set", "eval", "--random", "8", "--physics-lookahead", "2",
+                                     "--bases", "four-tips", "dp-opt", "--learned"), ("envelope_eval_learned",), "gpu",
+           (*_LIBRARY, "experiments/physics/envelope.py"), 2.0),
+    Figure("latency-learned", (*_LATENCY, "--learned"), ("bench_latency_learned",), "gpu",
+           (*_LIBRARY, "experiments/paper/table1"), 2.5),
 )
 # the surrogate's figures (Fig. 4a, Table 1) come from the same run as Fig. 4b, so `paper` measures the physics too
 

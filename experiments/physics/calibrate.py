@@ -26,6 +26,7 @@ import time
 import numpy as np
 
 from experiments.common import results_dir, table
+from experiments.physics import learn
 from gsp_jax import files, physics, reward, scenario
 from gsp_jax.physics import calibration
 from gsp_jax.physics.calibration import candidate_tables, candidates, pool_key, score_candidates, sequence_pool
@@ -42,6 +43,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--chunk", type=int, default=512, help="most sequences per physics batch")
     p.add_argument("--write", action="store_true", help="write the winner into models/reward_calibration.json")
     p.add_argument("--from-sweep", default=None, help="choose from a saved results/calibrate/sweep.json (no reruns)")
+    p.add_argument("--learn", action="store_true",
+                   help="instead: the model's learned physics term, corpus to weights (experiments.physics.learn)")
+    p.add_argument("--shards", type=int, default=40, help="with --learn: corpus shards to hold (0: fit on the corpus "
+                                                          "as it is)")
+    p.add_argument("--episodes", type=int, default=64, help="with --learn: episodes a corpus shard")
+    learn.add_arguments(p)
 
 
 def _from_sweep(path: str, write: bool) -> None:
@@ -67,10 +74,12 @@ def _from_sweep(path: str, write: bool) -> None:
 
 def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
     """The `results_dir` parts of the folders it writes: `python -m experiments` locks them before its set-up."""
-    return [("calibrate",)]
+    return [("learn",), *([] if args.corpus else [("corpus",)])] if args.learn else [("calibrate",)]
 
 
 def main(args: argparse.Namespace) -> None:
+    if args.learn:
+        return learn.main(args)
     if args.from_sweep:
         return _from_sweep(args.from_sweep, args.write)
     sets = [s.strip() for s in args.sets.split(",") if s.strip()]

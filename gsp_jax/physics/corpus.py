@@ -25,17 +25,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gsp_jax import dp, evaluation, files, policies, scenario
+from gsp_jax import dp, evaluation, files, learned, policies, scenario
 from gsp_jax import surrogate as surrogate_lib
 
 VERSION = 1
 HELD_OUT = ("stress", "stress-cal", "eval", "val", "variations")  # sets whose episodes never enter a corpus
-EPISODE_FEATURES = ("mass", "friction", "force_x", "force_y", "force_z", "torque_x", "torque_y", "torque_z", "com_x",
-                    "com_y", "com_z", "rise", "lateral")
-STEP_FEATURES = ("t", "changed", "redundant", "wrench_move", "ik_next", "wrench_hold", "wrench_ext", "wrench_change",
-                 "unmet_move", "unmet_hold", "unmet_ext", "unmet_change", "motor_unmet", "collision", "fall",
-                 "reward", "links")
-FEATURES = STEP_FEATURES + EPISODE_FEATURES  # one transition's features, in this order (float32)
+FEATURES = learned.FEATURES  # one transition's features, in this order (float32)
 LABELS = ("fell_here", "alive")  # per transition: fell in its segment; executed (the tool was held when it began)
 
 
@@ -108,27 +103,15 @@ def _held_out(model) -> set[bytes]:
     return {_key(ep) for name in HELD_OUT for ep in scenario.episode_set(name, model).values()}
 
 
-def episode_features(ep: scenario.Episode) -> jax.Array:
-    """(len(EPISODE_FEATURES),) float32 of one episode: mass [kg], friction, the final external force [N] and torque
-    [N m], the CoM offset [m], the rise and the lateral travel of the path [m]."""
-    wp = ep.waypoints
-    return jnp.concatenate([jnp.stack([ep.mass, ep.friction]), ep.w_ext, ep.com,
-                            jnp.stack([wp[-1, 2] - wp[0, 2], jnp.linalg.norm(wp[-1, :2] - wp[0, :2])])]
-                           ).astype(jnp.float32)
-
-
 @jax.jit
 def features(sur: surrogate_lib.Surrogate, episode: scenario.Episode, actions: jax.Array) -> jax.Array:
     """(T, len(FEATURES)) float32: each transition's features (`FEATURES`) along `actions` (T,) int32 from the
-    episode's start: the surrogate's terms of the step (its IK and wrench solves), then the episode's parameters."""
-    states, terms = surrogate_lib._replay(sur, episode, actions)
+    episode's start: the analytic surrogate's terms of the step (its IK and wrench solves; never a learned term's),
+    then the episode's parameters."""
+    states, terms = surrogate_lib._replay(sur.analytic, episode, actions)
     new, _ = sur.space.apply(states.grasp, actions)
-    changed, links = new != states.grasp, jnp.sum(sur.space.decode(new) > 0, -1)  # links in contact (option 0: off)
-    cols = [states.t, changed, terms.redundant, terms.wrench_move, terms.ik_next, terms.wrench_hold, terms.wrench_ext,
-            terms.wrench_change, *terms.unmet.T, terms.motor_unmet, terms.collision, terms.fall, terms.reward, links]
-    steps = jnp.stack([jnp.asarray(c, jnp.float32) for c in cols], -1)
-    return jnp.concatenate([steps, jnp.broadcast_to(episode_features(episode), (steps.shape[0],
-                                                                                len(EPISODE_FEATURES)))], -1)
+    return learned.transition_features(terms, states.t, new != states.grasp, sur.links(new),
+                                       learned.episode_features(episode))
 
 
 def labels(fell: np.ndarray, fall_time: np.ndarray, T: int, n_segment: int, timestep: float) -> dict[str, np.ndarray]:

@@ -14,7 +14,6 @@ import jax
 from experiments import common
 from experiments.common import table
 from gsp_jax import evaluation, files, online, planners
-from gsp_jax.surrogate import Surrogate
 
 GPU_IK_UNROLL = 3  # IK iterations per loop trip on a GPU (`IKConfig.unroll`): each trip of XLA's loop costs a sync on
 # the device, and more iterations a trip compile longer for little more; the same episodes at every unroll
@@ -30,7 +29,7 @@ def _with_ik_config(ctx: evaluation.Context, **changes) -> evaluation.Context:
     """The context with its surrogate's `IKConfig` fields replaced by `changes`."""
     sur = ctx.surrogate
     ik_config = dataclasses.replace(sur.ik_config, **changes)
-    return dataclasses.replace(ctx, surrogate=Surrogate(sur.hand, sur.reward_config, ik_config, sur.wrench_config))
+    return dataclasses.replace(ctx, surrogate=sur.replace(ik_config=ik_config))
 
 
 def measure(fn, arg, repeats: int) -> tuple[float, float]:

@@ -1,0 +1,105 @@
+"""The learned physics term inside the surrogate (`Surrogate(learned=...)`, `reward.with_risk`): the DP table, the
+surrogate's step and the corpus's offline returns (`learned.returns`) agree on it; a hazard of zero leaves the
+analytic reward as it was; it is finite for every valid episode (fuzz); weights of another model, or none, are
+refused by name."""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import tolerances as tol
+from gsp_jax import dp, evaluation, learned, scenario
+from gsp_jax import model as model_lib
+from gsp_jax.physics import corpus
+from gsp_jax.reward import RewardConfig
+from gsp_jax.surrogate import Surrogate
+
+T = 3  # waypoints of the episodes here (the first three of drawn ones)
+
+
+def _fitted(digest: str, bias: float = 0.0, seed: int = 0) -> learned.Fitted:
+    """An untrained hazard network of the corpus's features (random weights, `bias` added to the logit), scaled by
+    rough feature magnitudes so its probabilities spread over (0, 1)."""
+    F = len(learned.FEATURES)
+    params = learned._MLP((16,)).init(jax.random.PRNGKey(seed), jnp.zeros((1, F)))
+    params = jax.tree.map(lambda x: x, params)
+    params["params"]["Dense_1"]["bias"] = params["params"]["Dense_1"]["bias"] + bias
+    scale = np.ones(F, np.float32)
+    scale[learned.FEATURES.index("reward")] = 50.0
+    scale[learned.FEATURES.index("t")] = 2.0
+    return learned.Fitted(params, jnp.zeros(F), jnp.asarray(scale), (16,), learned.FEATURES, digest)
+
+
+def _episodes(n: int, seed: int = 3) -> list[scenario.Episode]:
+    return [e.head(T) for e in corpus.draw(corpus.Distribution(), seed, n).values()]
+
+
+def test_the_table_the_step_and_the_offline_returns_agree_on_the_learned_term():
+    sur = Surrogate()
+    cfg = RewardConfig(risk_falls=0.6)  # most transitions below it: the risk's cost is what is compared
+    with_term = Surrogate(sur.hand, reward=cfg, learned=_fitted(sur.model.digest))
+    ep = _episodes(1)[0]
+    table = jax.jit(dp.build_table)(with_term, ep)
+    plain = jax.jit(dp.build_table)(with_term.analytic, ep)
+    keys = jax.random.split(jax.random.PRNGKey(0), 6)
+    seqs = [np.asarray(evaluation.four_tips(sur.space, T))]
+    seqs += [np.asarray(dp.random_sequence(plain, ep.start_grasp, k, cfg.r_min, 0.5)) for k in keys]
+    checked = 0
+    for actions in seqs:
+        x = np.asarray(corpus.features(with_term, ep, jnp.asarray(actions)))[None]  # the analytic features
+        p = np.asarray(learned.hazard(with_term.learned, x))
+        offline, feasible = learned.returns(x, p, cfg)
+        in_table = np.asarray(dp.sequence_rewards(table, ep.start_grasp, jnp.asarray(actions)))
+        state, stepped = with_term.reset(ep), []
+        for a in actions:
+            state, r, _ = with_term.step(state, jnp.int32(a))
+            stepped.append(float(r))
+        if np.all(np.abs(p - cfg.risk_falls) > 1e-3):  # a discrete outcome only where its margin is clear
+            assert bool(feasible[0]) == bool(np.all(in_table > cfg.r_min)), (actions, p)
+            np.testing.assert_allclose(np.sum(in_table), offline[0], atol=T * tol.REWARD_ATOL)
+            np.testing.assert_allclose(np.sum(stepped), offline[0], atol=T * tol.REWARD_ATOL)
+            checked += 1
+    assert checked >= 4
+    # the term costs: where no step ends the run, the learned return is the analytic one less the risk's cost
+    assert np.all(np.asarray(table.reward) <= np.asarray(plain.reward) + tol.REWARD_ATOL)
+    # a hazard of (almost) zero leaves the analytic table as it was
+    zero = jax.jit(dp.build_table)(Surrogate(sur.hand, reward=cfg, learned=_fitted(sur.model.digest, -60.0)), ep)
+    np.testing.assert_allclose(np.asarray(zero.reward), np.asarray(plain.reward), atol=1e-5)
+    np.testing.assert_array_equal(np.asarray(zero.terminal), np.asarray(plain.terminal))
+
+
+def test_the_learned_term_is_finite_for_every_valid_episode():
+    """Fuzz: drawn episodes at the distribution's corners and inside it, and the shipped model's extremes; every
+    table entry finite, and the run's learned fall chances in [0, 1]."""
+    sur = Surrogate()
+    with_term = Surrogate(sur.hand, learned=_fitted(sur.model.digest, seed=1))
+    d = corpus.Distribution()
+    corner = lambda lo: {f: ((v[0], v[0] + 0.02 * (v[1] - v[0])) if lo else (v[1] - 0.02 * (v[1] - v[0]), v[1]))
+                         for f, v in vars(d).items()}  # noqa: E731
+    eps = _episodes(2, seed=11)
+    for seed, lo in ((5, True), (6, False)):
+        eps += [e.head(T) for e in corpus.draw(corpus.Distribution(**corner(lo)), seed, 2, sur.model).values()]
+    tables = jax.jit(dp.build_tables)(with_term, scenario.stack(eps))
+    assert np.all(np.isfinite(np.asarray(tables.reward)))
+    assert np.all(np.asarray(tables.reward) >= with_term.reward_config.r_min)
+
+
+def test_weights_of_another_model_or_none_are_refused_by_name(tmp_path):
+    from experiments import __main__ as cli
+
+    wrench = model_lib.load_model("wrench")
+    with pytest.raises(learned.LearnedTermError, match=r"fitted for another model .*not 'hammer'"):
+        Surrogate("hammer", learned=_fitted(wrench.digest))
+    path = learned.save(_fitted(wrench.digest), tmp_path / "w.npz")
+    with pytest.raises(learned.LearnedTermError, match=r"fitted for another model .*not 'hammer'"):
+        Surrogate("hammer", learned=path)
+    assert Surrogate("wrench", learned=path).learned_tag == learned.tag(_fitted(wrench.digest))
+    if not learned.path_of(model_lib.load_model("hammer")).exists():
+        with pytest.raises(learned.LearnedTermError, match=r"model 'hammer' has no learned physics term .*calibrate "
+                                                           r"--learn --model"):
+            Surrogate("hammer", learned=True)
+        with pytest.raises(SystemExit, match=r"--learned: model 'hammer' has no learned physics term"):
+            cli.main(["dp", "--model", "hammer", "--learned"])
+    model_lib.set_default(None)

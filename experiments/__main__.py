@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> None:
             sp.add_argument("--model", default=None, metavar="NAME_OR_PATH",
                             help="the hand + tool scene: a shipped model (wrench, hammer, allegro) or a scene file "
                                  "(default: wrench); checked first (check-model)")
-        if name not in ("check-model", "corpus", "calibrate", "figures"):
+        if name not in ("check-model", "calibrate", "figures"):
             sp.add_argument("--learned", action="store_true",
                             help="plan with the learned physics term (the model's weights, `calibrate --learn`); "
                                  "results and records are named -learned")

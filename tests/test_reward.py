@@ -109,7 +109,7 @@ def _random_terms(rng, shape) -> RewardTerms:
     return RewardTerms(wrench_move=f(), ik_next=f(), wrench_hold=f(), wrench_ext=f(), redundant=f(),
                        wrench_change=f(), unmet=jnp.asarray(rng.uniform(0.0, 0.6, shape + (4,)), jnp.float32),
                        motor_unmet=jnp.asarray(rng.uniform(0.0, 0.6, shape), jnp.float32), collision=b(0.1),
-                       fall=b(0.2), reward=f(), invalid=b(0.0))
+                       fall=b(0.2), reward=f(), invalid=b(0.0), fall_risk=jnp.zeros(shape, jnp.float32))
 
 
 def test_total_is_the_capped_weighted_sum_or_r_min():
@@ -124,6 +124,28 @@ def test_total_is_the_capped_weighted_sum_or_r_min():
     expect = np.where(t["collision"].astype(bool) | t["fall"].astype(bool), -100.0, -np.minimum(cost, 6.0))
     np.testing.assert_allclose(got, expect, rtol=1e-6)
     assert np.any(expect == -6.0) and np.any((expect > -6.0) & (expect < 0)) and np.any(expect == -100.0)
+
+
+def test_the_learned_risk_costs_its_log_chance_to_hold_and_falls_above_its_threshold():
+    """`with_risk`: below `risk_falls` the reward is the analytic one less w_risk * -log(1 - p) (outside the analytic
+    cap); above it the step falls (r_min); p = 0 leaves the reward as it was; the largest risk cost enters
+    `max_waypoints`."""
+    rng = np.random.default_rng(2)
+    cfg = RewardConfig(risk_falls=0.4, w_risk=3.0)
+    terms = _random_terms(rng, (400,))
+    plain = np.asarray(reward.total(cfg, terms), np.float64)
+    p = rng.uniform(0.0, 0.8, 400).astype(np.float32)
+    got = reward.with_risk(cfg, terms, p)
+    expect = np.where(p > 0.4, cfg.r_min, np.where(plain == cfg.r_min, cfg.r_min, plain + 3.0 * np.log1p(-p)))
+    np.testing.assert_allclose(np.asarray(got.reward), expect, rtol=1e-5, atol=1e-5)
+    np.testing.assert_array_equal(np.asarray(got.fall), np.asarray(terms.fall) | (p > 0.4))
+    assert np.any((p > 0.4) & ~np.asarray(terms.fall)) and np.any((p < 0.4) & (plain > cfg.r_min))
+    np.testing.assert_array_equal(np.asarray(reward.with_risk(cfg, terms, np.zeros(400)).reward), plain)
+    assert cfg.max_risk_cost == pytest.approx(3.0 * -np.log(0.6))
+    assert cfg.max_waypoints == int(np.ceil(200 / (10 + cfg.max_risk_cost))) - 1
+    for bad in (dict(risk_falls=0.0), dict(risk_falls=1.0), dict(w_risk=-1.0)):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            RewardConfig(**bad)
 
 
 def _arrival(cfg, rng, is_last, motor_unmet=0.1):

@@ -133,8 +133,9 @@ class RewardConfig:
     motor_iterations: int = 150  # int >= 1: iterations of that motor-limited wrench solve ("apg")
     max_step_cost: float = 10.0  # > 0: cap on a non-failing step's analytic cost ...
     r_min: float = -200.0  # < -max_step_cost: the reward of a failing step, below any T non-failing steps' sum
-    risk_falls: float = 0.3  # in (0, 1): a transition whose learned fall probability exceeds this is a fall
-    w_risk: float = 5.0  # >= 0: cost of a transition's learned fall risk p, per unit of -log(1 - p)
+    risk_falls: float = 0.9  # in (0, 1): a transition whose learned fall probability exceeds this is a fall (a
+    # tighter one leaves more episodes with no feasible sequence, where planners choose among falls: docs/learned-physics.md)
+    w_risk: float = 1.0  # >= 0: cost of a transition's learned fall risk p, per unit of -log(1 - p)
 
     def __post_init__(self):
         for name in ("w_wrench_move", "w_ik", "w_wrench_hold", "w_wrench_ext", "w_redundant", "w_wrench_change"):

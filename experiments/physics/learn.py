@@ -28,7 +28,9 @@ from gsp_jax import model as model_lib
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--corpus", default=None, help="the corpus folder (default: results/corpus[-<model>])")
+    p.add_argument("--corpus", nargs="+", default=None, metavar="FOLDER",
+                   help="the corpus folders (default: results/corpus[-<model>], and results/corpus-learned[-...] "
+                        "where `corpus --learned` made one: the learned planners' sequences)")
     p.add_argument("--out", default=None, help="where the weights go (default: beside the model's scene)")
     p.add_argument("--fit-seed", type=int, default=0, help="the split's and the network's seed")
     p.add_argument("--epochs", type=int, default=learned.FitConfig.epochs)
@@ -53,6 +55,10 @@ def _checks(data: dict, fitted: learned.Fitted, cfg: reward.RewardConfig) -> dic
                feasible_hold_learned=float(np.mean(~fell[risky_ok])) if risky_ok.any() else float("nan"),
                transition_auc=stats.auc(p[meet & data["fell_here"][test]], p[meet & ~data["fell_here"][test]]),
                reliability=learned.reliability(p[meet], data["fell_here"][test][meet]))
+    ep = data["episode"][test]
+    out["pool_regret_analytic"], out["pool_regret_learned"], out["pool_holdable"] = (
+        *(_pool_regret(score, fell, ep) for score in (plain, risky)), int(sum(not fell[ep == e].all()
+                                                                            for e in np.unique(ep))))
     base = [k.rstrip("0123456789") for k in kinds]
     out["per_kind"] = {k: dict(runs=int(np.sum(np.array(base) == k)),
                                falls=int(fell[np.array(base) == k].sum()),
@@ -64,13 +70,16 @@ def _checks(data: dict, fitted: learned.Fitted, cfg: reward.RewardConfig) -> dic
 def main(args: argparse.Namespace) -> None:
     model = model_lib.load_model()
     t0 = time.perf_counter()
-    cargs = argparse.Namespace(folder=args.corpus, shards=args.shards, first=0, episodes=args.episodes,
+    folders = args.corpus or [None]
+    cargs = argparse.Namespace(folder=folders[0], shards=args.shards, first=0, episodes=args.episodes,
                                random=4, perturbed=2, steps=None, cores=None)
-    if args.shards:
-        store = corpus_cmd.build(cargs)
-    else:
-        store = learned_store(cargs, model)
-    data = store.load()
+    stores = [corpus_cmd.build(cargs) if args.shards else learned_store(cargs, model)]
+    if args.corpus is None:
+        on_policy = common.RESULTS / corpus_cmd.folder_of(cargs).with_name(corpus_cmd.folder_of(cargs).name
+                                                                          + "-learned").name
+        folders += [on_policy] if (on_policy / "manifest.json").exists() else []
+    stores += [learned_store(argparse.Namespace(folder=f), model) for f in folders[1:]]
+    data = _joined([s.load() for s in stores])
     t_corpus = time.perf_counter() - t0
     meet = data["alive"] & learned.surrogate_alive(data["features"])
     print(f"learn: {len(data['fell'])} runs, {int(meet.sum())} transitions a planner meets, "
@@ -83,8 +92,9 @@ def main(args: argparse.Namespace) -> None:
     learned.save(fitted, out)
     cfg = reward.RewardConfig()
     checks = _checks(data, fitted, cfg)
-    report = dict(model=model.name, digest=model.digest, weights=str(out), corpus=str(store.folder),
-                  shards=len(store.manifest["shards"]), runs=int(len(data["fell"])), epochs=len(fitted.history),
+    report = dict(model=model.name, digest=model.digest, weights=str(out), corpus=[str(s.folder) for s in stores],
+                  shards=sum(len(s.manifest["shards"]) for s in stores), runs=int(len(data["fell"])),
+                  epochs=len(fitted.history),
                   corpus_s=t_corpus, fit_s=t_fit, risk_falls=cfg.risk_falls, w_risk=cfg.w_risk, **checks)
     files.write_json(results_dir("learn") / "report.json", report)
     print(f"learn: weights in {out}; report in {results_dir('learn') / 'report.json'}", flush=True)
@@ -101,9 +111,28 @@ def main(args: argparse.Namespace) -> None:
             ["feasible that hold: with the term", f"{100 * checks['feasible_hold_learned']:.1f}% of "
                                                    f"{checks['feasible_learned']}"],
             ["AUC per transition", checks["transition_auc"]],
+            ["best of the episode's runs fell, another held: analytic return",
+             f"{checks['pool_regret_analytic']} of {checks['pool_holdable']}"],
+            ["the same: return with the term", f"{checks['pool_regret_learned']} of {checks['pool_holdable']}"],
             ["corpus, fit [s]", f"{t_corpus:.0f}, {t_fit:.0f}"]]
     common.record("learned_term", {k: v for k, v in report.items() if k not in ("reliability",)})
     print(table([f"learned physics term, {model.name}", "test split"], rows))
+
+
+def _pool_regret(score: np.ndarray, fell: np.ndarray, episode: np.ndarray) -> int:
+    """Episodes where the run of the highest score fell while another run of the episode held: a planner's regret
+    when it chooses among the corpus's sequences by `score`."""
+    return int(sum(fell[s][np.argmax(score[s])] for e in np.unique(episode)
+                   if not fell[s := episode == e].all()))
+
+
+def _joined(parts: list[dict]) -> dict:
+    """Corpora's arrays as one (episode ids renumbered past the earlier corpora's)."""
+    offset, out = 0, []
+    for part in parts:
+        out.append(dict(part, episode=part["episode"] + offset))
+        offset += len(part["episode_names"])
+    return {k: np.concatenate([p[k] for p in out]) for k in out[0]}
 
 
 def learned_store(cargs: argparse.Namespace, model):

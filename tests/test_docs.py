@@ -144,13 +144,14 @@ def test_results_table_is_docs_data():
         value = float(cell.removesuffix(" s"))
         digits = len(cell.removesuffix(" s").split(".")[1])
         assert value == round(table1["warm_s"][p], digits), (p, cell)
-    assert [float(c.removesuffix(" s")) for c in _row("Table 1: online time per episode, paper")[1]] == [
+    assert [float(c.removesuffix(" s")) for c in _row("Table 1: time per episode, paper")[1]] == [
         table1["paper_s"][p] for p in ORDER]
 
 
 def _named(prefix: str) -> str:
-    """The one docs/data record whose name starts with `prefix` that the README cites."""
-    names = {n for unit in _units() for n in _cited(unit) if n.startswith(prefix)}
+    """The one docs/data record `<prefix><device>` that the README cites (not the learned term's,
+    `<prefix>learned_<device>`)."""
+    names = {n for unit in _units() for n in _cited(unit) if re.fullmatch(re.escape(prefix) + "[a-z0-9]+", n)}
     assert len(names) == 1, f"README.md cites {sorted(names)} for {prefix}*"
     return names.pop()
 
@@ -193,6 +194,25 @@ def test_readme_sentences_are_docs_data():
     holm = {(p["a"], p["b"]): p["p_holm"] for p in _report()["fig4a"]["anova"]["posthoc"]}
     bound = float(_claim(r"L1 and L2 beat RL and DP baseline in the surrogate \(Holm-corrected p ≤ ([\d.]+)\)")[0])
     assert max(holm[a, b] for a in ("dp-base", "rl") for b in ("L1", "L2")) <= bound
+
+
+def test_readme_learned_term_sentences_are_docs_data():
+    """The learned physics term's figures in the README equal the records they cite: the stress set's falls and
+    regrets, its feasible-hold share and AUC; the evaluation set's falls; the L1 decision's latency."""
+    stress = _file("envelope_stress_learned_h100")["figures"]["summary"]
+    kinds, pool = stress["kinds"], stress["pool"]
+    got = _claim(r"With it on the stress set, DP optimal falls (\d+) times, regret (\d+); L1 (\d+), L2 (\d+), RL (\d+) "
+                 r"\(not retrained\); of the surrogate-feasible sequences (\d+)% hold, AUC ([\d.]+) \(H100 host, "
+                 r"`envelope_stress_learned_h100`\)")
+    assert tuple(float(g) for g in got) == (
+        kinds["dp-opt"]["falls"], kinds["dp-opt"]["regret"], kinds["L1"]["regret"], kinds["L2"]["regret"],
+        kinds["rl"]["regret"], round(100 * pool["feasible_hold_share"]), round(pool["auc_pooled"], 2))
+    evals = _file("envelope_eval_learned_h100")["figures"]["summary"]["kinds"]
+    falls, n = _claim(r"Evaluation set: DP optimal, L1, L2 (\d+) of (\d+) falls \(H100 host, `envelope_eval_learned_h100`\)")
+    assert all(evals[k]["falls"] == int(falls) for k in ("dp-opt", "L1", "L2")) and int(n) == evals["L1"]["episodes"]
+    latency = _file("bench_latency_learned_h100")["figures"]["policies"]["L1"]["decision_median_s"]
+    ms = _claim(r"One L1 decision takes ([\d.]+) ms \(`bench_latency_learned_h100`, H100 host\)")[0]
+    assert float(ms) == round(1000 * latency, 1)
 
 
 def test_docs_data_has_one_schema_and_a_history_per_result():

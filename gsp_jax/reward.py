@@ -29,7 +29,8 @@ The learned physics term (`Surrogate(learned=...)`, off by default: the paper's 
 physics corpus of the model (`gsp_jax.learned`) gives each transition its probability p of a fall in the segment
 (`RewardTerms.fall_risk`). A transition with p above `risk_falls` is a fall; below it costs
 w_risk * -log(1 - p) beside the capped analytic cost, so a sequence's risk costs sum to -w_risk log(predicted
-chance to hold through). The analytic terms stay: the network reads them (`learned.FEATURES`) and corrects them.
+chance to hold through); the largest risk cost lowers the episodes' most waypoints (`max_waypoints_learned`). The
+analytic terms stay: the network reads them (`learned.FEATURES`) and corrects them.
 
 The calibrated defaults (`CALIBRATED_FIELDS`) are read from the data file `models/reward_calibration.json`
 (`CALIBRATION_JSON`), which `python -m experiments calibrate --write` writes through `write_calibration`.
@@ -163,7 +164,13 @@ class RewardConfig:
     @property
     def max_waypoints(self) -> int:
         """The most waypoints T an episode may have: failing (r_min) costs more than any T held steps (each at most
-        the capped analytic cost and the learned term's largest risk cost)."""
+        the capped analytic cost)."""
+        return int(np.ceil(-self.r_min / self.max_step_cost)) - 1
+
+    @property
+    def max_waypoints_learned(self) -> int:
+        """`max_waypoints` with the learned physics term: each held step at most the capped analytic cost and the
+        term's largest risk cost."""
         return int(np.ceil(-self.r_min / (self.max_step_cost + self.max_risk_cost))) - 1
 
     @property

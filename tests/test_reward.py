@@ -129,7 +129,7 @@ def test_total_is_the_capped_weighted_sum_or_r_min():
 def test_the_learned_risk_costs_its_log_chance_to_hold_and_falls_above_its_threshold():
     """`with_risk`: below `risk_falls` the reward is the analytic one less w_risk * -log(1 - p) (outside the analytic
     cap); above it the step falls (r_min); p = 0 leaves the reward as it was; the largest risk cost enters
-    `max_waypoints`."""
+    `max_waypoints_learned` (the paper's surrogate keeps its 19)."""
     rng = np.random.default_rng(2)
     cfg = RewardConfig(risk_falls=0.4, w_risk=3.0)
     terms = _random_terms(rng, (400,))
@@ -142,7 +142,7 @@ def test_the_learned_risk_costs_its_log_chance_to_hold_and_falls_above_its_thres
     assert np.any((p > 0.4) & ~np.asarray(terms.fall)) and np.any((p < 0.4) & (plain > cfg.r_min))
     np.testing.assert_array_equal(np.asarray(reward.with_risk(cfg, terms, np.zeros(400)).reward), plain)
     assert cfg.max_risk_cost == pytest.approx(3.0 * -np.log(0.6))
-    assert cfg.max_waypoints == int(np.ceil(200 / (10 + cfg.max_risk_cost))) - 1
+    assert cfg.max_waypoints_learned == int(np.ceil(200 / (10 + cfg.max_risk_cost))) - 1 < cfg.max_waypoints == 19
     for bad in (dict(risk_falls=0.0), dict(risk_falls=1.0), dict(w_risk=-1.0)):
         with pytest.raises(ValueError, match=next(iter(bad))):
             RewardConfig(**bad)

@@ -88,7 +88,7 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 
 
 def main(args: argparse.Namespace) -> None:
-    if args.learn:
+    if getattr(args, "learn", False):
         return learn(args)
     if args.from_sweep:
         return _from_sweep(args.from_sweep, args.write)

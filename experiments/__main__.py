@@ -24,7 +24,7 @@ COMMANDS = {  # command -> (module, one-line help)
     "envelope": ("experiments.physics.envelope", "the stress envelope in physics: falls classified by the oracle, regret"),
     "rescore": ("experiments.physics.rescore", "surrogate against physics: a recorded envelope pool scored under rewards (rho, AUC), no new physics"),
     "corpus": ("experiments.physics.corpus", "a physics corpus of the model: surrogate features of grasp sequences with what C MuJoCo did (shards, resumable)"),
-    "calibrate": ("experiments.physics.calibrate", "the reward's weights and thresholds against physics (train + val episodes)"),
+    "calibrate": ("experiments.physics.calibrate", "the reward's weights and thresholds against physics (train + val episodes); --learn: the learned physics term"),
     "fig4a": ("experiments.paper.fig4a", "Fig. 4a: surrogate returns relative to DP optimal, 95% CI, RM-ANOVA"),
     "fig4b": ("experiments.paper.fig4b", "Fig. 4b: the same policies closed loop in C MuJoCo (or MJX), angle error under the torque"),
     "table1": ("experiments.paper.table1", "Table 1: online wall-clock time per unseen episode, beside the paper's; --per-decision: latency per decision"),

@@ -119,7 +119,7 @@ def main(argv: list[str] | None = None) -> None:
         print(f"model: {model.name} ({model.path})", flush=True)
     from gsp_jax import learned
 
-    was_learned = learned._DEFAULT[0]  # a command another runs (`common.run_command`) inherits it; restored after
+    was_learned = learned.default_on()  # a command another runs (`common.run_command`) inherits it; restored after
     if getattr(args, "learned", False):
         try:
             learned.resolve(True, model_lib.load_model())

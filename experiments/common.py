@@ -40,7 +40,7 @@ def learned_on() -> bool:
     """Whether this process's surrogates have the learned physics term (`--learned`, `gsp_jax.learned.set_default`)."""
     from gsp_jax import learned
 
-    return learned._DEFAULT[0]
+    return learned.default_on()
 
 
 def run_command(words: list[str]) -> None:

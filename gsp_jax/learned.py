@@ -190,8 +190,13 @@ def fit(features: np.ndarray, fell_here: np.ndarray, alive: np.ndarray, episode:
 def surrogate_alive(features: np.ndarray) -> np.ndarray:
     """(M, T) bool: the analytic surrogate had not ended the run before transition t (no collision or fall at an
     earlier step) -- the transitions a planner with the learned term can meet (features (M, T, F), `FEATURES`)."""
-    ended = np.maximum(features[..., FEATURES.index("fall")], features[..., FEATURES.index("collision")]) > 0
+    ended = _ends(features)
     return np.cumsum(np.concatenate([np.zeros_like(ended[:, :1]), ended[:, :-1]], 1), 1) == 0
+
+
+def _ends(features: np.ndarray) -> np.ndarray:
+    """(...) bool: the analytic surrogate ends the run at this transition (a collision or a fall)."""
+    return np.maximum(features[..., FEATURES.index("fall")], features[..., FEATURES.index("collision")]) > 0
 
 
 def returns(features: np.ndarray, fall_risk: np.ndarray | None, cfg) -> tuple[np.ndarray, np.ndarray]:
@@ -200,7 +205,7 @@ def returns(features: np.ndarray, fall_risk: np.ndarray | None, cfg) -> tuple[np
     without): the steps up to the first that ends the run (collision, analytic fall or a risk above
     `cfg.risk_falls`: r_min), each analytic reward less its risk cost (`reward.total`)."""
     reward = np.asarray(features[..., FEATURES.index("reward")], np.float64)
-    ends = (np.maximum(features[..., FEATURES.index("fall")], features[..., FEATURES.index("collision")]) > 0)
+    ends = _ends(features)
     risk_cost = np.zeros_like(reward)
     if fall_risk is not None:
         fall_risk = np.asarray(fall_risk, np.float64)
@@ -230,6 +235,11 @@ def set_default(on: bool) -> None:
     """Whether a `Surrogate` built without `learned` has the learned physics term (the model's own weights) in this
     process (the CLI's ``--learned``)."""
     _DEFAULT[0] = bool(on)
+
+
+def default_on() -> bool:
+    """Whether `Surrogate(learned=None)` has the learned physics term in this process (`set_default`)."""
+    return _DEFAULT[0]
 
 
 def resolve(learned, model) -> "Fitted | None":

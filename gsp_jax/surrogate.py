@@ -77,7 +77,7 @@ class Surrogate:
         self.hand = hand if isinstance(hand, hand_lib.HandModel) else model_lib.load_model(hand).hand
         self.space = grasps.space_of(self.hand)
         self.reward_config, self.ik_config, self.wrench_config = reward, ik_config, wrench_config
-        self.learned = learned_lib.resolve(learned, self.model) if learned is not False else None
+        self.learned = learned_lib.resolve(learned, self.model)
         self.learned_tag = "" if self.learned is None else learned_lib.tag(self.learned)
         self.gravity = jnp.asarray(self.hand.gravity, jnp.float32)
         self.torque_limit = jnp.asarray(self.hand.joint_torque_limit, jnp.float32)  # (J,)

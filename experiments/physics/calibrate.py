@@ -179,8 +179,9 @@ def _checks(data: dict, fitted: learned.Fitted, cfg: reward.RewardConfig) -> dic
     test = np.isin(data["episode"], fitted.split["test"])
     x, fell = data["features"][test], data["fell"][test]
     p = np.asarray(jax.jit(learned.hazard)(fitted, x))  # (M, T)
-    meet = data["alive"][test] & learned.surrogate_alive(x)
-    hold_p = np.prod(np.where(learned.surrogate_alive(x), 1 - p, 1.0), 1)  # the chance to hold through
+    met = learned.surrogate_alive(x)
+    meet = data["alive"][test] & met
+    hold_p = np.prod(np.where(met, 1 - p, 1.0), 1)  # the chance to hold through
     plain, plain_ok = learned.returns(x, None, cfg)
     risky, risky_ok = learned.returns(x, p, cfg)
     kinds = data["kinds"][data["kind"][test]]
@@ -197,11 +198,10 @@ def _checks(data: dict, fitted: learned.Fitted, cfg: reward.RewardConfig) -> dic
     out["pool_regret_analytic"], out["pool_regret_learned"], out["pool_holdable"] = (
         *(_pool_regret(score, fell, ep) for score in (plain, risky)), int(sum(not fell[ep == e].all()
                                                                             for e in np.unique(ep))))
-    base = [k.rstrip("0123456789") for k in kinds]
-    out["per_kind"] = {k: dict(runs=int(np.sum(np.array(base) == k)),
-                               falls=int(fell[np.array(base) == k].sum()),
-                               auc=stats.auc(hold_p[(np.array(base) == k) & ~fell],
-                                             hold_p[(np.array(base) == k) & fell])) for k in sorted(set(base))}
+    base = np.array([k.rstrip("0123456789") for k in kinds])
+    out["per_kind"] = {k: dict(runs=int(np.sum(of)), falls=int(fell[of].sum()),
+                               auc=stats.auc(hold_p[of & ~fell], hold_p[of & fell]))
+                       for k in sorted(set(base)) for of in [base == k]}
     return out
 
 

@@ -40,6 +40,8 @@ class Table:
     terminal: jax.Array  # (G, A, T) bool, the transition ends the episode (collision, fall, or last step)
     ik_error: jax.Array  # (G, T) IK error of each grasp realised at each waypoint [m] (for inspection)
     q: jax.Array  # (G, T, J) joint angles of each grasp realised at each waypoint (the discrete states' q)
+    fall_risk: jax.Array | None = None  # (G, A, T) the learned physics term's fall probability of each transition
+    # (`reward.RewardTerms.fall_risk`: what follows counts with 1 - fall_risk); None without the term
 
 
 @struct.dataclass
@@ -50,7 +52,8 @@ class Solution:
     policy: jax.Array  # (G, T) int32 optimal action
     actions: jax.Array  # (T,) int32 optimal actions from the start grasp (after the episode ended: ignored)
     grasps: jax.Array  # (T + 1,) int32 grasps along the optimal sequence (grasps[0] = start grasp)
-    rewards: jax.Array  # (T,) rewards along it (0 after the episode ended)
+    rewards: jax.Array  # (T,) rewards along it (0 after the episode ended; with the learned term expected rewards,
+    # whose `reward.expected_return` is `ret`)
     alive: jax.Array  # (T,) bool, step t is part of the episode (the sequence has not ended before it)
     ret: jax.Array  # () optimal return from the start grasp = value[start, 0]
 
@@ -99,7 +102,8 @@ def table_from_terms(sur: Surrogate, episode: Episode, plain: RewardTerms, conta
     terms = reward_lib.of_transitions(sur.reward_config, plain, next_grasp, is_redundant, changed, shared, ts)
     terms = sur.with_learned(episode, ts, next_grasp[..., None], changed[..., None], terms)  # (G, A, T)
     terminal = terms.collision | terms.fall | (ts == n_t - 1)[None, None, :]
-    return Table(reward=terms.reward, next_grasp=next_grasp, terminal=terminal, ik_error=contacts.ik.error, q=contacts.ik.q)
+    return Table(reward=terms.reward, next_grasp=next_grasp, terminal=terminal, ik_error=contacts.ik.error,
+                 q=contacts.ik.q, fall_risk=None if sur.learned is None else terms.fall_risk)
 
 
 def build_tables(sur: Surrogate, episodes: Episode, batch_size: int | None = None) -> Table:
@@ -110,11 +114,13 @@ def build_tables(sur: Surrogate, episodes: Episode, batch_size: int | None = Non
 
 
 def backup(table: Table, start_grasp: jax.Array) -> Solution:
-    """Bellman backups backwards in time (`lax.scan`), vectorised over grasps; then the optimal sequence."""
+    """Bellman backups backwards in time (`lax.scan`), vectorised over grasps (with the learned term, expectimax:
+    `reward.backed_up`); then the optimal sequence."""
     n_g, _, n_t = table.reward.shape
 
     def back(v_next, t):
-        q = table.reward[:, :, t] + jnp.where(table.terminal[:, :, t], 0.0, v_next[table.next_grasp])
+        risk = None if table.fall_risk is None else table.fall_risk[:, :, t]
+        q = reward_lib.backed_up(table.reward[:, :, t], risk, table.terminal[:, :, t], v_next[table.next_grasp])
         return jnp.max(q, axis=1), (jnp.max(q, axis=1), jnp.argmax(q, axis=1).astype(jnp.int32))
 
     _, (values, policy) = jax.lax.scan(back, jnp.zeros(n_g, table.reward.dtype), jnp.arange(n_t), reverse=True)
@@ -122,7 +128,7 @@ def backup(table: Table, start_grasp: jax.Array) -> Solution:
     policy = policy.T  # (G, T)
 
     start = jnp.asarray(start_grasp, jnp.int32)
-    actions, grasps, rewards, alive = _replay(table, start, lambda g, t: policy[g, t])
+    actions, grasps, rewards, _, alive = _replay(table, start, lambda g, t: policy[g, t])
     return Solution(
         value=value,
         policy=policy,
@@ -139,7 +145,7 @@ def longest_surviving(table: Table, start_grasp: jax.Array, r_min: float) -> Sol
     start grasp: where every sequence fails (the optimum's return is `r_min`), the optimum fails at once (a failure
     ends the costs), while this one shows where the tool is lost at the latest and why (`Surrogate.explain`)."""
     survived = (table.reward > r_min).astype(table.reward.dtype)
-    return backup(table.replace(reward=survived), start_grasp)
+    return backup(table.replace(reward=survived, fall_risk=None), start_grasp)
 
 
 def solve(sur: Surrogate, episode: Episode) -> tuple[Table, Solution]:
@@ -150,29 +156,32 @@ def solve(sur: Surrogate, episode: Episode) -> tuple[Table, Solution]:
 
 def _replay(table: Table, start: jax.Array, choose):
     """Walk the table from grasp `start` with action = choose(grasp, t): actions (T,), grasps after each step
-    (T,), rewards (T,; 0 once ended) and alive (T,). The grasp stays put after the episode ended."""
+    (T,), rewards (T,; 0 once ended), fall risks (T,; 0 without the learned term) and alive (T,). The grasp stays
+    put after the episode ended."""
 
     def step(carry, t):
         g, alive = carry
         a = choose(g, t)
         r = jnp.where(alive, table.reward[g, a, t], 0.0)
+        p = jnp.zeros((), table.reward.dtype) if table.fall_risk is None else table.fall_risk[g, a, t]
         g_next = jnp.where(alive, table.next_grasp[g, a], g)
-        return (g_next, alive & ~table.terminal[g, a, t]), (a, g_next, r, alive)
+        return (g_next, alive & ~table.terminal[g, a, t]), (a, g_next, r, p, alive)
 
     _, out = jax.lax.scan(step, (start, jnp.array(True)), jnp.arange(table.reward.shape[2]))
     return out
 
 
 def sequence_return(table: Table, start_grasp: jax.Array, actions: jax.Array) -> jax.Array:
-    """Return of an open-loop action sequence (T,) replayed in a table from `start_grasp` (the DP baseline:
-    a sequence solved on one episode, scored on another)."""
-    return jnp.sum(sequence_rewards(table, start_grasp, actions))
+    """(Expected) return of an open-loop action sequence (T,) replayed in a table from `start_grasp` (the DP
+    baseline: a sequence solved on one episode, scored on another; `reward.expected_return`)."""
+    _, _, rewards, risk, alive = _replay(table, jnp.asarray(start_grasp, jnp.int32), lambda g, t: actions[t])
+    return reward_lib.expected_return(rewards, None if table.fall_risk is None else risk, alive)
 
 
 def sequence_rewards(table: Table, start_grasp: jax.Array, actions: jax.Array) -> jax.Array:
     """Rewards (T,) of an open-loop action sequence (T,) replayed in a table from `start_grasp`; a step the
     surrogate calls a fall or a collision has reward <= the table's R_min."""
-    _, _, rewards, _ = _replay(table, jnp.asarray(start_grasp, jnp.int32), lambda g, t: actions[t])
+    _, _, rewards, _, _ = _replay(table, jnp.asarray(start_grasp, jnp.int32), lambda g, t: actions[t])
     return rewards
 
 
@@ -191,7 +200,7 @@ def random_sequence(table: Table, start_grasp: jax.Array, key: jax.Array, r_min:
         drawn = jax.random.categorical(keys[t, 1], logits)
         return jnp.where(stay, NULL, drawn).astype(jnp.int32)
 
-    actions, _, _, _ = _replay(table, jnp.asarray(start_grasp, jnp.int32), choose)
+    actions, _, _, _, _ = _replay(table, jnp.asarray(start_grasp, jnp.int32), choose)
     return actions
 
 
@@ -222,8 +231,10 @@ def table_step(table: Table, state: State, action: jax.Array) -> tuple[State, ja
     tc = jnp.minimum(state.t, n_t - 1)
     g_next = table.next_grasp[state.grasp, action]
     reward = table.reward[state.grasp, action, tc]
+    risk = jnp.zeros((), reward.dtype) if table.fall_risk is None else table.fall_risk[state.grasp, action, tc]
     moved = table_state(state.episode, table, g_next, state.t + 1)
-    moved = moved.replace(done=table.terminal[state.grasp, action, tc], terms=RewardTerms.zeros().replace(reward=reward))
+    moved = moved.replace(done=table.terminal[state.grasp, action, tc],
+                          terms=RewardTerms.zeros().replace(reward=reward, fall_risk=risk))
     out = jax.tree.map(lambda old, new: jnp.where(state.done, old, new), state, moved)
     return out, jnp.where(state.done, 0.0, reward), out.done
 

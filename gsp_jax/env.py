@@ -13,7 +13,11 @@ the grasp realised by IK from the fixed start configuration), so an episode set'
 reward, next grasp, terminal and joint angles per (grasp, waypoint)) step it exactly, with lookups instead of
 the IK and wrench solves of a step; a test checks the two backends agree step for step. Use the table
 backend for training on a fixed set, the surrogate backend (no tables) for continuous states and new episodes.
-With tables, `pipeline_state.terms` carries the reward only (the other terms are not tabulated).
+With tables, `pipeline_state.terms` carries the reward and the fall risk only (the other terms are not tabulated).
+
+With the learned physics term a step's reward is its expectation over the term's chance node and `info["hold"]` the
+chance its segment held (1 - `terms.fall_risk`): PPO weights what follows by it (`ppo.losses.gae`), as the DP and
+the lookahead do (`reward.backed_up`); the running return is the expected one. Without the term it is 1.
 """
 from __future__ import annotations
 
@@ -38,7 +42,9 @@ class GraspEnv(brax_base.Env):
       tables: optional `dp.Table` per episode, stacked (N, ...) (`dp.build_tables`): the table backend.
       auto_reset: move on to the next episode when one ends (training); off, a finished state is absorbing.
 
-    `state.info`: `episode_index` (index into the set; not `episode`, which Gymnasium tools reserve for episode statistics), `return` (running return of the current episode).
+    `state.info`: `episode_index` (index into the set; not `episode`, which Gymnasium tools reserve for episode
+    statistics), `return` (running (expected) return of the current episode), `hold` (the chance the last step's
+    segment held: 1 - its learned fall risk, 1 without the term), `reach` (the chance every segment so far held).
     `state.metrics`: `episode_return` (the return of the episode that ended at this step; read it where `done`).
     """
 
@@ -89,7 +95,7 @@ class GraspEnv(brax_base.Env):
             reward=zero,
             done=jnp.array(False),
             metrics={"episode_return": zero},
-            info={"episode_index": idx, "return": zero},
+            info={"episode_index": idx, "return": zero, "hold": zero + 1.0, "reach": zero + 1.0},
         )
 
     def step(self, state: brax_base.State, action: jax.Array) -> brax_base.State:
@@ -99,7 +105,9 @@ class GraspEnv(brax_base.Env):
             sim, reward, done = table_step(_TableView(self.tables, idx), state.pipeline_state, action)
         else:
             sim, reward, done = self.surrogate.step(state.pipeline_state, action)
-        ret = state.info["return"] + reward
+        hold = 1.0 - sim.terms.fall_risk
+        ret = state.info["return"] + state.info["reach"] * reward
+        reach = state.info["reach"] * hold
         if self.auto_reset:
             idx_next = jnp.where(done, (idx + 1) % self.n_episodes, idx)
             fresh = self._start(idx_next)
@@ -112,7 +120,8 @@ class GraspEnv(brax_base.Env):
             reward=reward,
             done=done,
             metrics={"episode_return": ret},
-            info={"episode_index": idx_next, "return": jnp.where(done & self.auto_reset, 0.0, ret)},
+            info={"episode_index": idx_next, "return": jnp.where(done & self.auto_reset, 0.0, ret), "hold": hold,
+                  "reach": jnp.where(done & self.auto_reset, 1.0, reach)},
         )
 
     # -------------------------------------------------------------------------------------------- helpers
@@ -134,7 +143,8 @@ class _TableView:
         self._tables, self._idx = tables, idx
 
     def __getattr__(self, name):
-        return _Indexed(getattr(self._tables, name), self._idx)
+        array = getattr(self._tables, name)
+        return None if array is None else _Indexed(array, self._idx)
 
 
 class _Indexed:

@@ -126,7 +126,7 @@ def dp_tables(sur: Surrogate, set_name: str, episodes: dict, batch_size: int = 4
     tables = jax.block_until_ready(jax.jit(lambda b: dp.build_tables(sur, b, batch_size))(batch))
     print(f"  {time.perf_counter() - t0:.1f} s", flush=True)
     if path is not None:
-        files.savez(path, **{k: np.asarray(v) for k, v in vars(tables).items()})  # atomic: a unique temporary
+        files.savez(path, **{k: np.asarray(v) for k, v in vars(tables).items() if v is not None})  # atomic
     return tables
 
 

@@ -203,17 +203,18 @@ def returns(features: np.ndarray, fall_risk: np.ndarray | None, cfg) -> tuple[np
     """(return (M,), feasible (M,) bool) of M runs of T transitions under the reward `cfg` (`reward.RewardConfig`)
     from their analytic features (M, T, F) and, with the learned term, each transition's fall risk (M, T) (None:
     without): the steps up to the first that ends the run (collision, analytic fall or a risk above
-    `cfg.risk_falls`: r_min), each analytic reward less its risk cost (`reward.total`)."""
+    `cfg.risk_falls`: r_min), each its expected reward, counted with the chance that the earlier segments held
+    (`reward.total`, `reward.expected_return`, in float64)."""
     reward = np.asarray(features[..., FEATURES.index("reward")], np.float64)
     ends = _ends(features)
-    risk_cost = np.zeros_like(reward)
+    p = np.zeros_like(reward)
     if fall_risk is not None:
-        fall_risk = np.asarray(fall_risk, np.float64)
-        ends = ends | (fall_risk > cfg.risk_falls)
-        risk_cost = cfg.w_risk * -np.log1p(-np.minimum(fall_risk, cfg.risk_falls))
+        ends = ends | (np.asarray(fall_risk) > cfg.risk_falls)
+        p = np.where(ends, 0.0, np.asarray(fall_risk, np.float64))
     before = np.cumsum(ends, 1) - ends == 0  # no earlier step ended the run
-    step = np.where(ends, cfg.r_min, reward - risk_cost)
-    return np.sum(np.where(before, step, 0.0), 1), ~np.any(ends, 1)
+    step = np.where(ends, cfg.r_min, (1 - p) * reward + p * cfg.r_min)
+    reach = np.cumprod(np.concatenate([np.ones_like(p[:, :1]), 1 - p[:, :-1]], 1), 1)
+    return np.sum(np.where(before, reach * step, 0.0), 1), ~np.any(ends, 1)
 
 
 def reliability(p: np.ndarray, event: np.ndarray, bins: int = 10) -> list[dict]:

@@ -8,7 +8,9 @@
 From `state` the search expands the complete tree of depth l over the A actions: every action path
 (a_1 .. a_l) is scored by the sum of its l rewards plus its leaf's rollout value, the return of the base policy
 run from the leaf for m further steps (to the episode's end by default, m = None), plus, optionally, a value
-estimate (the PPO critic) of the state where the rollout was cut off. The search returns the first action of the
+estimate (the PPO critic) of the state where the rollout was cut off. With the learned physics term each step is a
+chance node (expectimax): what follows a step counts with its chance to hold, 1 - `terms.fall_risk`
+(`reward.backed_up`; 1 without the term, where the sums are plain). The search returns the first action of the
 best path, and q[a] = the best score under first action a (Q-values, for inspection). A finished state is
 absorbing (reward 0), so paths that end the episode early are scored by what they earned.
 
@@ -55,11 +57,11 @@ class Plan:
 
 def rollout(model, policy, state: State, horizon: int | None = None, value: Value | None = None):
     """Run `policy` from `state` for `horizon` steps (None: until the episode ends) in `model`; return
-    (sum of rewards [+ value(final) if the episode has not ended], final state). A `lax.while_loop`: under
-    `vmap` it stops when every rollout of the batch has ended."""
-    ret, final = _run(lambda s: model.step(s, policy.act(s))[:2], state, horizon)
+    (the (expected) sum of rewards [+ value(final) if the episode has not ended], final state). A
+    `lax.while_loop`: under `vmap` it stops when every rollout of the batch has ended."""
+    ret, final, reach = _run(lambda s: model.step(s, policy.act(s))[:2], state, horizon)
     if value is not None:
-        ret = ret + jnp.where(final.done, 0.0, value(final))
+        ret = ret + jnp.where(final.done, 0.0, reach * value(final))
     return ret, final
 
 
@@ -68,31 +70,33 @@ def rollout_planned(policy: "Lookahead", state: State, horizon: int | None = Non
     search has already computed `model.step(state, action)` for every action at its root, so the episode moves on
     to the plan's `child` and earns its `reward`. The same transitions (the child comes from the root's vmapped
     step, so in float32 its last bits can differ from a single step's); one model step per decision fewer.
-    Returns (sum of rewards, final state)."""
+    Returns (the (expected) sum of rewards, final state)."""
 
     def transition(s):
         plan = policy.plan(s)
         return plan.child, plan.reward
 
-    return _run(transition, state, horizon)
+    return _run(transition, state, horizon)[:2]
 
 
 def _run(transition, state: State, horizon: int | None):
-    """(sum of rewards, final state) of `transition(s) -> (next state, reward)` from `state` for `horizon` steps
-    (None: the episode's length) or until the episode ends."""
+    """(expected sum of rewards, final state, chance to reach it) of `transition(s) -> (next state, reward)` from
+    `state` for `horizon` steps (None: the episode's length) or until the episode ends: each reward counts with the
+    chance that every earlier segment held (the product of 1 - `terms.fall_risk`; 1 without the learned term)."""
     steps = state.episode.waypoints.shape[-2] if horizon is None else horizon
 
     def cond(carry):
-        i, s, _ = carry
+        i, s, _, _ = carry
         return (i < steps) & ~s.done
 
     def body(carry):
-        i, s, ret = carry
+        i, s, ret, reach = carry
         s, reward = transition(s)
-        return i + 1, s, ret + reward
+        return i + 1, s, ret + reach * reward, reach * (1.0 - s.terms.fall_risk)
 
-    _, final, ret = jax.lax.while_loop(cond, body, (jnp.int32(0), state, jnp.zeros((), jnp.float32)))
-    return ret, final
+    one = jnp.ones((), jnp.float32)
+    _, final, ret, reach = jax.lax.while_loop(cond, body, (jnp.int32(0), state, 0.0 * one, one))
+    return ret, final, reach
 
 
 def search(model, state: State, base, depth: int = 1, horizon: int | None = None, value: Value | None = None,
@@ -108,7 +112,8 @@ def search(model, state: State, base, depth: int = 1, horizon: int | None = None
     space: GraspSpace = model.space
     n_a = space.n_actions
     inner = model if inner is None else inner
-    (children, child_reward), (leaves, path_reward) = _expand(model, state, depth, n_a, inner)  # (A, ...), (A^l, ...)
+    # children (A, ...), their rewards (A,); leaves (A^l, ...), path rewards and chances to hold (A^l,)
+    (children, child_reward), (leaves, path_reward, path_hold) = _expand(model, state, depth, n_a, inner)
 
     # One rollout per distinct grasp among the live leaves (all at waypoint t + l); the paths that ended early
     # (frozen at an earlier waypoint) share one extra key and are scored 0 beyond their rewards.
@@ -120,7 +125,7 @@ def search(model, state: State, base, depth: int = 1, horizon: int | None = None
     rep_value, _ = jax.vmap(lambda s: rollout(inner, base, s, horizon, value))(reps)
     leaf_value = jnp.where(leaves.done, 0.0, rep_value[inverse.reshape(-1)])
 
-    scores = (path_reward + leaf_value).reshape(n_a, -1)  # (A, A^(l-1))
+    scores = (path_reward + path_hold * leaf_value).reshape(n_a, -1)  # (A, A^(l-1))
     q = jnp.max(scores, axis=1)
     best = jnp.argmax(scores.reshape(-1)).astype(jnp.int32)
     path = jnp.stack([(best // n_a ** (depth - 1 - k)) % n_a for k in range(depth)]).astype(jnp.int32)
@@ -131,16 +136,20 @@ def search(model, state: State, base, depth: int = 1, horizon: int | None = None
 
 def _expand(model, state: State, depth: int, n_a: int, inner):
     """Every action path of length `depth` from `state`: (children (A leading), their rewards (A,)) and (the leaf
-    states (A^depth leading), path rewards (A^depth,)). The first step in `model`, the deeper ones in `inner`."""
+    states (A^depth leading), path rewards (A^depth,), the paths' chances to hold (A^depth,)): a path's reward is
+    its first step's plus, where that segment held, the rest's (`reward.backed_up`). The first step in `model`, the
+    deeper ones in `inner`."""
     if hasattr(model, "step_every"):  # the model steps every action at once (`Surrogate.step_every`)
         children, rewards, _ = model.step_every(state)
     else:
         children, rewards, _ = jax.vmap(model.step, (None, 0))(state, jnp.arange(n_a, dtype=jnp.int32))
+    hold = 1.0 - children.terms.fall_risk  # (A,)
     if depth == 1:
-        return (children, rewards), (children, rewards)
-    _, (leaves, sub) = jax.vmap(lambda s: _expand(inner, s, depth - 1, n_a, inner))(children)  # (A, A^(d-1), ...)
-    flat = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), leaves)
-    return (children, rewards), (flat, (rewards[:, None] + sub).reshape(-1))
+        return (children, rewards), (children, rewards, hold)
+    _, (leaves, sub, sub_hold) = jax.vmap(lambda s: _expand(inner, s, depth - 1, n_a, inner))(children)
+    flat = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), leaves)  # (A * A^(d-1), ...)
+    return (children, rewards), (flat, (rewards[:, None] + hold[:, None] * sub).reshape(-1),
+                                 (hold[:, None] * sub_hold).reshape(-1))
 
 
 _BALL_CACHE: dict = {}

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from gsp_jax import files, hand as hand_lib, model as model_lib, scenario as scenario_lib
+from gsp_jax import files, hand as hand_lib, model as model_lib, reward as reward_lib, scenario as scenario_lib
 from gsp_jax.observation import observation, observation_size
 from gsp_jax.grasps import GraspSpace
 from gsp_jax.lookahead import Lookahead  # re-exported: the Ll policies
@@ -175,7 +175,7 @@ def rollout_batched(sur: Surrogate, policy, episode: Episode, ahead: int = 1) ->
     start an episode visits only discrete states (grasp, t), and a step's next grasp follows from its action alone
     (`GraspSpace.apply`), so the grasps a policy visits are known before any reward is: all T transitions (their IK
     and wrench solves) then run as one vmapped batch (`Surrogate.transition`), and the return sums the rewards up to
-    the first step that ends the episode. An open-loop `SequencePolicy` (DP baseline) needs nothing more. A
+    the first step that ends the episode (`reward.expected_return`). An open-loop `SequencePolicy` (DP baseline) needs nothing more. A
     closed-loop policy first walks its chain of decisions, which needs each state it acts on realised (an IK):
     `ahead` = k realises, in one batch, every state its next k decisions can reach -- the grasps within j link
     changes of the current one at waypoint t + j, j < k (1, 11, 51, 133 ... states: `GraspSpace.within`) -- so the
@@ -216,4 +216,5 @@ def rollout_batched(sur: Surrogate, policy, episode: Episode, ahead: int = 1) ->
     moved, rewards, ends = jax.vmap(sur.transition, (None, 0, 0, 0))(episode, grasps, ts, actions)
     alive = jnp.cumsum(ends) - ends == 0  # no earlier step ended the episode
     final = jax.tree.map(lambda x: x[jnp.argmax(ends)], moved)  # the first step that ends it (the last one does)
-    return jnp.sum(jnp.where(alive, rewards, 0.0)), final
+    risk = None if sur.learned is None else moved.terms.fall_risk
+    return reward_lib.expected_return(rewards, risk, alive), final

@@ -17,7 +17,7 @@ import optax
 from flax import struct
 from tqdm.auto import tqdm
 
-from gsp_jax import dp
+from gsp_jax import dp, reward as reward_lib
 from gsp_jax.dp import table_state
 from gsp_jax.observation import observation
 from gsp_jax.ppo import networks as nets
@@ -69,10 +69,11 @@ def reachable(table: dp.Table, start_grasp: jax.Array) -> jax.Array:
 
 
 def q_values(table: dp.Table, solution: dp.Solution) -> jax.Array:
-    """(G, A, T) optimal action values Q(g, a, t) = reward + V(g', t + 1) unless the transition is terminal."""
+    """(G, A, T) optimal action values Q(g, a, t) = reward + V(g', t + 1) unless the transition is terminal (with
+    the learned term, V weighted by the chance to hold: `reward.backed_up`)."""
     n_t = table.reward.shape[2]
     v_next = solution.value[table.next_grasp][:, :, 1 : n_t + 1]  # (G, A, T)
-    return table.reward + jnp.where(table.terminal, 0.0, v_next)
+    return reward_lib.backed_up(table.reward, table.fall_risk, table.terminal, v_next)
 
 
 def dp_dataset(surrogate: Surrogate, episodes: Episode, tables: dp.Table) -> Dataset:

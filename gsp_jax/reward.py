@@ -27,10 +27,12 @@ the last step the forces the hand's motors can give leave more than `motor_fall_
 
 The learned physics term (`Surrogate(learned=...)`, off by default: the paper's surrogate): a network fitted on a
 physics corpus of the model (`gsp_jax.learned`) gives each transition its probability p of a fall in the segment
-(`RewardTerms.fall_risk`). A transition with p above `risk_falls` is a fall; below it costs
-w_risk * -log(1 - p) beside the capped analytic cost, so a sequence's risk costs sum to -w_risk log(predicted
-chance to hold through); the largest risk cost lowers the episodes' most waypoints (`max_waypoints_learned`). The
-analytic terms stay: the network reads them (`learned.FEATURES`) and corrects them.
+(`RewardTerms.fall_risk`), a chance node after the decision (the paper's lookahead is expectimax). A transition
+with p above `risk_falls` is a fall; below it, the step's reward is its expectation, (1 - p) times the analytic
+reward plus p times `r_min`, and what follows it counts only if the segment held: every planner backs values up as
+reward + (1 - p) * value of the next state (`backed_up`, `expected_return`), so a sequence's value is its expected
+return with a fall ending it at `r_min`. Without the term p = 0 and both are the plain sums. The analytic terms
+stay: the network reads them (`learned.FEATURES`) and corrects them.
 
 The calibrated defaults (`CALIBRATED_FIELDS`) are read from the data file `models/reward_calibration.json`
 (`CALIBRATION_JSON`), which `python -m experiments calibrate --write` writes through `write_calibration`.
@@ -136,7 +138,6 @@ class RewardConfig:
     r_min: float = -200.0  # < -max_step_cost: the reward of a failing step, below any T non-failing steps' sum
     risk_falls: float = 0.9  # in (0, 1): a transition whose learned fall probability exceeds this is a fall (a
     # tighter one leaves more episodes with no feasible sequence, where planners choose among falls: docs/learned-physics.md)
-    w_risk: float = 1.0  # >= 0: cost of a transition's learned fall risk p, per unit of -log(1 - p)
 
     def __post_init__(self):
         for name in ("w_wrench_move", "w_ik", "w_wrench_hold", "w_wrench_ext", "w_redundant", "w_wrench_change"):
@@ -156,8 +157,6 @@ class RewardConfig:
             raise ValueError(f"RewardConfig.supported_steps: must be an int >= 0, got {self.supported_steps!r}")
         if not 0 < self.risk_falls < 1:
             raise ValueError(f"RewardConfig.risk_falls: must be in (0, 1), got {self.risk_falls}")
-        if not self.w_risk >= 0:
-            raise ValueError(f"RewardConfig.w_risk: a weight must be >= 0, got {self.w_risk}")
         if not self.r_min < -self.max_step_cost:
             raise ValueError(f"RewardConfig.r_min: must be < -max_step_cost = {-self.max_step_cost}, got {self.r_min}")
 
@@ -166,17 +165,6 @@ class RewardConfig:
         """The most waypoints T an episode may have: failing (r_min) costs more than any T held steps (each at most
         the capped analytic cost)."""
         return int(np.ceil(-self.r_min / self.max_step_cost)) - 1
-
-    @property
-    def max_waypoints_learned(self) -> int:
-        """`max_waypoints` with the learned physics term: each held step at most the capped analytic cost and the
-        term's largest risk cost."""
-        return int(np.ceil(-self.r_min / (self.max_step_cost + self.max_risk_cost))) - 1
-
-    @property
-    def max_risk_cost(self) -> float:
-        """The largest cost of a transition's learned fall risk (at p = risk_falls)."""
-        return float(self.w_risk * -np.log1p(-self.risk_falls))
 
     @property
     def prices_changes(self) -> bool:
@@ -201,7 +189,8 @@ class RewardTerms:
     fall: jax.Array  # () bool
     reward: jax.Array  # () the step's reward
     invalid: jax.Array  # () bool, the episode's inputs are out of range (`surrogate.episode_ok`): reward r_min, done
-    fall_risk: jax.Array  # () the learned physics term's probability of a fall in this segment (0 without one)
+    fall_risk: jax.Array  # () the learned physics term's probability of a fall in this segment (0 without one): what
+    # follows the step counts with 1 - fall_risk (`backed_up`)
 
     @classmethod
     def zeros(cls) -> "RewardTerms":
@@ -284,8 +273,9 @@ def with_risk(cfg: RewardConfig, terms: RewardTerms, fall_risk: jax.Array) -> Re
 
 
 def total(cfg: RewardConfig, terms: RewardTerms) -> jax.Array:
-    """The shaped reward from a step's terms: -(weighted sum capped at `max_step_cost` + the learned risk's cost,
-    w_risk * -log(1 - fall_risk)), or `r_min` where `terms.fall` or `terms.collision`. Broadcasts."""
+    """The shaped reward from a step's terms: `r_min` where `terms.fall` or `terms.collision`; else the analytic
+    reward -(weighted sum capped at `max_step_cost`) held with 1 - fall_risk and `r_min` with fall_risk (its
+    expectation over the learned term's chance node; the analytic reward itself without the term). Broadcasts."""
     cost = (
         cfg.w_wrench_move * terms.wrench_move
         + cfg.w_ik * terms.ik_next
@@ -294,8 +284,28 @@ def total(cfg: RewardConfig, terms: RewardTerms) -> jax.Array:
         + cfg.w_redundant * terms.redundant
         + cfg.w_wrench_change * terms.wrench_change
     )
-    risk = cfg.w_risk * -jnp.log1p(-jnp.minimum(terms.fall_risk, cfg.risk_falls))
-    return jnp.where(terms.collision | terms.fall, cfg.r_min, -(jnp.minimum(cost, cfg.max_step_cost) + risk))
+    p = terms.fall_risk
+    held = -jnp.minimum(cost, cfg.max_step_cost)
+    return jnp.where(terms.collision | terms.fall, cfg.r_min, (1.0 - p) * held + p * cfg.r_min)
+
+
+def backed_up(reward, fall_risk, terminal, value_next) -> jax.Array:
+    """A transition's value: its (expected) `reward` plus, unless `terminal`, the next state's value where the
+    segment held (1 - `fall_risk`; 1 without the learned term): the expectimax backup every planner uses (DP,
+    lookahead, PPO's advantages). `fall_risk` None: 0. Broadcasts."""
+    hold = 1.0 if fall_risk is None else 1.0 - fall_risk
+    return reward + jnp.where(terminal, 0.0, hold * value_next)
+
+
+def expected_return(rewards, fall_risk, alive) -> jax.Array:
+    """The expected return of steps along the last axis: sum over t of alive_t * rewards_t * prod_{s<t} (1 -
+    fall_risk_s) (`backed_up` unrolled; `fall_risk` None: the plain sum of the alive steps' rewards)."""
+    rewards = jnp.where(alive, rewards, 0.0)
+    if fall_risk is None:
+        return jnp.sum(rewards, -1)
+    hold = 1.0 - jnp.where(alive, fall_risk, 0.0)
+    reach = jnp.cumprod(jnp.concatenate([jnp.ones_like(hold[..., :1]), hold[..., :-1]], -1), -1)
+    return jnp.sum(reach * rewards, -1)
 
 
 def with_invalid(cfg: RewardConfig, terms: RewardTerms, invalid) -> RewardTerms:

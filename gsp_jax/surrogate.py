@@ -98,12 +98,6 @@ class Surrogate:
                     learned=False if self.learned is None else self.learned)
         return Surrogate(self.hand, **(kept | changes))
 
-    @property
-    def max_waypoints(self) -> int:
-        """The most waypoints an episode may have (`RewardConfig.max_waypoints`, `_learned` with the learned term)."""
-        cfg = self.reward_config
-        return cfg.max_waypoints if self.learned is None else cfg.max_waypoints_learned
-
     def links(self, grasp: jax.Array) -> jax.Array:
         """(...) int32: the links in contact in grasps (...) (option 0 is off)."""
         return jnp.sum(self.space.decode(grasp) > 0, -1)
@@ -257,7 +251,7 @@ class Surrogate:
         `jit` / `vmap`) pass unchecked: their steps flag themselves (`RewardTerms.invalid`)."""
         if isinstance(episodes.mass, jax.core.Tracer):
             return episodes
-        kw = dict(hand=self.hand, max_waypoints=self.max_waypoints)
+        kw = dict(hand=self.hand, max_waypoints=self.reward_config.max_waypoints)
         if np.ndim(episodes.mass) == 0:
             validate(episodes, name, **kw)
         else:

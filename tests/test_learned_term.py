@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 import tolerances as tol
-from gsp_jax import dp, evaluation, learned, scenario
+from gsp_jax import dp, evaluation, learned, lookahead, policies, reward, scenario
+from gsp_jax.env import GraspEnv
 from gsp_jax import model as model_lib
 from gsp_jax.physics import corpus
 from gsp_jax.reward import RewardConfig
@@ -52,17 +53,21 @@ def test_the_table_the_step_and_the_offline_returns_agree_on_the_learned_term():
         p = np.asarray(learned.hazard(with_term.learned, x))
         offline, feasible = learned.returns(x, p, cfg)
         in_table = np.asarray(dp.sequence_rewards(table, ep.start_grasp, jnp.asarray(actions)))
-        state, stepped = with_term.reset(ep), []
+        table_return = float(dp.sequence_return(table, ep.start_grasp, jnp.asarray(actions)))
+        state, stepped, risks, alive = with_term.reset(ep), [], [], []
         for a in actions:
+            alive.append(not bool(state.done))
             state, r, _ = with_term.step(state, jnp.int32(a))
             stepped.append(float(r))
+            risks.append(float(state.terms.fall_risk))
+        step_return = float(reward.expected_return(jnp.asarray(stepped), jnp.asarray(risks), jnp.asarray(alive)))
         if np.all(np.abs(p - cfg.risk_falls) > 1e-3):  # a discrete outcome only where its margin is clear
             assert bool(feasible[0]) == bool(np.all(in_table > cfg.r_min)), (actions, p)
-            np.testing.assert_allclose(np.sum(in_table), offline[0], atol=T * tol.REWARD_ATOL)
-            np.testing.assert_allclose(np.sum(stepped), offline[0], atol=T * tol.REWARD_ATOL)
+            np.testing.assert_allclose(table_return, offline[0], atol=T * tol.REWARD_ATOL)
+            np.testing.assert_allclose(step_return, offline[0], atol=T * tol.REWARD_ATOL)
             checked += 1
     assert checked >= 4
-    # the term costs: where no step ends the run, the learned return is the analytic one less the risk's cost
+    # the term costs: a step's expected reward is at most its analytic one
     assert np.all(np.asarray(table.reward) <= np.asarray(plain.reward) + tol.REWARD_ATOL)
     # a hazard of (almost) zero leaves the analytic table as it was
     zero = jax.jit(dp.build_table)(Surrogate(sur.hand, reward=cfg, learned=_fitted(sur.model.digest, -60.0)), ep)
@@ -103,3 +108,33 @@ def test_weights_of_another_model_or_none_are_refused_by_name(tmp_path):
         with pytest.raises(SystemExit, match=r"--learned: model 'hammer' has no learned physics term"):
             cli.main(["dp", "--model", "hammer", "--learned"])
     model_lib.set_default(None)
+
+
+def test_dp_and_lookahead_back_up_the_learned_term_as_expectimax():
+    """With the term each step is a chance node (a fall of chance p ends the run at r_min): the DP's optimal value
+    from the start grasp equals the best expected return over every action sequence, enumerated
+    (`dp.sequence_return`, itself checked against every fall time in tests/test_reward.py); the full-depth lookahead
+    on the episode's table finds that value; the PPO environment's running return is the expected one; a zero
+    hazard leaves them the plain sums (tests/test_dp.py)."""
+    sur = Surrogate()
+    with_term = Surrogate(sur.hand, reward=RewardConfig(risk_falls=0.95), learned=_fitted(sur.model.digest))
+    ep = _episodes(1, seed=4)[0]  # an episode where sequences hold in the analytic surrogate
+    table = jax.jit(dp.build_table)(with_term, ep)
+    assert table.fall_risk is not None and float(jnp.max(jnp.where(table.terminal, 0.0, table.fall_risk))) > 0.1
+    sol = dp.backup(table, ep.start_grasp)
+    n_a = sur.space.n_actions
+    every = jnp.stack(jnp.meshgrid(*[jnp.arange(n_a, dtype=jnp.int32)] * T, indexing="ij"), -1).reshape(-1, T)
+    enumerated = jax.jit(jax.vmap(dp.sequence_return, (None, None, 0)))(table, ep.start_grasp, every)
+    np.testing.assert_allclose(float(sol.ret), float(jnp.max(enumerated)), atol=T * tol.REWARD_ATOL)
+    np.testing.assert_allclose(float(dp.sequence_return(table, ep.start_grasp, sol.actions)), float(sol.ret),
+                               atol=T * tol.REWARD_ATOL)
+    # the plain sum of the same rewards is another number where the term has a chance of a fall
+    assert abs(float(jnp.sum(sol.rewards)) - float(sol.ret)) > 10 * T * tol.REWARD_ATOL
+    model = dp.TableModel(table, sur.space)
+    plan = lookahead.search(model, model.reset(ep), policies.SequencePolicy(sol.actions), depth=T)
+    np.testing.assert_allclose(float(plan.value), float(sol.ret), atol=T * tol.REWARD_ATOL)
+    env = GraspEnv(with_term, scenario.stack([ep]), tables=jax.tree.map(lambda x: x[None], table), auto_reset=False)
+    state = env.reset_to(0)
+    for a in sol.actions:
+        state = env.step(state, a)
+    np.testing.assert_allclose(float(state.info["return"]), float(sol.ret), atol=T * tol.REWARD_ATOL)

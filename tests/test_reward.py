@@ -126,26 +126,43 @@ def test_total_is_the_capped_weighted_sum_or_r_min():
     assert np.any(expect == -6.0) and np.any((expect > -6.0) & (expect < 0)) and np.any(expect == -100.0)
 
 
-def test_the_learned_risk_costs_its_log_chance_to_hold_and_falls_above_its_threshold():
-    """`with_risk`: below `risk_falls` the reward is the analytic one less w_risk * -log(1 - p) (outside the analytic
-    cap); above it the step falls (r_min); p = 0 leaves the reward as it was; the largest risk cost enters
-    `max_waypoints_learned` (the paper's surrogate keeps its 19)."""
+def test_the_learned_risk_is_a_chance_node_and_falls_above_its_threshold():
+    """`with_risk`: below `risk_falls` the reward is the analytic one's expectation with a fall (r_min) of chance p;
+    above it the step falls (r_min); p = 0 leaves the reward as it was. `backed_up` and `expected_return` agree
+    with the expectation over every fall time, enumerated."""
     rng = np.random.default_rng(2)
-    cfg = RewardConfig(risk_falls=0.4, w_risk=3.0)
+    cfg = RewardConfig(risk_falls=0.4)
     terms = _random_terms(rng, (400,))
     plain = np.asarray(reward.total(cfg, terms), np.float64)
     p = rng.uniform(0.0, 0.8, 400).astype(np.float32)
     got = reward.with_risk(cfg, terms, p)
-    expect = np.where(p > 0.4, cfg.r_min, np.where(plain == cfg.r_min, cfg.r_min, plain + 3.0 * np.log1p(-p)))
-    np.testing.assert_allclose(np.asarray(got.reward), expect, rtol=1e-5, atol=1e-5)
+    expect = np.where(p > 0.4, cfg.r_min, np.where(plain == cfg.r_min, cfg.r_min, (1 - p) * plain + p * cfg.r_min))
+    np.testing.assert_allclose(np.asarray(got.reward), expect, rtol=1e-5, atol=1e-4)
     np.testing.assert_array_equal(np.asarray(got.fall), np.asarray(terms.fall) | (p > 0.4))
     assert np.any((p > 0.4) & ~np.asarray(terms.fall)) and np.any((p < 0.4) & (plain > cfg.r_min))
     np.testing.assert_array_equal(np.asarray(reward.with_risk(cfg, terms, np.zeros(400)).reward), plain)
-    assert cfg.max_risk_cost == pytest.approx(3.0 * -np.log(0.6))
-    assert cfg.max_waypoints_learned == int(np.ceil(200 / (10 + cfg.max_risk_cost))) - 1 < cfg.max_waypoints == 19
-    for bad in (dict(risk_falls=0.0), dict(risk_falls=1.0), dict(w_risk=-1.0)):
+    for bad in (dict(risk_falls=0.0), dict(risk_falls=1.0)):
         with pytest.raises(ValueError, match=next(iter(bad))):
             RewardConfig(**bad)
+    # a sequence of T held rewards r_t with fall chances p_t: the expected return over the fall time k (the steps
+    # before k earn r, the fall earns r_min and ends it) or no fall at all
+    T = 6
+    r = -rng.uniform(0.0, 10.0, T)
+    q = rng.uniform(0.0, 0.5, T)
+    alive = np.array([True] * 5 + [False])
+    n = int(alive.sum())
+    outcomes = [(np.prod(1 - q[:n]), np.sum(r[:n]))]
+    outcomes += [(np.prod(1 - q[:k]) * q[k], np.sum(r[:k]) + cfg.r_min) for k in range(n)]
+    want = sum(w * v for w, v in outcomes)
+    step = (1 - q) * r + q * cfg.r_min  # `total`'s expected rewards
+    np.testing.assert_allclose(float(reward.expected_return(jnp.asarray(step), jnp.asarray(q), jnp.asarray(alive))),
+                               want, rtol=1e-5)
+    value = 0.0
+    for t in reversed(range(n)):
+        value = float(reward.backed_up(step[t], q[t], t == n - 1, value))
+    np.testing.assert_allclose(value, want, rtol=1e-5)
+    np.testing.assert_allclose(float(reward.expected_return(jnp.asarray(r), None, jnp.asarray(alive))), r[:n].sum(),
+                               rtol=1e-6)
 
 
 def _arrival(cfg, rng, is_last, motor_unmet=0.1):

@@ -233,7 +233,7 @@ def learn(args: argparse.Namespace) -> None:
     report = dict(model=model.name, digest=model.digest, weights=str(out), corpus=[str(s.folder) for s in stores],
                   shards=sum(len(s.manifest["shards"]) for s in stores), runs=int(len(data["fell"])),
                   epochs=len(fitted.history),
-                  corpus_s=t_corpus, fit_s=t_fit, risk_falls=cfg.risk_falls, w_risk=cfg.w_risk, **checks)
+                  corpus_s=t_corpus, fit_s=t_fit, risk_falls=cfg.risk_falls, **checks)
     files.write_json(results_dir("learn") / "report.json", report)
     print(f"learn: weights in {out}; report in {results_dir('learn') / 'report.json'}", flush=True)
     print(table(["reliability bin", "transitions", "predicted", "observed"],

@@ -186,10 +186,10 @@ def main(args: argparse.Namespace) -> None:
     t_phys = float(sum(done[c]["seconds"] for c in done))  # this result's physics, over the runs that made it
     fell, angle = sim["fell"], sim["angle_error"]
     actions = jnp.asarray(sim["actions"])  # (G, N, T)
-    rewards = jax.vmap(jax.vmap(dp.sequence_rewards), (None, 0, 0))(ctx.tables, jnp.broadcast_to(
-        ctx.batch.start_grasp, actions.shape[:2]), actions)  # (G, N, T)
+    starts = jnp.broadcast_to(ctx.batch.start_grasp, actions.shape[:2])
+    rewards = jax.vmap(jax.vmap(dp.sequence_rewards), (None, 0, 0))(ctx.tables, starts, actions)  # (G, N, T)
     feasible = np.asarray(jnp.all(rewards > sur.reward_config.r_min, -1))
-    returns = np.asarray(jnp.sum(rewards, -1))
+    returns = np.asarray(jax.vmap(jax.vmap(dp.sequence_return), (None, 0, 0))(ctx.tables, starts, actions))
     print(f"  physics {t_phys:.0f} s; {int(fell.sum())} falls of {fell.size} to classify ...", flush=True)
     episodes = scenario.unstack(ctx.batch)
     falls = [(g, e) for g in range(len(kinds)) for e in range(N) if fell[g, e]]

@@ -20,22 +20,24 @@ class Batch:
     target: jax.Array  # (...,) value target = advantage + value
 
 
-def gae(rewards, values, dones, bootstrap, gamma: float, lam: float) -> tuple[jax.Array, jax.Array]:
+def gae(rewards, values, dones, bootstrap, gamma: float, lam: float, hold=None) -> tuple[jax.Array, jax.Array]:
     """Generalised advantage estimates (U, B) and value targets (U, B).
 
     rewards, values, dones: (U, B), step u's reward, V(obs_u), and whether step u ended an episode (then the
     next observation belongs to a new episode and is not bootstrapped); bootstrap: (B,) V of the observation
-    after the last step."""
+    after the last step; hold: (U, B) the chance step u's segment held (the learned physics term's chance node,
+    `env.GraspEnv`: what follows counts with it, as in `reward.backed_up`), None: 1."""
+    hold = jnp.ones_like(rewards) if hold is None else hold
 
     def back(carry, x):
         adv_next, v_next = carry
-        r, v, d = x
-        live = 1.0 - d.astype(r.dtype)
+        r, v, d, h = x
+        live = (1.0 - d.astype(r.dtype)) * h
         delta = r + gamma * live * v_next - v
         adv = delta + gamma * lam * live * adv_next
         return (adv, v), adv
 
-    _, adv = jax.lax.scan(back, (jnp.zeros_like(bootstrap), bootstrap), (rewards, values, dones), reverse=True)
+    _, adv = jax.lax.scan(back, (jnp.zeros_like(bootstrap), bootstrap), (rewards, values, dones, hold), reverse=True)
     return adv, adv + values
 
 

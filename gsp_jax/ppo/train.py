@@ -104,7 +104,7 @@ class Trainer:
     # -------------------------------------------------------------------------------------- iteration
     def _rollout(self, params: nets.Params, env_state, key: jax.Array):
         """`unroll` steps of every env under the sampling policy: the last env state and the trajectory's
-        (obs, action, logp, value, scaled reward, done, episode return), each (U, B, ...)."""
+        (obs, action, logp, value, scaled reward, done, episode return, hold), each (U, B, ...)."""
         cfg, networks = self.config, self.networks
 
         def env_step(env_state, k):
@@ -119,6 +119,7 @@ class Trainer:
                 nxt.reward * cfg.reward_scale,
                 nxt.done,
                 nxt.metrics["episode_return"],
+                nxt.info["hold"],
             )
             return nxt, out
 
@@ -164,9 +165,10 @@ class Trainer:
         cfg, networks = self.config, self.networks
         key, k_roll, k_sgd = jax.random.split(ts.key, 3)
         params = ts.params
-        env_state, (obs, action, logp, value, reward, done, ep_return) = self._rollout(params, ts.env_state, k_roll)
+        env_state, (obs, action, logp, value, reward, done, ep_return, hold) = self._rollout(params, ts.env_state,
+                                                                                               k_roll)
         bootstrap = networks.value(params, env_state.obs)
-        advantage, target = losses.gae(reward, value, done, bootstrap, cfg.gamma, cfg.gae_lambda)
+        advantage, target = losses.gae(reward, value, done, bootstrap, cfg.gamma, cfg.gae_lambda, hold)
         batch = losses.Batch(obs, action, logp, value, advantage, target)
         batch = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), batch)  # (U * B, ...)
         lr = cfg.learning_rate_at(ts.iteration * cfg.epochs * cfg.minibatches)
@@ -201,18 +203,18 @@ class Trainer:
 
 
 def greedy_returns(env, networks: nets.Networks, params: nets.Params) -> jax.Array:
-    """Return (N,) of the deterministic policy on each of env's N episodes, from its start (env.auto_reset off)."""
+    """(Expected) return (N,) of the deterministic policy on each of env's N episodes, from its start
+    (env.auto_reset off)."""
     if env.auto_reset:
         raise ValueError("env.auto_reset: evaluation needs an env without auto-reset (GraspEnv(..., auto_reset=False))")
 
     def one(index):
         def step(state, _):
             action = nets.mode(networks.logits(params, state.obs))
-            state = env.step(state, action)
-            return state, state.reward
+            return env.step(state, action), None
 
-        _, rewards = jax.lax.scan(step, env.reset_to(index), None, length=env.n_steps)
-        return jnp.sum(rewards)
+        final, _ = jax.lax.scan(step, env.reset_to(index), None, length=env.n_steps)
+        return final.info["return"]
 
     return jax.vmap(one)(jnp.arange(env.n_episodes))
 

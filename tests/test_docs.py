@@ -199,19 +199,19 @@ def test_readme_sentences_are_docs_data():
 def test_readme_learned_term_sentences_are_docs_data():
     """The learned physics term's figures in the README equal the records they cite: the stress set's falls and
     regrets, its feasible-hold share and AUC; the evaluation set's falls; the L1 decision's latency."""
-    stress = _file("envelope_stress_learned_h100")["figures"]["summary"]
+    stress = _file("envelope_stress_learned_h200")["figures"]["summary"]
     kinds, pool = stress["kinds"], stress["pool"]
     got = _claim(r"With it on the stress set, DP optimal falls (\d+) times, regret (\d+); L1 (\d+), L2 (\d+), RL (\d+) "
-                 r"\(not retrained\); of the surrogate-feasible sequences (\d+)% hold, AUC ([\d.]+) \(H100 host, "
-                 r"`envelope_stress_learned_h100`\)")
+                 r"\(not retrained\); of the surrogate-feasible sequences (\d+)% hold, AUC ([\d.]+) \(H200 host, "
+                 r"`envelope_stress_learned_h200`\)")
     assert tuple(float(g) for g in got) == (
         kinds["dp-opt"]["falls"], kinds["dp-opt"]["regret"], kinds["L1"]["regret"], kinds["L2"]["regret"],
         kinds["rl"]["regret"], round(100 * pool["feasible_hold_share"]), round(pool["auc_pooled"], 2))
-    evals = _file("envelope_eval_learned_h100")["figures"]["summary"]["kinds"]
-    falls, n = _claim(r"Evaluation set: DP optimal, L1, L2 (\d+) of (\d+) falls \(H100 host, `envelope_eval_learned_h100`\)")
+    evals = _file("envelope_eval_learned_h200")["figures"]["summary"]["kinds"]
+    falls, n = _claim(r"Evaluation set: DP optimal, L1, L2 (\d+) of (\d+) falls \(H200 host, `envelope_eval_learned_h200`\)")
     assert all(evals[k]["falls"] == int(falls) for k in ("dp-opt", "L1", "L2")) and int(n) == evals["L1"]["episodes"]
-    latency = _file("bench_latency_learned_h100")["figures"]["policies"]["L1"]["decision_median_s"]
-    ms = _claim(r"One L1 decision takes ([\d.]+) ms \(`bench_latency_learned_h100`, H100 host\)")[0]
+    latency = _file("bench_latency_learned_h200")["figures"]["policies"]["L1"]["decision_median_s"]
+    ms = _claim(r"One L1 decision takes ([\d.]+) ms \(`bench_latency_learned_h200`, H200 host\)")[0]
     assert float(ms) == round(1000 * latency, 1)
 
 

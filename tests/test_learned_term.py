@@ -37,16 +37,24 @@ def _episodes(n: int, seed: int = 3) -> list[scenario.Episode]:
     return [e.head(T) for e in corpus.draw(corpus.Distribution(), seed, n).values()]
 
 
-def test_the_table_the_step_and_the_offline_returns_agree_on_the_learned_term():
+@pytest.fixture(scope="module")
+def case():
+    """One episode where sequences hold in the analytic surrogate, a surrogate with an untrained hazard (fall chances
+    spread over (0, 1), most below `risk_falls`), and its DP table with and without the term."""
     sur = Surrogate()
-    cfg = RewardConfig(risk_falls=0.6)  # most transitions below it: the risk's cost is what is compared
-    with_term = Surrogate(sur.hand, reward=cfg, learned=_fitted(sur.model.digest))
-    ep = _episodes(1)[0]
-    table = jax.jit(dp.build_table)(with_term, ep)
-    plain = jax.jit(dp.build_table)(with_term.analytic, ep)
+    with_term = Surrogate(sur.hand, reward=RewardConfig(risk_falls=0.95), learned=_fitted(sur.model.digest))
+    ep = _episodes(1, seed=4)[0]
+    build = jax.jit(dp.build_table)
+    return with_term, ep, build(with_term, ep), build(with_term.analytic, ep)
+
+
+def test_the_table_the_step_and_the_offline_returns_agree_on_the_learned_term(case):
+    with_term, ep, table, plain = case
+    cfg, space = with_term.reward_config, with_term.space
     keys = jax.random.split(jax.random.PRNGKey(0), 6)
-    seqs = [np.asarray(evaluation.four_tips(sur.space, T))]
+    seqs = [np.asarray(evaluation.four_tips(space, T))]
     seqs += [np.asarray(dp.random_sequence(plain, ep.start_grasp, k, cfg.r_min, 0.5)) for k in keys]
+    step = jax.jit(with_term.step)
     checked = 0
     for actions in seqs:
         x = np.asarray(corpus.features(with_term, ep, jnp.asarray(actions)))[None]  # the analytic features
@@ -57,7 +65,7 @@ def test_the_table_the_step_and_the_offline_returns_agree_on_the_learned_term():
         state, stepped, risks, alive = with_term.reset(ep), [], [], []
         for a in actions:
             alive.append(not bool(state.done))
-            state, r, _ = with_term.step(state, jnp.int32(a))
+            state, r, _ = step(state, jnp.int32(a))
             stepped.append(float(r))
             risks.append(float(state.terms.fall_risk))
         step_return = float(reward.expected_return(jnp.asarray(stepped), jnp.asarray(risks), jnp.asarray(alive)))
@@ -70,7 +78,8 @@ def test_the_table_the_step_and_the_offline_returns_agree_on_the_learned_term():
     # the term costs: a step's expected reward is at most its analytic one
     assert np.all(np.asarray(table.reward) <= np.asarray(plain.reward) + tol.REWARD_ATOL)
     # a hazard of (almost) zero leaves the analytic table as it was
-    zero = jax.jit(dp.build_table)(Surrogate(sur.hand, reward=cfg, learned=_fitted(sur.model.digest, -60.0)), ep)
+    zero = jax.jit(dp.build_table)(Surrogate(with_term.hand, reward=cfg, learned=_fitted(with_term.model.digest, -60.0)),
+                                   ep)
     np.testing.assert_allclose(np.asarray(zero.reward), np.asarray(plain.reward), atol=1e-5)
     np.testing.assert_array_equal(np.asarray(zero.terminal), np.asarray(plain.terminal))
 
@@ -110,19 +119,17 @@ def test_weights_of_another_model_or_none_are_refused_by_name(tmp_path):
     model_lib.set_default(None)
 
 
-def test_dp_and_lookahead_back_up_the_learned_term_as_expectimax():
+def test_dp_and_lookahead_back_up_the_learned_term_as_expectimax(case):
     """With the term each step is a chance node (a fall of chance p ends the run at r_min): the DP's optimal value
     from the start grasp equals the best expected return over every action sequence, enumerated
     (`dp.sequence_return`, itself checked against every fall time in tests/test_reward.py); the full-depth lookahead
     on the episode's table finds that value; the PPO environment's running return is the expected one; a zero
     hazard leaves them the plain sums (tests/test_dp.py)."""
-    sur = Surrogate()
-    with_term = Surrogate(sur.hand, reward=RewardConfig(risk_falls=0.95), learned=_fitted(sur.model.digest))
-    ep = _episodes(1, seed=4)[0]  # an episode where sequences hold in the analytic surrogate
-    table = jax.jit(dp.build_table)(with_term, ep)
+    with_term, ep, table, _ = case
+    space = with_term.space
     assert table.fall_risk is not None and float(jnp.max(jnp.where(table.terminal, 0.0, table.fall_risk))) > 0.1
     sol = dp.backup(table, ep.start_grasp)
-    n_a = sur.space.n_actions
+    n_a = space.n_actions
     every = jnp.stack(jnp.meshgrid(*[jnp.arange(n_a, dtype=jnp.int32)] * T, indexing="ij"), -1).reshape(-1, T)
     enumerated = jax.jit(jax.vmap(dp.sequence_return, (None, None, 0)))(table, ep.start_grasp, every)
     np.testing.assert_allclose(float(sol.ret), float(jnp.max(enumerated)), atol=T * tol.REWARD_ATOL)
@@ -130,7 +137,7 @@ def test_dp_and_lookahead_back_up_the_learned_term_as_expectimax():
                                atol=T * tol.REWARD_ATOL)
     # the plain sum of the same rewards is another number where the term has a chance of a fall
     assert abs(float(jnp.sum(sol.rewards)) - float(sol.ret)) > 10 * T * tol.REWARD_ATOL
-    model = dp.TableModel(table, sur.space)
+    model = dp.TableModel(table, space)
     plan = lookahead.search(model, model.reset(ep), policies.SequencePolicy(sol.actions), depth=T)
     np.testing.assert_allclose(float(plan.value), float(sol.ret), atol=T * tol.REWARD_ATOL)
     env = GraspEnv(with_term, scenario.stack([ep]), tables=jax.tree.map(lambda x: x[None], table), auto_reset=False)

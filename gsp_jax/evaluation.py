@@ -78,22 +78,29 @@ def subset(episodes: dict, n: int | None) -> dict:
 
 
 def trained_policy(sur: Surrogate) -> pathlib.Path:
-    """Where `python -m experiments train` writes the first seed's policy for the surrogate's model."""
-    name = sur.model.name
-    return TRAINED_POLICY if name == model_lib.DEFAULT else pathlib.Path(f"results/train-{name}/dp/seed0/policy")
+    """Where `python -m experiments train` writes the first seed's policy for the surrogate's model (with
+    `--learned` where the surrogate has the learned physics term: results/train[-model]-learned/...)."""
+    folder = "train" + ("" if sur.model.name == model_lib.DEFAULT else f"-{sur.model.name}")
+    folder += "-learned" * (sur.learned is not None)
+    return pathlib.Path("results", folder, "dp/seed0/policy")
 
 
 def load_rl(sur: Surrogate, policy_dir: str | pathlib.Path | None = None) -> tuple[policies.NetworkPolicy, str]:
     """The PPO policy: `policy_dir` if given, else the one `train` wrote for the model (`trained_policy`), else the
-    one shipped for a shipped model (`policies.SHIPPED_POLICIES`); and where it was read from. A policy made for
-    another model is refused (`policies.load_network_policy`)."""
+    one shipped for a shipped model (`policies.shipped_policy`); and where it was read from (with "trained without
+    the learned term" or "with other learned weights" where the policy's reward differs from the surrogate's). A
+    policy made for another model is refused (`policies.load_network_policy`)."""
     shipped = [p] if (p := policies.shipped_policy(sur)) is not None else []
     candidates = [pathlib.Path(policy_dir)] if policy_dir else [trained_policy(sur), *shipped]
     for path in candidates:
         if path.exists():
             here = pathlib.Path.cwd()
-            shown = path.resolve().relative_to(here) if path.resolve().is_relative_to(here) else path
-            return policies.load_network_policy(sur, path), str(shown)
+            shown = str(path.resolve().relative_to(here) if path.resolve().is_relative_to(here) else path)
+            made = (policies.model_tag(path) or {}).get("learned", "")
+            if made != sur.learned_tag:
+                shown += (" (trained without the learned term)" if not made else
+                          " (trained with other learned weights)" if sur.learned_tag else " (trained with the learned term)")
+            return policies.load_network_policy(sur, path), shown
     raise FileNotFoundError(
         f"policy_dir: no PPO policy at {', '.join(map(str, candidates))}; run `python -m experiments train --seeds 1"
         f"{'' if sur.model.name == model_lib.DEFAULT else ' --model ' + sur.model.name}`"

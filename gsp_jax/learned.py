@@ -1,9 +1,9 @@
 """A learned physics term: the probability that a transition's segment ends in a fall, fitted on a physics corpus.
 
 A discrete-time hazard: for each transition a run reached (`alive`), the chance that the tool falls during its
-segment given the surrogate's features (`FEATURES`, `transition_features`): a small MLP over standardised features,
-its logit trained by binary cross-entropy on the risk sets (optax Adam), split by episode into train / validation
-/ test, stopped early on the validation loss.
+segment given the surrogate's features (`FEATURES`, `transition_features`): the mean probability of an ensemble of
+small MLPs over standardised features, each trained by binary cross-entropy of its logit on the risk sets (optax
+AdamW), split by episode into train / validation / test, stopped early on the validation loss.
 
     fitted = learned.fit(data["features"], data["fell_here"], data["alive"], data["episode"], key, model.digest)
     p = learned.hazard(fitted, features)          # (..., T) probability of a fall in each segment
@@ -73,6 +73,7 @@ class FitConfig:
     epochs: int = 200  # at most, over the training transitions
     patience: int = 20  # epochs without a better validation loss before stopping
     split: tuple[float, float] = (0.7, 0.15)  # train, validation shares of the episodes (the rest: test)
+    members: int = 5  # networks in the ensemble (their mean probability is the hazard)
 
 
 class _MLP(nn.Module):
@@ -87,7 +88,8 @@ class _MLP(nn.Module):
 
 @struct.dataclass
 class Fitted:
-    """A fitted hazard: the network's parameters, the features' mean and std (F,), and what it was fitted for."""
+    """A fitted hazard: the ensemble's parameters (each leaf with a leading axis of its K members), the features'
+    mean and std (F,), and what it was fitted for."""
 
     params: dict
     mean: jax.Array  # (F,)
@@ -99,15 +101,12 @@ class Fitted:
     split: dict = struct.field(pytree_node=False, default_factory=dict)  # {"train"|"val"|"test": episode ids}
 
 
-def logit(fitted: Fitted, features: jax.Array) -> jax.Array:
-    """(...,) the fall's logit of each transition's features (..., F)."""
-    x = (features - fitted.mean) / fitted.std
-    return _MLP(fitted.hidden).apply(fitted.params, x)
-
-
 def hazard(fitted: Fitted, features: jax.Array) -> jax.Array:
-    """(...,) probability in [0, 1] that the tool falls in each transition's segment (features (..., F))."""
-    return jax.nn.sigmoid(logit(fitted, features))
+    """(...,) probability in [0, 1] that the tool falls in each transition's segment (features (..., F)): the mean
+    of the ensemble members' probabilities."""
+    x = (features - fitted.mean) / fitted.std
+    logits = jax.vmap(lambda params: _MLP(fitted.hidden).apply(params, x))(fitted.params)  # (K, ...)
+    return jnp.mean(jax.nn.sigmoid(logits), 0)
 
 
 def split_episodes(episode: np.ndarray, key: jax.Array, shares=(0.7, 0.15)) -> dict[str, np.ndarray]:
@@ -130,14 +129,17 @@ def _loss(params, hidden, x, y, w):
 def fit(features: np.ndarray, fell_here: np.ndarray, alive: np.ndarray, episode: np.ndarray, key: jax.Array,
         digest: str, names: Sequence[str] = (), config: FitConfig = FitConfig(), progress: bool = False) -> Fitted:
     """Fit the hazard on M runs of T transitions: features (M, T, F), fell_here and alive (M, T) bool (a corpus's
-    labels: only alive transitions count), episode (M,) ids for the split. Every draw from `key`. The parameters
-    of the epoch with the lowest validation loss."""
+    labels: only alive transitions count), episode (M,) ids for the split. Every draw from `key`. An ensemble of
+    `config.members` networks on the same split (each its own initialisation and batch order, trained side by side
+    under `vmap`), each member's parameters those of its epoch with the lowest validation loss."""
     features = np.asarray(features, np.float32)
     if features.ndim != 3 or fell_here.shape != features.shape[:2] or alive.shape != features.shape[:2]:
         raise ValueError(f"fit: features (M, T, F) with fell_here and alive (M, T), got {features.shape}, "
                          f"{np.shape(fell_here)}, {np.shape(alive)}")
     if not np.all(np.isfinite(features[alive])):
         raise ValueError("fit: the features of alive transitions must be finite")
+    if config.members < 1:
+        raise ValueError(f"fit: config.members: at least 1 network, got {config.members}")
     k_split, k_init, k_data = jax.random.split(key, 3)
     split = split_episodes(np.asarray(episode), k_split, config.split)
 
@@ -150,16 +152,16 @@ def fit(features: np.ndarray, fell_here: np.ndarray, alive: np.ndarray, episode:
     mean, std = x_tr.mean(0), np.maximum(x_tr.std(0), 1e-6)
     norm = lambda x: (x - mean) / std  # noqa: E731
     net = _MLP(tuple(config.hidden))
-    params = net.init(k_init, jnp.zeros((1, features.shape[-1])))
+    K = config.members
+    params = jax.vmap(lambda k: net.init(k, jnp.zeros((1, features.shape[-1]))))(jax.random.split(k_init, K))
     opt = optax.adamw(config.learning_rate, weight_decay=config.weight_decay)
-    state = opt.init(params)
+    state = jax.vmap(opt.init)(params)
     B = min(config.batch, len(x_tr))
     n_batches = max(1, len(x_tr) // B)
     x_tr_n, x_va_n = jnp.asarray(norm(x_tr)), jnp.asarray(norm(x_va))
     y_tr, y_va, ones_va = jnp.asarray(y_tr), jnp.asarray(y_va), jnp.ones(len(x_va))
 
-    @jax.jit
-    def epoch(params, state, key):
+    def member_epoch(params, state, key):
         perm = jax.random.permutation(key, len(x_tr))[: n_batches * B].reshape(n_batches, B)
 
         def step(carry, idx):
@@ -171,17 +173,19 @@ def fit(features: np.ndarray, fell_here: np.ndarray, alive: np.ndarray, episode:
         (params, state), losses = jax.lax.scan(step, (params, state), perm)
         return params, state, jnp.mean(losses), _loss(params, net.hidden, x_va_n, y_va, ones_va)
 
-    best, best_loss, since, history = params, np.inf, 0, []
+    epoch = jax.jit(jax.vmap(member_epoch))
+    best, best_loss, since, history = params, np.full(K, np.inf), np.zeros(K, int), []
     for e, k in enumerate(jax.random.split(k_data, config.epochs)):
-        params, state, train_loss, val_loss = epoch(params, state, k)
-        history.append((e, float(train_loss), float(val_loss)))
-        if float(val_loss) < best_loss - 1e-6:
-            best, best_loss, since = params, float(val_loss), 0
-        else:
-            since += 1
+        params, state, train_loss, val_loss = epoch(params, state, jax.random.split(k, K))
+        val_loss = np.asarray(val_loss)
+        history.append((e, float(np.mean(train_loss)), float(np.mean(val_loss))))
+        better = val_loss < best_loss - 1e-6
+        best = jax.tree.map(lambda b, p: jnp.where(better.reshape((K,) + (1,) * (p.ndim - 1)), p, b), best, params)
+        best_loss, since = np.where(better, val_loss, best_loss), np.where(better, 0, since + 1)
         if progress and e % 10 == 0:
-            print(f"  epoch {e}: train {float(train_loss):.4f}, validation {float(val_loss):.4f}", flush=True)
-        if since >= config.patience:
+            print(f"  epoch {e}: train {float(np.mean(train_loss)):.4f}, validation {float(np.mean(val_loss)):.4f}"
+                  f" (mean of {K})", flush=True)
+        if np.all(since >= config.patience):
             break
     return Fitted(best, jnp.asarray(mean), jnp.asarray(std), tuple(config.hidden), tuple(names), digest,
                   tuple(history), {k: [int(i) for i in v] for k, v in split.items()})
@@ -282,7 +286,8 @@ def save(fitted: Fitted, path) -> pathlib.Path:
     """Weights and their context in one .npz (written whole): parameters, mean, std, and a JSON header (the
     hidden widths, feature names, the model's digest, the history, the split)."""
     leaves, treedef = jax.tree.flatten(fitted.params)
-    header = dict(hidden=list(fitted.hidden), features=list(fitted.features), digest=fitted.digest,
+    members = len(jax.tree.leaves(fitted.params)[0])
+    header = dict(hidden=list(fitted.hidden), members=members, features=list(fitted.features), digest=fitted.digest,
                   history=[list(h) for h in fitted.history], split=fitted.split, treedef=str(treedef))
     arrays = {f"param{i}": np.asarray(x) for i, x in enumerate(leaves)}
     return files.savez(path, mean=np.asarray(fitted.mean), std=np.asarray(fitted.std),
@@ -307,11 +312,13 @@ def load(path, model, names: Sequence[str] | None = None) -> Fitted:
                                f"{model.name!r} (digest {model.digest[:12]})")
     if names is not None and list(names) != header["features"]:
         raise LearnedTermError(f"{path}: fitted on features {header['features']}, not {list(names)}")
+    members = header.get("members")  # None: one network, saved without the members' axis
     template = _MLP(tuple(header["hidden"])).init(jax.random.PRNGKey(0), jnp.zeros((1, len(data["mean"]))))
     leaves, treedef = jax.tree.flatten(template)
     got = [data.get(f"param{i}") for i in range(len(leaves))]
-    if any(g is None or g.shape != t.shape for g, t in zip(got, leaves)):
-        raise LearnedTermError(f"{path}: its parameters are not those of a {header['hidden']} network")
+    if any(g is None or g.shape != (() if members is None else (members,)) + t.shape for g, t in zip(got, leaves)):
+        raise LearnedTermError(f"{path}: its parameters are not those of {members or 1} {header['hidden']} network(s)")
+    got = [g[None] if members is None else g for g in got]
     return Fitted(jax.tree.unflatten(treedef, [jnp.asarray(g) for g in got]), jnp.asarray(data["mean"]),
                   jnp.asarray(data["std"]), tuple(header["hidden"]), tuple(header["features"]), header["digest"],
                   tuple(tuple(h) for h in header["history"]), header["split"])

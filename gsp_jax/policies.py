@@ -101,13 +101,20 @@ SHIPPED_POLICY = hand_lib.MODELS_DIR / "policies/ppo_dp_seed0"  # PPO with DP pr
 SHIPPED_POLICIES = {  # each shipped model's: `train --model NAME --seeds 1` on an H100 (docs/your-model.md)
     "wrench": SHIPPED_POLICY, "hammer": hand_lib.MODELS_DIR / "policies/hammer_ppo_dp_seed0",
     "allegro": hand_lib.MODELS_DIR / "policies/allegro_ppo_dp_seed0"}
+SHIPPED_LEARNED_POLICIES = {  # trained with the model's learned physics term: `train --learned --seeds 1` on a GPU
+    "wrench": hand_lib.MODELS_DIR / "policies/ppo_dp_learned"}
 
 
 def shipped_policy(sur: Surrogate) -> pathlib.Path | None:
-    """The PPO policy shipped for the surrogate's model, None if there is none (a model of your own)."""
+    """The PPO policy shipped for the surrogate's model, None if there is none (a model of your own). With the
+    learned physics term, the one trained with it (`SHIPPED_LEARNED_POLICIES`) where one ships, else the analytic
+    surrogate's."""
     model = model_lib.of_hand(sur.hand) if sur.hand.source else None
-    path = SHIPPED_POLICIES.get(model.name) if model is not None else None
-    return path if path is not None and model.path == model_lib.SHIPPED[model.name].resolve() else None
+    shipped = model_lib.SHIPPED.get(model.name) if model is not None else None
+    if shipped is None or model.path != shipped.resolve():
+        return None
+    learned = SHIPPED_LEARNED_POLICIES.get(model.name) if sur.learned is not None else None
+    return learned or SHIPPED_POLICIES.get(model.name)
 
 
 def load_network_policy(sur: Surrogate, path: str | pathlib.Path | None = None) -> NetworkPolicy:
@@ -142,7 +149,8 @@ def load_network_policy(sur: Surrogate, path: str | pathlib.Path | None = None) 
 
 
 def model_tag(path: str | pathlib.Path) -> dict | None:
-    """The model a saved policy was trained for ({name, digest, ...} from `<path>.model.json`), None if untagged."""
+    """The model a saved policy was trained for ({name, digest, n_grasps, n_actions, learned} from
+    `<path>.model.json`; `learned`: the learned physics term's `learned.tag`, "" for none), None if untagged."""
     tag = pathlib.Path(path).parent / f"{pathlib.Path(path).name}.model.json"
     return files.read_json(tag) if tag.is_file() else None
 
@@ -153,7 +161,7 @@ def save_network_policy(path: str | pathlib.Path, params: nets.Params, sur: Surr
     m = sur.model
     tag = pathlib.Path(path).parent / f"{pathlib.Path(path).name}.model.json"
     files.write_json(tag, {"name": m.name, "digest": m.digest, "n_grasps": sur.space.n_grasps,
-                           "n_actions": sur.n_actions})
+                           "n_actions": sur.n_actions, "learned": sur.learned_tag})
 
 
 def _check_concrete(actions, field: str, space: GraspSpace | None) -> None:

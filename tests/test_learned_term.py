@@ -21,8 +21,8 @@ T = 3  # waypoints of the episodes here (the first three of drawn ones)
 
 
 def _fitted(digest: str, bias: float = 0.0, seed: int = 0) -> learned.Fitted:
-    """An untrained hazard network of the corpus's features (random weights, `bias` added to the logit), scaled by
-    rough feature magnitudes so its probabilities spread over (0, 1)."""
+    """An untrained hazard network of the corpus's features (random weights, `bias` added to the logit; an ensemble
+    of one), scaled by rough feature magnitudes so its probabilities spread over (0, 1)."""
     F = len(learned.FEATURES)
     params = learned._MLP((16,)).init(jax.random.PRNGKey(seed), jnp.zeros((1, F)))
     params = jax.tree.map(lambda x: x, params)
@@ -30,6 +30,7 @@ def _fitted(digest: str, bias: float = 0.0, seed: int = 0) -> learned.Fitted:
     scale = np.ones(F, np.float32)
     scale[learned.FEATURES.index("reward")] = 50.0
     scale[learned.FEATURES.index("t")] = 2.0
+    params = jax.tree.map(lambda x: x[None], params)
     return learned.Fitted(params, jnp.zeros(F), jnp.asarray(scale), (16,), learned.FEATURES, digest)
 
 

@@ -12,7 +12,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from gsp_jax import dp, evaluation, hand as hand_lib, ik, model as model_lib, physics, policies, scenario
+from gsp_jax import dp, evaluation, hand as hand_lib, ik, learned, model as model_lib, physics, policies, scenario
 from gsp_jax.surrogate import Surrogate
 
 TOOL = """<mujoco model="screwdriver">
@@ -235,6 +235,11 @@ def test_shipped_models_follow_the_conventions():
         assert model_lib.check_model(model_lib.SHIPPED[name]) == [], name
     for name, path in policies.SHIPPED_POLICIES.items():  # each shipped policy is tagged for its model as it is now
         assert policies.model_tag(path)["digest"] == model_lib.load_model(name).digest, name
+    for name, path in policies.SHIPPED_LEARNED_POLICIES.items():  # and trained with the model's learned term as it is
+        model = model_lib.load_model(name)
+        made = policies.model_tag(path)
+        assert made["digest"] == model.digest, name
+        assert made["learned"] == learned.tag(learned.load(learned.path_of(model), model)), name
 
 
 def test_round_primitives_distance_against_mujoco():

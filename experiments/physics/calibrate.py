@@ -59,6 +59,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=None, help="with --learn: where the weights go (default: beside the scene)")
     p.add_argument("--fit-seed", type=int, default=0, help="with --learn: the split's and the network's seed")
     p.add_argument("--epochs", type=int, default=learned.FitConfig.epochs, help="with --learn: at most")
+    p.add_argument("--members", type=int, default=learned.FitConfig.members,
+                   help="with --learn: networks in the hazard's ensemble")
 
 
 def _from_sweep(path: str, write: bool) -> None:
@@ -222,7 +224,7 @@ def learn(args: argparse.Namespace) -> None:
     meet = data["alive"] & learned.surrogate_alive(data["features"])
     print(f"learn: {len(data['fell'])} runs, {int(meet.sum())} transitions a planner meets, "
           f"{int(data['fell'].sum())} falls; fitting ...", flush=True)
-    config = learned.FitConfig(epochs=args.epochs)
+    config = learned.FitConfig(epochs=args.epochs, members=args.members)
     fitted = learned.fit(data["features"], data["fell_here"], meet, data["episode"],
                          jax.random.PRNGKey(args.fit_seed), model.digest, learned.FEATURES, config, progress=True)
     t_fit = time.perf_counter() - t0 - t_corpus

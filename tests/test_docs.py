@@ -202,7 +202,7 @@ def test_readme_learned_term_sentences_are_docs_data():
     stress = _file("envelope_stress_learned_h200")["figures"]["summary"]
     kinds, pool = stress["kinds"], stress["pool"]
     got = _claim(r"With it on the stress set, DP optimal falls (\d+) times, regret (\d+); L1 (\d+), L2 (\d+), RL (\d+) "
-                 r"\(not retrained\); of the surrogate-feasible sequences (\d+)% hold, AUC ([\d.]+) \(H200 host, "
+                 r"\(retrained\); of the surrogate-feasible sequences (\d+)% hold, AUC ([\d.]+) \(H200 host, "
                  r"`envelope_stress_learned_h200`\)")
     assert tuple(float(g) for g in got) == (
         kinds["dp-opt"]["falls"], kinds["dp-opt"]["regret"], kinds["L1"]["regret"], kinds["L2"]["regret"],

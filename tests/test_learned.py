@@ -56,3 +56,26 @@ def test_weights_refuse_another_model_or_feature_set_by_name(tmp_path):
         np.savez(tmp_path / "broken.npz", **{k: d[k] for k in d.files if k != "std"})
     with pytest.raises(learned.LearnedTermError, match=r"broken.npz: no field 'std'"):
         learned.load(tmp_path / "broken.npz", wrench)
+
+
+def test_an_ensemble_is_the_mean_of_its_members_and_one_network_saved_without_the_axis_loads(tmp_path):
+    """The hazard of K networks is the mean of each one's own hazard; a file of one network written before
+    ensembles (no members' axis, no `members` in its header) loads as an ensemble of one."""
+    import json
+
+    x, fell_here, alive, episode, _ = _synthetic(n_runs=60)
+    wrench = model_lib.load_model("wrench")
+    fitted = learned.fit(x, fell_here, alive, episode, jax.random.PRNGKey(2), wrench.digest, ("a", "b", "c"),
+                         learned.FitConfig(hidden=(8,), epochs=3, members=3))
+    one = lambda k: fitted.replace(params=jax.tree.map(lambda p: p[k:k + 1], fitted.params))  # noqa: E731
+    members = np.stack([np.asarray(learned.hazard(one(k), x)) for k in range(3)])
+    assert np.ptp(members, 0).max() > 1e-3  # the members differ
+    np.testing.assert_allclose(learned.hazard(fitted, x), members.mean(0), rtol=1e-5, atol=1e-6)
+    path = learned.save(one(1), tmp_path / "one.npz")
+    with np.load(path) as d:
+        old = {k: d[k][0] if k.startswith("param") else d[k] for k in d.files}
+    header = json.loads(str(old["header"]))
+    del header["members"]
+    old["header"] = np.array(json.dumps(header))
+    np.savez(tmp_path / "old.npz", **old)
+    np.testing.assert_array_equal(learned.hazard(learned.load(tmp_path / "old.npz", wrench), x), members[1])

@@ -242,6 +242,26 @@ def test_shipped_models_follow_the_conventions():
         assert made["learned"] == learned.tag(learned.load(learned.path_of(model), model)), name
 
 
+def test_the_learned_term_finds_the_policy_trained_with_it(sur, tmp_path, monkeypatch):
+    """With the learned term the evaluation loads the policy `train --learned` wrote, else the shipped one trained
+    with the term; without it, the analytic one; a policy trained under another reward than the surrogate's is
+    loaded and said to be."""
+    monkeypatch.chdir(tmp_path)  # no results/ here
+    with_term = sur.replace(learned=True)
+    assert evaluation.trained_policy(with_term) == pathlib.Path("results/train-learned/dp/seed0/policy")
+    assert evaluation.trained_policy(sur) == evaluation.TRAINED_POLICY
+    assert policies.shipped_policy(with_term) == policies.SHIPPED_LEARNED_POLICIES["wrench"]
+    assert policies.shipped_policy(sur) == policies.SHIPPED_POLICY
+    _, source = evaluation.load_rl(with_term)
+    assert source.endswith("ppo_dp_learned") and "trained" not in source  # trained with these very weights
+    _, source = evaluation.load_rl(sur)
+    assert source.endswith("ppo_dp_seed0") and "trained" not in source
+    _, source = evaluation.load_rl(with_term, policies.SHIPPED_POLICY)
+    assert source.endswith("(trained without the learned term)")
+    _, source = evaluation.load_rl(sur, policies.SHIPPED_LEARNED_POLICIES["wrench"])
+    assert source.endswith("(trained with the learned term)")
+
+
 def test_round_primitives_distance_against_mujoco():
     """`ik.round_sdf` (via the tool's SDF) against MuJoCo's own geom distance of a point-sized sphere, outside the
     primitives; its gradient against central differences."""

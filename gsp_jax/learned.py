@@ -36,7 +36,33 @@ EPISODE_FEATURES = ("mass", "friction", "force_x", "force_y", "force_z", "torque
 STEP_FEATURES = ("t", "changed", "redundant", "wrench_move", "ik_next", "wrench_hold", "wrench_ext", "wrench_change",
                  "unmet_move", "unmet_hold", "unmet_ext", "unmet_change", "motor_unmet", "collision", "fall",
                  "reward", "links")
-FEATURES = STEP_FEATURES + EPISODE_FEATURES  # one transition's features, in this order (float32)
+FEATURES = STEP_FEATURES + EPISODE_FEATURES  # one transition's features as a corpus keeps them, in order (float32)
+
+
+def grasp_names(space) -> tuple[str, ...]:
+    """The names of `grasp_features`' columns for a grasp space: "<link>=<option>" per link and option."""
+    return tuple(f"{link}={o}" for link, n in zip(space.link_names, space.n_options) for o in range(n))
+
+
+def input_names(space) -> tuple[str, ...]:
+    """The network's inputs, in order: `FEATURES`, then the new grasp's options (`grasp_names`)."""
+    return FEATURES + grasp_names(space)
+
+
+def grasp_features(space, grasp) -> jax.Array:
+    """(..., sum(n_options)) float32: each link's option in grasps (...) one-hot (`grasp_names`' order)."""
+    options = space.decode(grasp)
+    return jnp.concatenate([(options[..., l:l + 1] == jnp.arange(n)).astype(jnp.float32)
+                            for l, n in enumerate(space.n_options)], -1)
+
+
+def inputs(features, grasp, space) -> jax.Array:
+    """(..., len(input_names(space))) float32: a transition's features (..., len(FEATURES)) and its new grasp
+    (...) one-hot, broadcast together: what the network reads."""
+    features, onehot = jnp.asarray(features, jnp.float32), grasp_features(space, grasp)
+    lead = jnp.broadcast_shapes(features.shape[:-1], onehot.shape[:-1])
+    return jnp.concatenate([jnp.broadcast_to(features, lead + features.shape[-1:]),
+                            jnp.broadcast_to(onehot, lead + onehot.shape[-1:])], -1)
 
 
 def episode_features(ep) -> jax.Array:
@@ -102,8 +128,8 @@ class Fitted:
 
 
 def hazard(fitted: Fitted, features: jax.Array) -> jax.Array:
-    """(...,) probability in [0, 1] that the tool falls in each transition's segment (features (..., F)): the mean
-    of the ensemble members' probabilities."""
+    """(...,) probability in [0, 1] that the tool falls in each transition's segment (its inputs (..., F), `inputs`
+    for the model's term): the mean of the ensemble members' probabilities."""
     x = (features - fitted.mean) / fitted.std
     logits = jax.vmap(lambda params: _MLP(fitted.hidden).apply(params, x))(fitted.params)  # (K, ...)
     return jnp.mean(jax.nn.sigmoid(logits), 0)
@@ -260,13 +286,22 @@ def resolve(learned, model) -> "Fitted | None":
         if not path.exists():
             raise LearnedTermError(f"model {model.name!r} has no learned physics term ({path} is missing): "
                                    f"`python -m experiments calibrate --learn --model {model.path}` makes it")
-        return load(path, model, FEATURES)
+        return load(path, model, _names(model))
     if isinstance(learned, Fitted):
         if learned.digest != model.digest:
             raise LearnedTermError(f"learned term fitted for another model (digest {learned.digest[:12]}), not "
                                    f"{model.name!r} (digest {model.digest[:12]})")
+        if tuple(learned.features) != _names(model):
+            raise LearnedTermError(f"learned term fitted on inputs {list(learned.features)}, not {list(_names(model))}"
+                                   f" (`learned.input_names` of {model.name!r})")
         return learned
-    return load(learned, model, FEATURES)
+    return load(learned, model, _names(model))
+
+
+def _names(model) -> tuple[str, ...]:
+    from gsp_jax import grasps  # a model's grasp space
+
+    return input_names(grasps.space_of(model.hand))
 
 
 def path_of(model) -> pathlib.Path:

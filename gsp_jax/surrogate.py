@@ -107,8 +107,9 @@ class Surrogate:
         surrogate has one (`reward.with_risk`), else unchanged."""
         if self.learned is None:
             return terms
-        x = learned_lib.transition_features(terms, t, changed, self.links(new_grasp),
-                                            learned_lib.episode_features(episode))
+        x = learned_lib.inputs(learned_lib.transition_features(terms, t, changed, self.links(new_grasp),
+                                                               learned_lib.episode_features(episode)),
+                               new_grasp, self.space)
         return reward_lib.with_risk(self.reward_config, terms, learned_lib.hazard(self.learned, x))
 
     def __eq__(self, other) -> bool:

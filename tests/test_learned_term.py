@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import tolerances as tol
-from gsp_jax import dp, evaluation, learned, lookahead, policies, reward, scenario
+from gsp_jax import dp, evaluation, grasps, learned, lookahead, policies, reward, scenario
 from gsp_jax.env import GraspEnv
 from gsp_jax import model as model_lib
 from gsp_jax.physics import corpus
@@ -23,7 +23,8 @@ T = 3  # waypoints of the episodes here (the first three of drawn ones)
 def _fitted(digest: str, bias: float = 0.0, seed: int = 0) -> learned.Fitted:
     """An untrained hazard network of the corpus's features (random weights, `bias` added to the logit; an ensemble
     of one), scaled by rough feature magnitudes so its probabilities spread over (0, 1)."""
-    F = len(learned.FEATURES)
+    names = learned.input_names(grasps.space_of(model_lib.load_model().hand))  # the wrench's inputs
+    F = len(names)
     params = learned._MLP((16,)).init(jax.random.PRNGKey(seed), jnp.zeros((1, F)))
     params = jax.tree.map(lambda x: x, params)
     params["params"]["Dense_1"]["bias"] = params["params"]["Dense_1"]["bias"] + bias
@@ -31,7 +32,7 @@ def _fitted(digest: str, bias: float = 0.0, seed: int = 0) -> learned.Fitted:
     scale[learned.FEATURES.index("reward")] = 50.0
     scale[learned.FEATURES.index("t")] = 2.0
     params = jax.tree.map(lambda x: x[None], params)
-    return learned.Fitted(params, jnp.zeros(F), jnp.asarray(scale), (16,), learned.FEATURES, digest)
+    return learned.Fitted(params, jnp.zeros(F), jnp.asarray(scale), (16,), names, digest)
 
 
 def _episodes(n: int, seed: int = 3) -> list[scenario.Episode]:
@@ -58,7 +59,12 @@ def test_the_table_the_step_and_the_offline_returns_agree_on_the_learned_term(ca
     step = jax.jit(with_term.step)
     checked = 0
     for actions in seqs:
-        x = np.asarray(corpus.features(with_term, ep, jnp.asarray(actions)))[None]  # the analytic features
+        grasp, grasps_along = ep.start_grasp, []  # the new grasp of each transition
+        for a in actions:
+            grasp = space.apply(grasp, a)[0]
+            grasps_along.append(grasp)
+        x = np.asarray(learned.inputs(corpus.features(with_term, ep, jnp.asarray(actions)), jnp.stack(grasps_along),
+                                      space))[None]  # the analytic features and the new grasps: the network's inputs
         p = np.asarray(learned.hazard(with_term.learned, x))
         offline, feasible = learned.returns(x, p, cfg)
         in_table = np.asarray(dp.sequence_rewards(table, ep.start_grasp, jnp.asarray(actions)))
@@ -111,6 +117,8 @@ def test_weights_of_another_model_or_none_are_refused_by_name(tmp_path):
     with pytest.raises(learned.LearnedTermError, match=r"fitted for another model .*not 'hammer'"):
         Surrogate("hammer", learned=path)
     assert Surrogate("wrench", learned=path).learned_tag == learned.tag(_fitted(wrench.digest))
+    with pytest.raises(learned.LearnedTermError, match=r"fitted on inputs \['t', .*'lateral'\], not \['t', "):
+        Surrogate("wrench", learned=_fitted(wrench.digest).replace(features=learned.FEATURES))  # no grasp inputs
     if not learned.path_of(model_lib.load_model("hammer")).exists():
         with pytest.raises(learned.LearnedTermError, match=r"model 'hammer' has no learned physics term .*calibrate "
                                                            r"--learn --model"):

@@ -31,7 +31,7 @@ import numpy as np
 
 from experiments import common
 from experiments.common import results_dir, table
-from gsp_jax import files, learned, physics, reward, scenario, stats
+from gsp_jax import files, grasps, learned, physics, reward, scenario, stats
 from gsp_jax import model as model_lib
 from gsp_jax.physics import calibration, corpus
 from gsp_jax.physics.calibration import candidate_tables, candidates, pool_key, score_candidates, sequence_pool
@@ -221,12 +221,15 @@ def learn(args: argparse.Namespace) -> None:
     stores = [_store(f, model) for f in folders]
     data = _joined([s.load() for s in stores])
     t_corpus = time.perf_counter() - t0
+    space = grasps.space_of(model.hand)
+    data["features"] = np.asarray(learned.inputs(data["features"], data["grasps"], space))  # the network's inputs
     meet = data["alive"] & learned.surrogate_alive(data["features"])
     print(f"learn: {len(data['fell'])} runs, {int(meet.sum())} transitions a planner meets, "
           f"{int(data['fell'].sum())} falls; fitting ...", flush=True)
     config = learned.FitConfig(epochs=args.epochs, members=args.members)
     fitted = learned.fit(data["features"], data["fell_here"], meet, data["episode"],
-                         jax.random.PRNGKey(args.fit_seed), model.digest, learned.FEATURES, config, progress=True)
+                         jax.random.PRNGKey(args.fit_seed), model.digest, learned.input_names(space), config,
+                         progress=True)
     t_fit = time.perf_counter() - t0 - t_corpus
     out = pathlib.Path(args.out) if args.out else learned.path_of(model)
     learned.save(fitted, out)

@@ -178,6 +178,15 @@ def sequence_return(table: Table, start_grasp: jax.Array, actions: jax.Array) ->
     return reward_lib.expected_return(rewards, None if table.fall_risk is None else risk, alive)
 
 
+def sequence_scores(table: Table, start_grasp: jax.Array, actions: jax.Array):
+    """(rewards (T,), expected return (), predicted chance to hold ()) of an open-loop action sequence (T,) replayed
+    once in a table from `start_grasp`: `sequence_rewards`, `sequence_return`, and the product over the steps it
+    reached of (1 - fall risk), 1 without the learned term (meaningful for a sequence no step of which ends it)."""
+    _, _, rewards, risk, alive = _replay(table, jnp.asarray(start_grasp, jnp.int32), lambda g, t: actions[t])
+    hold = jnp.prod(jnp.where(alive, 1.0 - risk, 1.0))
+    return rewards, reward_lib.expected_return(rewards, risk, alive), hold
+
+
 def sequence_rewards(table: Table, start_grasp: jax.Array, actions: jax.Array) -> jax.Array:
     """Rewards (T,) of an open-loop action sequence (T,) replayed in a table from `start_grasp`; a step the
     surrogate calls a fall or a collision has reward <= the table's R_min."""

@@ -80,6 +80,10 @@ def test_the_table_the_step_and_the_offline_returns_agree_on_the_learned_term(ca
             assert bool(feasible[0]) == bool(np.all(in_table > cfg.r_min)), (actions, p)
             np.testing.assert_allclose(table_return, offline[0], atol=T * tol.REWARD_ATOL)
             np.testing.assert_allclose(step_return, offline[0], atol=T * tol.REWARD_ATOL)
+            scored = dp.sequence_scores(table, ep.start_grasp, jnp.asarray(actions))  # one replay for all three
+            np.testing.assert_allclose(scored[0], in_table, atol=1e-6)
+            np.testing.assert_allclose(scored[1], table_return, atol=1e-5)
+            np.testing.assert_allclose(scored[2], np.prod(np.where(alive, 1 - np.asarray(risks), 1.0)), atol=1e-5)
             checked += 1
     assert checked >= 4
     # the term costs: a step's expected reward is at most its analytic one

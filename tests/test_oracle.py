@@ -177,6 +177,10 @@ def test_envelope_summary_counts_regret_and_classes():
     brute = np.mean([[h > f for f in falls] for h in holds])
     assert out["pool"]["auc_pooled"] == pytest.approx(brute)
     assert out["pool"]["feasible_hold_share"] == pytest.approx(3 / 9)
+    assert "predicted_hold" not in out["pool"]  # without the learned term
+    hold = np.array([[0.9, 0.2, 0.5], [0.4, 0.6, 0.8], [0.7, 0.1, 0.3]])  # >= 0.5: (0,0) (0,2) (1,1) (1,2) (2,0)
+    pool = envelope.summarise(kinds, fell, angle, feasible, returns, classes, hold=hold)["pool"]
+    assert pool["predicted_hold"] == 5 and pool["predicted_hold_share"] == pytest.approx(3 / 5)
 
 
 def test_the_envelope_oracle_process_judges_the_callers_model():

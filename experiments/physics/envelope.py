@@ -37,7 +37,7 @@ import numpy as np
 from experiments import common
 from experiments.common import results_dir, table
 from gsp_jax import dp, evaluation, files, physics, policies, scenario
-from gsp_jax.physics.envelope import classify, summarise
+from gsp_jax.physics.envelope import PREDICTED_HOLD, classify, summarise
 from gsp_jax import planners as gsp_planners
 
 PLANNERS = ("four-tips", "dp-opt", "L1", "L2", "rl")
@@ -187,9 +187,9 @@ def main(args: argparse.Namespace) -> None:
     fell, angle = sim["fell"], sim["angle_error"]
     actions = jnp.asarray(sim["actions"])  # (G, N, T)
     starts = jnp.broadcast_to(ctx.batch.start_grasp, actions.shape[:2])
-    rewards = jax.vmap(jax.vmap(dp.sequence_rewards), (None, 0, 0))(ctx.tables, starts, actions)  # (G, N, T)
-    feasible = np.asarray(jnp.all(rewards > sur.reward_config.r_min, -1))
-    returns = np.asarray(jax.vmap(jax.vmap(dp.sequence_return), (None, 0, 0))(ctx.tables, starts, actions))
+    rewards, returns, hold = jax.vmap(jax.vmap(dp.sequence_scores), (None, 0, 0))(ctx.tables, starts, actions)
+    feasible = np.asarray(jnp.all(rewards > sur.reward_config.r_min, -1))  # (G, N)
+    returns, hold = np.asarray(returns), np.asarray(hold)
     print(f"  physics {t_phys:.0f} s; {int(fell.sum())} falls of {fell.size} to classify ...", flush=True)
     episodes = scenario.unstack(ctx.batch)
     falls = [(g, e) for g in range(len(kinds)) for e in range(N) if fell[g, e]]
@@ -202,12 +202,14 @@ def main(args: argparse.Namespace) -> None:
     verdicts = classify(episodes, [(e, [int(x) for x in sim["grasps"][g, e]], *reached(g, e))
                                    for g, e in falls], args.jobs or os.cpu_count() or 1)
     classes = {ge: v[0] for ge, v in zip(falls, verdicts)}
-    summary = summarise(kinds, fell, angle, feasible, returns, classes, {ge: v[3] for ge, v in zip(falls, verdicts)})
+    summary = summarise(kinds, fell, angle, feasible, returns, classes, {ge: v[3] for ge, v in zip(falls, verdicts)},
+                        hold if sur.learned is not None else None)
     verdict = dict(zip(falls, verdicts))
 
     def row(g, e):
         r = dict(kind=kinds[g], episode=ctx.names[e], fell=bool(fell[g, e]), angle_deg=float(angle[g, e]),
                  surrogate_feasible=bool(feasible[g, e]), surrogate_return=float(returns[g, e]),
+                 surrogate_hold=float(hold[g, e]),
                  grasps=[int(x) for x in sim["grasps"][g, e]])
         if (g, e) in verdict:
             r["oracle"] = dict(zip(("class", "worst_point", "worst_ratio", "early", "reached_worst_point",
@@ -227,6 +229,9 @@ def main(args: argparse.Namespace) -> None:
           f"{100 * p['feasible_hold_share']:.1f}% hold; AUC(return: hold vs fall) pooled {p['auc_pooled']:.2f}, "
           f"within episodes {p['auc_within_mean']:.2f} ({p['auc_within_episodes']} episodes); Spearman "
           f"rho(return, -angle) {p['spearman_pooled']:.2f}")
+    if "predicted_hold" in p:
+        print(f"predicted to hold (feasible, chance to hold >= {PREDICTED_HOLD}): {p['predicted_hold']}, "
+              f"of those {100 * p['predicted_hold_share']:.1f}% hold")
     rows = [[k, r["falls"], r["necessary"], r["early"], r["controller"], r["undetermined"], r["regret"],
              r["mean_angle_held_deg"]] for k, r in summary["kinds"].items() if k in planners or args.random <= 4]
     print(table(["sequence", f"falls /{N}", "necessary", "of them early", "controller", "undetermined", "regret",

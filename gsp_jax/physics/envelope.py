@@ -16,10 +16,15 @@ from gsp_jax.stats import auc, spearman
 
 
 # ------------------------------------------------------------------------------------------- the summary
-def summarise(kinds, fell, angle, feasible, returns, classes, early=None) -> dict:
+PREDICTED_HOLD = 0.5  # a feasible sequence the learned term gives at least this chance to hold is predicted to hold
+
+
+def summarise(kinds, fell, angle, feasible, returns, classes, early=None, hold=None) -> dict:
     """Per kind and over the pool. kinds (G,) names (the planners first, then random ones); fell, angle, feasible,
     returns (G, N) per sequence; classes {(g, e): "necessary" | "controller" | "undetermined"} for every fall;
-    early {(g, e): bool}: a necessary fall that came before the point the oracle calls impossible."""
+    early {(g, e): bool}: a necessary fall that came before the point the oracle calls impossible; hold (G, N): the
+    learned term's chance that each sequence holds (None without it), which adds the pool's `predicted_hold`
+    (feasible sequences with a chance of at least `PREDICTED_HOLD`) and the share of them that held."""
     early = early or {}
     fell, angle = np.asarray(fell, bool), np.asarray(angle, float)
     feasible, returns = np.asarray(feasible, bool), np.asarray(returns, float)
@@ -46,6 +51,10 @@ def summarise(kinds, fell, angle, feasible, returns, classes, early=None) -> dic
                 auc_pooled=auc(returns.ravel()[ok & ~fell.ravel()], returns.ravel()[ok & fell.ravel()]),
                 auc_within_mean=float(np.mean(within)) if within else float("nan"), auc_within_episodes=len(within),
                 spearman_pooled=float(rho))
+    if hold is not None:
+        sure = ok & (np.asarray(hold, float).ravel() >= PREDICTED_HOLD)
+        pool.update(predicted_hold=int(sure.sum()),
+                    predicted_hold_share=float(np.mean(~fell.ravel()[sure])) if sure.any() else float("nan"))
     return dict(kinds=rows, pool=pool)
 
 

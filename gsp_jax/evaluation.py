@@ -82,7 +82,7 @@ def trained_policy(sur: Surrogate) -> pathlib.Path:
     `--learned` where the surrogate has the learned physics term: results/train[-model]-learned/...)."""
     folder = "train" + ("" if sur.model.name == model_lib.DEFAULT else f"-{sur.model.name}")
     folder += "-learned" * (sur.learned is not None)
-    return pathlib.Path("results", folder, "dp/seed0/policy")
+    return pathlib.Path(TRAINED_POLICY.parts[0], folder, *TRAINED_POLICY.parts[2:])  # results/<folder>/dp/seed0/policy
 
 
 def load_rl(sur: Surrogate, policy_dir: str | pathlib.Path | None = None) -> tuple[policies.NetworkPolicy, str]:

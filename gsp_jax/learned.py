@@ -321,7 +321,7 @@ def save(fitted: Fitted, path) -> pathlib.Path:
     """Weights and their context in one .npz (written whole): parameters, mean, std, and a JSON header (the
     hidden widths, feature names, the model's digest, the history, the split)."""
     leaves, treedef = jax.tree.flatten(fitted.params)
-    members = len(jax.tree.leaves(fitted.params)[0])
+    members = len(leaves[0])
     header = dict(hidden=list(fitted.hidden), members=members, features=list(fitted.features), digest=fitted.digest,
                   history=[list(h) for h in fitted.history], split=fitted.split, treedef=str(treedef))
     arrays = {f"param{i}": np.asarray(x) for i, x in enumerate(leaves)}

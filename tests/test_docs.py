@@ -198,15 +198,16 @@ def test_readme_sentences_are_docs_data():
 
 def test_readme_learned_term_sentences_are_docs_data():
     """The learned physics term's figures in the README equal the records they cite: the stress set's falls and
-    regrets, its feasible-hold share and AUC; the evaluation set's falls; the L1 decision's latency."""
+    regrets, its feasible-hold share, AUC and the share of those predicted to hold that held; the evaluation set's falls; the L1 decision's latency."""
     stress = _file("envelope_stress_learned_h200")["figures"]["summary"]
     kinds, pool = stress["kinds"], stress["pool"]
     got = _claim(r"With it on the stress set, DP optimal falls (\d+) times, regret (\d+); L1 (\d+), L2 (\d+), RL (\d+) "
                  r"\(retrained\); of the surrogate-feasible sequences (\d+)% hold, AUC ([\d.]+) \(H200 host, "
-                 r"`envelope_stress_learned_h200`\)")
+                 r"`envelope_stress_learned_h200`\);\s+(\d+)% of those it predicts to hold")
     assert tuple(float(g) for g in got) == (
         kinds["dp-opt"]["falls"], kinds["dp-opt"]["regret"], kinds["L1"]["regret"], kinds["L2"]["regret"],
-        kinds["rl"]["regret"], round(100 * pool["feasible_hold_share"]), round(pool["auc_pooled"], 2))
+        kinds["rl"]["regret"], round(100 * pool["feasible_hold_share"]), round(pool["auc_pooled"], 2),
+        round(100 * pool["predicted_hold_share"]))
     evals = _file("envelope_eval_learned_h200")["figures"]["summary"]["kinds"]
     falls, n = _claim(r"Evaluation set: DP optimal, L1, L2 (\d+) of (\d+) falls \(H200 host, `envelope_eval_learned_h200`\)")
     assert all(evals[k]["falls"] == int(falls) for k in ("dp-opt", "L1", "L2")) and int(n) == evals["L1"]["episodes"]
@@ -316,8 +317,8 @@ def _scratch_clone(tmp_path):
 
 def test_staleness_sees_a_change_to_the_code_a_record_measures(tmp_path):
     """`figures.stale` on a record of the current commit: current as long as the code it measures is unchanged (a
-    file outside it changed, a new file no measured one imports); a measured file changed or deleted, a dirty tree or
-    another command make it stale (git in a scratch clone)."""
+    file outside it changed, a new file no measured one imports, another shipped model's files); a measured file changed
+    or deleted, a dirty tree or another command make it stale (git in a scratch clone)."""
     import subprocess
 
     from experiments import common
@@ -338,6 +339,14 @@ def test_staleness_sees_a_change_to_the_code_a_record_measures(tmp_path):
         assert figures.stale(row) == []
         subprocess.run(["git", "rm", "-q", "gsp_jax/stats.py"], cwd=clone, check=True)
         assert any("gsp_jax/stats.py" in why for why in figures.stale(row))
+        subprocess.run(["git", "reset", "-q", "--hard"], cwd=clone, check=True)
+        for other in ("models/allegro/scene.learned.npz", "models/policies/hammer_ppo_dp_seed0.model.json"):
+            with open(clone / other, "ab") as f:  # another shipped model's: not what a figure of the default measures
+                f.write(b"\n")
+        assert figures.stale(row) == []
+        with open(clone / "models" / "scene.learned.npz", "ab") as f:
+            f.write(b"\n")
+        assert any("models/scene.learned.npz" in why for why in figures.stale(row))
         subprocess.run(["git", "reset", "-q", "--hard"], cwd=clone, check=True)
         with open(clone / "gsp_jax" / "reward.py", "a") as f:
             f.write("\n# changed\n")

@@ -198,7 +198,8 @@ def test_readme_sentences_are_docs_data():
 
 def test_readme_learned_term_sentences_are_docs_data():
     """The learned physics term's figures in the README equal the records they cite: the stress set's falls and
-    regrets, its feasible-hold share, AUC and the share of those predicted to hold that held; the evaluation set's falls; the L1 decision's latency."""
+    regrets, its feasible-hold share, AUC and the share of those predicted to hold that held; the evaluation set's
+    falls; the L1 decision's latency."""
     stress = _file("envelope_stress_learned_h200")["figures"]["summary"]
     kinds, pool = stress["kinds"], stress["pool"]
     got = _claim(r"With it on the stress set, DP optimal falls (\d+) times, regret (\d+); L1 (\d+), L2 (\d+), RL (\d+) "
@@ -317,8 +318,8 @@ def _scratch_clone(tmp_path):
 
 def test_staleness_sees_a_change_to_the_code_a_record_measures(tmp_path):
     """`figures.stale` on a record of the current commit: current as long as the code it measures is unchanged (a
-    file outside it changed, a new file no measured one imports, another shipped model's files); a measured file changed
-    or deleted, a dirty tree or another command make it stale (git in a scratch clone)."""
+    file outside it changed, a new file no measured one imports, another shipped model's files); a measured file
+    changed or deleted, a dirty tree or another command make it stale (git in a scratch clone)."""
     import subprocess
 
     from experiments import common

@@ -32,11 +32,20 @@ _PAPER = ("experiments/paper/reproduce.py", "experiments/paper/fig4a.py", "exper
           "experiments/paper/table1")  # what `reproduce` runs (it trains only where no PPO policy is shipped)
 _LATENCY = ("table1", "--per-decision", "--episodes", "7", "--policies", "dp-base", "rl", "L1", "L2", "dp-opt",
             "L1-physics")  # one episode at a time, on either machine
-_OTHER_MODELS = tuple(spec for name in model_lib.SHIPPED if name != model_lib.DEFAULT for spec in (
-    f":(exclude){model_lib.SHIPPED[name].parent.relative_to(common.ROOT)}",
-    f":(exclude){policies.SHIPPED_POLICIES[name].relative_to(common.ROOT)}*"))  # every figure is the default
-# model's: another shipped model's scene folder and policy are not code it measures
-_LIBRARY = ("gsp_jax", "models", *_OTHER_MODELS, "experiments/common.py", "experiments/__main__.py",
+
+
+def _other_models() -> tuple[str, ...]:
+    """Git pathspecs that leave out each shipped model but the default, its scene folder and its policy: every
+    figure is the default model's, so another model's files are not code it measures."""
+    specs = []
+    for name, scene in model_lib.SHIPPED.items():
+        if name != model_lib.DEFAULT:
+            specs += [f":(exclude){scene.parent.relative_to(common.ROOT)}",
+                      f":(exclude){policies.SHIPPED_POLICIES[name].relative_to(common.ROOT)}*"]
+    return tuple(specs)
+
+
+_LIBRARY = ("gsp_jax", "models", *_other_models(), "experiments/common.py", "experiments/__main__.py",
             "pyproject.toml", "requirements.lock")
 
 

@@ -148,10 +148,10 @@ def test_results_table_is_docs_data():
         table1["paper_s"][p] for p in ORDER]
 
 
-def _named(prefix: str) -> str:
+def _named(prefix: str, device: str = "[a-z0-9]+") -> str:
     """The one docs/data record `<prefix><device>` that the README cites (not the learned term's,
-    `<prefix>learned_<device>`)."""
-    names = {n for unit in _units() for n in _cited(unit) if re.fullmatch(re.escape(prefix) + "[a-z0-9]+", n)}
+    `<prefix>learned_<device>`); `device` a pattern (e.g. a GPU host's, `h\\d+`)."""
+    names = {n for unit in _units() for n in _cited(unit) if re.fullmatch(re.escape(prefix) + device, n)}
     assert len(names) == 1, f"README.md cites {sorted(names)} for {prefix}*"
     return names.pop()
 
@@ -165,11 +165,12 @@ def _claim(pattern: str) -> tuple[str, ...]:
 def test_readme_sentences_are_docs_data():
     """The figures in the README's sentences equal the files they cite: the L1 decision's latency, L1-physics and
     the envelope (stress set), RL's falls by the oracle (evaluation set), the report's Holm-corrected p."""
-    latency = _file("bench_latency_h100")["figures"]["policies"]["L1"]["decision_median_s"]
-    assert float(_claim(r"One L1 decision takes ([\d.]+) ms \(median\) on the H100 host \(`bench_latency_h100`\)")[0]) \
+    latency_name, fig4b_name = _named("bench_latency_", r"h\d+"), _named("fig4b_")
+    latency = _file(latency_name)["figures"]["policies"]["L1"]["decision_median_s"]
+    assert float(_claim(rf"One L1 decision takes ([\d.]+) ms \(median\) on the H\d+ host \(`{latency_name}`\)")[0]) \
         == round(1000 * latency, 1)
-    fig4b = _file("fig4b_h100")["figures"]["L1-physics"]
-    falls, n, angle = _claim(r"evaluation set: (\d+) of (\d+) falls, ([\d.]+)° mean angle error \(H100 host, `fig4b_h100`\)")
+    fig4b = _file(fig4b_name)["figures"]["L1-physics"]
+    falls, n, angle = _claim(rf"evaluation set: (\d+) of (\d+) falls, ([\d.]+)° mean angle error \(H\d+ host, `{fig4b_name}`\)")
     assert (int(falls), int(n), float(angle)) == (fig4b["falls"], fig4b["episodes"], round(fig4b["mean_deg"], 1))
     stress_name, eval_name = _named("envelope_stress_"), _named("envelope_eval_")
     stress = _file(stress_name)["figures"]

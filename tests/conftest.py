@@ -20,6 +20,13 @@ import pytest  # noqa: E402
 import jax  # noqa: E402
 
 from gsp_jax import hand as hand_lib  # noqa: E402
+from gsp_jax import ik  # noqa: E402
+
+# The tests' surrogate solves a table's IK problems with `ik.solve` vmapped (`IKConfig.lanes=False`), not in the
+# batch-last form a CPU uses by default: the same solve to float32 rounding (tests/test_ik_lanes.py checks the two
+# tables against each other), its program compiling in about a third of the time; the tests build dozens of
+# tables of a few waypoints, where compiling, not running, is the cost (docs/performance.md).
+TABLE_IK = ik.IKConfig(lanes=False)
 
 
 # `make test` gives each xdist worker whole files (--dist loadfile), so a module's fixtures (the MJX runner, the
@@ -73,8 +80,14 @@ def random_q():
 
 
 @pytest.fixture(scope="session")
+def table_ik():
+    """`TABLE_IK`, for the tests that build their own surrogates."""
+    return TABLE_IK
+
+
+@pytest.fixture(scope="session")
 def sur(hand):
-    """A Surrogate of that hand (stateless, so one serves every module)."""
+    """A Surrogate of that hand (stateless, so one serves every module), its tables' IK vmapped (`TABLE_IK`)."""
     from gsp_jax import surrogate
 
-    return surrogate.Surrogate(hand)
+    return surrogate.Surrogate(hand, ik_config=TABLE_IK)

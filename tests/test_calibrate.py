@@ -21,7 +21,7 @@ from gsp_jax import dp, reward, scenario, surrogate  # noqa: E402
 from gsp_jax.reward import RewardConfig  # noqa: E402
 
 
-def test_candidate_tables_equal_each_candidates_own_table():
+def test_candidate_tables_equal_each_candidates_own_table(table_ik):
     """Two candidates that differ in every calibrated field (grip, its mass scaling, fall threshold, change term) on
     a 3-waypoint episode: the second's shared-IK table equals `dp.build_table` of a surrogate built with its config
     (the wrench terms of the other grip, or its reward settings, would not; one own table keeps the test's compile
@@ -34,7 +34,7 @@ def test_candidate_tables_equal_each_candidates_own_table():
     ep = scenario.eval_set_b()["mass1.5m0_comy+1cm"].head(3)
     tables = calibration.candidate_tables(configs, scenario.stack([ep]))
     cfg, tab = configs[1], tables[1]
-    own = jax.jit(lambda e: dp.build_table(surrogate.Surrogate(reward=cfg), e))(ep)
+    own = jax.jit(lambda e: dp.build_table(surrogate.Surrogate(reward=cfg, ik_config=table_ik), e))(ep)
     np.testing.assert_array_equal(np.asarray(tab.next_grasp[0]), np.asarray(own.next_grasp))
     tol.assert_close_with_rare_ties(np.asarray(tab.reward[0]).ravel(), np.asarray(own.reward).ravel(),
                                     tol.REWARD_ATOL, f"reward {calibration.label(cfg)}")

@@ -40,11 +40,6 @@ def _np(tree):
 
 # ------------------------------------------------------------------------------------------ fixtures
 @pytest.fixture(scope="module")
-def sur(hand):
-    return surrogate.Surrogate(hand)
-
-
-@pytest.fixture(scope="module")
 def episodes():
     return {
         "nominal": _reduce(scenario.make_episode()),

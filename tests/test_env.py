@@ -44,8 +44,11 @@ def episodes():
 
 @pytest.fixture(scope="module")
 def tables(sur, episodes):
-    """The DP tables of the three episodes, built exactly once for this module."""
-    return jax.jit(lambda e: dp.build_tables(sur, e))(episodes)
+    """The DP tables of the three episodes, built exactly once for this module, one episode at a time as
+    `gym_env.make_grasp_env` builds them (test_gym's episodes: the same program, compiled once in a run)."""
+    build = jax.jit(lambda ep: dp.build_table(sur, ep))
+    parts = [build(jax.tree.map(lambda x, i=i: x[i], episodes)) for i in range(episodes.waypoints.shape[0])]
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *parts)
 
 
 @pytest.fixture(scope="module")

@@ -5,12 +5,7 @@ import numpy as np
 import pytest
 
 import tolerances as tol
-from gsp_jax import dp, lookahead, policies, scenario, surrogate
-
-
-@pytest.fixture(scope="module")
-def sur():
-    return surrogate.Surrogate()
+from gsp_jax import dp, lookahead, policies, scenario
 
 
 @pytest.fixture(scope="module")

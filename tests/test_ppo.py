@@ -20,7 +20,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from scipy import stats  # noqa: E402
 
-from gsp_jax import dp, files, scenario, surrogate  # noqa: E402
+from gsp_jax import dp, files, scenario  # noqa: E402
 from gsp_jax.env import GraspEnv  # noqa: E402
 from gsp_jax.ppo import losses  # noqa: E402
 from gsp_jax.ppo import networks as nets  # noqa: E402
@@ -234,11 +234,6 @@ def test_ppo_loss_gradient_matches_closed_form_with_clipping():
 
 
 # ------------------------------------------------------------------------------------------ 4. probe problem
-@pytest.fixture(scope="module")
-def sur(hand):
-    return surrogate.Surrogate(hand)
-
-
 def _probe_tables(space, start_grasps, seed) -> tuple[dp.Table, list[np.ndarray]]:
     """Synthetic tables (N, ...) over the real grasp space: reward -1 everywhere, except 0 for one action per step
     along one path from the episode's start grasp (that action only, and only from that path's grasp), and four

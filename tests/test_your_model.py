@@ -128,11 +128,11 @@ def shipped_files_unreadable(monkeypatch):
     monkeypatch.setattr(model_lib, "_default", [None])  # load_model(None) fails instead of giving the wrench
 
 
-def test_surrogate_dp_physics_on_a_users_model(user_model, shipped_files_unreadable):
+def test_surrogate_dp_physics_on_a_users_model(user_model, shipped_files_unreadable, table_ik):
     """The user's model end to end, with the shipped files unreadable: DP finds a sequence that holds in the
     surrogate, and C MuJoCo -- its physics built from the user's scene, contact pairs from the file's conventions,
     not geom names -- holds it too."""
-    sur = Surrogate(user_model)
+    sur = Surrogate(user_model, ik_config=table_ik)
     assert sur.model is user_model
     ep = scenario.make_episode(model=user_model, torque=0.3).head(4)
     table = jax.jit(dp.build_table)(sur, ep)

@@ -79,6 +79,33 @@ def random_q():
     return _random_q
 
 
+_BUILDERS: dict = {}
+
+
+def _solve_each(sur, episodes):
+    """(tables, solutions) of stacked episodes (leaves (N, ...)): each episode's table by one jitted
+    `dp.build_table` closed over `sur` -- the program `gym_env.make_grasp_env` compiles -- then `dp.backup`, stacked.
+    One program per surrogate and waypoint count serves every test module (through the run's compilation cache) and
+    is traced once per worker, where each module's own jitted batch (`vmap`, `build_tables`) compiled another."""
+    from gsp_jax import dp
+
+    if id(sur) not in _BUILDERS:
+        _BUILDERS[id(sur)] = (sur, jax.jit(lambda ep: dp.build_table(sur, ep)), jax.jit(dp.backup))
+    _, build, backup = _BUILDERS[id(sur)]
+    parts = []
+    for i in range(episodes.waypoints.shape[0]):
+        ep = jax.tree.map(lambda x, i=i: x[i], episodes)
+        table = build(ep)
+        parts.append((table, backup(table, ep.start_grasp)))
+    return jax.tree.map(lambda *xs: jax.numpy.stack(xs), *parts)
+
+
+@pytest.fixture(scope="session")
+def solve_each():
+    """solve_each(sur, episodes) -> (tables, solutions), leaves (N, ...): see `_solve_each`."""
+    return _solve_each
+
+
 @pytest.fixture(scope="session")
 def table_ik():
     """`TABLE_IK`, for the tests that build their own surrogates."""

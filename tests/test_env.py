@@ -43,12 +43,10 @@ def episodes():
 
 
 @pytest.fixture(scope="module")
-def tables(sur, episodes):
-    """The DP tables of the three episodes, built exactly once for this module, one episode at a time as
-    `gym_env.make_grasp_env` builds them (test_gym's episodes: the same program, compiled once in a run)."""
-    build = jax.jit(lambda ep: dp.build_table(sur, ep))
-    parts = [build(jax.tree.map(lambda x, i=i: x[i], episodes)) for i in range(episodes.waypoints.shape[0])]
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *parts)
+def tables(sur, episodes, solve_each):
+    """The DP tables of the three episodes, built exactly once for this module (one episode at a time, as
+    `gym_env.make_grasp_env` builds test_gym's: the same program)."""
+    return solve_each(sur, episodes)[0]
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import tolerances as tol
-from gsp_jax import dp, lookahead, planners, policies, scenario
+from gsp_jax import lookahead, planners, policies, scenario
 from gsp_jax.env import TableModel, observation_size, table_state
 from gsp_jax.ppo import networks as nets
 
@@ -20,10 +20,10 @@ def _eval_episodes(n_steps):
 
 
 @pytest.fixture(scope="module")
-def solved(sur):
+def solved(sur, solve_each):
     """4 evaluation episodes (both sets) cut to 6 waypoints, with their DP tables and solutions."""
     eps = _eval_episodes(6)
-    tables, sols = jax.jit(jax.vmap(lambda e: dp.solve(sur, e)))(eps)
+    tables, sols = solve_each(sur, eps)
     return eps, tables, sols
 
 
@@ -208,12 +208,12 @@ def _enumerated_q(table, actions, g, t, horizon):
 
 
 @pytest.fixture(scope="module")
-def long_episode(sur):
+def long_episode(sur, solve_each):
     """One evaluation episode cut to 12 waypoints, with its DP table and solution: mid-episode there are many
     roots where a grasp fails on one step but holds on the next, i.e. the same grasp ends some paths and lives on
     in others (the case that shared rollouts must keep apart)."""
     ep = scenario.eval_set_a()["shift+4mm_-1Nm"].head(12)
-    table, sol = jax.jit(lambda e: dp.solve(sur, e))(ep)
+    table, sol = _pick(solve_each(sur, scenario.stack([ep])), 0)
     return ep, table, sol
 
 
@@ -233,11 +233,11 @@ def test_depth_2_search_equals_brute_force_enumeration_from_every_grasp(sur, lon
     np.testing.assert_allclose(q, ref, rtol=1e-5, atol=1e-4)
 
 
-def test_full_depth_lookahead_is_dp_optimal_from_every_start_grasp(sur):
+def test_full_depth_lookahead_is_dp_optimal_from_every_start_grasp(sur, solve_each):
     """l = T: the complete tree is the whole problem, so running the lookahead policy from any grasp at
     waypoint 0 earns the DP optimal value of that grasp (3-waypoint episodes, 4,096 paths per decision)."""
     eps = jax.tree.map(lambda x: x[1:3], _eval_episodes(3))
-    tables, sols = jax.jit(jax.vmap(lambda e: dp.solve(sur, e)))(eps)
+    tables, sols = solve_each(sur, eps)
     base = policies.SequencePolicy(jnp.zeros(3, jnp.int32))
 
     def run(ep, table, g):

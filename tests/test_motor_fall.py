@@ -76,19 +76,19 @@ def test_motor_fall_agrees_with_the_oracle_lp(sur, final_pose_problems, scale):
     assert np.all(unmet[cannot] > threshold + 0.1), (unmet[cannot], ratios[cannot])
 
 
-def test_a_torque_beyond_the_motors_is_a_fall_and_said_so(sur, table_ik):
+def test_a_torque_beyond_the_motors_is_a_fall_and_said_so(sur, table_ik, solve_each):
     """The nominal episode with a 1e9 N m final torque: no sequence holds it in the surrogate (its DP optimum is
     r_min), explained as beyond the motors at the final step; with the check off (inf) the same plan of the nominal
     episode ran to its end (the probe of issue 50: planned as held)."""
     ep = scenario.make_episode(torque=1e9)
-    table, sol = jax.jit(lambda e: dp.solve(sur, e))(ep)
+    table, sol = jax.tree.map(lambda x: x[0], solve_each(sur, scenario.stack([ep])))
     r_min = sur.reward_config.r_min
     assert float(sol.ret) <= r_min
     longest = dp.longest_surviving(table, ep.start_grasp, r_min)
     assert float(longest.ret) == ep.n_steps - 1  # every step but the last can be held
     why = sur.explain(ep, np.asarray(longest.actions))
     assert why.startswith(f"t={ep.n_steps - 1}:") and "beyond the hand's motors" in why, why
-    nominal_plan = np.asarray(jax.jit(lambda e: dp.solve(sur, e))(scenario.make_episode())[1].actions)
+    nominal_plan = np.asarray(solve_each(sur, scenario.stack([scenario.make_episode()]))[1].actions[0])
     off = surrogate.Surrogate(reward=dataclasses.replace(sur.reward_config, motor_fall_unmet=float("inf")),
                                 ik_config=table_ik)
     assert off.explain(ep, nominal_plan) is None  # without the check the plan holds 1e9 N m

@@ -9,9 +9,9 @@ from gsp_jax import dp, lookahead, policies, scenario
 
 
 @pytest.fixture(scope="module")
-def solved(sur):
+def solved(sur, solve_each):
     eps = scenario.stack([scenario.make_episode().head(4), scenario.make_episode(shift_mm=6, torque=-1.0).head(4)])
-    tables, sols = jax.jit(jax.vmap(lambda e: dp.solve(sur, e)))(eps)
+    tables, sols = solve_each(sur, eps)
     return eps, tables, sols
 
 

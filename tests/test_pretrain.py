@@ -25,10 +25,10 @@ def _np(tree):
 
 # ------------------------------------------------------------------------------------------ fixtures
 @pytest.fixture(scope="module")
-def nominal(sur):
+def nominal(sur, solve_each):
     """The nominal episode (stacked, N = 1), its table (built once), and the table's DP solution (numpy)."""
     episodes = scenario.stack([scenario.make_episode()])
-    tables = jax.jit(lambda e: dp.build_tables(sur, e))(episodes)
+    tables = solve_each(sur, episodes)[0]
     table = jax.tree.map(lambda x: x[0], tables)
     sol = jax.jit(dp.backup)(table, episodes.start_grasp[0])
     return dict(episodes=episodes, tables=tables, table=_np(table), sol=_np(sol), start=int(episodes.start_grasp[0]))

@@ -18,9 +18,10 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
 
+from gsp_jax import dp, ik  # noqa: E402
 from gsp_jax import hand as hand_lib  # noqa: E402
-from gsp_jax import ik  # noqa: E402
 
 # The tests' surrogate solves a table's IK problems with `ik.solve` vmapped (`IKConfig.lanes=False`), not in the
 # batch-last form a CPU uses by default: the same solve to float32 rounding (tests/test_ik_lanes.py checks the two
@@ -79,7 +80,8 @@ def random_q():
     return _random_q
 
 
-_BUILDERS: dict = {}
+_BUILDERS: dict = {}  # id(sur) -> (sur, its jitted build_table): the surrogate kept so that its id stays its own
+_BACKUP = jax.jit(dp.backup)
 
 
 def _solve_each(sur, episodes):
@@ -87,17 +89,15 @@ def _solve_each(sur, episodes):
     `dp.build_table` closed over `sur` -- the program `gym_env.make_grasp_env` compiles -- then `dp.backup`, stacked.
     One program per surrogate and waypoint count serves every test module (through the run's compilation cache) and
     is traced once per worker, where each module's own jitted batch (`vmap`, `build_tables`) compiled another."""
-    from gsp_jax import dp
-
     if id(sur) not in _BUILDERS:
-        _BUILDERS[id(sur)] = (sur, jax.jit(lambda ep: dp.build_table(sur, ep)), jax.jit(dp.backup))
-    _, build, backup = _BUILDERS[id(sur)]
+        _BUILDERS[id(sur)] = (sur, jax.jit(lambda ep: dp.build_table(sur, ep)))
+    build = _BUILDERS[id(sur)][1]
     parts = []
     for i in range(episodes.waypoints.shape[0]):
         ep = jax.tree.map(lambda x, i=i: x[i], episodes)
         table = build(ep)
-        parts.append((table, backup(table, ep.start_grasp)))
-    return jax.tree.map(lambda *xs: jax.numpy.stack(xs), *parts)
+        parts.append((table, _BACKUP(table, ep.start_grasp)))
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *parts)
 
 
 @pytest.fixture(scope="session")

@@ -17,7 +17,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import tolerances as tol  # noqa: E402
-from gsp_jax import dp, scenario  # noqa: E402
+from gsp_jax import scenario  # noqa: E402
 from gsp_jax.env import GraspEnv  # noqa: E402
 
 T = 3  # waypoints of the reduced episodes
@@ -43,16 +43,21 @@ def episodes():
 
 
 @pytest.fixture(scope="module")
-def tables(sur, episodes, solve_each):
-    """The DP tables of the three episodes, built exactly once for this module (one episode at a time, as
-    `gym_env.make_grasp_env` builds test_gym's: the same program)."""
-    return solve_each(sur, episodes)[0]
+def solved(sur, episodes, solve_each):
+    """The DP tables and solutions of the three episodes, built exactly once for this module (one episode at a time,
+    as `gym_env.make_grasp_env` builds test_gym's: the same program)."""
+    return solve_each(sur, episodes)
 
 
 @pytest.fixture(scope="module")
-def solutions(tables, episodes):
+def tables(solved):
+    return solved[0]
+
+
+@pytest.fixture(scope="module")
+def solutions(solved):
     """The DP solutions of the three tables (numpy, leaves (N, ...))."""
-    return _np(jax.jit(jax.vmap(dp.backup))(tables, episodes.start_grasp))
+    return _np(solved[1])
 
 
 @pytest.fixture(scope="module")

@@ -44,8 +44,7 @@ def case(table_ik):
     """One episode where sequences hold in the analytic surrogate, a surrogate with an untrained hazard (fall chances
     spread over (0, 1), most below `risk_falls`), and its DP table with and without the term."""
     sur = Surrogate(ik_config=table_ik)
-    with_term = Surrogate(sur.hand, reward=RewardConfig(risk_falls=0.95), learned=_fitted(sur.model.digest),
-                          ik_config=table_ik)
+    with_term = sur.replace(reward=RewardConfig(risk_falls=0.95), learned=_fitted(sur.model.digest))
     ep = _episodes(1, seed=4)[0]
     build = jax.jit(dp.build_table)
     return with_term, ep, build(with_term, ep), build(with_term.analytic, ep)
@@ -90,8 +89,7 @@ def test_the_table_the_step_and_the_offline_returns_agree_on_the_learned_term(ca
     # the term costs: a step's expected reward is at most its analytic one
     assert np.all(np.asarray(table.reward) <= np.asarray(plain.reward) + tol.REWARD_ATOL)
     # a hazard of (almost) zero leaves the analytic table as it was
-    zero = jax.jit(dp.build_table)(Surrogate(with_term.hand, reward=cfg, learned=_fitted(with_term.model.digest, -60.0),
-                                             ik_config=with_term.ik_config), ep)
+    zero = jax.jit(dp.build_table)(with_term.replace(learned=_fitted(with_term.model.digest, -60.0)), ep)
     np.testing.assert_allclose(np.asarray(zero.reward), np.asarray(plain.reward), atol=1e-5)
     np.testing.assert_array_equal(np.asarray(zero.terminal), np.asarray(plain.terminal))
 
@@ -100,7 +98,7 @@ def test_the_learned_term_is_finite_for_every_valid_episode(table_ik):
     """Fuzz: drawn episodes at the distribution's corners and inside it, and the shipped model's extremes; every
     table entry finite, and the run's learned fall chances in [0, 1]."""
     sur = Surrogate(ik_config=table_ik)
-    with_term = Surrogate(sur.hand, learned=_fitted(sur.model.digest, seed=1), ik_config=table_ik)
+    with_term = sur.replace(learned=_fitted(sur.model.digest, seed=1))
     d = corpus.Distribution()
     corner = lambda lo: {f: ((v[0], v[0] + 0.02 * (v[1] - v[0])) if lo else (v[1] - 0.02 * (v[1] - v[0]), v[1]))
                          for f, v in vars(d).items()}  # noqa: E731

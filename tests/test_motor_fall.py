@@ -76,7 +76,7 @@ def test_motor_fall_agrees_with_the_oracle_lp(sur, final_pose_problems, scale):
     assert np.all(unmet[cannot] > threshold + 0.1), (unmet[cannot], ratios[cannot])
 
 
-def test_a_torque_beyond_the_motors_is_a_fall_and_said_so(sur, table_ik, solve_each):
+def test_a_torque_beyond_the_motors_is_a_fall_and_said_so(sur, solve_each):
     """The nominal episode with a 1e9 N m final torque: no sequence holds it in the surrogate (its DP optimum is
     r_min), explained as beyond the motors at the final step; with the check off (inf) the same plan of the nominal
     episode ran to its end (the probe of issue 50: planned as held)."""
@@ -89,8 +89,7 @@ def test_a_torque_beyond_the_motors_is_a_fall_and_said_so(sur, table_ik, solve_e
     why = sur.explain(ep, np.asarray(longest.actions))
     assert why.startswith(f"t={ep.n_steps - 1}:") and "beyond the hand's motors" in why, why
     nominal_plan = np.asarray(solve_each(sur, scenario.stack([scenario.make_episode()]))[1].actions[0])
-    off = surrogate.Surrogate(reward=dataclasses.replace(sur.reward_config, motor_fall_unmet=float("inf")),
-                                ik_config=table_ik)
+    off = sur.replace(reward=dataclasses.replace(sur.reward_config, motor_fall_unmet=float("inf")))
     assert off.explain(ep, nominal_plan) is None  # without the check the plan holds 1e9 N m
     assert "beyond the hand's motors" in sur.explain(ep, nominal_plan)
 

@@ -28,9 +28,8 @@ def _np(tree):
 def nominal(sur, solve_each):
     """The nominal episode (stacked, N = 1), its table (built once), and the table's DP solution (numpy)."""
     episodes = scenario.stack([scenario.make_episode()])
-    tables = solve_each(sur, episodes)[0]
-    table = jax.tree.map(lambda x: x[0], tables)
-    sol = jax.jit(dp.backup)(table, episodes.start_grasp[0])
+    tables, sols = solve_each(sur, episodes)
+    table, sol = (jax.tree.map(lambda x: x[0], tree) for tree in (tables, sols))
     return dict(episodes=episodes, tables=tables, table=_np(table), sol=_np(sol), start=int(episodes.start_grasp[0]))
 
 

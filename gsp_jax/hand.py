@@ -37,6 +37,16 @@ TASK_TORQUE = 1.0  # default final external torque of a model's episodes [N m] (
 SUPPORT_HALF = (0.012, 0.008, 0.004)  # half sizes of a start support derived from the tool's shape [m]
 SPHERE_SPACING = 1.5  # centre spacing of a capsule's spheres, in radii (gaps stay well under the collision margin)
 SELF_COLLISION_MIN_DEPTH = 3  # self-collision: capsules of bodies this deep below the palm (medial, distal)
+# The hand joints' own dynamics the physics controller is tuned for (models/hand.xml; `check_model` measures a file's
+# against the controller's stable range, `import-hand` writes these):
+JOINT_DAMPING = 0.1  # [N m s/rad]
+JOINT_ARMATURE = 0.002  # [kg m^2]
+JOINT_FRICTIONLOSS = 0.001  # [N m]
+
+
+def collides(model: mujoco.MjModel, g: int) -> bool:
+    """Whether geom `g` collides with anything (contype or conaffinity set); the others are visual only."""
+    return bool(model.geom_contype[g] or model.geom_conaffinity[g])
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -314,7 +324,7 @@ def _collision(model: mujoco.MjModel, tree: _Tree, link_body: np.ndarray) -> dic
     cap_body, cap_ends, cap_rad, cap_finger = [], [], [], []
     for g in range(model.ngeom):
         b = model.geom_bodyid[g]
-        if b not in tree.index or b == tree.palm:
+        if b not in tree.index or b == tree.palm or not collides(model, g):
             continue
         gtype = model.geom_type[g]
         mat = _quat_to_mat(model.geom_quat[g])
@@ -352,8 +362,7 @@ def _geom_label(model: mujoco.MjModel, g: int) -> str:
 
 def tool_geoms(model: mujoco.MjModel, tool: int) -> list[int]:
     """The tool's collision geoms: those of its body that collide with something (contype or conaffinity)."""
-    return [g for g in range(model.ngeom) if model.geom_bodyid[g] == tool
-            and (model.geom_contype[g] or model.geom_conaffinity[g])]
+    return [g for g in range(model.ngeom) if model.geom_bodyid[g] == tool and collides(model, g)]
 
 
 def _tool(model: mujoco.MjModel, tool: int) -> dict:

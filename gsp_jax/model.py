@@ -166,8 +166,11 @@ def _check(path: str) -> tuple[str, ...]:
         return (f"MuJoCo cannot compile the file: {e}".strip(),)
     problems = [*_check_tool(m), *_check_table(m)]
     links = _check_links(m, problems)
-    if links is not None:
-        problems += _check_hand(m, links)
+    palm = _palm(m, links)
+    if palm is None:
+        problems.append("no hand found: no body under the world carries hinge joints")
+    else:
+        problems += _check_hand(m, palm)
     if not problems:
         try:
             hand_lib.from_mjmodel(m)
@@ -221,12 +224,13 @@ def _check_links(m, problems: list[str]):
     """Check the contact links and their options; the link names if the hand can be checked further."""
     if mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_TEXT, "gsp_contact_links") < 0:
         problems.append("custom text 'gsp_contact_links' is missing: <custom><text name=\"gsp_contact_links\" "
-                        "data=\"link1 link2 ...\"/></custom> lists the contact links in grasp order")
-        return None
+                        "data=\"link1 link2 ...\"/></custom> lists the contact links in grasp order, each with a site "
+                        "'contact_<link>' on its body and options 'opt_<link>_<k>' on the tool")
+        return []
     links = hand_lib._text(m, "gsp_contact_links").split()
     if not links:
         problems.append("custom text 'gsp_contact_links' names no link")
-        return None
+        return []
     try:
         tool = hand_lib.tool_body(m)
     except ValueError:
@@ -252,16 +256,37 @@ def _check_links(m, problems: list[str]):
         if name.startswith("opt_") and name[4:].rsplit("_", 1)[0] not in links:
             problems.append(f"site {name!r} names no contact link (gsp_contact_links: {' '.join(links)})")
     placed = [s for n in links if (s := hand_lib._site(m, f"contact_{n}")) >= 0 and m.site_bodyid[s] not in (0, tool)]
-    roots = {int(m.body_rootid[m.site_bodyid[s]]) for s in placed}
-    if len(roots) > 1:
+    if len({int(m.body_rootid[m.site_bodyid[s]]) for s in placed}) > 1:
         problems.append("the contact links' sites are on more than one hand (bodies under different world children)")
-        return None
-    return links if roots else None  # the hand is checked further wherever one of its links has its site
+    return links
 
 
-def _check_hand(m, links) -> list[str]:
+def hand_joints(m: mujoco.MjModel) -> list[int]:
+    """The ids of the hand's joints in scene `m` (below `_palm`: the contact links' root, else the world child with
+    the most hinges)."""
+    palm = _palm(m, hand_lib._text(m, "gsp_contact_links", "").split())
+    return [] if palm is None else [j for j in range(m.njnt) if m.body_rootid[m.jnt_bodyid[j]] == palm]
+
+
+def _palm(m, links) -> int | None:
+    """The hand's root: the world child holding the first placed contact site, else the one (not the tool's) with
+    the most hinge joints below it; None if no body has a hinge."""
+    try:
+        tool = hand_lib.tool_body(m)
+    except ValueError:
+        tool = -1
+    for link in links or ():
+        s = hand_lib._site(m, f"contact_{link}")
+        if s >= 0 and m.site_bodyid[s] not in (0, tool):
+            return int(m.body_rootid[m.site_bodyid[s]])
+    hinges = np.bincount([m.body_rootid[m.jnt_bodyid[j]] for j in range(m.njnt)
+                          if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE], minlength=m.nbody)
+    hinges[[0, max(tool, 0)]] = 0
+    return int(np.argmax(hinges)) if hinges.max() > 0 else None
+
+
+def _check_hand(m, palm: int) -> list[str]:
     out = []
-    palm = hand_lib.hand_root(m)
     bodies = [b for b in range(1, m.nbody) if m.body_rootid[b] == palm]
     joints = [j for j in range(m.njnt) if m.jnt_bodyid[j] in bodies]
     for j in joints:
@@ -270,20 +295,74 @@ def _check_hand(m, links) -> list[str]:
     per_body = np.bincount(m.jnt_bodyid[joints], minlength=m.nbody) if joints else np.zeros(m.nbody, int)
     out += [f"hand body {_name(m, mujoco.mjtObj.mjOBJ_BODY, b)!r} has {per_body[b]} joints (at most one hinge)"
             for b in bodies if per_body[b] > 1]
-    driven = {int(m.actuator_trnid[a, 0]) for a in range(m.nu) if m.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT
-              and (not m.actuator_ctrllimited[a] or m.actuator_ctrlrange[a, 0] < 0 < m.actuator_ctrlrange[a, 1])}
-    out += [f"hand joint {_name(m, mujoco.mjtObj.mjOBJ_JOINT, j)!r} has no motor with a control range around 0"
-            for j in joints if j not in driven]
+    out += _check_actuators(m, joints)
     for g in range(m.ngeom):
-        if m.geom_bodyid[g] in bodies and m.geom_bodyid[g] != palm and int(m.geom_type[g]) not in (
-                int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_SPHERE)):
+        if m.geom_bodyid[g] not in bodies or m.geom_bodyid[g] == palm or not hand_lib.collides(m, g):
+            continue
+        if int(m.geom_type[g]) not in (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_SPHERE)):
             kind = mujoco.mjtGeom(m.geom_type[g]).name.removeprefix("mjGEOM_").lower()
             out.append(f"hand geom {_name(m, mujoco.mjtObj.mjOBJ_GEOM, g)!r} (body "
                        f"{_name(m, mujoco.mjtObj.mjOBJ_BODY, m.geom_bodyid[g])!r}) is a {kind}: below the palm a hand "
-                       "geom must be a capsule or a sphere")
+                       "geom that collides must be a capsule or a sphere (import-hand fits them)")
     start = hand_lib._numeric(m, "gsp_ik_start")
     if start is None:
-        out.append(f"custom numeric 'gsp_ik_start' is missing (the IK's start: {len(joints)} joint angles)")
+        out.append(f"custom numeric 'gsp_ik_start' is missing (the IK's start: {len(joints)} joint angles [rad], "
+                   "in the hand's joint order)")
     elif len(start) != len(joints):
         out.append(f"custom numeric 'gsp_ik_start' has {len(start)} values for the hand's {len(joints)} joints")
+    return out
+
+
+_MOTOR = "<motor joint=\"{j}\" ctrlrange=\"-L L\"/>, L its torque limit [N m]"
+
+
+def _servo_kind(m, a: int) -> str | None:
+    """What a joint actuator is if not a torque motor ('a position servo (kp 3)', ...); None for a motor."""
+    if int(m.actuator_biastype[a]) != int(mujoco.mjtBias.mjBIAS_NONE):
+        kp, kv = -m.actuator_biasprm[a, 1], -m.actuator_biasprm[a, 2]
+        if kp > 0:
+            return f"a position servo (kp {kp:g})"
+        return f"a velocity servo (kv {kv:g})" if kv > 0 else "an actuator with a bias term"
+    if int(m.actuator_gaintype[a]) != int(mujoco.mjtGain.mjGAIN_FIXED) or \
+            int(m.actuator_dyntype[a]) != int(mujoco.mjtDyn.mjDYN_NONE):
+        return "not a torque motor (its gain or activation dynamics are not a fixed gain)"
+    return None
+
+
+def _check_actuators(m, joints) -> list[str]:
+    """One torque motor per hand joint (what the controller commands), its control range its torque limit."""
+    out, by_joint = [], {int(j): [] for j in joints}
+    for a in range(m.nu):
+        aname = _name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, a)
+        if m.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_TENDON:
+            t = int(m.actuator_trnid[a, 0])
+            moved = [int(m.wrap_objid[w]) for w in range(m.tendon_adr[t], m.tendon_adr[t] + m.tendon_num[t])
+                     if m.wrap_type[w] == mujoco.mjtWrap.mjWRAP_JOINT and int(m.wrap_objid[w]) in by_joint]
+            if moved:
+                names = ", ".join(repr(_name(m, mujoco.mjtObj.mjOBJ_JOINT, j)) for j in moved)
+                out.append(f"actuator {aname!r} drives tendon {_name(m, mujoco.mjtObj.mjOBJ_TENDON, t)!r} (joints "
+                           f"{names}): the controller commands each joint's torque, one motor per joint "
+                           "(import-hand replaces it)")
+        elif m.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT and int(m.actuator_trnid[a, 0]) in by_joint:
+            by_joint[int(m.actuator_trnid[a, 0])].append(a)
+    for j, acts in by_joint.items():
+        jname = _name(m, mujoco.mjtObj.mjOBJ_JOINT, j)
+        if not acts:
+            out.append(f"hand joint {jname!r} has no motor: add {_MOTOR.format(j=jname)}")
+            continue
+        if len(acts) > 1:
+            out.append(f"hand joint {jname!r} has {len(acts)} actuators "
+                       f"({', '.join(repr(_name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, a)) for a in acts)}): one motor each")
+        a = acts[0]
+        aname, kind = _name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, a), _servo_kind(m, a)
+        lo, hi = m.actuator_ctrlrange[a]
+        if kind is not None:
+            out.append(f"actuator {aname!r} on hand joint {jname!r} is {kind}: the controller commands joint torques; "
+                       f"replace it by {_MOTOR.format(j=jname)} (import-hand does, from its forcerange)")
+        elif not m.actuator_ctrllimited[a]:
+            out.append(f"motor {aname!r} (hand joint {jname!r}) has no control range: its ctrlrange is the joint's "
+                       "torque limit, -L..L [N m]")
+        elif not lo < 0 < hi:
+            out.append(f"hand joint {jname!r} has no motor with a control range around 0: motor {aname!r}'s is "
+                       f"[{lo:g}, {hi:g}]; a motor's range is its torque limit, -L..L [N m]")
     return out

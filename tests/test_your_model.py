@@ -217,8 +217,8 @@ def test_check_model_names_the_hands_problems(tmp_path):
                         '<geom name="part1" class="link" type="box" size="0.012 0.012 0.0075"')
     problems = model_lib.check_model(_write(tmp_path, TOOL, hand))
     assert any("link 'index_medial' has no site 'contact_index_medial'" in p for p in problems), problems
-    assert any("hand geom 'part1' (body 'thumb_knuckle') is a box: below the palm a hand geom must be a capsule or a "
-               "sphere" in p for p in problems), problems
+    assert any("hand geom 'part1' (body 'thumb_knuckle') is a box: below the palm a hand geom that collides must be a "
+               "capsule or a sphere" in p for p in problems), problems
 
 
 def test_check_model_command_exits_nonzero(tmp_path, capsys):

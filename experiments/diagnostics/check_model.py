@@ -1,30 +1,104 @@
-"""`python -m experiments check-model PATH_OR_NAME`: every model convention a scene file breaks, in plain words.
+"""`python -m experiments check-model PATH_OR_NAME`: every problem a scene file has, in plain words, in one run.
 
-Exits 1 and lists them if there is any (docs/your-model.md says what each convention is); otherwise prints what
-the model is (links, options, grasps, actions, tool) and exits 0. Every command's `--model` runs the same check
-first (`gsp_jax.model.check_model`).
+1. The conventions (`gsp_jax.model.check_model`: the tool, the table, the contact links and options, the hand's
+   joints, motors, geoms and IK start).
+2. The joint dynamics against the controller's finger gains (`physics.preflight.joint_dynamics`).
+3. On a file that loads: the tool's clearance above the table, the start grasp's reach at waypoint 0 and (unless
+   `--quick`) a dry run of the start grasp in C MuJoCo (`preflight.clearance`, `start_reach`, `dry_run`).
+4. With `--reach`: each contact link alone on each option at the nominal lift's first and last waypoint (the IK's
+   error [mm]), the options no link reaches, and a picture of them on the tool (`reach.png`).
+
+Exits 1 and lists the problems if there is any (docs/your-model.md says what each is); otherwise prints what the
+model is and exits 0. Every command's `--model` runs the conventions first (`gsp_jax.model.require`).
 """
 from __future__ import annotations
 
 import argparse
+import pathlib
+
+import numpy as np
 
 from gsp_jax import model as model_lib
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("scene", metavar="PATH_OR_NAME", help="a scene file (or a folder holding scene.xml), or a shipped name")
+    p.add_argument("--quick", action="store_true", help="the conventions, the joint dynamics and the start's reach "
+                   "only: no dry run in C MuJoCo")
+    p.add_argument("--reach", action="store_true", help="every link on every option at the lift's first and last "
+                   "waypoint, and a picture (results/check-model-<model>/reach.png)")
 
 
 def main(args: argparse.Namespace) -> None:
+    from gsp_jax import hand as hand_lib
+    from gsp_jax.physics import preflight
+
     try:
         path = model_lib.resolve(args.scene)
     except model_lib.ModelError as e:
         raise SystemExit(str(e)) from None
     problems = model_lib.check_model(path)
+    compiled = not (problems and problems[0].startswith("MuJoCo cannot compile"))
+    if compiled and model_lib.hand_joints(hand_lib.load_mjmodel(path)):
+        problems += preflight.joint_dynamics(hand_lib.load_mjmodel(path))
+    reach = None
+    if not model_lib.check_model(path):
+        from gsp_jax.surrogate import Surrogate
+
+        model = model_lib.load_model(path)
+        sur = Surrogate(model)
+        print(model.describe())
+        problems += preflight.clearance(sur)
+        print("the start grasp at waypoint 0 (IK) ...", flush=True)
+        problems += preflight.start_reach(sur)
+        if not getattr(args, "quick", False):
+            print(f"a dry run in C MuJoCo: the start grasp held for {preflight.DRY_SEGMENTS * 0.25:g} s of the nominal "
+                  "lift ...", flush=True)
+            problems += preflight.dry_run(sur).problems()
+        if getattr(args, "reach", False):
+            print("every link on every option at the lift's first and last waypoint (IK) ...", flush=True)
+            reach = preflight.reach(sur)
+            print(reach.table())
+            out = _picture(model, reach)
+            problems += [f"no link reaches option {k} of {link!r} at the lift's first or last waypoint (IK error "
+                         f"{np.nanmin(reach.error[reach.links.index(link), k]) * 1e3:.1f} mm)"
+                         for link, k in reach.unreachable()]
+            print(f"wrote {out}")
     if problems:
         print(f"{path}: {len(problems)} problem(s) (see docs/your-model.md)")
         for p in problems:
             print(f"  - {p}")
         raise SystemExit(1)
-    print(model_lib.load_model(path).describe())
-    print("follows every convention")
+    print("follows every convention" + ("" if getattr(args, "quick", False) else "; the start holds in C MuJoCo"))
+
+
+def _picture(model, reach) -> pathlib.Path:
+    """The tool from above with each option: green reached at both waypoints, orange at one, red at neither."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from experiments import common
+
+    hand = model.hand
+    hull = hand.tool_hull().reshape(-1, 8, 3)
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for box in hull:
+        lo, hi = box.min(0), box.max(0)
+        ax.add_patch(plt.Rectangle(lo[:2] * 1e3, *(hi - lo)[:2] * 1e3, fill=False, color="0.5"))
+    for li, link in enumerate(reach.links):
+        for k in range(1, hand.n_options[li]):
+            ok = reach.error[li, k] <= reach.tolerance
+            colour = "tab:green" if ok.all() else "tab:orange" if ok.any() else "tab:red"
+            x, y = hand.option_pos[li, k, :2] * 1e3
+            ax.plot(x, y, "o", color=colour)
+            ax.annotate(f"{link}:{k}", (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
+    ax.set(xlabel="tool x [mm]", ylabel="tool y [mm]", aspect="equal",
+           title=f"{model.name}: options reached by the IK at the lift's first and last waypoint\n"
+                 "green both, orange one, red neither")
+    ax.autoscale_view()
+    out = common.results_dir(f"check-model-{model.name}") / "reach.png"
+    fig.savefig(out, dpi=120, bbox_inches="tight")
+    plt.close(fig)
+    return out

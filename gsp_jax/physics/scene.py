@@ -67,7 +67,8 @@ def physics_model(hand: hand_lib.HandModel, config: PhysicsConfig = PhysicsConfi
     to_tool, to_table = [], []
     for g in range(base.ngeom):
         if int(base.geom_type[g]) not in (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_SPHERE)) or \
-                base.body_rootid[base.geom_bodyid[g]] == tool or base.geom_bodyid[g] == 0:
+                base.body_rootid[base.geom_bodyid[g]] == tool or base.geom_bodyid[g] == 0 or \
+                not hand_lib.collides(base, g):
             continue
         gname, bname = name(mujoco.mjtObj.mjOBJ_GEOM, g), name(mujoco.mjtObj.mjOBJ_BODY, base.geom_bodyid[g])
         radius, half = base.geom_size[g][:2]

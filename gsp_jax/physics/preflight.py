@@ -1,0 +1,214 @@
+"""Before the first plan: what a model will do in physics, checked in seconds and said in plain words.
+
+`check-model` runs these after the conventions (`gsp_jax.model.check_model`), on a model that loads:
+
+* `joint_dynamics`: the hand's joints against the controller's gains. The controller's finger impedance acts
+  explicitly at every physics step; with light links, no armature and little damping its discrete-time loop grows
+  instead of settling (a finger kicks the tool away on the first tick). The linearised loop at the IK start is one
+  matrix; how much one step takes off its fastest mode says whether it settles (`finger_step`).
+* `clearance`: the tool's lowest point above the table at the start of the nominal lift and of the lowest
+  standard episode (`scenario.HEIGHT_SHIFTS_MM`): a tool that starts on or in the table is not resting on its
+  supports.
+* `reach`: each contact link alone on each of its options at the first and last waypoint of the nominal lift, the
+  IK's distance to the option [m]; `start_reach` the start grasp's links at waypoint 0.
+* `dry_run`: the start grasp held for the first `DRY_SEGMENTS` decisions of the nominal lift without the external
+  torque, in C MuJoCo: the tool neither falls nor leaves its path by more than `THROWN` [m]. (Held longer, a start
+  grasp may well drop the tool: the planners change it from waypoint 0 on.)
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from gsp_jax import grasps, hand as hand_lib, ik, kinematics, scenario
+from gsp_jax.physics.config import PhysicsConfig
+from gsp_jax.surrogate import Surrogate
+
+THROWN = 0.005  # [m] the start grasp's tool leaving its path by more than this in the dry run is a problem
+CLEARANCE = 0.001  # [m] the least gap between the tool and the table at the start of a standard episode
+DRY_SEGMENTS = 1  # decisions (`scenario.DT` each) the dry run judges
+FINGER_STEP = 0.5  # the most of the fingers' fastest mode one physics step of the controller may take off (above 1
+# it overshoots every step, above 2 it grows); the shipped hands: 0.12-0.14
+
+
+def finger_step(m: mujoco.MjModel, config: PhysicsConfig = PhysicsConfig()) -> tuple[float, list[str]]:
+    """(how much of the fingers' fastest mode one physics step takes off, the hand joints most in that mode).
+
+    The hand of scene `m` (`gsp_jax.model.hand_joints`) at its IK start (`gsp_ik_start`, else qpos0), every contact
+    link tracked at the controller's full gains (its worst case; without contact sites, every fingertip body):
+    stiffness K = finger_kp sum_l J_l^T J_l + free_stiffness I and damping D = finger_kd sum_l J_l^T J_l [joint
+    space: N m/rad, N m s/rad], J_l the (3, J) Jacobian of link l's point. MuJoCo's step: the joints' own damping B
+    implicit, the controller's torque explicit, mass matrix M (armature included), timestep h:
+    v' = (M + h B)^-1 ((M - h D) v - h K q), q' = q + h v', the step matrix A. The figure: max |1 - eig(A)| (0: a
+    step changes nothing; above 1 the fastest mode overshoots every step; above 2 it grows)."""
+    from gsp_jax import model as model_lib
+
+    f, joints = config.fingers, model_lib.hand_joints(m)
+    d = mujoco.MjData(m)
+    start = hand_lib._numeric(m, "gsp_ik_start")
+    if start is not None and len(start) == len(joints):
+        d.qpos[m.jnt_qposadr[joints]] = start
+    mujoco.mj_forward(m, d)
+    dofs = m.jnt_dofadr[joints]
+    full = np.zeros((m.nv, m.nv))
+    mujoco.mj_fullM(m, d, full)
+    mass = full[np.ix_(dofs, dofs)]
+    links = hand_lib._text(m, "gsp_contact_links", "").split()
+    sites = [s for n in links if (s := hand_lib._site(m, f"contact_{n}")) >= 0]
+    hand = {int(m.jnt_bodyid[j]) for j in joints}
+    hand |= {b for b in range(m.nbody) if m.body_parentid[b] in hand}
+    tips = [b for b in hand if not any(m.body_parentid[c] == b for c in range(1, m.nbody))]
+    jtj = np.zeros((len(dofs), len(dofs)))
+    for i in sites or tips:
+        jac = np.zeros((3, m.nv))
+        (mujoco.mj_jacSite if sites else mujoco.mj_jacBody)(m, d, jac, None, i)
+        jtj += jac[:, dofs].T @ jac[:, dofs]
+    n, h = len(dofs), m.opt.timestep
+    stiff = f.finger_kp * jtj + f.free_stiffness * np.eye(n)
+    inv = np.linalg.inv(mass + h * np.diag(m.dof_damping[dofs]))
+    vv, vq = inv @ (mass - h * f.finger_kd * jtj), -h * inv @ stiff
+    eig, vec = np.linalg.eig(np.block([[vv, vq], [h * vv, np.eye(n) + h * vq]]))  # (v, q) -> (v', q')
+    worst = int(np.argmax(np.abs(1.0 - eig)))
+    share = np.abs(vec[n:, worst]) + h * np.abs(vec[:n, worst])
+    names = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, joints[j]) for j in np.argsort(-share)[:3]]
+    return float(np.abs(1.0 - eig[worst])), names
+
+
+def joint_dynamics(m: mujoco.MjModel, config: PhysicsConfig = PhysicsConfig()) -> list[str]:
+    """The problem (a list of at most one line) if one physics step takes more than `FINGER_STEP` off the
+    fingers' fastest mode (`finger_step`)."""
+    step, worst = finger_step(m, config)
+    if step <= FINGER_STEP:
+        return []
+    ids = [m.jnt_dofadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n)] for n in worst]
+    return [f"the hand's joints are too light for the controller's finger gains at this timestep: one physics step "
+            f"takes {step:.0%} off the fingers' fastest mode (at most {FINGER_STEP:.0%}; joints {', '.join(worst)}: armature "
+            f"{', '.join(f'{m.dof_armature[i]:g}' for i in ids)} kg m^2, damping "
+            f"{', '.join(f'{m.dof_damping[i]:g}' for i in ids)} N m s/rad): give every hand joint armature and damping "
+            f"(the shipped hands': {hand_lib.JOINT_ARMATURE:g} and {hand_lib.JOINT_DAMPING:g}; import-hand sets them)"]
+
+
+def clearance(sur: Surrogate) -> list[str]:
+    """Problems with the tool's gap to the table at the start of the nominal lift and the lowest standard one."""
+    lowest = float(sur.hand.tool_hull()[:, 2].min() + sur.hand.tool_rest[2])
+    shift = min(scenario.HEIGHT_SHIFTS_MM) * 1e-3
+    if lowest + shift >= CLEARANCE:
+        return []
+    where = "in" if lowest < 0 else "on" if lowest < CLEARANCE else f"{lowest * 1e3:.1f} mm above"
+    return [f"the tool starts {where} the table (its lowest point at z = {lowest * 1e3:.1f} mm): the standard "
+            f"episodes start the lift up to {-shift * 1e3:g} mm lower (shift{min(scenario.HEIGHT_SHIFTS_MM)}mm), so "
+            f"raise the tool body in the file by at least {(CLEARANCE - lowest - shift) * 1e3:.1f} mm, onto its supports"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Reach:
+    """Each contact link alone on each option at the lift's first and last waypoint: the IK's distance [m]."""
+
+    links: tuple[str, ...]
+    error: np.ndarray  # (L, K, 2) [m]; NaN where a link has fewer options (row k = 0 unused)
+    tolerance: float  # [m] within this the link reaches (the reward's contact_tol)
+
+    def unreachable(self) -> list[tuple[str, int]]:
+        """(link, option) pairs reached at neither waypoint."""
+        return [(n, k) for li, n in enumerate(self.links) for k in range(1, self.error.shape[1])
+                if np.isfinite(self.error[li, k]).all() and (self.error[li, k] > self.tolerance).all()]
+
+    def table(self) -> str:
+        """One row per link and option: the error at waypoint 0 and the last [mm]."""
+        rows = ["link            option  first [mm]  last [mm]", "-" * 45]
+        for li, n in enumerate(self.links):
+            for k in range(1, self.error.shape[1]):
+                e = self.error[li, k]
+                if np.isfinite(e).all():
+                    ok = e <= self.tolerance
+                    mark = "" if ok.all() else "  last only" if ok[1] else "  first only" if ok[0] else "  unreached"
+                    rows.append(f"{n:<15} {k:>6}  {e[0] * 1e3:>10.1f}  {e[1] * 1e3:>9.1f}{mark}")
+        return "\n".join(rows)
+
+
+def reach(sur: Surrogate, episode: scenario.Episode | None = None) -> Reach:
+    """`Reach` of every (link, option) on `episode` (default: the model's nominal lift) by the surrogate's IK."""
+    hand, space = sur.hand, sur.space
+    episode = scenario.make_episode(model=sur.model) if episode is None else episode
+    K = max(hand.n_options)
+    options = np.zeros((hand.n_links, K, hand.n_links), np.int32)
+    for li in range(hand.n_links):
+        for k in range(1, hand.n_options[li]):
+            options[li, k, li] = k
+    ends = np.array([0, episode.n_steps - 1])
+
+    @jax.jit
+    def solve(opts):
+        def one(o, t):
+            mat = kinematics.quat_to_mat(episode.quats[t])
+            active, points, _ = ik.grasp_targets(hand, o, episode.waypoints[t], mat)
+            return ik.solve(hand, active, points, episode.waypoints[t], mat, sur.ik_config).link_error
+        return jax.vmap(lambda o: jax.vmap(lambda t: one(o, t))(jnp.asarray(ends)))(opts)
+
+    err = np.asarray(solve(jnp.asarray(options.reshape(-1, hand.n_links)))).reshape(hand.n_links, K, 2, hand.n_links)
+    own = np.stack([err[li, :, :, li] for li in range(hand.n_links)])  # (L, K, 2)
+    valid = np.arange(K)[None, :] < np.array(hand.n_options)[:, None]
+    own = np.where(valid[..., None], own, np.nan)
+    own[:, 0] = np.nan
+    return Reach(hand.link_names, own, float(sur.reward_config.contact_tol))
+
+
+def start_reach(sur: Surrogate) -> list[str]:
+    """Problems with the start grasp at waypoint 0 of the nominal lift: links the IK leaves off their options."""
+    episode = scenario.make_episode(model=sur.model)
+    c = sur.realise(episode.start_grasp, episode.waypoints[0], episode.quats[0])
+    err, active = np.asarray(c.ik.link_error), np.asarray(sur.space.decode(episode.start_grasp)) > 0
+    tol = float(sur.reward_config.contact_tol)
+    opts = sur.hand.start_options
+    return [f"the start grasp's link {n!r} does not reach its option {opts[li]} at the start of the lift: the IK leaves "
+            f"it {err[li] * 1e3:.1f} mm away (> {tol * 1e3:g} mm); move the option, the palm or gsp_ik_start"
+            for li, n in enumerate(sur.hand.link_names) if active[li] and err[li] > tol]
+
+
+@dataclasses.dataclass(frozen=True)
+class DryRun:
+    """The start grasp held for the first `DRY_SEGMENTS` decisions of the nominal lift (no external torque) in C
+    MuJoCo."""
+
+    fell: bool
+    fall_time: float  # [s], -1 if it held
+    max_offset: float  # [m] the tool's largest distance from its path
+    offset_time: float  # [s] when
+    max_angle: float  # [deg] its largest tilt from its path
+
+    def problems(self) -> list[str]:
+        out = []
+        if self.fell:
+            out.append(f"in C MuJoCo the start grasp drops the tool {self.fall_time:.2f} s into the nominal lift (the "
+                       "grasp held, no external torque): see the offset, the joint dynamics and the start's reach")
+        if self.max_offset > THROWN:
+            out.append(f"in C MuJoCo the start grasp pushes the tool {self.max_offset * 1e3:.1f} mm off its path "
+                       f"{self.offset_time * 1e3:.0f} ms into the lift (> {THROWN * 1e3:g} mm)")
+        return out
+
+
+def dry_run(sur: Surrogate, config: PhysicsConfig = PhysicsConfig()) -> DryRun:
+    """`DryRun` of the model's start grasp (`Surrogate`'s model) on its nominal lift without the external torque."""
+    from gsp_jax import policies
+    from gsp_jax.physics.controller import reference_motion
+    from gsp_jax.physics.runner import Physics
+
+    phys = Physics(sur, config)
+    episode = scenario.make_episode(model=sur.model, torque=0.0)
+    hold = policies.SequencePolicy(jnp.full(episode.n_steps, grasps.NULL, jnp.int32), sur.space)
+    batch = jax.tree.map(lambda x: x[None], episode)
+    res = jax.tree.map(lambda x: np.asarray(x)[0], phys.simulate_batch(hold, batch, backend="c", cores=1))
+    times = (np.arange(len(res.angle)) + 1) * phys.timestep
+    ref = np.asarray(jax.vmap(lambda t: reference_motion(episode, t).pos)(jnp.asarray(times, jnp.float32)))
+    a = phys.scene.tool_qpos
+    offset = np.linalg.norm(res.qpos[:, a:a + 3] - ref, axis=1)
+    window = DRY_SEGMENTS * phys.n_segment
+    fell = bool(res.fell and res.fall_time <= times[window - 1])
+    until = max(1, int(np.searchsorted(times, res.fall_time))) if fell else window
+    worst = int(np.argmax(offset[:until]))
+    return DryRun(fell, float(res.fall_time) if fell else -1.0, float(offset[worst]), float(times[worst]),
+                  float(np.max(res.angle[:until])))

@@ -313,3 +313,94 @@ def test_explain_names_the_first_failing_step(sur):
     why = sur.explain(ep, evaluation.one_tip(sur.space, ep.n_steps))
     assert why is not None and why.startswith(("t=0:", "t=1:", "t=2:")) and "unmet" in why, why
     assert sur.explain(ep, evaluation.four_tips(sur.space, ep.n_steps)) is None
+
+
+def _hand_spec() -> mujoco.MjSpec:
+    return mujoco.MjSpec.from_string(three_finger_hand())
+
+
+def test_check_model_reports_every_problem_of_a_file_at_once(tmp_path, capsys):
+    """A file with problems of five kinds -- a position servo, a tendon-driven joint pair, a box below the palm, no IK
+    start, a tool without one link's option -- names all of them in one run, each with its fix."""
+    from experiments.diagnostics import check_model
+
+    spec = _hand_spec()
+    servo = next(a for a in spec.actuators if a.target == "index_mcp")
+    servo.set_to_position(kp=3.0)
+    for a in [a for a in spec.actuators if a.target in ("middle_pip", "middle_dip")]:
+        spec.delete(a)
+    tendon = spec.add_tendon(name="middle_coupling")
+    tendon.wrap_joint("middle_pip", 1.0)
+    tendon.wrap_joint("middle_dip", 1.0)
+    spec.add_actuator(name="middle_drive", target="middle_coupling", trntype=mujoco.mjtTrn.mjTRN_TENDON,
+                      ctrlrange=[-1, 1], ctrllimited=True)
+    spec.geom("part1").type = mujoco.mjtGeom.mjGEOM_BOX
+    spec.geom("part1").size = [0.012, 0.012, 0.0075]
+    spec.delete(next(n for n in spec.numerics if n.name == "gsp_ik_start"))
+    tool = TOOL.replace('<site name="opt_index_medial_1" pos="0.035 0.0125 0" zaxis="0 -1 0"/>', "")
+    scene = _write(tmp_path, tool, spec.to_xml())
+    problems = model_lib.check_model(scene)
+    expected = ["actuator 'index_mcp' on hand joint 'index_mcp' is a position servo (kp 3)", "drives tendon 'middle_coupling' (joints 'middle_pip', "
+                "'middle_dip')", "hand joint 'middle_pip' has no motor", "hand geom 'part1' (body 'thumb_knuckle') is a "
+                "box", "custom numeric 'gsp_ik_start' is missing", "link 'index_medial' has no contact option"]
+    for text in expected:
+        assert any(text in p for p in problems), (text, problems)
+    with pytest.raises(SystemExit) as e:
+        check_model.main(type("Args", (), {"scene": str(scene), "quick": True, "reach": False}))
+    out = capsys.readouterr().out
+    assert e.value.code == 1 and all(text in out for text in expected), out
+
+
+def test_check_model_finds_the_hand_without_contact_links(tmp_path):
+    """Without gsp_contact_links (a published hand as it comes) the hand is still checked: its servo is named."""
+    spec = _hand_spec()
+    spec.delete(next(t for t in spec.texts if t.name == "gsp_contact_links"))
+    next(a for a in spec.actuators if a.target == "thumb_mcp").set_to_position(kp=2.0)
+    problems = model_lib.check_model(_write(tmp_path, TOOL, spec.to_xml()))
+    assert any("'gsp_contact_links' is missing" in p for p in problems), problems
+    assert any("on hand joint 'thumb_mcp' is a position servo (kp 2)" in p for p in problems), problems
+
+
+def _light_scene(folder: pathlib.Path, armature: float, damping: float) -> pathlib.Path:
+    spec = _hand_spec()
+    for j in spec.joints:
+        j.armature, j.damping = armature, [damping, 0.0, 0.0]
+    return _write(folder, TOOL, spec.to_xml())
+
+
+def test_joint_dynamics_against_the_controller_agree_with_c_mujoco(tmp_path, user_scene, table_ik):
+    """The joint-dynamics check and C MuJoCo agree: joints without armature (Menagerie's LEAP: damping 0.03) are
+    named, and the dry run of the start goes unstable on them; the shipped hand's (armature 0.002, damping 0.1) pass
+    both."""
+    from gsp_jax.physics import preflight
+
+    light = _light_scene(tmp_path, 0.0, 0.03)
+    problems = preflight.joint_dynamics(hand_lib.load_mjmodel(light))
+    assert len(problems) == 1 and "too light for the controller's finger gains" in problems[0], problems
+    assert preflight.joint_dynamics(hand_lib.load_mjmodel(user_scene)) == []
+    step, _ = preflight.finger_step(hand_lib.load_mjmodel(user_scene))
+    assert 0 < step < preflight.FINGER_STEP
+    bad = preflight.dry_run(Surrogate(model_lib.load_model(light), ik_config=table_ik))
+    good = preflight.dry_run(Surrogate(model_lib.load_model(user_scene), ik_config=table_ik))
+    assert bad.problems() and (bad.unstable_time >= 0 or bad.fell or bad.max_offset > preflight.THROWN), bad
+    assert good.problems() == [] and good.unstable_time < 0 and good.max_offset < preflight.THROWN / 2, good
+
+
+def test_check_model_names_a_tool_on_the_table_and_options_out_of_reach(tmp_path, user_model, table_ik):
+    """A tool placed so the standard episodes start it in the table is named with the height to add (the user's
+    tool: its knob, 16 mm across, hangs 4 mm above the table, 2 mm into it 6 mm lower); an option off to the side
+    of the tool, beyond the fingers, is named by the reach report, and the options the fingers reach are not."""
+    from gsp_jax.physics import preflight
+
+    problems = preflight.clearance(Surrogate(user_model, ik_config=table_ik))
+    assert len(problems) == 1 and "starts 4.0 mm above the table" in problems[0] and \
+        "raise the tool body in the file by at least 3.0 mm" in problems[0], problems
+    raised = model_lib.load_model(_write(tmp_path, TOOL.replace('pos="0 0 0.02"', 'pos="0 0 0.0231"')))
+    assert preflight.clearance(Surrogate(raised, ik_config=table_ik)) == []
+    far = TOOL.replace('<site name="opt_thumb_distal_2" pos="0.03 -0.0125 0" zaxis="0 1 0"/>',
+                       '<site name="opt_thumb_distal_2" pos="0.03 -0.0125 0" zaxis="0 1 0"/>'
+                       '<site name="opt_thumb_distal_3" pos="-0.2 0.3 0" zaxis="0 -1 0"/>')
+    (tmp_path / "far").mkdir()
+    reach = preflight.reach(Surrogate(model_lib.load_model(_write(tmp_path / "far", far)), ik_config=table_ik))
+    assert reach.unreachable() == [("thumb_distal", 3)], reach.table()
+    assert reach.error[0, 3].min() > 0.1 and reach.error[0, 1].max() < reach.tolerance

@@ -179,9 +179,13 @@ class DryRun:
     max_offset: float  # [m] the tool's largest distance from its path
     offset_time: float  # [s] when
     max_angle: float  # [deg] its largest tilt from its path
+    unstable_time: float = -1.0  # [s] when MuJoCo found the simulation unstable (and reset it); -1: never
 
     def problems(self) -> list[str]:
         out = []
+        if self.unstable_time >= 0:
+            out.append(f"in C MuJoCo the simulation goes unstable {self.unstable_time * 1e3:.0f} ms into the start grasp "
+                       "(MuJoCo reset it): see the joint dynamics")
         if self.fell:
             out.append(f"in C MuJoCo the start grasp drops the tool {self.fall_time:.2f} s into the nominal lift (the "
                        "grasp held, no external torque): see the offset, the joint dynamics and the start's reach")
@@ -194,6 +198,7 @@ class DryRun:
 def dry_run(sur: Surrogate, config: PhysicsConfig = PhysicsConfig()) -> DryRun:
     """`DryRun` of the model's start grasp (`Surrogate`'s model) on its nominal lift without the external torque."""
     from gsp_jax import policies
+    from gsp_jax.physics import c_backend
     from gsp_jax.physics.controller import reference_motion
     from gsp_jax.physics.runner import Physics
 
@@ -201,7 +206,11 @@ def dry_run(sur: Surrogate, config: PhysicsConfig = PhysicsConfig()) -> DryRun:
     episode = scenario.make_episode(model=sur.model, torque=0.0)
     hold = policies.SequencePolicy(jnp.full(episode.n_steps, grasps.NULL, jnp.int32), sur.space)
     batch = jax.tree.map(lambda x: x[None], episode)
-    res = jax.tree.map(lambda x: np.asarray(x)[0], phys.simulate_batch(hold, batch, backend="c", cores=1))
+    log: list = []
+    res = c_backend.simulate(phys, [(hold, None)], batch, cores=1, workers=1, engine_log=log)[0]
+    res = jax.tree.map(lambda x: np.asarray(x)[0], res)
+    clock = np.array([states[0, 0] for _, states, _ in log])  # mjSTATE_INTEGRATION starts with the time
+    back = np.flatnonzero(np.diff(clock) < 0)  # MuJoCo resets a diverging simulation to time 0
     times = (np.arange(len(res.angle)) + 1) * phys.timestep
     ref = np.asarray(jax.vmap(lambda t: reference_motion(episode, t).pos)(jnp.asarray(times, jnp.float32)))
     a = phys.scene.tool_qpos
@@ -211,4 +220,4 @@ def dry_run(sur: Surrogate, config: PhysicsConfig = PhysicsConfig()) -> DryRun:
     until = max(1, int(np.searchsorted(times, res.fall_time))) if fell else window
     worst = int(np.argmax(offset[:until]))
     return DryRun(fell, float(res.fall_time) if fell else -1.0, float(offset[worst]), float(times[worst]),
-                  float(np.max(res.angle[:until])))
+                  float(np.max(res.angle[:until])), float(clock[back[0]]) if back.size else -1.0)

@@ -388,22 +388,21 @@ def _normal_equations(jac: jax.Array, r: jax.Array) -> tuple[jax.Array, jax.Arra
 
 def start_configurations(hand: HandModel, cfg: IKConfig) -> np.ndarray:
     """(1 + len(cfg.extra_starts), J) joint configurations the solve starts from: the model's start, then each
-    extra start's per-finger offsets added to every finger (the model's joints come finger by finger, each finger's
-    in the same order; clipped to the joint limits)."""
+    extra start's per-finger offsets added to every finger (the model's joints come finger by finger; an offset of
+    n values goes to each finger's last n joints, so a finger with more joints keeps its first ones and one with
+    fewer takes the offset's last values; clipped to the joint limits)."""
     q0 = np.asarray(hand.q_start, np.float64)
     finger = np.asarray(hand.joint_finger)
     rank = np.array([np.sum(finger[:j] == finger[j]) for j in range(hand.n_joints)])  # joint's place in its finger
-    counts = np.bincount(finger)
+    from_end = np.bincount(finger)[finger] - 1 - rank  # 0: the finger's last joint
     starts = [q0]
     for offset in cfg.extra_starts:
         offset = np.asarray(offset, np.float64)
-        if len(set(counts[counts > 0])) != 1:
-            raise ValueError(f"IKConfig.extra_starts: per-finger offsets need fingers of equal joint counts, the "
-                             f"model's have {counts.tolist()}")
-        if offset.shape != (counts.max(),) or not np.all(np.isfinite(offset)):
-            raise ValueError(f"IKConfig.extra_starts: each offset needs one finite value per joint of a finger "
-                             f"({counts.max()}), got {tuple(np.ravel(offset).tolist())}")
-        starts.append(np.clip(q0 + offset[rank], *hand.joint_range.T))
+        if offset.ndim != 1 or offset.size == 0 or not np.all(np.isfinite(offset)):
+            raise ValueError(f"IKConfig.extra_starts: each offset needs finite values for a finger's last joints, got "
+                             f"{offset.tolist()}")
+        index = offset.size - 1 - from_end
+        starts.append(np.clip(q0 + np.where(index >= 0, offset[np.maximum(index, 0)], 0.0), *hand.joint_range.T))
     return np.stack(starts)
 
 

@@ -642,10 +642,25 @@ def test_default_never_ends_worse_than_the_start_alone(space, solve_on_path):
 
 
 def test_extra_starts_are_validated(hand):
-    assert ik.start_configurations(hand, CFG).shape == (1 + len(CFG.extra_starts), hand.n_joints)
+    """Each extra start adds its offsets to every finger's last joints: on a hand of four-joint fingers, an offset of
+    four values is the finger's, one of three leaves each finger's first joint and one of five drops its first
+    value; on fingers of 4 and 5 joints the five-joint finger keeps its first joint."""
+    starts = ik.start_configurations(hand, CFG)
+    assert starts.shape == (1 + len(CFG.extra_starts), hand.n_joints)
     np.testing.assert_array_equal(ik.start_configurations(hand, SINGLE), hand.q_start[None])
+    finger = np.asarray(hand.joint_finger)
+    lo, hi = hand.joint_range.T
+    cases = (((0.0, 0.1, -0.2), (0.0, 0.0, 0.1, -0.2)), ((9.0, 0.1, 0.0, -0.1, 0.2), (0.1, 0.0, -0.1, 0.2)))
+    for offset, per_finger in cases:
+        got = ik.start_configurations(hand, ik.IKConfig(extra_starts=(offset,)))[1]
+        want = np.clip(hand.q_start + np.tile(per_finger, len(set(finger.tolist()))), lo, hi)
+        np.testing.assert_allclose(got, want)
+    five = dataclasses.replace(hand, joint_finger=np.array([0] * 5 + [1] * 4 + [2] * 4 + [3] * 3), q_start=np.zeros(16),
+                               joint_range=np.tile([[-1.0, 1.0]], (16, 1)))
+    got = ik.start_configurations(five, ik.IKConfig(extra_starts=((0.1, 0.2, 0.3, 0.4),)))[1]
+    np.testing.assert_allclose(got, [0, .1, .2, .3, .4] + [.1, .2, .3, .4] * 2 + [.2, .3, .4])
     with pytest.raises(ValueError, match="extra_starts"):
-        ik.start_configurations(hand, ik.IKConfig(extra_starts=((0.0, 0.1, 0.2),)))
+        ik.start_configurations(hand, ik.IKConfig(extra_starts=((0.0, np.nan),)))
 
 
 @pytest.mark.parametrize("unroll", [3, 7])

@@ -22,7 +22,8 @@ from gsp_jax import model as model_lib
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scene", metavar="PATH_OR_NAME", help="a scene file (or a folder holding scene.xml), or a shipped name")
+    p.add_argument("scene", metavar="PATH_OR_NAME",
+                   help="a scene file (or a folder holding scene.xml), or a shipped name")
     p.add_argument("--quick", action="store_true", help="the conventions, the joint dynamics and the start's reach "
                    "only: no dry run in C MuJoCo")
     p.add_argument("--reach", action="store_true", help="every link on every option at the lift's first and last "

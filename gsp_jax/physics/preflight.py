@@ -86,7 +86,8 @@ def joint_dynamics(m: mujoco.MjModel, config: PhysicsConfig = PhysicsConfig()) -
         return []
     ids = [m.jnt_dofadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n)] for n in worst]
     return [f"the hand's joints are too light for the controller's finger gains at this timestep: one physics step "
-            f"takes {step:.0%} off the fingers' fastest mode (at most {FINGER_STEP:.0%}; joints {', '.join(worst)}: armature "
+            f"takes {step:.0%} off the fingers' fastest mode (at most {FINGER_STEP:.0%}; joints {', '.join(worst)}: "
+            f"armature "
             f"{', '.join(f'{m.dof_armature[i]:g}' for i in ids)} kg m^2, damping "
             f"{', '.join(f'{m.dof_damping[i]:g}' for i in ids)} N m s/rad): give every hand joint armature and damping "
             f"(the shipped hands': {hand_lib.JOINT_ARMATURE:g} and {hand_lib.JOINT_DAMPING:g}; import-hand sets them)"]
@@ -101,7 +102,8 @@ def clearance(sur: Surrogate) -> list[str]:
     where = "in" if lowest < 0 else "on" if lowest < CLEARANCE else f"{lowest * 1e3:.1f} mm above"
     return [f"the tool starts {where} the table (its lowest point at z = {lowest * 1e3:.1f} mm): the standard "
             f"episodes start the lift up to {-shift * 1e3:g} mm lower (shift{min(scenario.HEIGHT_SHIFTS_MM)}mm), so "
-            f"raise the tool body in the file by at least {(CLEARANCE - lowest - shift) * 1e3:.1f} mm, onto its supports"]
+            f"raise the tool body in the file by at least {(CLEARANCE - lowest - shift) * 1e3:.1f} mm, onto its "
+            "supports"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -164,8 +166,8 @@ def start_reach(sur: Surrogate) -> list[str]:
     err, active = np.asarray(c.ik.link_error), np.asarray(sur.space.decode(episode.start_grasp)) > 0
     tol = float(sur.reward_config.contact_tol)
     opts = sur.hand.start_options
-    return [f"the start grasp's link {n!r} does not reach its option {opts[li]} at the start of the lift: the IK leaves "
-            f"it {err[li] * 1e3:.1f} mm away (> {tol * 1e3:g} mm); move the option, the palm or gsp_ik_start"
+    return [f"the start grasp's link {n!r} does not reach its option {opts[li]} at the start of the lift: the IK "
+            f"leaves it {err[li] * 1e3:.1f} mm away (> {tol * 1e3:g} mm); move the option, the palm or gsp_ik_start"
             for li, n in enumerate(sur.hand.link_names) if active[li] and err[li] > tol]
 
 
@@ -184,8 +186,8 @@ class DryRun:
     def problems(self) -> list[str]:
         out = []
         if self.unstable_time >= 0:
-            out.append(f"in C MuJoCo the simulation goes unstable {self.unstable_time * 1e3:.0f} ms into the start grasp "
-                       "(MuJoCo reset it): see the joint dynamics")
+            out.append(f"in C MuJoCo the simulation goes unstable {self.unstable_time * 1e3:.0f} ms into the start "
+                       "grasp (MuJoCo reset it): see the joint dynamics")
         if self.fell:
             out.append(f"in C MuJoCo the start grasp drops the tool {self.fall_time:.2f} s into the nominal lift (the "
                        "grasp held, no external torque): see the offset, the joint dynamics and the start's reach")

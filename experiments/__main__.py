@@ -9,6 +9,7 @@ import sys
 COMMANDS = {  # command -> (module, one-line help)
     "demo": ("experiments.demo", "the main job on one unseen episode: DP optimal and L1 plans, executed in C MuJoCo"),
     "check-model": ("experiments.diagnostics.check_model", "every model convention a scene file breaks (your hand, your tool)"),
+    "import-hand": ("experiments.diagnostics.import_hand", "a published MJCF hand (meshes, boxes, servos) -> a hand file that follows the conventions"),
     "planners": ("experiments.diagnostics.planners", "every registered planner (yours too, with --plugin): options, needs"),
     "surrogate": ("experiments.diagnostics.surrogate", "reward terms of a few meaningful grasps on one episode"),
     "bench-startup": ("experiments.bench.startup", "the Quickstart from a fresh process: first decision and DP table, cache off / empty / on disk"),

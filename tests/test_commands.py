@@ -21,7 +21,8 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 QUICKEST = {
     "demo": [(["demo", "--no-gif"], ["results/demo/demo.png"])],
     "your-model": [(["check-model", "hammer"], []),
-                   (["demo", "--no-gif", "--model", "hammer"], ["results/demo-hammer/demo.png"])],
+                   (["demo", "--no-gif", "--model", "hammer"], ["results/demo-hammer/demo.png"]),
+                   (["import-hand", str(ROOT / "models" / "allegro" / "hand.xml"), "imported"], ["imported/hand.xml"])],
     "planners": [(["planners"], [])],
     "figures": [(["figures", "--list"], []), (["figures", "--stale"], [])],
     "surrogate": [(["surrogate", "--episode", "nominal", "--waypoints", "0"], [])],

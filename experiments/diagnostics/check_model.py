@@ -6,7 +6,8 @@
 3. On a file that loads: the tool's clearance above the table, the start grasp's reach at waypoint 0 and (unless
    `--quick`) a dry run of the start grasp in C MuJoCo (`preflight.clearance`, `start_reach`, `dry_run`).
 4. With `--reach`: each contact link alone on each option at the nominal lift's first and last waypoint (the IK's
-   error [mm]), the options no link reaches, and a picture of them on the tool (`reach.png`).
+   error [mm]), the options no link reaches, and a picture of them on the tool
+   (results/check-model/reach-<model>.png).
 
 Exits 1 and lists the problems if there is any (docs/your-model.md says what each is); otherwise prints what the
 model is and exits 0. Every command's `--model` runs the conventions first (`gsp_jax.model.require`).
@@ -27,7 +28,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true", help="the conventions, the joint dynamics and the start's reach "
                    "only: no dry run in C MuJoCo")
     p.add_argument("--reach", action="store_true", help="every link on every option at the lift's first and last "
-                   "waypoint, and a picture (results/check-model-<model>/reach.png)")
+                   "waypoint, and a picture (results/check-model/reach-<model>.png)")
+
+
+def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
+    """The `results_dir` parts of the folders it writes: `python -m experiments` locks them before its set-up."""
+    return [("check-model",)] if getattr(args, "reach", False) else []
 
 
 def main(args: argparse.Namespace) -> None:
@@ -99,7 +105,7 @@ def _picture(model, reach) -> pathlib.Path:
            title=f"{model.name}: options reached by the IK at the lift's first and last waypoint\n"
                  "green both, orange one, red neither")
     ax.autoscale_view()
-    out = common.results_dir(f"check-model-{model.name}") / "reach.png"
+    out = common.results_dir("check-model") / f"reach-{model.name}.png"
     fig.savefig(out, dpi=120, bbox_inches="tight")
     plt.close(fig)
     return out

@@ -1482,13 +1482,94 @@ def _changing_bodies(spec: mujoco.MjSpec, m: mujoco.MjModel, palm: int, drop_vis
     return sorted(bodies), []
 
 
+def mass_from_collision(spec: mujoco.MjSpec) -> list[str]:
+    """Bodies left without mass (their mass came from visual geoms that were dropped, their colliding geoms set to
+    mass 0, as Menagerie's Allegro's are) take it from their colliding geoms' volume at those geoms' density. The
+    change lines."""
+    lines = []
+    for body in spec.bodies:
+        if body.name == "world" or body.explicitinertial or not body.geoms:
+            continue
+        geoms = [g for g in body.geoms if g.contype or g.conaffinity]
+        if geoms and all(g.mass == 0 for g in body.geoms):
+            for g in geoms:
+                g.mass = float("nan")  # MuJoCo's unset value: the mass comes from the density
+            lines.append(f"body {body.name!r}: no mass left (it came from its visual geoms); now from its colliding "
+                         f"geoms' volume at density {', '.join(sorted({f'{g.density:g}' for g in geoms}))} kg/m^3")
+    return lines
+
+
+def contact_sites(spec: mujoco.MjSpec, m: mujoco.MjModel, palm: int, links) -> list[str]:
+    """Write custom text ``gsp_contact_links`` and a site ``contact_<link>`` on each link body (`links`: body names
+    in grasp order): on a finger's deepest link (its tip) a sphere at the far end of the body's largest colliding
+    capsule or sphere, with its radius; on another link a capsule site along that capsule. The change lines."""
+    links = list(links)
+    hand = set(_hand_bodies(m, palm))
+    lines, depth, finger = [], {}, {}
+    for name in links:
+        b = mujoco.mj_name2id(m, _OBJ.mjOBJ_BODY, name)
+        if b < 0 or b not in hand or b == palm:
+            raise HandImportError(f"contact_links: {name!r} is not a body of the hand below its palm")
+        chain = [b]
+        while m.body_parentid[chain[-1]] != palm:
+            chain.append(int(m.body_parentid[chain[-1]]))
+        depth[name], finger[name] = len(chain), chain[-1]
+    if len(set(links)) != len(links):
+        raise HandImportError(f"contact_links: {links} names a body twice")
+    for name in links:
+        b = m.body(name).id
+        round_ = [g for g in range(m.ngeom) if m.geom_bodyid[g] == b and hand_lib.collides(m, g)
+                  and int(m.geom_type[g]) in (int(_GEOM.mjGEOM_CAPSULE), int(_GEOM.mjGEOM_SPHERE))]
+        if not round_:
+            raise HandImportError(f"contact_links: body {name!r} has no colliding capsule or sphere to put its "
+                                  "contact site on")
+        g = max(round_, key=lambda g: m.geom_size[g, 0] ** 2 * (4 / 3 * m.geom_size[g, 0] + 2 * m.geom_size[g, 1]))
+        r, half = float(m.geom_size[g, 0]), float(m.geom_size[g, 1])
+        capsule = int(m.geom_type[g]) == int(_GEOM.mjGEOM_CAPSULE)
+        axis = _quat_mat(m.geom_quat[g])[:, 2]
+        tip = depth[name] == max(depth[n] for n in links if finger[n] == finger[name])
+        body = spec.body(name)
+        if tip or not capsule:
+            ends = [m.geom_pos[g] + s * half * axis for s in (-1.0, 1.0)] if capsule else [m.geom_pos[g]]
+            pos = max(ends, key=lambda e: float(np.linalg.norm(e)))  # the end farther from the body's joint
+            body.add_site(name=f"contact_{name}", type=_GEOM.mjGEOM_SPHERE, size=[r, 0, 0], pos=pos)
+            lines.append(f"site 'contact_{name}' (a {'tip' if tip else 'link'}): sphere r {r * 1e3:.1f} mm at "
+                         f"{_fmt(pos, ' mm', 1e3)} on body {name!r}, the far end of its geom")
+        else:
+            body.add_site(name=f"contact_{name}", type=_GEOM.mjGEOM_CAPSULE, size=[r, half, 0], pos=m.geom_pos[g],
+                          quat=m.geom_quat[g])
+            lines.append(f"site 'contact_{name}': capsule r {r * 1e3:.1f} mm, half-length {half * 1e3:.1f} mm along "
+                         f"body {name!r}'s geom")
+    spec.add_text(name="gsp_contact_links", data=" ".join(links))
+    return [f"custom text gsp_contact_links: {' '.join(links)}"] + lines
+
+
+def ik_start(spec: mujoco.MjSpec, m: mujoco.MjModel, hinges: list[int], start) -> list[str]:
+    """Write custom numeric ``gsp_ik_start`` (one angle per hand joint [rad], clipped to nothing: checked against
+    the joints' ranges). The change lines."""
+    q = np.asarray(start, np.float64)
+    names = [_named(m, _OBJ.mjOBJ_JOINT, j) for j in hinges]
+    if q.shape != (len(hinges),) or not np.all(np.isfinite(q)):
+        raise HandImportError(f"ik_start: {np.ravel(q).tolist()} must be {len(hinges)} finite angles [rad], one per "
+                              f"joint: {' '.join(names)}")
+    lo, hi = m.jnt_range[hinges].T
+    out = [f"{n} {v:g} not in [{a:g}, {b:g}]" for n, v, a, b, lim in zip(names, q, lo, hi, m.jnt_limited[hinges])
+           if lim and not a <= v <= b]
+    if out:
+        raise HandImportError(f"ik_start: outside the joint ranges: {'; '.join(out)}")
+    spec.add_numeric(name="gsp_ik_start", data=q.tolist(), size=len(q))
+    return [f"custom numeric gsp_ik_start: {' '.join(f'{v:g}' for v in q)}"]
+
+
 def import_hand(src, *, torque_limit: float | None = None, palm: str | None = None, palm_pos=None, palm_quat=None,
-                drop_visual: bool = False, per_geom: bool = False) -> Imported:
+                drop_visual: bool = False, per_geom: bool = False, contact_links=None, start=None) -> Imported:
     """A published MJCF hand file -> an `Imported` hand that follows the conventions (the module's docstring lists
     the edits). `torque_limit` [N m]: the motor limit of joints whose actuators give none (no forcerange); `palm`:
     the hand's root body (default: the world's child with the most hinges below it); `palm_pos` (3,) [m] /
     `palm_quat` (4,) w x y z: the palm's pose in the world; `drop_visual`: remove the visual geoms; `per_geom`: one
-    capsule per replaced geom instead of one per body. Raises `HandImportError` (a ValueError) naming the field."""
+    capsule per replaced geom instead of one per body; `contact_links` (body names, grasp order): write them and
+    their contact sites (`contact_sites`); `start` (J,) [rad]: the IK start (`ik_start`). Raises `HandImportError`
+    (a ValueError) naming the field."""
     if torque_limit is not None and not (np.isfinite(torque_limit) and torque_limit > 0):
         raise HandImportError(f"torque_limit: {torque_limit!r} must be a positive number [N m]")
     src = pathlib.Path(src).expanduser().resolve()
@@ -1502,6 +1583,7 @@ def import_hand(src, *, torque_limit: float | None = None, palm: str | None = No
     rename, lines = strip_prefix(spec, palm)
     palm = rename(palm)
     changes += lines + reset_option(spec) + check_files(spec, drop_visual)
+    changes += mass_from_collision(spec)
     m = _compile(spec, "after moving the palm")
     pid = m.body(palm).id
     hinges = [j for j in range(m.njnt) if _is_below(m, int(m.jnt_bodyid[j]), pid)]
@@ -1518,6 +1600,11 @@ def import_hand(src, *, torque_limit: float | None = None, palm: str | None = No
     changes += lines + (remove_visual(spec) if drop_visual else []) + drop_unused_meshes(spec)
     changes += motor_lines + joint_dynamics(spec, m, hinges) + equality_notes(m)
     changes += palm_pose(spec, palm, palm_pos, palm_quat)
+    edited = _compile(spec, "after its edits")
+    if contact_links:
+        changes += contact_sites(spec, edited, edited.body(palm).id, [rename(n) for n in contact_links])
+    if start is not None:
+        changes += ik_start(spec, edited, [edited.joint(_named(m, _OBJ.mjOBJ_JOINT, j)).id for j in hinges], start)
     changes += write_keys(spec, _compile(spec, "after its edits"), keys, rename)
     m = _compile(spec, "with its keyframes")
     new = self_contacts(m) - contacts

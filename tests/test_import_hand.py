@@ -4,6 +4,7 @@ that follows the conventions. The tests build their own small hand; MuJoCo and n
 from __future__ import annotations
 
 import pathlib
+import re
 
 import mujoco
 import numpy as np
@@ -469,3 +470,49 @@ def test_min_circle_is_the_smallest_enclosing_circle():
         assert r >= pairs - 1e-12  # no circle is smaller than half the widest pair
         grid = c + 0.01 * rng.normal(size=(50, 2))  # no nearby centre does better
         assert all(np.linalg.norm(p - g, axis=1).max() >= r - 1e-12 for g in grid)
+
+
+def test_contact_links_and_the_ik_start_are_written_with_their_sites(tmp_path):
+    """`contact_links` writes gsp_contact_links and each link's site: a finger's deepest link a sphere at the far end
+    of its geom (the end farther from the body's joint), with the geom's radius; a link above it a capsule along its
+    geom. `start` writes gsp_ik_start; angles outside the joint ranges and unknown bodies are refused by name."""
+    src = write_hand(tmp_path / "src")
+    res = hand_import.import_hand(src, torque_limit=TORQUE_LIMIT, contact_links=["index_prox", "index_dist"],
+                                  start=[0.1] * len(JOINTS))
+    m = _compiled(res.write(tmp_path / "out"))
+    assert hand_lib._text(m, "gsp_contact_links") == "index_prox index_dist"
+    np.testing.assert_allclose(hand_lib._numeric(m, "gsp_ik_start"), [0.1] * len(JOINTS))
+    for link, kind in (("index_dist", mujoco.mjtGeom.mjGEOM_SPHERE), ("index_prox", mujoco.mjtGeom.mjGEOM_CAPSULE)):
+        s, b = m.site(f"contact_{link}").id, m.body(link).id
+        assert int(m.site_type[s]) == int(kind) and m.site_bodyid[s] == b
+        geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] == b and hand_lib.collides(m, g)]
+        g = max(geoms, key=lambda g: m.geom_size[g, 0])
+        assert m.site_size[s, 0] == pytest.approx(m.geom_size[g, 0], rel=1e-5)
+        if kind == mujoco.mjtGeom.mjGEOM_SPHERE:  # on the geom's axis, at its end farther from the joint
+            axis = hand_import._quat_mat(m.geom_quat[g])[:, 2]
+            ends = [m.geom_pos[g] + s_ * m.geom_size[g, 1] * axis for s_ in (-1, 1)]
+            far = max(ends, key=np.linalg.norm)
+            np.testing.assert_allclose(m.site_pos[s], far, atol=1e-6)
+    with pytest.raises(hand_import.HandImportError, match=r"ik_start: outside the joint ranges: index_j1 5"):
+        hand_import.import_hand(src, torque_limit=TORQUE_LIMIT, start=[5.0] + [0.1] * (len(JOINTS) - 1))
+    with pytest.raises(hand_import.HandImportError, match=r"contact_links: 'pinky' is not a body of the hand"):
+        hand_import.import_hand(src, torque_limit=TORQUE_LIMIT, contact_links=["pinky"])
+
+
+def test_bodies_whose_mass_was_in_dropped_visual_geoms_take_it_from_their_collision_geoms(tmp_path):
+    """Menagerie's Allegro keeps its links' mass in the visual meshes (collision boxes mass 0): where the visual
+    meshes' files are not at hand and the visual geoms are dropped, each such body's mass comes from its collision
+    geoms' volume at their density (with the files, the body's mass and inertia are kept as the file computes
+    them)."""
+    spec = mujoco.MjSpec.from_file(str(write_hand(tmp_path / "src")))
+    body = next(b for b in spec.bodies if b.name == "middle_prox")
+    for g in body.geoms:
+        g.mass = 0.0
+    body.add_geom(name="skin", type=mujoco.mjtGeom.mjGEOM_MESH, meshname="shell", contype=0, conaffinity=0)
+    (tmp_path / "src" / "heavy_skin.xml").write_text(spec.to_xml())
+    (tmp_path / "src" / "meshes" / "shell.obj").unlink()  # its visual meshes not at hand (as Menagerie's STLs here)
+    res = hand_import.import_hand(tmp_path / "src" / "heavy_skin.xml", torque_limit=TORQUE_LIMIT, drop_visual=True)
+    line = next(c for c in res.changes if c.startswith("body 'middle_prox': no mass left"))
+    density = float(re.search(r"density ([0-9.]+) kg/m\^3", line).group(1))
+    volume = sum(8 * np.prod(g.size) for g in body.geoms if g.type == mujoco.mjtGeom.mjGEOM_BOX)
+    assert res.spec.compile().body("middle_prox").mass[0] == pytest.approx(density * volume, rel=1e-6)

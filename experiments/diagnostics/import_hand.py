@@ -33,6 +33,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the palm's orientation in the world (the palm should face down over the tool)")
     p.add_argument("--drop-visual", action="store_true",
                    help="remove the visual geoms (those that collide with nothing) and the meshes only they use")
+    p.add_argument("--contact-links", nargs="+", default=None, metavar="BODY",
+                   help="the contact links, in grasp order: writes gsp_contact_links and each one's site contact_<link> "
+                   "(a finger's deepest link: a sphere at its geom's far end; another: a capsule along its geom)")
+    p.add_argument("--ik-start", type=float, nargs="+", default=None, metavar="RAD",
+                   help="the IK's start, one angle per hand joint in joint order (gsp_ik_start)")
     p.add_argument("--per-geom", action="store_true",
                    help="one fitted capsule per replaced geom (default: one per body, over all its geoms)")
 
@@ -41,7 +46,8 @@ def main(args: argparse.Namespace) -> None:
     try:
         imported = hand_import.import_hand(args.src, torque_limit=args.torque_limit, palm=args.palm,
                                            palm_pos=args.palm_pos, palm_quat=args.palm_quat,
-                                           drop_visual=args.drop_visual, per_geom=args.per_geom)
+                                           drop_visual=args.drop_visual, per_geom=args.per_geom,
+                                           contact_links=args.contact_links, start=args.ik_start)
         path = imported.write(args.out_dir)
     except hand_import.HandImportError as e:
         raise SystemExit(f"import-hand: {e}") from None

@@ -20,7 +20,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 # (command line, files it must write, relative to the working directory); the groups run in one directory each
 QUICKEST = {
     "demo": [(["demo", "--no-gif"], ["results/demo/demo.png"])],
-    "your-model": [(["check-model", "hammer"], []),
+    "your-model": [(["check-model", "hammer", "--quick"], []),
                    (["demo", "--no-gif", "--model", "hammer"], ["results/demo-hammer/demo.png"]),
                    (["import-hand", str(ROOT / "models" / "allegro" / "hand.xml"), "imported"], ["imported/hand.xml"])],
     "planners": [(["planners"], [])],

@@ -37,7 +37,7 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 
 
 def main(args: argparse.Namespace) -> None:
-    from gsp_jax import hand as hand_lib
+    from gsp_jax import hand as hand_lib, scenario
     from gsp_jax.physics import preflight
 
     try:
@@ -59,8 +59,8 @@ def main(args: argparse.Namespace) -> None:
         print("the start grasp at waypoint 0 (IK) ...", flush=True)
         problems += preflight.start_reach(sur)
         if not getattr(args, "quick", False):
-            print(f"a dry run in C MuJoCo: the start grasp held for {preflight.DRY_SEGMENTS * 0.25:g} s of the nominal "
-                  "lift ...", flush=True)
+            print(f"a dry run in C MuJoCo: the start grasp held for {preflight.DRY_SEGMENTS * scenario.DT:g} s of the "
+                  "nominal lift ...", flush=True)
             problems += preflight.dry_run(sur).problems()
         if getattr(args, "reach", False):
             print("every link on every option at the lift's first and last waypoint (IK) ...", flush=True)

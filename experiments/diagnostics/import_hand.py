@@ -34,8 +34,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--drop-visual", action="store_true",
                    help="remove the visual geoms (those that collide with nothing) and the meshes only they use")
     p.add_argument("--contact-links", nargs="+", default=None, metavar="BODY",
-                   help="the contact links, in grasp order: writes gsp_contact_links and each one's site contact_<link> "
-                   "(a finger's deepest link: a sphere at its geom's far end; another: a capsule along its geom)")
+                   help="the contact links, in grasp order: writes gsp_contact_links and each one's site "
+                   "contact_<link> (a finger's deepest link: a sphere at its geom's far end; another: a capsule along "
+                   "its geom)")
     p.add_argument("--ik-start", type=float, nargs="+", default=None, metavar="RAD",
                    help="the IK's start, one angle per hand joint in joint order (gsp_ik_start)")
     p.add_argument("--per-geom", action="store_true",

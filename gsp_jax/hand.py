@@ -256,6 +256,15 @@ def hand_root(model: mujoco.MjModel) -> int:
     return int(model.body_rootid[model.site_bodyid[sites[0]]])
 
 
+def hinged_root(model: mujoco.MjModel, exclude=()) -> int | None:
+    """The world's child (not one of `exclude`) with the most hinge joints below it, the first such in MuJoCo's
+    order; None if no body has a hinge. A hand's palm before its contact links are named."""
+    hinges = np.bincount([model.body_rootid[model.jnt_bodyid[j]] for j in range(model.njnt)
+                          if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE], minlength=model.nbody)
+    hinges[[0, *exclude]] = 0
+    return int(np.argmax(hinges)) if hinges.max() > 0 else None
+
+
 def _tree(model: mujoco.MjModel, palm: int) -> _Tree:
     """The bodies below the palm, each with at most one hinge joint."""
     bodies = [b for b in range(1, model.nbody) if model.body_rootid[b] == palm]

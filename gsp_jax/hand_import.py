@@ -225,12 +225,6 @@ def fit_round(points: np.ndarray, score=None, tolerance: float = 0.0) -> Fit:
 
 # ------------------------------------------------------------------------------- the points of a geom
 
-def _quat_mat(q) -> np.ndarray:
-    m = np.zeros(9)
-    mujoco.mju_quat2Mat(m, np.asarray(q, np.float64))
-    return m.reshape(3, 3)
-
-
 def _sphere_grid() -> np.ndarray:
     """(M, 3) unit vectors of a latitude-longitude grid, scaled so that their convex hull contains the unit ball
     (by 1 / cos of the grid's covering radius)."""
@@ -264,7 +258,7 @@ def geom_points(model: mujoco.MjModel, g: int) -> np.ndarray:
     """(N, 3) points, in the frame of geom g's body, whose convex hull contains the compiled geom [m]: a box's
     corners, a mesh's vertices, a polygon prism around a cylinder, a polytope around an ellipsoid."""
     local = _local_points(int(model.geom_type[g]), model.geom_size[g], model, int(model.geom_dataid[g]))
-    return model.geom_pos[g] + local @ _quat_mat(model.geom_quat[g]).T
+    return model.geom_pos[g] + local @ hand_lib._quat_to_mat(model.geom_quat[g]).T
 
 
 def _segment_dist(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -342,7 +336,7 @@ def geom_distance(model: mujoco.MjModel, g: int, spacing: float | None = None):
     asked); for an ellipsoid, and for a mesh given a `spacing`, the distance to the nearest of its surface samples
     about `spacing` apart (too large by at most about `spacing` / 2; `SURFACE_SPACING` for an ellipsoid)."""
     kind, size = int(model.geom_type[g]), model.geom_size[g].copy()
-    pos, mat = model.geom_pos[g].copy(), _quat_mat(model.geom_quat[g])
+    pos, mat = model.geom_pos[g].copy(), hand_lib._quat_to_mat(model.geom_quat[g])
     if kind == _GEOM.mjGEOM_BOX:
         return lambda x: np.linalg.norm(np.maximum(np.abs((x - pos) @ mat) - size, 0.0), axis=1)
     if kind == _GEOM.mjGEOM_CYLINDER:
@@ -634,16 +628,8 @@ def skeleton(spec: mujoco.MjSpec) -> mujoco.MjModel:
 
 
 def _subtree_hinges(m: mujoco.MjModel, root: int) -> int:
-    bodies = {b for b in range(m.nbody) if _is_below(m, b, root)}
+    bodies = {b for b in range(m.nbody) if hand_lib._is_below(m, b, root)}
     return sum(1 for j in range(m.njnt) if m.jnt_bodyid[j] in bodies and m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE)
-
-
-def _is_below(m: mujoco.MjModel, b: int, ancestor: int) -> bool:
-    while b > 0:
-        if b == ancestor:
-            return True
-        b = int(m.body_parentid[b])
-    return False
 
 
 def choose_palm(spec: mujoco.MjSpec, sk: mujoco.MjModel, palm: str | None) -> str:
@@ -660,8 +646,8 @@ def choose_palm(spec: mujoco.MjSpec, sk: mujoco.MjModel, palm: str | None) -> st
         return palm
     if not children:
         raise HandImportError("src: the worldbody holds no body (no hand)")
-    best = max(children, key=lambda c: _subtree_hinges(sk, c))
-    if _subtree_hinges(sk, best) == 0:
+    best = hand_lib.hinged_root(sk)
+    if best is None:
         raise HandImportError("src: no body of the file has hinge joints below it (no hand)")
     name = mujoco.mj_id2name(sk, _OBJ.mjOBJ_BODY, best)
     if not name:
@@ -718,7 +704,7 @@ def reroot(spec: mujoco.MjSpec, sk: mujoco.MjModel, palm: str) -> list[str]:
 
 def _hand_bodies(m: mujoco.MjModel, palm: int) -> list[int]:
     """The bodies below the palm (not the palm), in MuJoCo order."""
-    return [b for b in range(1, m.nbody) if b != palm and _is_below(m, b, palm)]
+    return [b for b in range(1, m.nbody) if b != palm and hand_lib._is_below(m, b, palm)]
 
 
 def check_joints(m: mujoco.MjModel, palm: int) -> list[str]:
@@ -1526,7 +1512,7 @@ def contact_sites(spec: mujoco.MjSpec, m: mujoco.MjModel, palm: int, links) -> l
         g = max(round_, key=lambda g: m.geom_size[g, 0] ** 2 * (4 / 3 * m.geom_size[g, 0] + 2 * m.geom_size[g, 1]))
         r, half = float(m.geom_size[g, 0]), float(m.geom_size[g, 1])
         capsule = int(m.geom_type[g]) == int(_GEOM.mjGEOM_CAPSULE)
-        axis = _quat_mat(m.geom_quat[g])[:, 2]
+        axis = hand_lib._quat_to_mat(m.geom_quat[g])[:, 2]
         tip = depth[name] == max(depth[n] for n in links if finger[n] == finger[name])
         body = spec.body(name)
         if tip or not capsule:
@@ -1586,7 +1572,7 @@ def import_hand(src, *, torque_limit: float | None = None, palm: str | None = No
     changes += mass_from_collision(spec)
     m = _compile(spec, "after moving the palm")
     pid = m.body(palm).id
-    hinges = [j for j in range(m.njnt) if _is_below(m, int(m.jnt_bodyid[j]), pid)]
+    hinges = [j for j in range(m.njnt) if hand_lib._is_below(m, int(m.jnt_bodyid[j]), pid)]
     notes = check_joints(m, pid)
     lines = name_joints(spec, m, hinges)
     if lines:

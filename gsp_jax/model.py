@@ -279,10 +279,7 @@ def _palm(m, links) -> int | None:
         s = hand_lib._site(m, f"contact_{link}")
         if s >= 0 and m.site_bodyid[s] not in (0, tool):
             return int(m.body_rootid[m.site_bodyid[s]])
-    hinges = np.bincount([m.body_rootid[m.jnt_bodyid[j]] for j in range(m.njnt)
-                          if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE], minlength=m.nbody)
-    hinges[[0, max(tool, 0)]] = 0
-    return int(np.argmax(hinges)) if hinges.max() > 0 else None
+    return hand_lib.hinged_root(m, exclude=[tool] if tool >= 0 else [])
 
 
 def _check_hand(m, palm: int) -> list[str]:

@@ -489,7 +489,7 @@ def test_contact_links_and_the_ik_start_are_written_with_their_sites(tmp_path):
         g = max(geoms, key=lambda g: m.geom_size[g, 0])
         assert m.site_size[s, 0] == pytest.approx(m.geom_size[g, 0], rel=1e-5)
         if kind == mujoco.mjtGeom.mjGEOM_SPHERE:  # on the geom's axis, at its end farther from the joint
-            axis = hand_import._quat_mat(m.geom_quat[g])[:, 2]
+            axis = hand_lib._quat_to_mat(m.geom_quat[g])[:, 2]
             ends = [m.geom_pos[g] + s_ * m.geom_size[g, 1] * axis for s_ in (-1, 1)]
             far = max(ends, key=np.linalg.norm)
             np.testing.assert_allclose(m.site_pos[s], far, atol=1e-6)

@@ -44,12 +44,15 @@ def main(args: argparse.Namespace) -> None:
         path = model_lib.resolve(args.scene)
     except model_lib.ModelError as e:
         raise SystemExit(str(e)) from None
-    problems = model_lib.check_model(path)
-    compiled = not (problems and problems[0].startswith("MuJoCo cannot compile"))
-    if compiled and model_lib.hand_joints(hand_lib.load_mjmodel(path)):
-        problems += preflight.joint_dynamics(hand_lib.load_mjmodel(path))
-    reach = None
-    if not model_lib.check_model(path):
+    conventions = model_lib.check_model(path)
+    problems = list(conventions)
+    try:
+        m = hand_lib.load_mjmodel(path)
+    except Exception:  # noqa: BLE001 -- the conventions' check reported MuJoCo's message
+        m = None
+    if m is not None and model_lib.hand_joints(m):
+        problems += preflight.joint_dynamics(m)
+    if not conventions:
         from gsp_jax.surrogate import Surrogate
 
         model = model_lib.load_model(path)

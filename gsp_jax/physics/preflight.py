@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from gsp_jax import grasps, hand as hand_lib, ik, kinematics, scenario
+from gsp_jax import grasps, hand as hand_lib, scenario
 from gsp_jax.physics.config import PhysicsConfig
 from gsp_jax.surrogate import Surrogate
 
@@ -59,9 +59,8 @@ def finger_step(m: mujoco.MjModel, config: PhysicsConfig = PhysicsConfig()) -> t
     mass = full[np.ix_(dofs, dofs)]
     links = hand_lib._text(m, "gsp_contact_links", "").split()
     sites = [s for n in links if (s := hand_lib._site(m, f"contact_{n}")) >= 0]
-    hand = {int(m.jnt_bodyid[j]) for j in joints}
-    hand |= {b for b in range(m.nbody) if m.body_parentid[b] in hand}
-    tips = [b for b in hand if not any(m.body_parentid[c] == b for c in range(1, m.nbody))]
+    root = m.body_rootid[m.jnt_bodyid[joints[0]]]
+    tips = [b for b in range(1, m.nbody) if m.body_rootid[b] == root and not np.any(m.body_parentid[1:] == b)]
     jtj = np.zeros((len(dofs), len(dofs)))
     for i in sites or tips:
         jac = np.zeros((3, m.nv))
@@ -142,16 +141,12 @@ def reach(sur: Surrogate, episode: scenario.Episode | None = None) -> Reach:
         for k in range(1, hand.n_options[li]):
             options[li, k, li] = k
     ends = np.array([0, episode.n_steps - 1])
-
-    @jax.jit
-    def solve(opts):
-        def one(o, t):
-            mat = kinematics.quat_to_mat(episode.quats[t])
-            active, points, _ = ik.grasp_targets(hand, o, episode.waypoints[t], mat)
-            return ik.solve(hand, active, points, episode.waypoints[t], mat, sur.ik_config).link_error
-        return jax.vmap(lambda o: jax.vmap(lambda t: one(o, t))(jnp.asarray(ends)))(opts)
-
-    err = np.asarray(solve(jnp.asarray(options.reshape(-1, hand.n_links)))).reshape(hand.n_links, K, 2, hand.n_links)
+    grasps_ = np.repeat(np.asarray(space.encode(options.reshape(-1, hand.n_links)))[:, None], 2, axis=1)  # (L K, 2)
+    pos = np.broadcast_to(np.asarray(episode.waypoints)[ends], grasps_.shape + (3,))
+    quat = np.broadcast_to(np.asarray(episode.quats)[ends], grasps_.shape + (4,))
+    realise = jax.jit(lambda g, p, q: sur.realise_many(g, p, q, lanes=False).ik.link_error)
+    err = np.asarray(realise(jnp.asarray(grasps_), jnp.asarray(pos), jnp.asarray(quat)))
+    err = err.reshape(hand.n_links, K, 2, hand.n_links)
     own = np.stack([err[li, :, :, li] for li in range(hand.n_links)])  # (L, K, 2)
     valid = np.arange(K)[None, :] < np.array(hand.n_options)[:, None]
     own = np.where(valid[..., None], own, np.nan)

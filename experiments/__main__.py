@@ -74,13 +74,40 @@ def load_plugin(name: str) -> None:
         raise SystemExit(f"--plugin: cannot import {name!r} ({e})") from None
 
 
+def processes_asked(words: list[str]) -> tuple[int | None, list[str]]:
+    """(N, the other words) of `--processes N` (or `--processes=N`) before the command; (None, words) without it."""
+    cut = next((i for i, w in enumerate(words) if w in COMMANDS), len(words))
+    for i, w in enumerate(words[:cut]):
+        if w == "--processes" or w.startswith("--processes="):
+            value = w.split("=", 1)[1] if "=" in w else (words[i + 1] if i + 1 < cut else "")
+            rest = words[:i] + words[i + (1 if "=" in w else 2):]
+            try:
+                return int(value), rest
+            except ValueError:
+                raise SystemExit(f"--processes: expects a number of processes, got {value!r}") from None
+    return None, list(words)
+
+
 def main(argv: list[str] | None = None) -> None:
     words = sys.argv[1:] if argv is None else argv
+    n_processes, words = processes_asked(words)
     chosen = next((w for w in words if w in COMMANDS), None)  # only its module is imported (the others: help only)
     deterministic_gpu_kernels(chosen)
+    from gsp_jax import distributed
+
+    if n_processes is not None and n_processes > 1 and not distributed.requested():
+        from experiments import processes
+
+        processes.launch(n_processes, words)  # this command as N processes of one run (their coordinator: here)
+        return
+    distributed.initialize()  # one of several processes (ours, Slurm's, Open MPI's): JAX's runtime, before JAX runs
     import gsp_jax  # noqa: F401  (turns on XLA's compilation cache on disk: gsp_jax.cache, GSP_JAX_CACHE)
 
     parser = argparse.ArgumentParser(prog="python -m experiments", description=__doc__)
+    parser.add_argument("--processes", type=int, default=None, metavar="N",
+                        help="run the command as N processes of one run on this host (one GPU each where there are "
+                             "GPUs, an equal share of the cores each); sweeps split their episodes between them "
+                             "(docs/scale.md)")
     parser.add_argument("--record", action="store_true",
                         help="also write the result to docs/data/<name>_<device>.json and append it to "
                              "docs/data/history/")

@@ -14,7 +14,7 @@ import time
 import jax
 import numpy as np
 
-from gsp_jax import files, hand
+from gsp_jax import distributed, files, hand
 
 RESULTS = pathlib.Path("results")
 
@@ -32,7 +32,8 @@ def results_dir(*parts: str) -> pathlib.Path:
         parts = (f"{parts[0]}-learned", *parts[1:]) if parts else ("learned",)
     path = RESULTS.joinpath(*parts)
     path.mkdir(parents=True, exist_ok=True)
-    files.hold(path)  # one command at a time writes a results folder (`files.FolderInUse` for a second)
+    if distributed.is_main():  # the processes of one run (`--processes`) share process 0's lock
+        files.hold(path)  # one command at a time writes a results folder (`files.FolderInUse` for a second)
     return path
 
 
@@ -102,7 +103,7 @@ COMMAND: list[str] | None = None  # the words of the command a record names (set
 
 def device_slug() -> str:
     """A short name of the device the results come from: h100, h200, cpu..."""
-    kind = jax.devices()[0].device_kind.lower()
+    kind = jax.local_devices()[0].device_kind.lower()
     return next((g for g in ("h100", "h200", "a100", "l4") if g in kind), jax.default_backend())
 
 
@@ -111,7 +112,7 @@ def record(name: str, figures: dict, data: pathlib.Path | None = None) -> dict |
     current `docs/data/<name>_<device>.json` (`device_slug`: one current result per figure and machine) and a new
     line of `docs/data/history/<name>_<device>.jsonl`, one schema for all: {name, date, commit, device, command,
     figures}."""
-    if not RECORD:
+    if not RECORD or not distributed.is_main():  # several processes: process 0 records
         return None
     data = DATA if data is None else pathlib.Path(data)
     name = f"{name}{'_learned' * learned_on()}_{device_slug()}"  # the learned physics term's figures beside the paper's
@@ -124,7 +125,7 @@ def record(name: str, figures: dict, data: pathlib.Path | None = None) -> dict |
     except (OSError, subprocess.CalledProcessError):  # a copy without git's history (a cluster's, a GPU host's)
         commit = os.environ.get("GSP_JAX_COMMIT", "unknown")  # the commit the copy was made from, where one says so
     row = dict(name=name, date=datetime.datetime.now().isoformat(timespec="minutes"), commit=commit,
-               device=f"{jax.devices()[0].device_kind} ({jax.default_backend()}, {os.cpu_count()} cores)",
+               device=f"{jax.local_devices()[0].device_kind} ({jax.default_backend()}, {os.cpu_count()} cores)",
                command="python -m experiments " + " ".join(COMMAND or sys.argv[1:]), figures=figures)
     text = json.dumps(row, default=float)
     (data / "history").mkdir(parents=True, exist_ok=True)

@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gsp_jax import dp, files, grasps, model as model_lib, policies, scenario
+from gsp_jax import distributed, dp, files, grasps, model as model_lib, policies, scenario
 from gsp_jax.surrogate import Surrogate
 
 L1_PHYSICS = dict(k=2, bases=("four-tips", "dp-opt"))  # its defaults: L1's 2 best and each base's own action,
@@ -127,12 +127,23 @@ def dp_tables(sur: Surrogate, set_name: str, episodes: dict, batch_size: int = 4
                 return dp.Table(**{k: jnp.asarray(d[k]) for k in d.files})
         except (OSError, ValueError, EOFError, zipfile.BadZipFile, TypeError) as e:  # truncated by a crash
             warnings.warn(f"{path}: the cached DP tables cannot be read ({e}): rebuilding them", stacklevel=2)
+    # several processes: each builds a contiguous share of whole batches (the programs one process runs, so the
+    # same tables to the last bit)
+    n = len(episodes)
+    batches = distributed.split(-(-n // batch_size))[distributed.rank()]
+    mine = range(min(batches.start * batch_size, n), min(batches.stop * batch_size, n))
     print(f"building DP tables for {len(episodes)} episodes of '{set_name}'"
-          + (f" (cached in {path})" if path else "") + " ...", flush=True)
+          + (f" (cached in {path})" if path else "")
+          + (f", episodes {mine.start + 1}-{mine.stop} in this process" if distributed.count() > 1 else "") + " ...",
+          flush=True)
     t0 = time.perf_counter()
-    tables = jax.block_until_ready(jax.jit(lambda b: dp.build_tables(sur, b, batch_size))(batch))
+    share = jax.tree.map(lambda x: x[mine.start:mine.stop], batch)
+    tables = jax.block_until_ready(jax.jit(lambda b: dp.build_tables(sur, b, batch_size))(share)) if len(mine) else None
+    if distributed.count() > 1:
+        parts = [t for t in distributed.gather(None if tables is None else jax.device_get(tables)) if t is not None]
+        tables = jax.tree.map(lambda *xs: jnp.concatenate([jnp.asarray(x) for x in xs]), *parts)
     print(f"  {time.perf_counter() - t0:.1f} s", flush=True)
-    if path is not None:
+    if path is not None and distributed.is_main():
         files.savez(path, **{k: np.asarray(v) for k, v in vars(tables).items() if v is not None})  # atomic
     return tables
 

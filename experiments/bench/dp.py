@@ -31,7 +31,7 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 def main(args: argparse.Namespace) -> None:
     env = surrogate.Surrogate()
     evals = list(scenario.episode_set("eval").values())[: args.episodes]
-    device = jax.devices()[0]
+    device = jax.local_devices()[0]
     print(f"device: {device.platform} ({device.device_kind}); jax {jax.__version__}", flush=True)
 
     one = jax.jit(lambda e: dp.solve(env, e))

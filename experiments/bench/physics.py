@@ -62,7 +62,7 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 
 def main(args: argparse.Namespace) -> None:
     env = surrogate.Surrogate()
-    device = jax.devices()[0]
+    device = jax.local_devices()[0]
     if args.copies < 1:
         raise SystemExit(f"bench-physics: --copies must be >= 1, got {args.copies}")
     eps = [e.head(args.waypoints) for e in scenario.episode_set(args.set).values()] * args.copies

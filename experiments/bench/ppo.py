@@ -87,7 +87,7 @@ def main(args: argparse.Namespace) -> None:
     s = pipeline.setup(preset)
     n_envs = s.ppo_config.n_envs
     sur_envs = args.surrogate_envs or (1024 if gpu else 16)
-    print(f"device: {jax.devices()[0].device_kind} ({jax.default_backend()}); preset {preset}")
+    print(f"device: {jax.local_devices()[0].device_kind} ({jax.default_backend()}); preset {preset}")
 
     table_rate, table_compile = iteration_rate(s, s.env, n_envs)
     sur_env = GraspEnv(s.surrogate, s.env.episodes)  # no tables: IK + wrench solves every step

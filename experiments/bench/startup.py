@@ -57,8 +57,8 @@ def child(first: int, other: int) -> dict:
     t = time.perf_counter()
     jax.block_until_ready(jax.jit(lambda e: dp.solve(sur, e))(episodes[first]))
     out["first_dp_table_s"] = time.perf_counter() - t
-    out["platform"] = jax.devices()[0].platform
-    out["device"] = jax.devices()[0].device_kind
+    out["platform"] = jax.local_devices()[0].platform
+    out["device"] = jax.local_devices()[0].device_kind
     return out
 
 

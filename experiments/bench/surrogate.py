@@ -34,7 +34,7 @@ def main(args: argparse.Namespace) -> None:
     n_g, n_a = env.space.n_grasps, env.space.n_actions
     if not 0 <= args.waypoint < ep.n_steps:
         raise SystemExit(f"--waypoint: {args.waypoint} is out of range 0..{ep.n_steps - 1}")
-    device = jax.devices()[0]
+    device = jax.local_devices()[0]
     print(f"device: {device.platform} ({device.device_kind}); host {platform.node()}; jax {jax.__version__}", flush=True)
 
     states = jax.jit(jax.vmap(env.discrete_state, (None, 0, None)))(ep, jnp.arange(n_g), args.waypoint)

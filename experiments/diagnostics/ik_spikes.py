@@ -79,7 +79,7 @@ def main(args: argparse.Namespace) -> None:
                      o["median_error_mm"], err.size, wall])
         print(f"{name}: {o['spikes']} spikes over {len(episodes)} episodes", flush=True)
     path = results_dir("ik") / f"{args.set}_spikes.json"
-    files.write_json(path, dict(set=args.set, episodes=list(episodes), device=jax.devices()[0].device_kind,
+    files.write_json(path, dict(set=args.set, episodes=list(episodes), device=jax.local_devices()[0].device_kind,
                                     variants=out))
     print(f"wrote {path}\n")
     print(table(["IK", "starts", "spikes", "< 1 mm, collision-free", "collisions", "median error [mm]", "problems",

@@ -75,7 +75,7 @@ def main(args: argparse.Namespace) -> None:
     if args.report_only:
         return rebuild(out)
     t_start = time.perf_counter()
-    device = jax.devices()[0]
+    device = jax.local_devices()[0]
     print(f"reproduce --{preset} on {device.device_kind} ({device.platform}); report -> {out / 'REPORT.md'}", flush=True)
     if _trains(args, p):
         print("[0/3] training the PPO policy (DP pretraining, full preset, seed 0)", flush=True)

@@ -129,14 +129,14 @@ def main(args: argparse.Namespace) -> None:
         batch = scenario.stack(list(episodes.values()))
     print(f"physics check: {len(labels)} episodes of '{args.set}', policy {args.policy}, backend {args.backend}, "
           f"{phys.n_ticks(scenario.N_WAYPOINTS)} physics steps each "
-          f"({jax.devices()[0].platform}; compiling first) ...", flush=True)
+          f"({jax.local_devices()[0].platform}; compiling first) ...", flush=True)
     t0 = time.perf_counter()
     res = jax.block_until_ready(phys.simulate_batch(policy, batch, axis, backend=args.backend, progress=True))
     wall = time.perf_counter() - t0
     rows = report.result_rows(labels, res)
     out = results_dir("physics")
     stem = out / (f"{args.set}_{args.policy}" + ("" if args.backend == "mjx" else f"_{args.backend}"))
-    summary = dict(set=args.set, policy=args.policy, backend=args.backend, device=jax.devices()[0].device_kind,
+    summary = dict(set=args.set, policy=args.policy, backend=args.backend, device=jax.local_devices()[0].device_kind,
                    **report.summary(labels, res), wall_s_incl_compile=wall, config=dataclasses.asdict(phys.config),
                    timestep_s=phys.timestep)
     if args.policy == "scripted":

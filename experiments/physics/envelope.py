@@ -36,7 +36,7 @@ import numpy as np
 
 from experiments import common
 from experiments.common import results_dir, table
-from gsp_jax import dp, evaluation, files, physics, policies, scenario
+from gsp_jax import distributed, dp, evaluation, files, physics, policies, scenario
 from gsp_jax.physics.envelope import PREDICTED_HOLD, classify, summarise
 from gsp_jax import planners as gsp_planners
 
@@ -158,14 +158,17 @@ def main(args: argparse.Namespace) -> None:
     pieces = chunks(N, args.chunk)
     folder = results_dir("envelope") / f"{args.set}.parts"
     key = parts_key(ctx, args, kinds)
-    done = {c: part for c, idx in enumerate(pieces)
-            if (part := load_part(part_path(folder, key, idx), (len(kinds), len(idx)))) is not None}
+    mine = distributed.split(len(pieces))[distributed.rank()]  # this process's chunks (all of them for one)
+    done = {c: part for c in mine
+            if (part := load_part(part_path(folder, key, pieces[c]), (len(kinds), len(pieces[c])))) is not None}
     print(f"envelope: {N} episodes of '{args.set}' x {len(kinds)} sequences = {N * len(kinds)} episodes in C MuJoCo, "
           f"{len(pieces)} chunk{'s' * (len(pieces) > 1)} of up to {args.chunk} episodes (JAX on "
-          f"{jax.default_backend()})", flush=True)
+          f"{jax.default_backend()})" + (f"; process {distributed.rank()} of {distributed.count()} runs chunks "
+                                         f"{mine.start + 1}-{mine.stop}" if distributed.count() > 1 else ""), flush=True)
     if done:
         print(f"  reusing {sum(len(pieces[c]) for c in done)} finished episodes of {N} from {folder}", flush=True)
-    for c, idx in enumerate(pieces):
+    for c in mine:
+        idx = pieces[c]
         if c in done:
             continue
         try:
@@ -182,6 +185,9 @@ def main(args: argparse.Namespace) -> None:
             print(stopped(idx, N, c, len(pieces), e, kept, folder), file=sys.stderr, flush=True)
             raise
         done[c] = part
+    done = {c: part for parts in distributed.gather(done) for c, part in parts.items()}  # every process's chunks
+    if not distributed.is_main():
+        return  # process 0 classifies, writes and records
     sim = {k: np.concatenate([done[c][k] for c in range(len(pieces))], axis=1) for k in FIELDS}
     t_phys = float(sum(done[c]["seconds"] for c in done))  # this result's physics, over the runs that made it
     fell, angle = sim["fell"], sim["angle_error"]

@@ -278,7 +278,7 @@ class _Lockstep:
         self.native = native_tick(phys)
         # the device of the decisions' programs (and the episodes' set-up): JAX's default, or the one named
         named = device is not None
-        self.device = jax.devices(device)[0] if device is None or isinstance(device, str) else device
+        self.device = jax.local_devices(backend=device)[0] if device is None or isinstance(device, str) else device
         original = groups
         if named:
             groups = [(p if _outside_jax(p) else jax.device_put(p, self.device), axis) for p, axis in groups]

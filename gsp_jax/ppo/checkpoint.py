@@ -24,7 +24,7 @@ def load_policy(path: str | pathlib.Path, networks: nets.Networks) -> nets.Param
     if not path.exists():
         raise FileNotFoundError(f"policy: no checkpoint at {path}")
     # the parameters' shapes without running `init` (op by op it compiles dozens of small programs)
-    device = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
     target = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device),
                           jax.eval_shape(networks.init, jax.random.PRNGKey(0)))
     with ocp.StandardCheckpointer() as ckpt:

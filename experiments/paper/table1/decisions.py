@@ -80,7 +80,7 @@ def run(ctx: evaluation.Context, names: list[str], cached: bool, ks=(evaluation.
         print(f"  {name:8s} decision median {rows[name]['decision_median_s'] * 1e3:8.2f} ms, p99 "
               f"{rows[name]['decision_p99_s'] * 1e3:8.2f} ms ({len(d)} decisions), setup {rows[name]['setup_median_s']:.3f} s",
               flush=True)
-    device = jax.devices()[0]
+    device = jax.local_devices()[0]
     return dict(platform=device.platform, device=str(device.device_kind), episodes=ctx.names,
                 lookahead="cached" if cached else "continuous", policies=rows, paper=common.PAPER)
 

@@ -75,7 +75,7 @@ def run(ctx: evaluation.Context, batch: int, repeats: int, out, lookahead: str =
                if name in online.BATCHED else "") +
               (f"   before: {row['before_warm_s']:.4f} s ({row['speedup']:.1f}x)" if "before_warm_s" in row else "") +
               (f"   batch of {row['batch']}: {row['batch_per_episode_s']:.4f} s per episode" if batch else ""), flush=True)
-    device = jax.devices()[0]
+    device = jax.local_devices()[0]
     result = dict(platform=device.platform, device=str(device.device_kind), episode=ctx.names[0], repeats=repeats,
                   ik_unroll=ctx.surrogate.ik_config.unroll, ahead=ahead, lookahead=lookahead,
                   policies=rows, paper=common.PAPER, wall_s=time.perf_counter() - t_start)

@@ -1,0 +1,141 @@
+"""Several processes, one run: JAX's multi-controller runtime, each process's share of a batch, and the shares
+gathered back in process order.
+
+A process is one of several when its environment says so: `python -m experiments --processes N` sets
+`GSP_JAX_COORDINATOR` (host:port), `GSP_JAX_NUM_PROCESSES` and `GSP_JAX_PROCESS_ID` for each process it starts;
+under Slurm (`srun`, more than one task) or Open MPI, `jax.distributed.initialize()` reads the cluster by itself.
+Otherwise there is one process and every function here is what one process does (`gather` returns [its input]).
+
+Shares are contiguous: process p of P takes the p-th of P consecutive runs of the items (`split`), so the shares
+gathered in process order are the items in their order, whatever P is."""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+ENV_COORDINATOR = "GSP_JAX_COORDINATOR"  # host:port of process 0's coordinator service
+ENV_NUM_PROCESSES = "GSP_JAX_NUM_PROCESSES"
+ENV_PROCESS_ID = "GSP_JAX_PROCESS_ID"
+INIT_TIMEOUT_S = 120  # [s] every process must have joined by then, or each one stops with an error
+HEARTBEAT_TIMEOUT_S = 30  # [s] a process silent this long (killed, crashed) ends the others' runs with an error
+SHUTDOWN_TIMEOUT_S = 24 * 3600  # [s] a finished process waits this long at exit for the others (process 0 writes
+# the results after the last gather: the others wait for it, not the reverse)
+
+BARRIER_TIMEOUT_S = 24 * 3600  # [s] the longest a process waits for the others at a barrier (one shard's work)
+
+_started = False
+_calls: dict[str, int] = {}  # name -> barriers of that name passed
+
+
+class DistributedError(RuntimeError):
+    """The runtime could not start, or the environment's settings are inconsistent; the message names them."""
+
+
+def requested() -> bool:
+    """Whether this process's environment asks for several processes (ours, Slurm's or Open MPI's)."""
+    if ENV_COORDINATOR in os.environ:
+        return True
+    if int(os.environ.get("SLURM_NTASKS", "1") or 1) > 1 and "SLURM_STEP_ID" in os.environ:
+        return True
+    return int(os.environ.get("OMPI_COMM_WORLD_SIZE", "1") or 1) > 1
+
+
+def initialize() -> bool:
+    """Start JAX's distributed runtime where the environment asks for it (`requested`), once; before any other JAX
+    call of the process. True where this process is one of several."""
+    global _started
+    if _started:
+        return True
+    if not requested():
+        return False
+    import jax
+
+    kwargs = dict(initialization_timeout=INIT_TIMEOUT_S, heartbeat_timeout_seconds=HEARTBEAT_TIMEOUT_S,
+                  shutdown_timeout_seconds=SHUTDOWN_TIMEOUT_S)
+    if ENV_COORDINATOR in os.environ:
+        try:
+            n, rank = int(os.environ[ENV_NUM_PROCESSES]), int(os.environ[ENV_PROCESS_ID])
+        except (KeyError, ValueError) as e:
+            raise DistributedError(f"{ENV_COORDINATOR} is set, so {ENV_NUM_PROCESSES} and {ENV_PROCESS_ID} must be "
+                                   f"integers: got {os.environ.get(ENV_NUM_PROCESSES)!r} and "
+                                   f"{os.environ.get(ENV_PROCESS_ID)!r}") from e
+        if not (n >= 1 and 0 <= rank < n):
+            raise DistributedError(f"{ENV_PROCESS_ID}={rank} is not one of the {ENV_NUM_PROCESSES}={n} processes")
+        kwargs.update(coordinator_address=os.environ[ENV_COORDINATOR], num_processes=n, process_id=rank)
+    try:
+        jax.distributed.initialize(**kwargs)
+    except Exception as e:  # the runtime's own message (timeouts, an unreachable coordinator) with where it failed
+        raise DistributedError(f"process {os.environ.get(ENV_PROCESS_ID, '?')}: JAX's distributed runtime did not "
+                               f"start: {type(e).__name__}: {e}") from e
+    _started = True
+    return True
+
+
+def rank() -> int:
+    """This process's index, 0 .. count() - 1 (0 for one process)."""
+    if not _started:
+        return 0
+    import jax
+
+    return jax.process_index()
+
+
+def count() -> int:
+    """The number of processes of the run (1 for one process)."""
+    if not _started:
+        return 1
+    import jax
+
+    return jax.process_count()
+
+
+def is_main() -> bool:
+    """Process 0: the one that writes results and records."""
+    return rank() == 0
+
+
+def split(n: int, parts: int | None = None) -> list[range]:
+    """The contiguous share of each of `parts` processes (default `count()`) of n items, in process order: the
+    first n % parts shares one item longer. Shares may be empty (more processes than items)."""
+    parts = count() if parts is None else parts
+    if parts < 1 or n < 0:
+        raise ValueError(f"split: needs n >= 0 and parts >= 1, got n={n}, parts={parts}")
+    base, extra = divmod(n, parts)
+    bounds = np.cumsum([0] + [base + (p < extra) for p in range(parts)])
+    return [range(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+def gather(obj) -> list:
+    """Every process's `obj` (anything pickle writes: numpy arrays travel bit for bit), in process order, on every
+    process; [obj] for one process. Every process must call it, in the same order."""
+    if count() == 1:
+        return [obj]
+    import pickle
+
+    from jax.experimental import multihost_utils
+
+    barrier("gather")  # the processes arrive at different times; the collectives below expect them within seconds
+    raw = np.frombuffer(pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL), np.uint8)
+    lengths = np.asarray(multihost_utils.process_allgather(np.array([raw.size], np.int32))).ravel()
+    padded = np.zeros(int(lengths.max()), np.uint8)
+    padded[:raw.size] = raw
+    every = np.asarray(multihost_utils.process_allgather(padded))  # (P, longest)
+    return [pickle.loads(every[p, :int(lengths[p])].tobytes()) for p in range(count())]
+
+
+def barrier(name: str) -> None:
+    """Wait until every process has reached its barrier of this name (the n-th call of a name meets the others'
+    n-th), for up to `BARRIER_TIMEOUT_S`; a process that dies meanwhile ends the wait with an error (the runtime's
+    heartbeat). Nothing for one process."""
+    if count() == 1:
+        return
+    from jax._src import distributed as jax_distributed  # the runtime's client: its barrier has a timeout of ours
+
+    _calls[name] = _calls.get(name, 0) + 1
+    jax_distributed.global_state.client.wait_at_barrier(f"gsp_jax/{name}/{_calls[name]}", BARRIER_TIMEOUT_S * 1000)
+
+
+def total(value: float) -> float:
+    """The sum of every process's `value`, on every process."""
+    return float(sum(gather(float(value))))

@@ -1,7 +1,7 @@
 """`python -m experiments --processes N <command>`: N processes of `<command>` on this host, one run.
 
 Each process gets an equal contiguous share of this process's CPU cores (its affinity) and, where there are GPUs,
-one GPU (process p the p-th, round robin); process 0 also runs the coordinator of JAX's distributed runtime on a
+one GPU (process p the p-th, round robin; processes that share a GPU share its memory equally); process 0 also runs the coordinator of JAX's distributed runtime on a
 free local port (`gsp_jax.distributed` reads the three variables set here). Process 0's output is this
 command's; the others' goes to results/processes/rank<p>.log. When a process fails, the others are stopped at once
 and the run ends with an error that names its rank, its exit status and the last lines of its output.
@@ -72,6 +72,9 @@ def launch(n: int, words: list[str]) -> int:
                                   distributed.ENV_PROCESS_ID: str(p)})
         if devices:
             env["CUDA_VISIBLE_DEVICES"] = devices[p % len(devices)]
+            sharing = -(-n // len(devices))  # processes on one GPU: each takes its part of the memory, not 75%
+            if sharing > 1 and "XLA_PYTHON_CLIENT_MEM_FRACTION" not in os.environ:
+                env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{0.9 / sharing:.3f}"
         log = None if p == 0 else open(LOG_DIR / f"rank{p}.log", "w")
         logs.append(log)
         cores = shares[p]

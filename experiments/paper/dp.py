@@ -13,7 +13,7 @@ import numpy as np
 from tqdm import tqdm
 
 from experiments.common import results_dir, table
-from gsp_jax import dp, files, scenario, surrogate
+from gsp_jax import distributed, dp, files, scenario, surrogate
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -23,15 +23,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def solve_set(env, episodes: dict, chunk: int, desc: str = "DP"):
-    """Tables and solutions of named episodes, `chunk` episodes per vmapped call, with a progress bar."""
+    """Tables and solutions of named episodes, `chunk` episodes per vmapped call, with a progress bar. Several
+    processes (`--processes`): each solves a contiguous share of the chunks, and every process gets them all."""
     names = list(episodes)
     solve = jax.jit(jax.vmap(lambda e: dp.solve(env, e)))
-    tables, sols = [], []
-    for i in tqdm(range(0, len(names), chunk), desc=desc, unit="chunk"):
+    starts = range(0, len(names), chunk)
+    mine = distributed.split(len(starts))[distributed.rank()]
+    parts = []
+    for i in tqdm([starts[c] for c in mine], desc=desc, unit="chunk"):
         batch = scenario.stack([episodes[n] for n in names[i : i + chunk]])
-        tab, sol = solve(batch)
-        tables.append(jax.device_get(tab))
-        sols.append(jax.device_get(sol))
+        parts.append(jax.device_get(solve(batch)))
+    parts = [p for share in distributed.gather(parts) for p in share]  # in chunk order
+    tables, sols = zip(*parts)
     cat = lambda parts: jax.tree.map(lambda *x: np.concatenate(x), *parts)  # noqa: E731
     return names, cat(tables), cat(sols)
 
@@ -80,6 +83,8 @@ def main(args: argparse.Namespace) -> None:
     else:
         nominal_actions = solve_set(env, scenario.nominal(), 1, desc="DP nominal (baseline)")[2].actions[0]
     elapsed = time.perf_counter() - t0
+    if not distributed.is_main():
+        return  # process 0 writes
     baseline = jax.jit(jax.vmap(dp.sequence_return, (0, 0, None)))(
         tabs, jnp.asarray([int(episodes[n].start_grasp) for n in names]), jnp.asarray(nominal_actions)
     )
@@ -100,8 +105,8 @@ def main(args: argparse.Namespace) -> None:
                    if t == 0 or sols.grasps[i][t + 1] != sols.grasps[i][t]]
         print(f"{name}: start [{out[i]['grasp_labels'][0]}] -> " + " ".join(changes))
         if float(sols.ret[i]) <= env.reward_config.r_min:  # every sequence fails: say where and why
-            table = jax.tree.map(lambda x: x[i], tabs)
-            longest = dp.longest_surviving(table, episodes[name].start_grasp, env.reward_config.r_min)
+            tab = jax.tree.map(lambda x: x[i], tabs)  # (not `table`: the printing helper)
+            longest = dp.longest_surviving(tab, episodes[name].start_grasp, env.reward_config.r_min)
             out[i]["infeasible"] = env.explain(episodes[name], np.asarray(longest.actions))
             print(f"  no grasp sequence holds {name} in the surrogate: {out[i]['infeasible']}")
     folder = results_dir()

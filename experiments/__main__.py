@@ -81,10 +81,9 @@ def processes_asked(words: list[str]) -> tuple[int | None, list[str]]:
         if w == "--processes" or w.startswith("--processes="):
             value = w.split("=", 1)[1] if "=" in w else (words[i + 1] if i + 1 < cut else "")
             rest = words[:i] + words[i + (1 if "=" in w else 2):]
-            try:
-                return int(value), rest
-            except ValueError:
-                raise SystemExit(f"--processes: expects a number of processes, got {value!r}") from None
+            if not value.isdigit() or int(value) < 1:
+                raise SystemExit(f"--processes: expects a number of processes >= 1, got {value!r}")
+            return int(value), rest
     return None, list(words)
 
 

@@ -31,8 +31,9 @@ def test_processes_flag_is_read_before_the_command_only():
     assert processes_asked(["--processes", "2", "envelope", "--set", "eval"]) == (2, ["envelope", "--set", "eval"])
     assert processes_asked(["--processes=3", "--record", "dp"]) == (3, ["--record", "dp"])
     assert processes_asked(["envelope", "--processes", "2"]) == (None, ["envelope", "--processes", "2"])
-    with pytest.raises(SystemExit, match="--processes: expects a number of processes, got 'two'"):
-        processes_asked(["--processes", "two", "dp"])
+    for bad in ("two", "0", "-1"):
+        with pytest.raises(SystemExit, match=f"--processes: expects a number of processes >= 1, got '{bad}'"):
+            processes_asked(["--processes", bad, "dp"])
 
 
 def test_each_process_gets_an_equal_contiguous_share_of_the_cores():

@@ -103,7 +103,7 @@ def main(argv: list[str] | None = None) -> None:
     import gsp_jax  # noqa: F401  (turns on XLA's compilation cache on disk: gsp_jax.cache, GSP_JAX_CACHE)
 
     parser = argparse.ArgumentParser(prog="python -m experiments", description=__doc__)
-    parser.add_argument("--processes", type=int, default=None, metavar="N",
+    parser.add_argument("--processes", type=int, default=None, metavar="N",  # read before parsing (processes_asked)
                         help="run the command as N processes of one run on this host (one GPU each where there are "
                              "GPUs, an equal share of the cores each); sweeps split their episodes between them "
                              "(docs/scale.md)")

@@ -1,26 +1,27 @@
 """`python -m experiments --processes N <command>`: N processes of `<command>` on this host, one run.
 
 Each process gets an equal contiguous share of this process's CPU cores (its affinity) and, where there are GPUs,
-one GPU (process p the p-th, round robin; processes that share a GPU share its memory equally); process 0 also runs the coordinator of JAX's distributed runtime on a
-free local port (`gsp_jax.distributed` reads the three variables set here). Process 0's output is this
-command's; the others' goes to results/processes/rank<p>.log. When a process fails, the others are stopped at once
-and the run ends with an error that names its rank, its exit status and the last lines of its output.
+one GPU (process p the p-th, round robin; processes that share a GPU share its memory equally); process 0 also runs
+the coordinator of JAX's distributed runtime on a free local port (`gsp_jax.distributed` reads the three variables
+set here). Process 0's output is this command's; the others' goes to results/processes/rank<p>.log. When a process
+fails, the others are stopped at once and the run ends with an error that names its rank, its exit status and the
+last lines of its output.
 
 On a cluster, start the command with `srun` (or `mpirun`) instead: `jax.distributed` reads the cluster by itself
 (docs/scale.md)."""
 from __future__ import annotations
 
 import os
-import pathlib
 import signal
 import socket
 import subprocess
 import sys
 import time
 
+from experiments.common import RESULTS
 from gsp_jax import distributed
 
-LOG_DIR = pathlib.Path("results") / "processes"
+LOG_DIR = RESULTS / "processes"
 POLL_S = 0.2  # [s] how often the launcher looks at its processes
 TAIL_LINES = 15  # lines of a failed process's output shown in the error
 

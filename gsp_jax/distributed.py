@@ -106,6 +106,11 @@ def split(n: int, parts: int | None = None) -> list[range]:
     return [range(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
+def share(n: int) -> range:
+    """This process's contiguous share of n items (`split`): all of them for one process."""
+    return split(n)[rank()]
+
+
 def gather(obj) -> list:
     """Every process's `obj` (anything pickle writes: numpy arrays travel bit for bit), in process order, on every
     process; [obj] for one process. Every process must call it, in the same order."""

@@ -130,7 +130,7 @@ def dp_tables(sur: Surrogate, set_name: str, episodes: dict, batch_size: int = 4
     # several processes: each builds a contiguous share of whole batches (the programs one process runs, so the
     # same tables to the last bit)
     n = len(episodes)
-    batches = distributed.split(-(-n // batch_size))[distributed.rank()]
+    batches = distributed.share(-(-n // batch_size))
     mine = range(min(batches.start * batch_size, n), min(batches.stop * batch_size, n))
     print(f"building DP tables for {len(episodes)} episodes of '{set_name}'"
           + (f" (cached in {path})" if path else "")

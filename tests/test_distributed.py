@@ -22,7 +22,9 @@ def test_split_refuses_bad_arguments():
 
 
 def test_one_process_is_rank_0_of_1_and_gathers_its_own():
-    assert not distributed.requested() and (distributed.rank(), distributed.count(), distributed.is_main()) == (0, 1, True)
+    assert not distributed.requested()
+    assert (distributed.rank(), distributed.count(), distributed.is_main()) == (0, 1, True)
+    assert distributed.share(5) == range(5)
     assert distributed.gather({"a": 1}) == [{"a": 1}] and distributed.total(2.5) == 2.5
     distributed.barrier("nothing to wait for")
 

@@ -28,7 +28,7 @@ def solve_set(env, episodes: dict, chunk: int, desc: str = "DP"):
     names = list(episodes)
     solve = jax.jit(jax.vmap(lambda e: dp.solve(env, e)))
     starts = range(0, len(names), chunk)
-    mine = distributed.split(len(starts))[distributed.rank()]
+    mine = distributed.share(len(starts))
     parts = []
     for i in tqdm([starts[c] for c in mine], desc=desc, unit="chunk"):
         batch = scenario.stack([episodes[n] for n in names[i : i + chunk]])

@@ -158,7 +158,7 @@ def main(args: argparse.Namespace) -> None:
     pieces = chunks(N, args.chunk)
     folder = results_dir("envelope") / f"{args.set}.parts"
     key = parts_key(ctx, args, kinds)
-    mine = distributed.split(len(pieces))[distributed.rank()]  # this process's chunks (all of them for one)
+    mine = distributed.share(len(pieces))  # this process's chunks (all of them for one)
     done = {c: part for c in mine
             if (part := load_part(part_path(folder, key, pieces[c]), (len(kinds), len(pieces[c])))) is not None}
     print(f"envelope: {N} episodes of '{args.set}' x {len(kinds)} sequences = {N * len(kinds)} episodes in C MuJoCo, "

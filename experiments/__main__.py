@@ -22,6 +22,7 @@ COMMANDS = {  # command -> (module, one-line help)
     "bench-ppo": ("experiments.bench.ppo", "PPO env steps/s and wall time to the DP-baseline return"),
     "physics": ("experiments.physics.check", "the physics check (MJX or C MuJoCo): a policy's grasp sequences, angle error under the torque; --compare: MJX against C"),
     "bench-physics": ("experiments.bench.physics", "the physics check against the engine alone, on 1, 2 and all cores"),
+    "bench-scale": ("experiments.bench.scale", "physics episodes/s, DP tables/s and PPO steps/s for 1, 2, 4 ... processes (one GPU and C cores each)"),
     "envelope": ("experiments.physics.envelope", "the stress envelope in physics: falls classified by the oracle, regret"),
     "rescore": ("experiments.physics.rescore", "surrogate against physics: a recorded envelope pool scored under rewards (rho, AUC), no new physics"),
     "corpus": ("experiments.physics.corpus", "a physics corpus of the model: surrogate features of grasp sequences with what C MuJoCo did (shards, resumable)"),

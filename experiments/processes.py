@@ -56,13 +56,14 @@ def gpus() -> list[str]:
     return [str(i) for i, line in enumerate(out.splitlines()) if line.startswith("GPU ")]
 
 
-def launch(n: int, words: list[str]) -> int:
-    """Run `python -m experiments <words>` as n processes of one run; 0 when all succeed, else raises SystemExit
-    with the first failed process's rank, status and output's last lines."""
+def launch(n: int, words: list[str], cores: list[int] | None = None) -> int:
+    """Run `python -m experiments <words>` as n processes of one run, sharing `cores` (default: this process's
+    affinity); 0 when all succeed, else raises SystemExit with the first failed process's rank, status and
+    output's last lines."""
     if n < 1:
         raise SystemExit(f"--processes must be >= 1, got {n}")
     address = f"127.0.0.1:{free_port()}"
-    shares, devices = core_shares(n), gpus()
+    shares, devices = core_shares(n, cores), gpus()
     LOG_DIR.mkdir(parents=True, exist_ok=True)
     procs, logs = [], []
     print(f"processes: {n} on this host, coordinator {address}; cores {[f'{s[0]}-{s[-1]}' for s in shares]}"

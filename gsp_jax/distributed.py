@@ -1,5 +1,5 @@
 """Several processes, one run: JAX's multi-controller runtime, each process's share of a batch, and the shares
-gathered back in process order.
+gathered back in process order; and one process's batch split over its local devices (`over_local_devices`).
 
 A process is one of several when its environment says so: `python -m experiments --processes N` sets
 `GSP_JAX_COORDINATOR` (host:port), `GSP_JAX_NUM_PROCESSES` and `GSP_JAX_PROCESS_ID` for each process it starts;
@@ -22,6 +22,7 @@ HEARTBEAT_TIMEOUT_S = 30  # [s] a process silent this long (killed, crashed) end
 SHUTDOWN_TIMEOUT_S = 24 * 3600  # [s] a finished process waits this long at exit for the others (process 0 writes
 # the results after the last gather: the others wait for it, not the reverse)
 
+BATCH_AXIS = "batch"  # the mesh axis of `over_local_devices`
 BARRIER_TIMEOUT_S = 24 * 3600  # [s] the longest a process waits for the others at a barrier (one shard's work)
 
 _started = False
@@ -106,6 +107,15 @@ def split(n: int, parts: int | None = None) -> list[range]:
     return [range(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
+def chunks(n: int, size: int) -> list[np.ndarray]:
+    """The item indices of each fixed chunk, (size,) int: consecutive runs of `size` of the `n` items, the last one
+    shorter. A chunk is the unit of work whatever the process count: each one runs the same program on the same
+    inputs in one process or in several, so the gathered results are one process's, bit for bit."""
+    if size < 1 or n < 0:
+        raise ValueError(f"chunks: needs n >= 0 and size >= 1, got n={n}, size={size}")
+    return [np.arange(i, min(i + size, n)) for i in range(0, n, size)]
+
+
 def share(n: int) -> range:
     """This process's contiguous share of n items (`split`): all of them for one process."""
     return split(n)[rank()]
@@ -144,3 +154,33 @@ def barrier(name: str) -> None:
 def total(value: float) -> float:
     """The sum of every process's `value`, on every process."""
     return float(sum(gather(float(value))))
+
+
+def over_local_devices(fn, multiple: int = 1):
+    """`fn(*args, batch)` jitted, its batch (the last argument, leaves (N, ...)) split over every local device: each
+    of the D devices runs `fn` on N/D consecutive elements (rounded up to a multiple of `multiple`, the batch padded
+    with copies of its last element, which are cut off after), the other arguments on every device. `fn` must treat
+    each element of its batch alone (a vmap, a lax.map) and give leaves (N, ...). With one local device this is
+    `jax.jit(fn)`: the program unchanged."""
+    import jax
+    import jax.numpy as jnp
+    from jax.sharding import Mesh, PartitionSpec
+
+    devices = jax.local_devices()
+    if len(devices) == 1:
+        return jax.jit(fn)
+    if multiple < 1:
+        raise ValueError(f"over_local_devices: multiple must be >= 1, got {multiple}")
+    mesh = Mesh(np.array(devices), (BATCH_AXIS,))
+
+    def split(*args):
+        *rest, batch = args
+        n = jax.tree.leaves(batch)[0].shape[0]
+        pad = -(-n // (len(devices) * multiple)) * multiple * len(devices) - n
+        batch = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]), batch)
+        out = jax.shard_map(fn, mesh=mesh, in_specs=(*[PartitionSpec()] * len(rest), PartitionSpec(BATCH_AXIS)),
+                            out_specs=PartitionSpec(BATCH_AXIS), check_vma=False)(*rest, batch)  # no collectives:
+        # each device's elements alone (the check would ask every scan's constant carry to be marked per device)
+        return jax.tree.map(lambda x: x[:n], out)
+
+    return jax.jit(split)

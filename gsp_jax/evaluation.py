@@ -138,7 +138,8 @@ def dp_tables(sur: Surrogate, set_name: str, episodes: dict, batch_size: int = 4
           flush=True)
     t0 = time.perf_counter()
     share = jax.tree.map(lambda x: x[mine.start:mine.stop], batch)
-    tables = jax.block_until_ready(jax.jit(lambda b: dp.build_tables(sur, b, batch_size))(share)) if len(mine) else None
+    build = distributed.over_local_devices(lambda b: dp.build_tables(sur, b, batch_size), multiple=batch_size)
+    tables = jax.block_until_ready(build(share)) if len(mine) else None  # whole batches on each local device
     if distributed.count() > 1:
         parts = [t for t in distributed.gather(None if tables is None else jax.device_get(tables)) if t is not None]
         tables = jax.tree.map(lambda *xs: jnp.concatenate([jnp.asarray(x) for x in xs]), *parts)

@@ -1,6 +1,12 @@
 """`gsp_jax.distributed` in one process and `--processes`'s parts that need no second process (the runs of two
-processes: tests/test_envelope_resume.py)."""
+processes: tests/test_envelope_resume.py, tests/test_fig4b.py); one process over two local devices."""
+import os
+import subprocess
+import sys
+
+import numpy as np
 import pytest
+import tolerances as tol
 
 from experiments import processes
 from experiments.__main__ import processes_asked
@@ -54,3 +60,45 @@ def test_bad_runtime_settings_are_named(monkeypatch):
     monkeypatch.setenv(distributed.ENV_PROCESS_ID, "x")
     with pytest.raises(distributed.DistributedError, match="must be integers"):
         distributed.initialize()
+
+
+def test_chunks_are_fixed_runs_of_size_whatever_the_processes():
+    assert [c.tolist() for c in distributed.chunks(5, 2)] == [[0, 1], [2, 3], [4]]
+    assert distributed.chunks(0, 3) == []
+    with pytest.raises(ValueError, match="size >= 1"):
+        distributed.chunks(4, 0)
+
+
+TWO_DEVICES = '''
+import jax, numpy as np
+from gsp_jax import dp, evaluation, ik, scenario, surrogate
+
+assert len(jax.local_devices()) == 2, jax.local_devices()
+sur = surrogate.Surrogate(ik_config=ik.IKConfig(lanes=False))
+episodes = {k: e.head(2) for k, e in list(scenario.episode_set("eval").items())[:3]}
+# three episodes in whole batches of two on each of two devices (one padded batch each), and on one device
+two = evaluation.dp_tables(sur, "eval", episodes, batch_size=2, cache=None)
+assert len(two.reward.sharding.device_set) == 2, two.reward.sharding  # built on both
+one = jax.jit(lambda b: dp.build_tables(sur, b, 2), device=jax.local_devices()[0])(scenario.stack(list(episodes.values())))
+np.savez("tables.npz", **{f"{k}_{n}": np.asarray(getattr(t, k)) for n, t in (("one", one), ("two", two))
+                          for k in ("reward", "ik_error", "next_grasp")})
+'''
+
+
+def test_dp_tables_over_two_local_devices_equal_one_devices(tmp_path):
+    """One process with two (CPU) devices: a set's tables are built with the episode axis split over both
+    (`distributed.over_local_devices`, whole padded batches each), to one device's tables within the solvers'
+    precision (XLA fuses the per-device program for its own loop length: float reassociation only)."""
+    script = tmp_path / "two.py"
+    script.write_text(TWO_DEVICES)
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=900, cwd=tmp_path,
+                          env=dict(os.environ, JAX_PLATFORMS="cpu", JAX_NUM_CPU_DEVICES="2", GSP_JAX_CACHE="off"))
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    with np.load(tmp_path / "tables.npz") as t:
+        assert t["reward_two"].shape == t["reward_one"].shape and t["reward_one"].shape[0] == 3
+        n = t["reward_one"].size
+        tol.assert_close_with_rare_ties(t["ik_error_two"], t["ik_error_one"], tol.IK_ATOL, "ik_error",
+                                        tol.small_sample_tie_fraction(n))
+        tol.assert_close_with_rare_ties(t["reward_two"], t["reward_one"], tol.REWARD_ATOL, "reward",
+                                        tol.small_sample_tie_fraction(n))
+        assert np.array_equal(t["next_grasp_two"], t["next_grasp_one"])

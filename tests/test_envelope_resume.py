@@ -4,15 +4,15 @@ to the result an uninterrupted run gives, bit for bit (C MuJoCo)."""
 from __future__ import annotations
 
 import json
-import os
 import pathlib
 import re
 import shutil
 import subprocess
-import sys
 
 import numpy as np
 import pytest
+
+import launch
 
 from experiments import common
 from experiments.__main__ import main
@@ -22,8 +22,7 @@ from gsp_jax import evaluation, physics, scenario
 # 2 evaluation episodes x (the four tips, 1 random sequence), one episode a chunk: 2 chunks; falls classified here
 LINE = ["envelope", "--set", "eval", "--episodes", "2", "--random", "1", "--policies", "four-tips", "--chunk", "1",
         "--jobs", "1"]
-WAYPOINTS = 3
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+WAYPOINTS = launch.WAYPOINTS
 
 
 class Fault(RuntimeError):
@@ -99,13 +98,6 @@ def test_a_failed_chunk_keeps_the_finished_ones_and_a_rerun_continues_from_them(
 
 
 # ------------------------------------------------------------------------------------------- several processes
-SHORT_PLUGIN = '''"""Every episode set cut to its first {w} waypoints, as the tests above cut them (`run`)."""
-from gsp_jax import scenario
-
-_episode_set = scenario.episode_set
-scenario.episode_set = lambda name, model=None: {{k: e.head({w}) for k, e in _episode_set(name, model).items()}}
-'''
-
 DYING_PLUGIN = '''"""Process 1 is killed (SIGKILL) in its first chunk's physics, once process 0's chunk is kept."""
 import os, pathlib, signal, time
 
@@ -125,42 +117,5 @@ if os.environ.get("GSP_JAX_PROCESS_ID") == "1":
 
 
 def run_processes(folder: pathlib.Path, n: int, *plugins: str) -> subprocess.CompletedProcess:
-    """`python -m experiments --processes n <LINE>` in `folder`, the episodes cut as `run` cuts them."""
-    folder.mkdir(exist_ok=True)
-    (folder / "short.py").write_text(SHORT_PLUGIN.format(w=WAYPOINTS))
-    words = [*LINE, "--plugin", "short.py"] + [w for p in plugins for w in ("--plugin", p)]
-    return subprocess.run([sys.executable, "-m", "experiments", "--processes", str(n), *words], cwd=folder,
-                          capture_output=True, text=True, timeout=1200,
-                          env=dict(os.environ, PYTHONPATH=str(ROOT), JAX_PLATFORMS="cpu"))
-
-
-def test_two_processes_give_one_processs_result_bit_for_bit(monkeypatch, tmp_path):
-    """`--processes 2`: the chunks and the DP tables split between two processes (CPU collectives), gathered by
-    process 0, which alone writes: the result of one process, field for field, and no record of the other."""
-    one, two = tmp_path / "one", tmp_path / "two"
-    run(monkeypatch, one)
-    proc = run_processes(two, 2)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    assert "process 0 of 2 runs chunks 1-1" in proc.stdout
-    assert "process 1 of 2 runs chunks 2-2" in (two / "results/processes/rank1.log").read_text()
-    assert result(two) == result(one)
-    assert len(list((two / "results/envelope/eval.parts").glob("*.npz"))) == 2  # each process kept its chunk
-
-
-def test_a_killed_process_ends_the_run_naming_its_rank_and_the_finished_chunks_stay(monkeypatch, tmp_path):
-    """Process 1 killed in its chunk: the run ends at once with an error naming process 1 and the signal (not a
-    hang), process 0's finished chunk is kept, and one process continues from it to the uninterrupted result."""
-    folder = tmp_path / "killed"
-    folder.mkdir()
-    (folder / "dying.py").write_text(DYING_PLUGIN)
-    proc = run_processes(folder, 2, "dying.py")
-    assert proc.returncode != 0
-    assert "processes: process 1 was killed by signal 9 (SIGKILL); the others were stopped" in proc.stderr, \
-        proc.stderr[-3000:]
-    parts = folder / "results/envelope/eval.parts"
-    assert [p.name.split("_", 1)[1] for p in parts.glob("*.npz")] == ["episodes1-1.npz"]
-    with pytest.warns(UserWarning, match="stale lock of process"):  # process 0's, stopped by the launcher
-        assert run(monkeypatch, folder) == 1  # only process 1's chunk is simulated again
-    fresh = tmp_path / "fresh"
-    run(monkeypatch, fresh)
-    assert result(folder) == result(fresh)
+    """`python -m experiments --processes n <LINE>` in `folder` (`launch.run`); `plugins`: names of plugin files."""
+    return launch.run(folder, n, LINE, {name: (folder / name).read_text() for name in plugins})

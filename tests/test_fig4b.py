@@ -2,12 +2,14 @@
 gives alone (the controller program of another batch size: float reassociation only)."""
 from __future__ import annotations
 
+import json
 import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
+import launch  # noqa: E402
 
 from experiments.paper import fig4b  # noqa: E402
 from gsp_jax import evaluation  # noqa: E402
@@ -53,3 +55,38 @@ def test_policies_in_one_lockstep_give_what_they_give_alone(sur, tmp_path):
             grasp = sur.space.apply(grasp, action)[0]
             expected.append(int(grasp))
         assert row["grasps"] == expected
+
+
+NET_PLUGIN = '''"""A planner that decides in JAX at every waypoint of the physics: a random-weight actor network."""
+import jax
+
+from gsp_jax import planners, policies
+from gsp_jax.env import observation_size
+from gsp_jax.ppo import networks as nets
+
+
+@planners.register("net")
+def _net(ctx):
+    sur = ctx.surrogate
+    networks = nets.make_networks(observation_size(sur.space, ctx.batch.n_steps, sur.hand.n_joints), sur.n_actions,
+                                  nets.NetworkConfig(hidden=(32, 32)))
+    return policies.NetworkPolicy(networks.init(jax.random.PRNGKey(5)), networks, sur.space), None
+'''
+
+
+def test_two_processes_give_one_processs_outcomes_bit_for_bit(tmp_path):
+    """`--processes 2 fig4b` on two episodes: each process runs one chunk (the four tips and a network that decides
+    in JAX), process 0 gathers and alone writes; every episode's outcome equals one process's run of the same
+    chunks, to the last bit."""
+    line = ["fig4b", "--set", "eval", "--episodes", "2", "--policies", "four-tips", "net", "--chunk", "1"]
+    out = {}
+    for n in (1, 2):
+        folder = tmp_path / f"p{n}"
+        proc = launch.run(folder, n, line, {"net.py": NET_PLUGIN})
+        assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+        saved = {name: json.loads((folder / f"results/fig4b/{name}.json").read_text()) for name in ("four-tips", "net")}
+        out[n] = {name: (r["per_episode"], r["mean_deg"], r["falls"]) for name, r in saved.items()}
+        assert [r["episode"] for r in saved["net"]["per_episode"]] == saved["net"]["episodes"]
+    assert "process 1 of 2 runs chunks 2-2 of 2" in (tmp_path / "p2/results/processes/rank1.log").read_text()
+    assert not (tmp_path / "p1/results/processes").exists()
+    assert json.dumps(out[2], sort_keys=True) == json.dumps(out[1], sort_keys=True)

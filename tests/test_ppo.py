@@ -10,7 +10,11 @@ the reference of the resume tests.
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
+import pathlib
+import subprocess
+import sys
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
@@ -496,3 +500,66 @@ def test_save_and_load_policy_round_trip_is_exact(trainer, uninterrupted, probe,
     np.testing.assert_array_equal(trainer.networks.logits(loaded, obs), trainer.networks.logits(result.policy, obs))
     with pytest.raises(FileNotFoundError):
         ppo.load_policy(tmp_path / "nothing_here", trainer.networks)
+
+
+# ----------------------------------------------------------------------------------- 5. several devices
+TWO_DEVICES = '''
+import dataclasses, json
+import jax, jax.numpy as jnp, numpy as np
+from test_ppo import CONFIG, SMALL, T, _probe_tables
+from gsp_jax import scenario, surrogate
+from gsp_jax.env import GraspEnv
+from gsp_jax.ppo import networks as nets
+from gsp_jax.ppo import train as ppo
+
+assert len(jax.devices()) == 2, jax.devices()
+sur = surrogate.Surrogate()
+episodes = scenario.stack([scenario.make_episode().head(T), scenario.make_episode(shift_mm=6, torque=-1.0).head(T)])
+tables, _ = _probe_tables(sur.space, np.asarray(episodes.start_grasp), seed=0)
+env, eval_env = GraspEnv(sur, episodes, tables=tables), GraspEnv(sur, episodes, tables=tables, auto_reset=False)
+networks = nets.make_networks(env.observation_size, env.action_size, SMALL)
+out = {}
+# the same seed twice on two devices: the same curve, to the last bit
+cfg = dataclasses.replace(CONFIG, max_iterations=8, eval_every=4)
+two = ppo.Trainer(env, networks, cfg, {"val": eval_env})
+runs = [ppo.train(two, seed=3, progress=False) for _ in range(2)]
+strip = lambda h: [{k: v for k, v in r.items() if k != "wall_s"} for r in h]
+out["repeat_equal"] = strip(runs[0].history) == strip(runs[1].history)
+out["env_devices"] = len(runs[0].state.env_state.obs.sharding.device_set)
+# one whole-batch Adam step from the same start: the mean gradient over both devices' environments is the one
+# device's gradient over all of them (the rows in another order: float rounding only)
+step = dataclasses.replace(CONFIG, epochs=1, minibatches=1, target_kl=None)
+params = {}
+for name, devices in (("one", jax.devices()[:1]), ("two", jax.devices())):
+    tr = ppo.Trainer(env, networks, step, {"val": eval_env}, devices=devices)
+    ts, _ = tr.iteration(tr.init(jax.random.PRNGKey(3)))
+    start = tr.init(jax.random.PRNGKey(3)).params
+    params[name] = [np.asarray(x) for x in jax.tree.leaves((ts.params.actor, ts.params.critic))]
+    params[name + "_moved"] = float(max(np.abs(np.asarray(a) - np.asarray(b)).max() for a, b in zip(
+        jax.tree.leaves(ts.params.actor), jax.tree.leaves(start.actor))))
+out["step_max_diff"] = float(max(np.abs(a - b).max() for a, b in zip(params["one"], params["two"])))
+out["moved"] = params["one_moved"]
+try:
+    ppo.Trainer(env, networks, dataclasses.replace(CONFIG, n_envs=63, minibatches=1), {"val": eval_env})
+except ValueError as e:
+    out["error"] = str(e)
+print("RESULT " + json.dumps(out))
+'''
+
+
+def test_data_parallel_on_two_devices_is_deterministic_and_averages_gradients_over_both(tmp_path):
+    """PPO with its environments split over two (CPU) devices: the same seed gives the same curve twice, the
+    environments live on both devices, and one whole-batch Adam step equals one device's step over the same
+    environments (float rounding only: the all-reduced gradient is the mean over every device's rows)."""
+    script = tmp_path / "two.py"
+    script.write_text(TWO_DEVICES)
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=900, cwd=tmp_path,
+                          env=dict(os.environ, JAX_PLATFORMS="cpu", JAX_NUM_CPU_DEVICES="2", GSP_JAX_CACHE="off",
+                                   PYTHONPATH=os.pathsep.join([str(pathlib.Path(__file__).parent),
+                                                               str(pathlib.Path(__file__).parents[1])])))
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    out = json.loads(proc.stdout.split("RESULT ", 1)[1])
+    assert out["repeat_equal"] and out["env_devices"] == 2
+    assert out["moved"] > 1e-4  # the step moved the weights ...
+    assert out["step_max_diff"] < 1e-6 + 1e-3 * out["moved"], out  # ... and both ways the same
+    assert "63 environments" in out["error"] and "2 devices" in out["error"], out["error"]

@@ -23,10 +23,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def solve_set(env, episodes: dict, chunk: int, desc: str = "DP"):
-    """Tables and solutions of named episodes, `chunk` episodes per vmapped call, with a progress bar. Several
-    processes (`--processes`): each solves a contiguous share of the chunks, and every process gets them all."""
+    """Tables and solutions of named episodes, `chunk` episodes per vmapped call (split over the local devices),
+    with a progress bar. Several processes (`--processes`): each solves a contiguous share of the chunks, and every
+    process gets them all."""
     names = list(episodes)
-    solve = jax.jit(jax.vmap(lambda e: dp.solve(env, e)))
+    solve = distributed.over_local_devices(jax.vmap(lambda e: dp.solve(env, e)))  # a chunk over the local devices
     starts = range(0, len(names), chunk)
     mine = distributed.share(len(starts))
     parts = []

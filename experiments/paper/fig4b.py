@@ -8,7 +8,9 @@ when the tool fell or touched the table. All episodes of a policy run in one bat
 as soon as it is done (results/fig4b/<policy>.json) and reused when the command runs again with the same episodes,
 policy parameters and library sources (`--fresh` to redo), so an interrupted run loses only the policies in flight.
 In C MuJoCo every policy's episodes run in one lockstep (5 x 27 = 135 episodes, one controller call per tick, the
-physics on every core: `Physics.simulate_many`); in MJX one batch per policy (`--jobs` side by side). Writes
+physics on every core: `Physics.simulate_many`); `--chunk N` runs the episodes in fixed chunks of N instead, one
+lockstep each, and several processes (`--processes`) share the chunks (default: one chunk per process); the outcomes
+depend on the chunks, never on the process count. In MJX one batch per policy (`--jobs` side by side). Writes
 fig4b.png; prints the table last.
 """
 from __future__ import annotations
@@ -23,7 +25,7 @@ import numpy as np
 from experiments import common
 from experiments.common import results_dir, table
 from gsp_jax.physics.report import result_rows
-from gsp_jax import evaluation, files, physics, planners, stats
+from gsp_jax import distributed, evaluation, files, physics, planners, stats
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -38,6 +40,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--jobs", type=int, default=None,
                    help="MJX: policies run side by side (threads; default 1). C MuJoCo runs them all in one lockstep")
     p.add_argument("--warm", action="store_true", help="C MuJoCo: time the lockstep a second time (warm)")
+    p.add_argument("--chunk", type=int, default=None, metavar="N",
+                   help="C MuJoCo: episodes per lockstep (default: all of them, split evenly over --processes); "
+                        "the outcomes depend on the chunks, not on the process count")
     p.add_argument("--k", type=int, default=evaluation.L1_PHYSICS["k"],
                    help="L1-physics: the surrogate's best k root actions are branched in physics at each decision")
     common.add_bases_argument(p)
@@ -46,11 +51,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str = "c", cached: bool = True,
         jobs: int | None = None, warm: bool = False, k: int = evaluation.L1_PHYSICS["k"],
-        bases=evaluation.L1_PHYSICS["bases"]) -> dict:
-    """Fig. 4b's result per policy (saved results reused); `jobs` policies at a time (default as `--jobs`)."""
+        bases=evaluation.L1_PHYSICS["bases"], chunk: int | None = None) -> dict:
+    """Fig. 4b's result per policy (saved results reused); `jobs` policies at a time (default as `--jobs`); in C
+    MuJoCo the episodes in chunks of `chunk` (`lockstep`; default: one chunk per process). With several processes
+    only process 0 saves and returns the results (the others return {})."""
     phys = physics.Physics(ctx.surrogate)
+    n = len(ctx.names)
+    chunk = -(-n // distributed.count()) if chunk is None else chunk
+    if chunk < 1:
+        raise ValueError(f"chunk (--chunk) must be >= 1, got {chunk}")
     stamp = f"{common.fingerprint(ctx)}-{backend}" + ("" if cached else "-continuous") + (
-        f"-k{k}-" + "+".join(bases) if any("bases" in planners.get(n).options for n in names) else "")
+        f"-k{k}-" + "+".join(bases) if any("bases" in planners.get(n).options for n in names) else "") + (
+        f"-chunk{chunk}" if backend == "c" and chunk < n else "")
     jobs = 1 if jobs is None else jobs
     if jobs < 1:
         raise ValueError(f"jobs (--jobs) must be >= 1, got {jobs}")
@@ -84,14 +96,16 @@ def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str =
         return save(name, res, time.perf_counter() - t0)
 
     t0 = time.perf_counter()
-    if backend == "c" and todo:  # every policy's episodes in one lockstep on every core
-        made = [planners.make(ctx, name, dict(cached=cached, k=k, bases=bases)) for name in todo]
-        res = phys.simulate_many(made, ctx.batch, backend="c", progress=True)
+    if backend == "c" and todo:  # every policy's episodes of a chunk in one lockstep on every core
+        options = dict(cached=cached, k=k, bases=bases)
+        res = lockstep(ctx, phys, todo, options, chunk)
+        if not distributed.is_main():
+            return {}  # process 0 saves, draws and records
         wall = time.perf_counter() - t0
         done = {name: save(name, r, wall) for name, r in zip(todo, res)}
         if warm:  # the same lockstep again in this process: compiled, the policies' tables built
             t1 = time.perf_counter()
-            again = phys.simulate_many(made, ctx.batch, backend="c")
+            again = lockstep(ctx, phys, todo, options, chunk, shared=False)
             warm_s = time.perf_counter() - t1
             same = all(np.array_equal(a.fell, b.fell) for a, b in zip(res, again))
             print(f"  warm: the {len(todo)} policies x {len(ctx.names)} episodes again in {warm_s:.2f} s "
@@ -103,11 +117,35 @@ def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str =
         with ThreadPoolExecutor(max_workers=jobs) as pool:
             done = dict(zip(todo, pool.map(simulate, todo)))
     if todo:
-        how = "one lockstep" if backend == "c" else f"{jobs} at a time"
+        lockstep_s = -(-n // chunk)
+        how = (f"{lockstep_s} lockstep{'s' * (lockstep_s > 1)}" if backend == "c" else f"{jobs} at a time")
         print(f"  {len(todo)} policies in {time.perf_counter() - t0:.1f} s ({how}, compile included)", flush=True)
     results = {name: results.get(name) or done[name] for name in names}
     common.fig4b_png(results, len(ctx.names), out / "fig4b.png")
     return results
+
+
+def lockstep(ctx: evaluation.Context, phys: physics.Physics, names, options: dict, chunk: int,
+             shared: bool = True) -> list:
+    """Each policy's `Result` (numpy, stacked over all of ctx's episodes) in C MuJoCo: the episodes in fixed chunks
+    of `chunk`, each chunk every policy in one lockstep (`Physics.simulate_many`). With several processes
+    (`shared`) each runs its share of the chunks and every process gets every result (`distributed.gather`): the
+    chunks fix the programs and their inputs, so the results are one process's, bit for bit."""
+    pieces = distributed.chunks(len(ctx.names), chunk)
+    mine = distributed.share(len(pieces)) if shared else range(len(pieces))
+    if shared and distributed.count() > 1:
+        print(f"  process {distributed.rank()} of {distributed.count()} runs chunks {mine.start + 1}-{mine.stop} of "
+              f"{len(pieces)} ({chunk} episodes each)", flush=True)
+    done = {}
+    for c in mine:
+        sub = ctx.select(pieces[c])
+        made = [planners.make(sub, name, options) for name in names]
+        done[c] = [jax.tree.map(np.asarray, r) for r in phys.simulate_many(made, sub.batch, backend="c",
+                                                                           progress=True)]
+    if shared:
+        done = {c: r for part in distributed.gather(done) for c, r in part.items()}
+    return [jax.tree.map(lambda *xs: np.concatenate(xs), *(done[c][i] for c in range(len(pieces))))
+            for i in range(len(names))]
 
 
 def print_result(results: dict) -> None:
@@ -129,13 +167,18 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 def main(args: argparse.Namespace) -> None:
     common.check_planners(args.policies, "--policies", args.backend)
     common.check_planners(args.bases, "--bases")
+    if args.backend != "c" and distributed.count() > 1:
+        raise SystemExit(f"fig4b: --backend {args.backend} runs as one process (an XLA batch per policy); "
+                         f"only C MuJoCo's chunks are shared by --processes")
     ctx = evaluation.context(args.set, args.episodes, args.policy_dir,  # only what the policies read
                              **planners.context_flags([*args.policies, *(args.bases if 'L1-physics' in args.policies else ())]))
     print(f"Fig. 4b: {len(ctx.names)} episodes of '{args.set}' in {args.backend} (JAX on {jax.default_backend()}), "
           f"RL policy {ctx.rl_source}", flush=True)
     out = results_dir("fig4b")
     results = run(ctx, args.policies, out, args.fresh, args.backend, cached=args.lookahead == "cached", jobs=args.jobs,
-                  warm=args.warm, k=args.k, bases=args.bases)
+                  warm=args.warm, k=args.k, bases=args.bases, chunk=args.chunk)
+    if not distributed.is_main():
+        return
     print(f"wrote {out}/<policy>.json, {out / 'fig4b.png'}")
     common.record("fig4b", figures(results))
     print_result(results)

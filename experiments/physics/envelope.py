@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import os
 import pathlib
 import sys
 import time
@@ -37,6 +36,7 @@ import numpy as np
 from experiments import common
 from experiments.common import results_dir, table
 from gsp_jax import distributed, dp, evaluation, files, physics, policies, scenario
+from gsp_jax.physics import c_backend
 from gsp_jax.physics.envelope import PREDICTED_HOLD, classify, summarise
 from gsp_jax import planners as gsp_planners
 
@@ -64,12 +64,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 # ---------------------------------------------------------------------------------------------------- chunks
-def chunks(n: int, size: int) -> list[np.ndarray]:
-    """The episode indices of each chunk, (size,) int: consecutive runs of `size` of the `n` episodes, the last one
-    shorter."""
-    return [np.arange(i, min(i + size, n)) for i in range(0, n, size)]
-
-
 def parts_key(ctx, args: argparse.Namespace, kinds: list[str]) -> str:
     """A hash (16 hex digits) of everything a chunk's outcomes depend on: the context (`common.fingerprint`: the
     library and model sources, the model's digest, the episodes' names, the RL policy), this file, the sequences'
@@ -155,7 +149,7 @@ def main(args: argparse.Namespace) -> None:
     kinds = planners + [f"random{r}" for r in range(args.random)]
     phys = physics.Physics(sur)
     n_seg, tick = phys.n_segment, phys.timestep
-    pieces = chunks(N, args.chunk)
+    pieces = distributed.chunks(N, args.chunk)
     folder = results_dir("envelope") / f"{args.set}.parts"
     key = parts_key(ctx, args, kinds)
     mine = distributed.share(len(pieces))  # this process's chunks (all of them for one)
@@ -206,7 +200,7 @@ def main(args: argparse.Namespace) -> None:
         return sim["reached"][g, e], int(np.sum(np.arange(1, T + 1) * n_seg - 1 < fall_tick))
 
     verdicts = classify(episodes, [(e, [int(x) for x in sim["grasps"][g, e]], *reached(g, e))
-                                   for g, e in falls], args.jobs or os.cpu_count() or 1)
+                                   for g, e in falls], args.jobs or c_backend.available_cores())
     classes = {ge: v[0] for ge, v in zip(falls, verdicts)}
     summary = summarise(kinds, fell, angle, feasible, returns, classes, {ge: v[3] for ge, v in zip(falls, verdicts)},
                         hold if sur.learned is not None else None)

@@ -17,6 +17,7 @@ written, so a killed run loses at most the shard it was making and a rerun neith
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import pathlib
@@ -25,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gsp_jax import dp, evaluation, files, learned, policies, scenario
+from gsp_jax import distributed, dp, evaluation, files, learned, policies, scenario
 from gsp_jax import surrogate as surrogate_lib
 
 VERSION = 1
@@ -207,15 +208,22 @@ class Store:
     def add(self, seed: int, arrays: dict[str, np.ndarray]) -> None:
         """Write the shard of `seed` whole, then list it in the manifest (whole): a kill between the two leaves an
         unlisted shard that the next `add` of that seed replaces."""
+        self.commit([self.put(seed, arrays)])
+
+    def put(self, seed: int, arrays: dict[str, np.ndarray]) -> dict:
+        """Write the shard of `seed` whole, unlisted; its manifest entry (for `commit`)."""
         if seed in self.seeds:
             raise CorpusError(f"{self.folder}: shard {seed} is already in the corpus")
         name = f"shard-{seed:06d}.npz"
         files.savez(self.folder / name, **arrays)
         digest = hashlib.sha256((self.folder / name).read_bytes()).hexdigest()[:16]
         alive = arrays["alive"]
-        self.manifest["shards"].append(dict(file=name, seed=int(seed), episodes=int(len(arrays["episode_names"])),
-                                            runs=int(alive.shape[0]), transitions=int(alive.sum()),
-                                            falls=int(arrays["fell"].sum()), sha256=digest))
+        return dict(file=name, seed=int(seed), episodes=int(len(arrays["episode_names"])), runs=int(alive.shape[0]),
+                    transitions=int(alive.sum()), falls=int(arrays["fell"].sum()), sha256=digest)
+
+    def commit(self, entries: list[dict]) -> None:
+        """List written shards (`put`'s entries, in this order) in the manifest, written whole."""
+        self.manifest["shards"].extend(entries)
         files.write_json(self.folder / "manifest.json", self.manifest)
 
     def load(self) -> dict[str, np.ndarray]:
@@ -244,7 +252,15 @@ class Store:
         return out
 
 
-solve_batch = jax.jit(jax.vmap(dp.solve, (None, 0)))  # (tables, solutions) of a batch of episodes, one program
+def solve_batch(sur: surrogate_lib.Surrogate, batch: scenario.Episode) -> tuple[dp.Table, dp.Solution]:
+    """The tables and solutions of a stacked batch of episodes: one program, the batch split over the local
+    devices (`distributed.over_local_devices`)."""
+    return _solve_batch()(sur, batch)
+
+
+@functools.cache
+def _solve_batch():
+    return distributed.over_local_devices(jax.vmap(dp.solve, (None, 0)))
 
 
 # a shard: M runs (episode x sequence) of T transitions, F features
@@ -287,17 +303,23 @@ def shard(phys, seed: int, n_episodes: int, dist: Distribution, n_random: int, n
 def extend(store: Store, phys, seeds, episodes: int, n_random: int = 4, n_perturbed: int = 2,
            cores: int | None = None, progress: bool = True, n_steps: int | None = None) -> list[int]:
     """Add the shard of each seed in `seeds` that the corpus does not hold (`shard`, then `Store.add`): a run
-    killed part-way loses only the shard it was making, and the same call again adds the rest. The seeds added."""
+    killed part-way loses only the shards it was making, and the same call again adds the rest. The seeds added.
+    With several processes (`distributed`) the seeds go in rounds of one shard per process; each process writes
+    its shard, process 0 lists the round's shards in seed order. A shard is the same in one process or several."""
     dist = Distribution(**{k: tuple(v) for k, v in store.manifest["distribution"].items()})
-    added = []
-    for seed in seeds:
-        if seed in store.seeds:
-            continue
-        arrays = shard(phys, seed, episodes, dist, n_random, n_perturbed, cores, progress, n_steps)
-        store.add(seed, arrays)
-        added.append(seed)
+    todo = [seed for seed in seeds if seed not in store.seeds]
+    P = distributed.count()
+    for r in range(0, len(todo), P):
+        mine = todo[r:r + P][distributed.rank():distributed.rank() + 1]
+        made = [store.put(seed, shard(phys, seed, episodes, dist, n_random, n_perturbed, cores, progress, n_steps))
+                for seed in mine]
+        made = [m for part in distributed.gather(made) for m in part]
+        if distributed.is_main():
+            store.commit(made)
+        else:
+            store.manifest["shards"].extend(made)  # as process 0 lists them, without writing
         if progress:
-            m = store.manifest["shards"][-1]
-            print(f"corpus: shard {seed}: {m['runs']} runs, {m['transitions']} transitions, {m['falls']} falls "
-                  f"({len(store.seeds)} shards)", flush=True)
-    return added
+            for m in made:
+                print(f"corpus: shard {m['seed']}: {m['runs']} runs, {m['transitions']} transitions, "
+                      f"{m['falls']} falls ({len(store.seeds)} shards)", flush=True)
+    return todo

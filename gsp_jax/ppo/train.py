@@ -7,6 +7,12 @@ result, bit for bit, as an uninterrupted one.
     result = train(trainer, seed=0, params=pretrained, checkpoint_dir="runs/ppo_seed0")
     result.policy                                   # the best validation Params; result.history: per iteration
 
+Data-parallel on several devices (`devices`, default every device of every process): the environments are split
+over them (a mesh axis), each device steps its share and shuffles its own part of the batch, and every minibatch
+takes an equal slice from each device, so its gradient is the mean over all of them (XLA's all-reduce); one
+optimiser state, the parameters on every device. The same seed and device count give the same curve; one device
+runs the single-device program unchanged.
+
 Rewards enter the update multiplied by `reward_scale`, so the critic predicts returns in those units; returns
 reported in `history` are in reward units. Starting from pretrained `params` keeps the weights and the
 normaliser but starts a fresh Adam state (the pretraining optimiser's moments belong to another objective); run
@@ -28,6 +34,7 @@ import numpy as np
 import optax
 import orbax.checkpoint as ocp
 from flax import struct
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
 from gsp_jax import files
@@ -66,11 +73,23 @@ class TrainResult:
         return bool(self.history) and bool(self.history[-1].get("early_stop", False))
 
 
+ENV_AXIS = "envs"  # the mesh axis the environments are split over
+
+
 class Trainer:
     """PPO on a brax-style env (one env; vmapped here). `eval_envs` (name -> env without auto-reset) are rolled out
-    deterministically from every episode's start; the first is the validation set used for early stopping."""
+    deterministically from every episode's start; the first is the validation set used for early stopping.
+    `devices`: the environments split over these (default `jax.devices()`, every process's); `n_envs` and a
+    minibatch must divide by their number."""
 
-    def __init__(self, env, networks: nets.Networks, config: PPOConfig, eval_envs: dict[str, Any]):
+    def __init__(self, env, networks: nets.Networks, config: PPOConfig, eval_envs: dict[str, Any], devices=None):
+        devices = list(jax.devices() if devices is None else devices)
+        self.n_devices = len(devices)
+        if config.n_envs % self.n_devices or (config.n_envs * config.unroll // config.minibatches) % self.n_devices:
+            raise ValueError(f"PPOConfig.n_envs: {config.n_envs} environments (minibatches of "
+                             f"{config.n_envs * config.unroll // config.minibatches}) do not split evenly over "
+                             f"{self.n_devices} devices")
+        self.mesh = Mesh(np.array(devices), (ENV_AXIS,)) if self.n_devices > 1 else None
         if not eval_envs:
             raise ValueError("eval_envs: need at least one (the validation set)")
         if "train" in eval_envs:
@@ -85,11 +104,32 @@ class Trainer:
         self.evaluate = jax.jit(self._evaluate)
         self._record = jax.jit(self._record_eval)
 
+    # --------------------------------------------------------------------------------------- devices
+    def _split_envs(self, axis: int = 0):
+        """The sharding of arrays whose `axis` runs over the environments (None on one device)."""
+        return None if self.mesh is None else NamedSharding(self.mesh, PartitionSpec(*[None] * axis, ENV_AXIS))
+
+    def _constrain(self, tree, axis: int = 0):
+        """`tree` with its leaves split over the devices along `axis` (unchanged on one device)."""
+        if self.mesh is None:
+            return tree
+        return jax.lax.with_sharding_constraint(tree, self._split_envs(axis))
+
     # ------------------------------------------------------------------------------------------ state
     def init(self, key: jax.Array, params: nets.Params | None = None) -> TrainState:
+        """The state before the first iteration; on several devices made in one program (every process the same),
+        the environments split over the devices and the rest on every device."""
+        return self._init(key, params) if self.mesh is None else jax.jit(self._init)(key, params)
+
+    def _init(self, key: jax.Array, params: nets.Params | None) -> TrainState:
         k_params, k_env, key = jax.random.split(key, 3)
         params = self.networks.init(k_params) if params is None else params
         env_state = jax.vmap(self.env.reset)(jax.random.split(k_env, self.config.n_envs))
+        if self.mesh is not None:  # inside `init`'s program
+            everywhere = NamedSharding(self.mesh, PartitionSpec())
+            params = jax.lax.with_sharding_constraint(params, everywhere)
+            key = jax.lax.with_sharding_constraint(key, everywhere)
+            env_state = self._constrain(env_state)
         return TrainState(
             params=params,
             opt_state=self.optimizer.init(_trainable(params)),
@@ -149,8 +189,19 @@ class Trainer:
             return (trainable, opt_state, stopped), metrics
 
         def epoch(carry, k):
-            perm = jax.random.permutation(k, n)
-            mbs = jax.tree.map(lambda x: x[perm].reshape(cfg.minibatches, -1, *x.shape[1:]), batch)
+            if self.mesh is None:
+                perm = jax.random.permutation(k, n)
+                mbs = jax.tree.map(lambda x: x[perm].reshape(cfg.minibatches, -1, *x.shape[1:]), batch)
+            else:  # each device shuffles its own rows; minibatch m takes each device's m-th slice
+                D, M = self.n_devices, cfg.minibatches
+                perms = jax.vmap(lambda kd: jax.random.permutation(kd, n // D))(jax.random.split(k, D))
+
+                def shuffle(x):
+                    local = jax.vmap(lambda xd, p: xd[p])(x.reshape(D, n // D, *x.shape[1:]), perms)
+                    local = local.reshape(D, M, n // (D * M), *x.shape[1:]).swapaxes(0, 1)
+                    return local.reshape(M, n // M, *x.shape[1:])
+
+                mbs = self._constrain(jax.tree.map(shuffle, self._constrain(batch)), axis=1)
             return jax.lax.scan(sgd_step, carry, mbs)
 
         clip_state, adam_state = opt_state
@@ -170,7 +221,10 @@ class Trainer:
         bootstrap = networks.value(params, env_state.obs)
         advantage, target = losses.gae(reward, value, done, bootstrap, cfg.gamma, cfg.gae_lambda, hold)
         batch = losses.Batch(obs, action, logp, value, advantage, target)
-        batch = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), batch)  # (U * B, ...)
+        if self.mesh is None:
+            batch = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), batch)  # (U * B, ...)
+        else:  # environment-major, (B * U, ...): each device's environments stay one block of rows
+            batch = jax.tree.map(lambda x: x.swapaxes(0, 1).reshape(-1, *x.shape[2:]), batch)
         lr = cfg.learning_rate_at(ts.iteration * cfg.epochs * cfg.minibatches)
         trainable, opt_state, metrics = self._sgd(params, ts.opt_state, batch, k_sgd, lr)
         sgd_steps = jnp.sum(metrics.pop("sgd_steps"))
@@ -185,7 +239,8 @@ class Trainer:
             sgd_steps=sgd_steps,  # Adam steps applied (epochs x minibatches unless target_kl stopped them)
             learning_rate=lr,
         )
-        ts = ts.replace(params=params, opt_state=opt_state, env_state=env_state, key=key, iteration=ts.iteration + 1)
+        ts = ts.replace(params=params, opt_state=opt_state, env_state=self._constrain(env_state), key=key,
+                        iteration=ts.iteration + 1)
         return ts, metrics
 
     # ------------------------------------------------------------------------------------- validation

@@ -158,19 +158,19 @@ def total(value: float) -> float:
 
 def over_local_devices(fn, multiple: int = 1):
     """`fn(*args, batch)` jitted, its batch (the last argument, leaves (N, ...)) split over every local device: each
-    of the D devices runs `fn` on N/D consecutive elements (rounded up to a multiple of `multiple`, the batch padded
+    of the D devices runs `fn` on N/D consecutive elements, rounded up to a multiple of `multiple` (the batch padded
     with copies of its last element, which are cut off after), the other arguments on every device. `fn` must treat
-    each element of its batch alone (a vmap, a lax.map) and give leaves (N, ...). With one local device this is
-    `jax.jit(fn)`: the program unchanged."""
+    each element of its batch alone (a vmap) and give leaves (N, ...). With one device and `multiple` 1 this is
+    `jax.jit(fn)`."""
     import jax
     import jax.numpy as jnp
     from jax.sharding import Mesh, PartitionSpec
 
-    devices = jax.local_devices()
-    if len(devices) == 1:
-        return jax.jit(fn)
     if multiple < 1:
         raise ValueError(f"over_local_devices: multiple must be >= 1, got {multiple}")
+    devices = jax.local_devices()
+    if len(devices) == 1 and multiple == 1:
+        return jax.jit(fn)
     mesh = Mesh(np.array(devices), (BATCH_AXIS,))
 
     def split(*args):
@@ -178,9 +178,11 @@ def over_local_devices(fn, multiple: int = 1):
         n = jax.tree.leaves(batch)[0].shape[0]
         pad = -(-n // (len(devices) * multiple)) * multiple * len(devices) - n
         batch = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]), batch)
-        out = jax.shard_map(fn, mesh=mesh, in_specs=(*[PartitionSpec()] * len(rest), PartitionSpec(BATCH_AXIS)),
-                            out_specs=PartitionSpec(BATCH_AXIS), check_vma=False)(*rest, batch)  # no collectives:
-        # each device's elements alone (the check would ask every scan's constant carry to be marked per device)
+        if len(devices) == 1:
+            out = fn(*rest, batch)
+        else:  # no collectives: each device's elements alone (so no check that constant scan carries vary by device)
+            out = jax.shard_map(fn, mesh=mesh, in_specs=(*[PartitionSpec()] * len(rest), PartitionSpec(BATCH_AXIS)),
+                                out_specs=PartitionSpec(BATCH_AXIS), check_vma=False)(*rest, batch)
         return jax.tree.map(lambda x: x[:n], out)
 
     return jax.jit(split)

@@ -10,6 +10,7 @@ and L1-physics, built the same way for Fig. 4a, Fig. 4b, `envelope` and Table 1.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import pathlib
 import time
@@ -111,8 +112,8 @@ def dp_tables(sur: Surrogate, set_name: str, episodes: dict, batch_size: int = 4
               cache: pathlib.Path | None = TABLE_CACHE) -> dp.Table:
     """The stacked `dp.Table`s of named episodes, kept under `cache` (keyed by the episodes, the model files and
     the surrogate's configuration, so a change to any of them rebuilds; None: no cache). Builds `batch_size` at a
-    time."""
-    batch = scenario.stack(list(episodes.values()))
+    time on each local device; with several processes each builds its share of the batches."""
+    batch = sur.check(scenario.stack(list(episodes.values())))
     h = hashlib.sha256()
     for leaf in jax.tree.leaves(batch):
         h.update(np.asarray(leaf).tobytes())
@@ -127,8 +128,9 @@ def dp_tables(sur: Surrogate, set_name: str, episodes: dict, batch_size: int = 4
                 return dp.Table(**{k: jnp.asarray(d[k]) for k in d.files})
         except (OSError, ValueError, EOFError, zipfile.BadZipFile, TypeError) as e:  # truncated by a crash
             warnings.warn(f"{path}: the cached DP tables cannot be read ({e}): rebuilding them", stacklevel=2)
-    # several processes: each builds a contiguous share of whole batches (the programs one process runs, so the
-    # same tables to the last bit)
+    # each call builds one batch of `batch_size` on each local device (the last one filled up with copies), each
+    # process a contiguous share of the batches: whatever the process count, every table comes from the same
+    # program, to the last bit (over several local devices XLA's partitioned program: float rounding apart)
     n = len(episodes)
     batches = distributed.share(-(-n // batch_size))
     mine = range(min(batches.start * batch_size, n), min(batches.stop * batch_size, n))
@@ -137,16 +139,24 @@ def dp_tables(sur: Surrogate, set_name: str, episodes: dict, batch_size: int = 4
           + (f", episodes {mine.start + 1}-{mine.stop} in this process" if distributed.count() > 1 else "") + " ...",
           flush=True)
     t0 = time.perf_counter()
-    share = jax.tree.map(lambda x: x[mine.start:mine.stop], batch)
-    build = distributed.over_local_devices(lambda b: dp.build_tables(sur, b, batch_size), multiple=batch_size)
-    tables = jax.block_until_ready(build(share)) if len(mine) else None  # whole batches on each local device
-    if distributed.count() > 1:
-        parts = [t for t in distributed.gather(None if tables is None else jax.device_get(tables)) if t is not None]
-        tables = jax.tree.map(lambda *xs: jnp.concatenate([jnp.asarray(x) for x in xs]), *parts)
+    step, parts = batch_size * len(jax.local_devices()), []
+    for i in range(mine.start, mine.stop, step):  # every call `step` episodes (one program): the last filled up
+        idx = np.minimum(np.arange(i, i + step), mine.stop - 1)
+        tables = build_batches(batch_size)(sur, jax.tree.map(lambda x: x[idx], batch))
+        parts.append(jax.tree.map(lambda x: np.asarray(x)[:min(step, mine.stop - i)], tables))
+    parts = [part for share in distributed.gather(parts) for part in share]
+    tables = jax.tree.map(lambda *xs: jnp.concatenate([jnp.asarray(x) for x in xs]), *parts)
     print(f"  {time.perf_counter() - t0:.1f} s", flush=True)
     if path is not None and distributed.is_main():
         files.savez(path, **{k: np.asarray(v) for k, v in vars(tables).items() if v is not None})  # atomic
     return tables
+
+
+@functools.cache
+def build_batches(batch_size: int):
+    """`f(sur, episodes)`: the tables of up to `batch_size` x D stacked episodes (leaves (n, ...)), a batch of
+    `batch_size` on each of the D local devices (`distributed.over_local_devices`; jitted once per size)."""
+    return distributed.over_local_devices(jax.vmap(dp.build_table, (None, 0)), multiple=batch_size)
 
 
 def nominal_actions(sur: Surrogate) -> jax.Array:

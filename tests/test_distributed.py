@@ -69,36 +69,38 @@ def test_chunks_are_fixed_runs_of_size_whatever_the_processes():
         distributed.chunks(4, 0)
 
 
-TWO_DEVICES = '''
+DEVICES = '''
+import sys
 import jax, numpy as np
-from gsp_jax import dp, evaluation, ik, scenario, surrogate
+from gsp_jax import evaluation, ik, scenario, surrogate
 
-assert len(jax.local_devices()) == 2, jax.local_devices()
 sur = surrogate.Surrogate(ik_config=ik.IKConfig(lanes=False))
 episodes = {k: e.head(2) for k, e in list(scenario.episode_set("eval").items())[:3]}
-# three episodes in whole batches of two on each of two devices (one padded batch each), and on one device
-two = evaluation.dp_tables(sur, "eval", episodes, batch_size=2, cache=None)
-assert len(two.reward.sharding.device_set) == 2, two.reward.sharding  # built on both
-one = jax.jit(lambda b: dp.build_tables(sur, b, 2), device=jax.local_devices()[0])(scenario.stack(list(episodes.values())))
-np.savez("tables.npz", **{f"{k}_{n}": np.asarray(getattr(t, k)) for n, t in (("one", one), ("two", two))
-                          for k in ("reward", "ik_error", "next_grasp")})
+tables = evaluation.dp_tables(sur, "eval", episodes, batch_size=2, cache=None)
+n = int(sys.argv[1])
+batches = evaluation.build_batches(2)(sur, scenario.stack(list(episodes.values())[:1] * 2 * n))  # as dp_tables calls it
+assert len(jax.local_devices()) == len(batches.reward.sharding.device_set) == n
+np.savez(f"tables{sys.argv[1]}.npz", **{k: np.asarray(v) for k, v in vars(tables).items() if v is not None})
 '''
 
 
 def test_dp_tables_over_two_local_devices_equal_one_devices(tmp_path):
-    """One process with two (CPU) devices: a set's tables are built with the episode axis split over both
-    (`distributed.over_local_devices`, whole padded batches each), to one device's tables within the solvers'
-    precision (XLA fuses the per-device program for its own loop length: float reassociation only)."""
-    script = tmp_path / "two.py"
-    script.write_text(TWO_DEVICES)
-    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=900, cwd=tmp_path,
-                          env=dict(os.environ, JAX_PLATFORMS="cpu", JAX_NUM_CPU_DEVICES="2", GSP_JAX_CACHE="off"))
-    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
-    with np.load(tmp_path / "tables.npz") as t:
-        assert t["reward_two"].shape == t["reward_one"].shape and t["reward_one"].shape[0] == 3
-        n = t["reward_one"].size
-        tol.assert_close_with_rare_ties(t["ik_error_two"], t["ik_error_one"], tol.IK_ATOL, "ik_error",
-                                        tol.small_sample_tie_fraction(n))
-        tol.assert_close_with_rare_ties(t["reward_two"], t["reward_one"], tol.REWARD_ATOL, "reward",
-                                        tol.small_sample_tie_fraction(n))
-        assert np.array_equal(t["next_grasp_two"], t["next_grasp_one"])
+    """One process with two (CPU) devices builds a set's tables with the episodes split over both (a batch of two
+    on each per call, the last one filled up: `distributed.over_local_devices`): one device's tables, the IK to the
+    last bit and the rewards within the solvers' precision (XLA's partitioned program fuses the wrench terms
+    otherwise: float reassociation only)."""
+    script = tmp_path / "devices.py"
+    script.write_text(DEVICES)
+    for n in (1, 2):
+        proc = subprocess.run([sys.executable, str(script), str(n)], capture_output=True, text=True, timeout=900,
+                              cwd=tmp_path, env=dict(os.environ, JAX_PLATFORMS="cpu", JAX_NUM_CPU_DEVICES=str(n),
+                                                     GSP_JAX_CACHE="off"))
+        assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
+    with np.load(tmp_path / "tables1.npz") as one, np.load(tmp_path / "tables2.npz") as two:
+        assert sorted(one.files) == sorted(two.files) and one["reward"].shape[0] == 3
+        for field in ("next_grasp", "terminal"):
+            assert np.array_equal(one[field], two[field]), field
+        tol.assert_close_with_rare_ties(two["ik_error"], one["ik_error"], tol.IK_ATOL, "ik_error",
+                                        tol.small_sample_tie_fraction(one["ik_error"].size))
+        tol.assert_close_with_rare_ties(two["reward"], one["reward"], tol.REWARD_ATOL, "reward",
+                                        tol.small_sample_tie_fraction(one["reward"].size))

@@ -7,9 +7,11 @@ processes they share): the work of N hosts of one GPU and C cores each. Every ru
 1. a physics sweep: `--episodes` tools and tasks drawn from the corpus distribution (wider than the stress set) x
    two sequences (the four tips, one tip) in C MuJoCo, in fixed chunks of `--chunk` episodes shared between the
    processes: episodes/s;
-2. DP tables of `--tables` such episodes, in whole batches of `--batch` shared between the processes: tables/s;
+2. DP tables of `--tables` such episodes (`evaluation.dp_tables`), in whole batches of `--batch` shared between
+   the processes: tables/s;
 3. PPO (table backend), the data-parallel trainer over every process's device, `--envs` environments per
-   process: environment steps/s of `--iterations` iterations.
+   process: environment steps/s of `--iterations` iterations (not where processes share a GPU: NCCL takes one
+   process per GPU).
 
 Each process compiles (runs its share once) before the clocks start; a figure is the time from a barrier to the
 next, so the slowest process's. Prints, per N, the three rates, the speed-up and the efficiency (speed-up / N)
@@ -77,11 +79,8 @@ def worker(args: argparse.Namespace) -> None:
     import jax.numpy as jnp
     import numpy as np
 
-    from gsp_jax import distributed, dp, evaluation, physics, policies, scenario
-    from gsp_jax.env import GraspEnv
+    from gsp_jax import distributed, evaluation, physics, policies, scenario
     from gsp_jax.physics import corpus
-    from gsp_jax.ppo import networks as nets
-    from gsp_jax.ppo import train as ppo
 
     phys = physics.Physics()
     sur = phys.surrogate
@@ -106,32 +105,51 @@ def worker(args: argparse.Namespace) -> None:
     if mine:
         phys.simulate_many(groups, pick(mine[0]), backend="c")  # compile the controller and the decisions
     physics_s = _clocked("physics", sweep)
-    fell = np.concatenate([out[k] for part in distributed.gather(out) for k in sorted(part)], axis=1)
+    fell = np.concatenate([part[k] for part in distributed.gather(out) for k in sorted(part)], axis=1)
 
-    # 2. DP tables: this process's whole batches, built once to compile, then clocked
+    # 2. DP tables of a set (`evaluation.dp_tables`: each process its whole batches, gathered): once to compile,
+    # then clocked
     eps = cut(corpus.draw(corpus.Distribution(), args.seed + 1, args.tables, sur.model))
     dp_batch = scenario.stack(list(eps.values()))
-    batches = distributed.share(-(-args.tables // args.batch))
-    share = range(min(batches.start * args.batch, args.tables), min(batches.stop * args.batch, args.tables))
-    build = jax.jit(lambda b: dp.build_tables(sur, b, args.batch), device=jax.local_devices()[0])
-    mine_eps = jax.tree.map(lambda x: x[share.start:share.stop], dp_batch)
-    tables = None
-    if len(share):
-        tables = jax.block_until_ready(build(mine_eps))
+    evaluation.dp_tables(sur, "bench-scale", eps, batch_size=args.batch, cache=None)
+    made = {}
+    tables_s = _clocked("tables", lambda: made.update(
+        tables=evaluation.dp_tables(sur, "bench-scale", eps, batch_size=args.batch, cache=None)))
+    all_tables = made["tables"]
 
-    def tables_again():
-        if len(share):
-            jax.block_until_ready(build(mine_eps))
+    # 3. PPO on those tables, the environments split over every process's device (not where processes share a
+    # GPU: NCCL takes one process per GPU)
+    gpus = distributed.gather(os.environ.get("CUDA_VISIBLE_DEVICES"))
+    if jax.default_backend() == "gpu" and len(set(gpus)) < P:
+        ppo_s, steps, envs = float("nan"), 0, 0
+    else:
+        ppo_s, steps, envs = _ppo(args, sur, dp_batch, all_tables, T)
+    if not distributed.is_main():
+        return
+    device = jax.local_devices()[0]
+    result = dict(processes=P, cores_each=len(os.sched_getaffinity(0)), device=f"{device.device_kind} ({device.platform})",
+                  physics_s=physics_s, physics_episodes=int(fell.size), physics_falls=int(fell.sum()),
+                  physics_digest=_digest(fell), tables_s=tables_s, tables=args.tables,
+                  tables_digest=_digest(np.asarray(all_tables.reward), np.asarray(all_tables.ik_error)),
+                  ppo_s=ppo_s, ppo_env_steps=steps, ppo_envs=envs)
+    pathlib.Path(args.worker).write_text(json.dumps(result))
 
-    tables_s = _clocked("tables", tables_again)
-    parts = [t for t in distributed.gather(None if tables is None else jax.device_get(tables)) if t is not None]
-    all_tables = jax.tree.map(lambda *xs: jnp.concatenate([jnp.asarray(x) for x in xs]), *parts)
 
-    # 3. PPO on those tables, the environments split over every process's device
-    env = GraspEnv(sur, dp_batch, all_tables)
-    eval_env = GraspEnv(sur, dp_batch, all_tables, auto_reset=False)
+def _ppo(args, sur, episodes, tables, T: int) -> tuple[float, int, int]:
+    """(seconds, environment steps, environments) of `--iterations` PPO iterations after a first (compiling) one,
+    the environments split over every process's device."""
+    import jax
+
+    from gsp_jax import distributed
+    from gsp_jax.env import GraspEnv
+    from gsp_jax.ppo import networks as nets
+    from gsp_jax.ppo import train as ppo
+
+    env = GraspEnv(sur, episodes, tables)
+    eval_env = GraspEnv(sur, episodes, tables, auto_reset=False)
     networks = nets.make_networks(env.observation_size, env.action_size, nets.NetworkConfig(hidden=(256, 256, 256)))
-    cfg = ppo.PPOConfig(n_envs=args.envs * P, unroll=T, minibatches=8, max_iterations=args.iterations + 1)
+    cfg = ppo.PPOConfig(n_envs=args.envs * distributed.count(), unroll=T, minibatches=8,
+                        max_iterations=args.iterations + 1)
     trainer = ppo.Trainer(env, networks, cfg, {"val": eval_env})
     state = {"ts": jax.block_until_ready(trainer.iteration(trainer.init(jax.random.PRNGKey(args.seed)))[0])}
 
@@ -140,16 +158,7 @@ def worker(args: argparse.Namespace) -> None:
             state["ts"] = trainer.iteration(state["ts"])[0]
         jax.block_until_ready(state["ts"])
 
-    ppo_s = _clocked("ppo", iterations)
-    if not distributed.is_main():
-        return
-    device = jax.local_devices()[0]
-    result = dict(processes=P, cores_each=len(os.sched_getaffinity(0)), device=f"{device.device_kind} ({device.platform})",
-                  physics_s=physics_s, physics_episodes=int(fell.size), physics_falls=int(fell.sum()),
-                  physics_digest=_digest(fell), tables_s=tables_s, tables=args.tables,
-                  tables_digest=_digest(np.asarray(all_tables.reward), np.asarray(all_tables.ik_error)),
-                  ppo_s=ppo_s, ppo_env_steps=args.iterations * cfg.n_envs * cfg.unroll, ppo_envs=cfg.n_envs)
-    pathlib.Path(args.worker).write_text(json.dumps(result))
+    return _clocked("ppo", iterations), args.iterations * cfg.n_envs * cfg.unroll, cfg.n_envs
 
 
 # ------------------------------------------------------------------------------------------------ the runs
@@ -193,8 +202,8 @@ def main(args: argparse.Namespace) -> None:
         runs[n] = json.loads(path.read_text())
         print(f"  {n} process{'es' * (n > 1)}: done in {time.perf_counter() - t0:.0f} s", flush=True)
     one = runs[counts[0]]
-    rate = lambda r, k: r[f"{k}_episodes" if k == "physics" else ("tables" if k == "tables" else "ppo_env_steps")] \
-        / r[f"{k}_s"]  # noqa: E731
+    counted = dict(physics="physics_episodes", tables="tables", ppo="ppo_env_steps")
+    rate = lambda r, k: r[counted[k]] / r[f"{k}_s"] if r[counted[k]] else float("nan")  # noqa: E731
     rows, figures = [], {}
     for n, r in runs.items():
         row = [n]

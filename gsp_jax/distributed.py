@@ -23,6 +23,7 @@ SHUTDOWN_TIMEOUT_S = 24 * 3600  # [s] a finished process waits this long at exit
 # the results after the last gather: the others wait for it, not the reverse)
 
 BATCH_AXIS = "batch"  # the mesh axis of `over_local_devices`
+PIECE_BYTES = 1 << 20  # [bytes] `gather` moves a value through the runtime's key-value store in pieces of this size
 BARRIER_TIMEOUT_S = 24 * 3600  # [s] the longest a process waits for the others at a barrier (one shard's work)
 
 _started = False
@@ -123,20 +124,39 @@ def share(n: int) -> range:
 
 def gather(obj) -> list:
     """Every process's `obj` (anything pickle writes: numpy arrays travel bit for bit), in process order, on every
-    process; [obj] for one process. Every process must call it, in the same order."""
+    process; [obj] for one process. Every process must call it, in the same order. The bytes go through the
+    runtime's key-value store (in pieces of `PIECE_BYTES`), not through device collectives: this works on any
+    platform, and where several processes share one GPU (which NCCL refuses)."""
     if count() == 1:
         return [obj]
     import pickle
 
-    from jax.experimental import multihost_utils
+    client = _client()
+    _calls["gather/values"] = call = _calls.get("gather/values", 0) + 1
+    raw = pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)
+    mine = f"gsp_jax/gather/{call}/{rank()}"
+    pieces = range(0, max(len(raw), 1), PIECE_BYTES)
+    for i, start in enumerate(pieces):
+        client.key_value_set_bytes(f"{mine}/{i}", raw[start:start + PIECE_BYTES])
+    client.key_value_set(f"{mine}/pieces", str(len(pieces)))  # last: a reader that sees it finds every piece
+    wait = BARRIER_TIMEOUT_S * 1000
+    out = []
+    for p in range(count()):
+        key = f"gsp_jax/gather/{call}/{p}"
+        n = int(client.blocking_key_value_get(f"{key}/pieces", wait))
+        out.append(pickle.loads(b"".join(client.blocking_key_value_get_bytes(f"{key}/{i}", wait) for i in range(n))))
+    barrier("gather")  # every process has read every piece: each removes its own
+    for i in range(len(pieces)):
+        client.key_value_delete(f"{mine}/{i}")
+    client.key_value_delete(f"{mine}/pieces")
+    return out
 
-    barrier("gather")  # the processes arrive at different times; the collectives below expect them within seconds
-    raw = np.frombuffer(pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL), np.uint8)
-    lengths = np.asarray(multihost_utils.process_allgather(np.array([raw.size], np.int32))).ravel()
-    padded = np.zeros(int(lengths.max()), np.uint8)
-    padded[:raw.size] = raw
-    every = np.asarray(multihost_utils.process_allgather(padded))  # (P, longest)
-    return [pickle.loads(every[p, :int(lengths[p])].tobytes()) for p in range(count())]
+
+def _client():
+    """The distributed runtime's client (its key-value store and barriers)."""
+    from jax._src import distributed as jax_distributed
+
+    return jax_distributed.global_state.client
 
 
 def barrier(name: str) -> None:
@@ -145,10 +165,8 @@ def barrier(name: str) -> None:
     heartbeat). Nothing for one process."""
     if count() == 1:
         return
-    from jax._src import distributed as jax_distributed  # the runtime's client: its barrier has a timeout of ours
-
     _calls[name] = _calls.get(name, 0) + 1
-    jax_distributed.global_state.client.wait_at_barrier(f"gsp_jax/{name}/{_calls[name]}", BARRIER_TIMEOUT_S * 1000)
+    _client().wait_at_barrier(f"gsp_jax/{name}/{_calls[name]}", BARRIER_TIMEOUT_S * 1000)  # a timeout of ours
 
 
 def total(value: float) -> float:

@@ -104,3 +104,37 @@ def test_dp_tables_over_two_local_devices_equal_one_devices(tmp_path):
                                         tol.small_sample_tie_fraction(one["ik_error"].size))
         tol.assert_close_with_rare_ties(two["reward"], one["reward"], tol.REWARD_ATOL, "reward",
                                         tol.small_sample_tie_fraction(one["reward"].size))
+
+
+GATHER = '''
+import numpy as np
+from gsp_jax import distributed
+
+assert distributed.initialize() and distributed.count() == 2
+p = distributed.rank()
+big = np.arange(3 * distributed.PIECE_BYTES // 8 + 5, dtype=np.float64) * (p + 1)  # three pieces and a bit
+for _ in range(2):  # a second gather of the same shape: its own keys
+    every = distributed.gather({"rank": p, "big": big, "empty": b""})
+    assert [e["rank"] for e in every] == [0, 1]
+    for q, e in enumerate(every):
+        assert np.array_equal(e["big"], np.arange(big.size, dtype=np.float64) * (q + 1)) and e["empty"] == b""
+assert distributed.gather(None) == [None, None] and distributed.total(p + 0.5) == 2.0
+print("gathered", p)
+'''
+
+
+def test_gather_moves_values_larger_than_a_piece_bit_for_bit_between_two_processes(tmp_path):
+    """Two processes of one runtime (CPU): `gather` returns both processes' values in rank order on each, a value of
+    several key-value pieces intact, twice in a row and for None."""
+    from experiments.processes import free_port
+
+    script = tmp_path / "gather.py"
+    script.write_text(GATHER)
+    env = dict(os.environ, JAX_PLATFORMS="cpu", **{distributed.ENV_COORDINATOR: f"127.0.0.1:{free_port()}",
+                                                   distributed.ENV_NUM_PROCESSES: "2"})
+    procs = [subprocess.Popen([sys.executable, str(script)], cwd=tmp_path, stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True, env=dict(env, **{distributed.ENV_PROCESS_ID: str(p)}))
+             for p in range(2)]
+    outs = [proc.communicate(timeout=300)[0] for proc in procs]
+    for p, (proc, out) in enumerate(zip(procs, outs)):
+        assert proc.returncode == 0 and f"gathered {p}" in out, out[-3000:]

@@ -86,9 +86,13 @@ def test_the_library_has_no_import_circle():
     assert _cycles(graph) == []
 
 
+SHARED = ("experiments", "experiments.common", "experiments.processes")  # what every command may import
+
+
 def test_commands_import_the_library_and_common_only():
     """Every command module (and a command package's own modules) imports from `experiments` only
-    `experiments.common` and its own package, and no name of `gsp_jax` that starts with an underscore."""
+    `experiments.common`, the process launcher `experiments.processes` and its own package, and no name of `gsp_jax`
+    that starts with an underscore."""
     from experiments.__main__ import COMMANDS
 
     commands = {path for path, _ in COMMANDS.values()}
@@ -104,7 +108,7 @@ def test_commands_import_the_library_and_common_only():
             target = f"{base}.{name}" if f"{base}.{name}" in modules else base
             if base.startswith("gsp_jax") and (name.startswith("_") or any(p.startswith("_") for p in base.split("."))):
                 wrong.append(f"{mod}: {target} (private)")
-            elif target.startswith("experiments") and target not in ("experiments", "experiments.common") and not (
+            elif target.startswith("experiments") and target not in SHARED and not (
                     own and (target == own or target.startswith(own + "."))):
                 wrong.append(f"{mod}: {target}")
     assert not wrong, "\n".join(wrong)

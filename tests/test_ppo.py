@@ -522,10 +522,20 @@ out = {}
 # the same seed twice on two devices: the same curve, to the last bit
 cfg = dataclasses.replace(CONFIG, max_iterations=8, eval_every=4)
 two = ppo.Trainer(env, networks, cfg, {"val": eval_env})
-runs = [ppo.train(two, seed=3, progress=False) for _ in range(2)]
+runs = [ppo.train(two, seed=3, progress=False, checkpoint_dir=f"full{i}") for i in range(2)]
 strip = lambda h: [{k: v for k, v in r.items() if k != "wall_s"} for r in h]
 out["repeat_equal"] = strip(runs[0].history) == strip(runs[1].history)
 out["env_devices"] = len(runs[0].state.env_state.obs.sharding.device_set)
+# stopped at 4 and resumed on two devices: the uninterrupted curve; resumed on one device: it continues
+ppo.train(two, seed=3, progress=False, checkpoint_dir="stopped", stop_after=4)
+import shutil
+shutil.copytree("stopped", "stopped_one")
+out["resumed_equal"] = strip(ppo.train(two, seed=3, progress=False, checkpoint_dir="stopped").history) == strip(
+    runs[0].history)
+one = ppo.train(ppo.Trainer(env, networks, cfg, {"val": eval_env}, devices=jax.devices()[:1]), seed=3,
+                progress=False, checkpoint_dir="stopped_one")
+out["one_device_iterations"] = [h["iteration"] for h in one.history]
+out["one_device_prefix_equal"] = strip(one.history[:5]) == strip(runs[0].history[:5])
 # one whole-batch Adam step from the same start: the mean gradient over both devices' environments is the one
 # device's gradient over all of them (the rows in another order: float rounding only)
 step = dataclasses.replace(CONFIG, epochs=1, minibatches=1, target_kl=None)
@@ -549,8 +559,9 @@ print("RESULT " + json.dumps(out))
 
 def test_data_parallel_on_two_devices_is_deterministic_and_averages_gradients_over_both(tmp_path):
     """PPO with its environments split over two (CPU) devices: the same seed gives the same curve twice, the
-    environments live on both devices, and one whole-batch Adam step equals one device's step over the same
-    environments (float rounding only: the all-reduced gradient is the mean over every device's rows)."""
+    environments live on both devices, a checkpoint resumes the run bit for bit (and on one device), and one
+    whole-batch Adam step equals one device's step over the same environments (float rounding only: the
+    all-reduced gradient is the mean over every device's rows)."""
     script = tmp_path / "two.py"
     script.write_text(TWO_DEVICES)
     proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=900, cwd=tmp_path,
@@ -560,6 +571,8 @@ def test_data_parallel_on_two_devices_is_deterministic_and_averages_gradients_ov
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
     out = json.loads(proc.stdout.split("RESULT ", 1)[1])
     assert out["repeat_equal"] and out["env_devices"] == 2
+    assert out["resumed_equal"]  # a checkpoint of a run split over two devices resumes it bit for bit
+    assert out["one_device_iterations"] == list(range(9)) and out["one_device_prefix_equal"]  # and on one device
     assert out["moved"] > 1e-4  # the step moved the weights ...
     assert out["step_max_diff"] < 1e-6 + 1e-3 * out["moved"], out  # ... and both ways the same
     assert "63 environments" in out["error"] and "2 devices" in out["error"], out["error"]

@@ -5,7 +5,8 @@ cycles them), validated on the validation set with the deterministic policy, ear
 Writes, per run, results/train/<pretrain>/seed<k>/: history.json (per iteration: stochastic training return,
 deterministic validation and training-set returns, losses, env steps, wall time), policy/ (the best validated
 policy, orbax), checkpoints/ (the run resumes from there when started again); and results/train/reference.json
-(the DP returns to compare with). Steps are exact table lookups of the surrogate (see gsp_jax/env.py).
+(the DP returns to compare with). Steps are exact table lookups of the surrogate (see gsp_jax/env.py). On a host
+with several GPUs the environments are split over all of them (`gsp_jax.ppo.train`: data-parallel).
 """
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ import jax
 import numpy as np
 
 from experiments.common import results_dir, table
-from gsp_jax import files
+from gsp_jax import distributed, files
 from gsp_jax.ppo.pipeline import PRESETS, run_seed, setup
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -35,6 +36,9 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 
 
 def main(args: argparse.Namespace) -> None:
+    if distributed.count() > 1:
+        raise SystemExit("train: runs as one process (one writer of its checkpoints and policies); one process "
+                         "already splits the environments over every GPU of its host (docs/scale.md)")
     preset = args.preset or ("full" if jax.default_backend() == "gpu" else "quick")
     s = setup(preset, args.iterations, args.envs, args.patience)
     root = results_dir(args.out)  # results/train-<model> for another model: where evaluation.load_rl looks

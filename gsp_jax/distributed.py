@@ -152,6 +152,16 @@ def gather(obj) -> list:
     return out
 
 
+def gather_joined(mine: list) -> list:
+    """Every process's list, joined in process order (`gather`): with contiguous shares, the whole list in order."""
+    return [item for part in gather(mine) for item in part]
+
+
+def gather_merged(mine: dict) -> dict:
+    """Every process's dict merged into one (`gather`; the processes' keys are apart, e.g. their chunks' indices)."""
+    return {key: value for part in gather(mine) for key, value in part.items()}
+
+
 def _client():
     """The distributed runtime's client (its key-value store and barriers)."""
     from jax._src import distributed as jax_distributed
@@ -174,33 +184,28 @@ def total(value: float) -> float:
     return float(sum(gather(float(value))))
 
 
-def over_local_devices(fn, multiple: int = 1):
+def over_local_devices(fn):
     """`fn(*args, batch)` jitted, its batch (the last argument, leaves (N, ...)) split over every local device: each
-    of the D devices runs `fn` on N/D consecutive elements, rounded up to a multiple of `multiple` (the batch padded
-    with copies of its last element, which are cut off after), the other arguments on every device. `fn` must treat
-    each element of its batch alone (a vmap) and give leaves (N, ...). With one device and `multiple` 1 this is
-    `jax.jit(fn)`."""
+    of the D devices runs `fn` on ceil(N / D) consecutive elements (the batch padded with copies of its last
+    element, which are cut off after), the other arguments on every device. `fn` must treat each element of its
+    batch alone (a vmap) and give leaves (N, ...). With one device this is `jax.jit(fn)`."""
     import jax
     import jax.numpy as jnp
     from jax.sharding import Mesh, PartitionSpec
 
-    if multiple < 1:
-        raise ValueError(f"over_local_devices: multiple must be >= 1, got {multiple}")
     devices = jax.local_devices()
-    if len(devices) == 1 and multiple == 1:
+    if len(devices) == 1:
         return jax.jit(fn)
     mesh = Mesh(np.array(devices), (BATCH_AXIS,))
 
     def split(*args):
         *rest, batch = args
         n = jax.tree.leaves(batch)[0].shape[0]
-        pad = -(-n // (len(devices) * multiple)) * multiple * len(devices) - n
+        pad = -n % len(devices)
         batch = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]), batch)
-        if len(devices) == 1:
-            out = fn(*rest, batch)
-        else:  # no collectives: each device's elements alone (so no check that constant scan carries vary by device)
-            out = jax.shard_map(fn, mesh=mesh, in_specs=(*[PartitionSpec()] * len(rest), PartitionSpec(BATCH_AXIS)),
-                                out_specs=PartitionSpec(BATCH_AXIS), check_vma=False)(*rest, batch)
+        # no collectives: each device's elements alone (so no check that constant scan carries vary by device)
+        out = jax.shard_map(fn, mesh=mesh, in_specs=(*[PartitionSpec()] * len(rest), PartitionSpec(BATCH_AXIS)),
+                            out_specs=PartitionSpec(BATCH_AXIS), check_vma=False)(*rest, batch)
         return jax.tree.map(lambda x: x[:n], out)
 
     return jax.jit(split)

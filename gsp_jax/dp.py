@@ -108,16 +108,9 @@ def table_from_terms(sur: Surrogate, episode: Episode, plain: RewardTerms, conta
 
 def build_tables(sur: Surrogate, episodes: Episode, batch_size: int | None = None) -> Table:
     """Tables of a stacked episode set (leaves (N, ...)), `batch_size` episodes at a time (`lax.map`: one
-    compilation, bounded memory; None = all at once). The last batch is filled up with copies of the last episode
-    (cut off after), so every episode is built in a batch of `batch_size`: one program, and an episode's table does
-    not depend on where in the set it is. Concrete episodes are checked first (`Surrogate.check`)."""
+    compilation, bounded memory; None = all at once). Concrete episodes are checked first (`Surrogate.check`)."""
     episodes = sur.check(episodes)
-    n = jax.tree.leaves(episodes)[0].shape[0]
-    pad = 0 if batch_size is None else -n % batch_size
-    if pad:
-        episodes = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]), episodes)
-    tables = jax.lax.map(lambda ep: build_table(sur, ep), episodes, batch_size=batch_size)
-    return jax.tree.map(lambda x: x[:n], tables) if pad else tables
+    return jax.lax.map(lambda ep: build_table(sur, ep), episodes, batch_size=batch_size)
 
 
 def backup(table: Table, start_grasp: jax.Array) -> Solution:

@@ -142,9 +142,9 @@ def dp_tables(sur: Surrogate, set_name: str, episodes: dict, batch_size: int = 4
     step, parts = batch_size * len(jax.local_devices()), []
     for i in range(mine.start, mine.stop, step):  # every call `step` episodes (one program): the last filled up
         idx = np.minimum(np.arange(i, i + step), mine.stop - 1)
-        tables = build_batches(batch_size)(sur, jax.tree.map(lambda x: x[idx], batch))
+        tables = table_builder()(sur, jax.tree.map(lambda x: x[idx], batch))
         parts.append(jax.tree.map(lambda x: np.asarray(x)[:min(step, mine.stop - i)], tables))
-    parts = [part for share in distributed.gather(parts) for part in share]
+    parts = distributed.gather_joined(parts)
     tables = jax.tree.map(lambda *xs: jnp.concatenate([jnp.asarray(x) for x in xs]), *parts)
     print(f"  {time.perf_counter() - t0:.1f} s", flush=True)
     if path is not None and distributed.is_main():
@@ -153,10 +153,10 @@ def dp_tables(sur: Surrogate, set_name: str, episodes: dict, batch_size: int = 4
 
 
 @functools.cache
-def build_batches(batch_size: int):
-    """`f(sur, episodes)`: the tables of up to `batch_size` x D stacked episodes (leaves (n, ...)), a batch of
-    `batch_size` on each of the D local devices (`distributed.over_local_devices`; jitted once per size)."""
-    return distributed.over_local_devices(jax.vmap(dp.build_table, (None, 0)), multiple=batch_size)
+def table_builder():
+    """`f(sur, episodes)`: the tables of stacked episodes (leaves (n, ...)), split over the local devices
+    (`distributed.over_local_devices`); one jitted function for the process."""
+    return distributed.over_local_devices(jax.vmap(dp.build_table, (None, 0)))
 
 
 def nominal_actions(sur: Surrogate) -> jax.Array:

@@ -78,7 +78,7 @@ sur = surrogate.Surrogate(ik_config=ik.IKConfig(lanes=False))
 episodes = {k: e.head(2) for k, e in list(scenario.episode_set("eval").items())[:3]}
 tables = evaluation.dp_tables(sur, "eval", episodes, batch_size=2, cache=None)
 n = int(sys.argv[1])
-batches = evaluation.build_batches(2)(sur, scenario.stack(list(episodes.values())[:1] * 2 * n))  # as dp_tables calls it
+batches = evaluation.table_builder()(sur, scenario.stack(list(episodes.values())[:1] * 2 * n))  # as dp_tables calls it
 assert len(jax.local_devices()) == len(batches.reward.sharding.device_set) == n
 np.savez(f"tables{sys.argv[1]}.npz", **{k: np.asarray(v) for k, v in vars(tables).items() if v is not None})
 '''

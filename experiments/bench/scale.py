@@ -105,7 +105,8 @@ def worker(args: argparse.Namespace) -> None:
     if mine:
         phys.simulate_many(groups, pick(mine[0]), backend="c")  # compile the controller and the decisions
     physics_s = _clocked("physics", sweep)
-    fell = np.concatenate([part[k] for part in distributed.gather(out) for k in sorted(part)], axis=1)
+    every = distributed.gather_merged(out)
+    fell = np.concatenate([every[k] for k in sorted(every)], axis=1)
 
     # 2. DP tables of a set (`evaluation.dp_tables`: each process its whole batches, gathered): once to compile,
     # then clocked
@@ -127,7 +128,8 @@ def worker(args: argparse.Namespace) -> None:
     if not distributed.is_main():
         return
     device = jax.local_devices()[0]
-    result = dict(processes=P, cores_each=len(os.sched_getaffinity(0)), device=f"{device.device_kind} ({device.platform})",
+    result = dict(processes=P, cores_each=len(os.sched_getaffinity(0)),
+                  device=f"{device.device_kind} ({device.platform})",
                   physics_s=physics_s, physics_episodes=int(fell.size), physics_falls=int(fell.sum()),
                   physics_digest=_digest(fell), tables_s=tables_s, tables=args.tables,
                   tables_digest=_digest(np.asarray(all_tables.reward), np.asarray(all_tables.ik_error)),

@@ -34,7 +34,7 @@ def solve_set(env, episodes: dict, chunk: int, desc: str = "DP"):
     for i in tqdm([starts[c] for c in mine], desc=desc, unit="chunk"):
         batch = scenario.stack([episodes[n] for n in names[i : i + chunk]])
         parts.append(jax.device_get(solve(batch)))
-    parts = [p for share in distributed.gather(parts) for p in share]  # in chunk order
+    parts = distributed.gather_joined(parts)  # in chunk order
     tables, sols = zip(*parts)
     cat = lambda parts: jax.tree.map(lambda *x: np.concatenate(x), *parts)  # noqa: E731
     return names, cat(tables), cat(sols)

@@ -56,13 +56,13 @@ def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str =
     MuJoCo the episodes in chunks of `chunk` (`lockstep`; default: one chunk per process). With several processes
     only process 0 saves and returns the results (the others return {})."""
     phys = physics.Physics(ctx.surrogate)
-    n = len(ctx.names)
-    chunk = -(-n // distributed.count()) if chunk is None else chunk
+    n_episodes = len(ctx.names)
+    chunk = -(-n_episodes // distributed.count()) if chunk is None else chunk
     if chunk < 1:
         raise ValueError(f"chunk (--chunk) must be >= 1, got {chunk}")
     stamp = f"{common.fingerprint(ctx)}-{backend}" + ("" if cached else "-continuous") + (
         f"-k{k}-" + "+".join(bases) if any("bases" in planners.get(n).options for n in names) else "") + (
-        f"-chunk{chunk}" if backend == "c" and chunk < n else "")
+        f"-chunk{chunk}" if backend == "c" and chunk < n_episodes else "")
     jobs = 1 if jobs is None else jobs
     if jobs < 1:
         raise ValueError(f"jobs (--jobs) must be >= 1, got {jobs}")
@@ -117,7 +117,7 @@ def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str =
         with ThreadPoolExecutor(max_workers=jobs) as pool:
             done = dict(zip(todo, pool.map(simulate, todo)))
     if todo:
-        lockstep_s = -(-n // chunk)
+        lockstep_s = -(-n_episodes // chunk)
         how = (f"{lockstep_s} lockstep{'s' * (lockstep_s > 1)}" if backend == "c" else f"{jobs} at a time")
         print(f"  {len(todo)} policies in {time.perf_counter() - t0:.1f} s ({how}, compile included)", flush=True)
     results = {name: results.get(name) or done[name] for name in names}
@@ -143,7 +143,7 @@ def lockstep(ctx: evaluation.Context, phys: physics.Physics, names, options: dic
         done[c] = [jax.tree.map(np.asarray, r) for r in phys.simulate_many(made, sub.batch, backend="c",
                                                                            progress=True)]
     if shared:
-        done = {c: r for part in distributed.gather(done) for c, r in part.items()}
+        done = distributed.gather_merged(done)
     return [jax.tree.map(lambda *xs: np.concatenate(xs), *(done[c][i] for c in range(len(pieces))))
             for i in range(len(names))]
 

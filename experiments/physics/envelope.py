@@ -179,7 +179,7 @@ def main(args: argparse.Namespace) -> None:
             print(stopped(idx, N, c, len(pieces), e, kept, folder), file=sys.stderr, flush=True)
             raise
         done[c] = part
-    done = {c: part for parts in distributed.gather(done) for c, part in parts.items()}  # every process's chunks
+    done = distributed.gather_merged(done)  # every process's chunks
     if not distributed.is_main():
         return  # process 0 classifies, writes and records
     sim = {k: np.concatenate([done[c][k] for c in range(len(pieces))], axis=1) for k in FIELDS}

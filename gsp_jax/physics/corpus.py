@@ -313,7 +313,7 @@ def extend(store: Store, phys, seeds, episodes: int, n_random: int = 4, n_pertur
         mine = todo[r:r + P][distributed.rank():distributed.rank() + 1]
         made = [store.put(seed, shard(phys, seed, episodes, dist, n_random, n_perturbed, cores, progress, n_steps))
                 for seed in mine]
-        made = [m for part in distributed.gather(made) for m in part]
+        made = distributed.gather_joined(made)
         if distributed.is_main():
             store.commit(made)
         else:

@@ -105,15 +105,11 @@ class Trainer:
         self._record = jax.jit(self._record_eval)
 
     # --------------------------------------------------------------------------------------- devices
-    def _split_envs(self, axis: int = 0):
-        """The sharding of arrays whose `axis` runs over the environments (None on one device)."""
-        return None if self.mesh is None else NamedSharding(self.mesh, PartitionSpec(*[None] * axis, ENV_AXIS))
-
     def _constrain(self, tree, axis: int = 0):
         """`tree` with its leaves split over the devices along `axis` (unchanged on one device)."""
         if self.mesh is None:
             return tree
-        return jax.lax.with_sharding_constraint(tree, self._split_envs(axis))
+        return jax.lax.with_sharding_constraint(tree, NamedSharding(self.mesh, PartitionSpec(*[None] * axis, ENV_AXIS)))
 
     # ------------------------------------------------------------------------------------------ state
     def init(self, key: jax.Array, params: nets.Params | None = None) -> TrainState:

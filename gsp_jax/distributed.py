@@ -162,6 +162,27 @@ def gather_merged(mine: dict) -> dict:
     return {key: value for part in gather(mine) for key, value in part.items()}
 
 
+def map_chunks(fn, n: int, size: int, shared: bool = True, what: str = "items"):
+    """`fn(idx)` over the fixed chunks of n items (`chunks`), joined along every leaf's first axis in chunk order:
+    `fn(idx)` gives a pytree whose leaves are arrays (len(idx), ...) (numpy: they are gathered). With several
+    processes (`shared`) each runs its share of the chunks (`share`) and every process gets the whole (`gather`):
+    each chunk runs the same program on the same inputs, so the result is one process's, bit for bit. `what` names
+    the items in the line each process prints."""
+    import jax
+
+    if n < 1:
+        raise ValueError(f"map_chunks: needs n >= 1 items, got {n}")
+    pieces = chunks(n, size)
+    mine = share(len(pieces)) if shared else range(len(pieces))
+    if shared and count() > 1:
+        print(f"  process {rank()} of {count()} runs chunks {mine.start + 1}-{mine.stop} of {len(pieces)} "
+              f"({size} {what} each)", flush=True)
+    done = {c: jax.tree.map(np.asarray, fn(pieces[c])) for c in mine}
+    if shared:
+        done = gather_merged(done)
+    return jax.tree.map(lambda *xs: np.concatenate(xs), *(done[c] for c in range(len(pieces))))
+
+
 def _client():
     """The distributed runtime's client (its key-value store and barriers)."""
     from jax._src import distributed as jax_distributed

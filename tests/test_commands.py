@@ -44,7 +44,9 @@ QUICKEST = {
                 (["physics", "--set", "nominal", "--policy", "four-tips", "--backend", "mjx"],
                  ["results/physics/nominal_four-tips.json"]),
                 (["physics", "--set", "nominal", "--compare", "four-tips"],
-                 ["results/physics/nominal_agreement.json"])],
+                 ["results/physics/nominal_agreement.json"]),
+                (["--processes", "2", "physics", "--set", "nominal", "--policy", "scripted", "--backend", "c",
+                  "--chunk", "2"], ["results/physics/nominal_scripted_c.json"])],
     "bench-physics": [(["bench-physics", "--set", "nominal", "--waypoints", "2", "--backends", "c", "--cores", "1"],
                        [])],
     "envelope": [(["envelope", "--set", "eval", "--episodes", "1", "--random", "0", "--physics-lookahead", "1",
@@ -75,7 +77,7 @@ QUICKEST = {
 def test_every_command_has_a_quickest_form():
     from experiments.__main__ import COMMANDS
 
-    covered = {line[0] for group in QUICKEST.values() for line, _ in group}
+    covered = {line[2] if line[0] == "--processes" else line[0] for group in QUICKEST.values() for line, _ in group}
     assert covered == set(COMMANDS), sorted(set(COMMANDS) ^ covered)
 
 

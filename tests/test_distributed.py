@@ -69,6 +69,21 @@ def test_chunks_are_fixed_runs_of_size_whatever_the_processes():
         distributed.chunks(4, 0)
 
 
+def test_map_chunks_joins_each_chunks_result_in_order():
+    seen = []
+
+    def fn(idx):
+        seen.append(idx.tolist())
+        return dict(sq=idx ** 2, pair=(idx, np.stack([idx, -idx], -1)))
+
+    out = distributed.map_chunks(fn, 7, 3)
+    assert seen == [[0, 1, 2], [3, 4, 5], [6]]  # one call per fixed chunk, the last one shorter
+    np.testing.assert_array_equal(out["sq"], np.arange(7) ** 2)
+    np.testing.assert_array_equal(out["pair"][1], np.stack([np.arange(7), -np.arange(7)], -1))
+    with pytest.raises(ValueError, match="n >= 1"):
+        distributed.map_chunks(fn, 0, 3)
+
+
 DEVICES = '''
 import sys
 import jax, numpy as np

@@ -28,16 +28,16 @@ def solve_set(env, episodes: dict, chunk: int, desc: str = "DP"):
     process gets them all."""
     names = list(episodes)
     solve = distributed.over_local_devices(jax.vmap(lambda e: dp.solve(env, e)))  # a chunk over the local devices
-    starts = range(0, len(names), chunk)
-    mine = distributed.share(len(starts))
-    parts = []
-    for i in tqdm([starts[c] for c in mine], desc=desc, unit="chunk"):
-        batch = scenario.stack([episodes[n] for n in names[i : i + chunk]])
-        parts.append(jax.device_get(solve(batch)))
-    parts = distributed.gather_joined(parts)  # in chunk order
-    tables, sols = zip(*parts)
-    cat = lambda parts: jax.tree.map(lambda *x: np.concatenate(x), *parts)  # noqa: E731
-    return names, cat(tables), cat(sols)
+    bar = tqdm(total=len(distributed.share(-(-len(names) // chunk))), desc=desc, unit="chunk")
+
+    def one(idx):
+        out = jax.device_get(solve(scenario.stack([episodes[names[i]] for i in idx])))
+        bar.update()
+        return out
+
+    tables, sols = distributed.map_chunks(one, len(names), chunk, what="episodes")
+    bar.close()
+    return names, tables, sols
 
 
 def timeline_png(env, name: str, grasps: np.ndarray, alive: np.ndarray, path) -> None:

@@ -131,21 +131,12 @@ def lockstep(ctx: evaluation.Context, phys: physics.Physics, names, options: dic
     of `chunk`, each chunk every policy in one lockstep (`Physics.simulate_many`). With several processes
     (`shared`) each runs its share of the chunks and every process gets every result (`distributed.gather`): the
     chunks fix the programs and their inputs, so the results are one process's, bit for bit."""
-    pieces = distributed.chunks(len(ctx.names), chunk)
-    mine = distributed.share(len(pieces)) if shared else range(len(pieces))
-    if shared and distributed.count() > 1:
-        print(f"  process {distributed.rank()} of {distributed.count()} runs chunks {mine.start + 1}-{mine.stop} of "
-              f"{len(pieces)} ({chunk} episodes each)", flush=True)
-    done = {}
-    for c in mine:
-        sub = ctx.select(pieces[c])
-        made = [planners.make(sub, name, options) for name in names]
-        done[c] = [jax.tree.map(np.asarray, r) for r in phys.simulate_many(made, sub.batch, backend="c",
-                                                                           progress=True)]
-    if shared:
-        done = distributed.gather_merged(done)
-    return [jax.tree.map(lambda *xs: np.concatenate(xs), *(done[c][i] for c in range(len(pieces))))
-            for i in range(len(names))]
+    def one(idx):
+        sub = ctx.select(idx)
+        return phys.simulate_many([planners.make(sub, name, options) for name in names], sub.batch, backend="c",
+                                  progress=True)
+
+    return distributed.map_chunks(one, len(ctx.names), chunk, shared, what="episodes")
 
 
 def print_result(results: dict) -> None:

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments.common import check_planners, results_dir, table
-from gsp_jax import evaluation, files, physics, planners, policies, scenario, surrogate
+from gsp_jax import distributed, evaluation, files, physics, planners, policies, scenario, surrogate
 from gsp_jax.physics import report
 
 
@@ -44,6 +44,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="for --policy random")
     p.add_argument("--backend", default="mjx", choices=physics.BACKENDS,
                    help="mjx: one XLA batch (GPU); c: C MuJoCo, the engine's reference implementation (CPU)")
+    p.add_argument("--chunk", type=int, default=None, metavar="N",
+                   help="C MuJoCo: the episodes in fixed chunks of N, one batch each, shared by several processes "
+                        "(--processes; default: one chunk per process); the outcomes depend on the chunks, not on "
+                        "the process count")
     p.add_argument("--render", action="store_true",
                    help="key frame PNG + GIF of one episode (--render-episode); needs MUJOCO_GL=egl|osmesa set")
     p.add_argument("--render-episode", default=None, help="which episode to render (a name in the printed table; "
@@ -117,28 +121,46 @@ def main(args: argparse.Namespace) -> None:
         if args.policy == "scripted" else names
     if args.render_episode is not None and args.render_episode not in known:  # before any work, not after it
         raise SystemExit(f"--render-episode: {args.render_episode!r} is not one of {', '.join(known)}")
+    if args.backend != "c" and distributed.count() > 1:
+        raise SystemExit(f"physics: --backend {args.backend} runs as one process (one XLA batch); only C MuJoCo's "
+                         f"chunks are shared by --processes")
     phys = physics.Physics(env)
     if args.policy == "scripted":  # every sequence on every episode, one batch
         seqs = evaluation.scripted_sequences(env.space)
         labels = [f"{k}/{n}" for k in seqs for n in names]
-        batch = scenario.stack([episodes[n] for _ in seqs for n in names])
-        policy, axis = policies.SequencePolicy(jnp.asarray(np.repeat(np.stack(list(seqs.values())), len(names), 0))), 0
+        each = np.repeat(np.stack(list(seqs.values())), len(names), 0)  # (labels, T): each label's sequence
+
+        def made(idx):
+            sub = [episodes[names[i % len(names)]] for i in idx]
+            return policies.SequencePolicy(jnp.asarray(each[idx])), 0, scenario.stack(sub)
     else:
         labels = names
-        policy, axis = make_policy(args.policy, args.set, episodes, args)
-        batch = scenario.stack(list(episodes.values()))
+
+        def made(idx):
+            sub = {names[i]: episodes[names[i]] for i in idx}
+            return *make_policy(args.policy, args.set, sub, args), scenario.stack(list(sub.values()))
+    chunk = -(-len(labels) // distributed.count()) if args.chunk is None else args.chunk
+    if chunk < 1:
+        raise SystemExit(f"--chunk: {chunk} (must be >= 1)")
     print(f"physics check: {len(labels)} episodes of '{args.set}', policy {args.policy}, backend {args.backend}, "
           f"{phys.n_ticks(scenario.N_WAYPOINTS)} physics steps each "
           f"({jax.local_devices()[0].platform}; compiling first) ...", flush=True)
     t0 = time.perf_counter()
-    res = jax.block_until_ready(phys.simulate_batch(policy, batch, axis, backend=args.backend, progress=True))
+
+    def simulate(idx):
+        policy, axis, batch = made(idx)
+        return jax.device_get(phys.simulate_batch(policy, batch, axis, backend=args.backend, progress=True))
+
+    res = distributed.map_chunks(simulate, len(labels), chunk, what="episodes")
     wall = time.perf_counter() - t0
+    if not distributed.is_main():
+        return
     rows = report.result_rows(labels, res)
     out = results_dir("physics")
     stem = out / (f"{args.set}_{args.policy}" + ("" if args.backend == "mjx" else f"_{args.backend}"))
     summary = dict(set=args.set, policy=args.policy, backend=args.backend, device=jax.local_devices()[0].device_kind,
-                   **report.summary(labels, res), wall_s_incl_compile=wall, config=dataclasses.asdict(phys.config),
-                   timestep_s=phys.timestep)
+                   **report.summary(labels, res), wall_s_incl_compile=wall, chunk=chunk, processes=distributed.count(),
+                   config=dataclasses.asdict(phys.config), timestep_s=phys.timestep)
     if args.policy == "scripted":
         summary["sequences"] = {}
         for i, k in enumerate(seqs):

@@ -13,7 +13,8 @@ The first row is the calibrated reward; each `--reward` adds one, as fields of `
 (e.g. `--reward grip=0 --reward grip=2,grip_scales_with_mass=false,fall_unmet=0.2`). Beside the pooled Spearman rho the table gives its mean
 within episodes, and a scatter of the calibrated reward's returns against the simulated angle errors shows the pool.
 Prints a table; writes results/rescore/<set>.json and <set>.png. (A pool of your own: `envelope --set S --random R`
-records one, in C MuJoCo.)
+records one, in C MuJoCo.) Several processes (`--processes N`) share the states and steps in fixed chunks of
+`--batch`; process 0 writes.
 """
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ import numpy as np
 
 from experiments.common import ROOT, results_dir, table
 from gsp_jax.physics.envelope import summarise
-from gsp_jax import files, reward as reward_lib, scenario, stats, surrogate
+from gsp_jax import distributed, files, reward as reward_lib, scenario, stats, surrogate
 
 DEFAULT_POOL = ROOT / "docs" / "history" / "2026-11-27" / "envelope" / "stress_reached_h100.json"
 
@@ -109,21 +110,24 @@ def step_states(sur: surrogate.Surrogate, start: np.ndarray, grasps: np.ndarray)
 
 
 def realise_states(sur: surrogate.Surrogate, batch: scenario.Episode, keys: np.ndarray, size: int):
-    """`Surrogate.realise` of every (episode, grasp, waypoint) key (S, 3), `size` at a time (`lax.map`, as
-    `dp.build_tables`): Contacts (S, ...)."""
+    """`Surrogate.realise` of every (episode, grasp, waypoint) key (S, 3), `size` at a time: Contacts (S, ...),
+    numpy. Several processes share the chunks of `size` (`distributed.map_chunks`; each one program, vmapped)."""
     def one(key):
         ep = jax.tree.map(lambda x: x[key[0]], batch)
         return sur.realise(key[1], ep.waypoints[key[2]], ep.quats[key[2]])
 
-    return jax.jit(lambda k: jax.lax.map(one, k, batch_size=size))(jnp.asarray(keys, jnp.int32))
+    run = jax.jit(jax.vmap(one))
+    return distributed.map_chunks(lambda idx: _cut(run(jnp.asarray(_filled(keys, idx, size), jnp.int32)), len(idx)),
+                                  len(keys), size, what="states")
 
 
 def score_pool(reward: reward_lib.RewardConfig, hand, batch, contacts, index, changed, size: int):
     """(returns (G, N), feasible (G, N)) of the pool's sequences under `reward`: each step scored as a DP table
     scores it (the tool on its waypoint, the change term from the shared grasp), summed up to the first step that
-    ends the episode."""
+    ends the episode. The steps go `size` at a time, shared by several processes as `realise_states`."""
     sur = surrogate.Surrogate(hand=hand, reward=reward)
     _, G, N, T = index.shape
+    contacts = jax.tree.map(jnp.asarray, contacts)  # on the device once, not once per chunk
 
     def step(contacts, e, t, a, b, c, ch):
         ep = jax.tree.map(lambda x: x[e], batch)
@@ -133,12 +137,23 @@ def score_pool(reward: reward_lib.RewardConfig, hand, batch, contacts, index, ch
 
     e = np.broadcast_to(np.arange(N)[None, :, None], (G, N, T)).ravel()
     t = np.broadcast_to(np.arange(T), (G, N, T)).ravel()
-    columns = tuple(jnp.asarray(x) for x in (e, t, index[0].ravel(), index[1].ravel(), index[2].ravel(),
-                                             changed.ravel()))
-    run = jax.jit(lambda cs, cols: jax.lax.map(lambda x: step(cs, *x), cols, batch_size=size))
-    r, end = (np.asarray(x).reshape(G, N, T) for x in run(contacts, columns))
+    columns = np.stack([e, t, index[0].ravel(), index[1].ravel(), index[2].ravel(), changed.ravel()], -1)  # (steps, 6)
+    run = jax.jit(jax.vmap(lambda cs, x: step(cs, *x), (None, 0)))
+    r, end = (x.reshape(G, N, T) for x in distributed.map_chunks(
+        lambda idx: _cut(run(contacts, jnp.asarray(_filled(columns, idx, size), jnp.int32)), len(idx)),
+        len(columns), size, what="steps"))
     alive = np.concatenate([np.ones((G, N, 1), bool), np.cumsum(end, -1)[..., :-1] == 0], -1)
     return np.sum(np.where(alive, r, 0.0), -1), ~np.any(end, -1)
+
+
+def _filled(rows: np.ndarray, idx: np.ndarray, size: int) -> np.ndarray:
+    """rows[idx] filled up to `size` rows with copies of the last (every chunk one program)."""
+    return rows[np.concatenate([idx, np.full(size - len(idx), idx[-1])])]
+
+
+def _cut(tree, n: int):
+    """The first n rows of every leaf, as numpy."""
+    return jax.tree.map(lambda x: np.asarray(x)[:n], tree)
 
 
 def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
@@ -168,12 +183,14 @@ def main(args: argparse.Namespace) -> None:
         within = [r for r in within if np.isfinite(r)]
         pool |= dict(spearman_within_mean=float(np.mean(within)) if within else float("nan"),
                      spearman_within_episodes=len(within))
-        if not out:
+        if not out and distributed.is_main():
             scatter_png(returns, angle, kinds, results_dir("rescore") / f"{set_name}.png", f"{set_name}, {label}", pool)
         out.append(dict(reward=label, config=dataclasses.asdict(reward), **pool))
         rows.append([label, pool["surrogate_feasible"], pool["feasible_hold_share"], pool["auc_pooled"],
                      pool["auc_within_mean"], pool["spearman_pooled"], pool["spearman_within_mean"]])
         print(f"  {label}: {time.perf_counter() - t1:.0f} s", flush=True)
+    if not distributed.is_main():
+        return  # process 0 writes
     path = results_dir("rescore") / f"{set_name}.json"
     files.write_json(path, dict(pool=str(args.pool), set=set_name, episodes=names, sequences=int(fell.size),
                                     physics_falls=int(fell.sum()), rewards=out))

@@ -44,14 +44,6 @@ def learned_on() -> bool:
     return learned.default_on()
 
 
-def run_command(words: list[str]) -> None:
-    """Run another command in this process, as `python -m experiments <words>` would (the same --record, --model
-    and plugins): how a pipeline such as `reproduce` composes commands, reading their results from their files."""
-    from experiments.__main__ import main
-
-    main(list(words))
-
-
 def table(headers: list[str], rows: list[list], floatfmt: str = ".3f") -> str:
     """A fixed-width text table (right-aligned numbers)."""
     cells = [[f"{c:{floatfmt}}" if isinstance(c, float) else str(c) for c in row] for row in rows]

@@ -75,7 +75,7 @@ QUICKEST = {
 
 
 def test_every_command_has_a_quickest_form():
-    from experiments.__main__ import COMMANDS
+    from experiments.cli import COMMANDS
 
     covered = {line[2] if line[0] == "--processes" else line[0] for group in QUICKEST.values() for line, _ in group}
     assert covered == set(COMMANDS), sorted(set(COMMANDS) ^ covered)

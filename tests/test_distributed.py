@@ -9,7 +9,7 @@ import pytest
 import tolerances as tol
 
 from experiments import processes
-from experiments.__main__ import processes_asked
+from experiments.cli import processes_asked
 from gsp_jax import distributed
 
 

@@ -363,7 +363,7 @@ def test_a_figures_run_records_the_commit_it_started_from(tmp_path, monkeypatch)
     report aside), and a change to the code makes it `+dirty` (git in a scratch clone)."""
     import argparse
 
-    from experiments import common
+    from experiments import cli, common
     from experiments.paper import figures
 
     clone, head = _scratch_clone(tmp_path)
@@ -374,8 +374,9 @@ def test_a_figures_run_records_the_commit_it_started_from(tmp_path, monkeypatch)
     def run_command(words):  # each figure records one tracked record: the tree differs from HEAD after the first
         common.record(tracked[0], {"words": len(words)})
 
-    for k, v in dict(ROOT=clone, DATA=clone / "docs/data", RECORD=True, COMMAND=None, run_command=run_command).items():
+    for k, v in dict(ROOT=clone, DATA=clone / "docs/data", RECORD=True, COMMAND=None).items():
         monkeypatch.setattr(common, k, v)
+    monkeypatch.setattr(cli, "run_command", run_command)
     monkeypatch.setattr(common, "device_slug", lambda: "cpu")
     args = argparse.Namespace(list=False, stale=False, machine="cpu", only=None)
     figures.main(args)

@@ -15,7 +15,7 @@ import pytest
 import launch
 
 from experiments import common
-from experiments.__main__ import main
+from experiments.cli import main
 from experiments.physics import envelope
 from gsp_jax import evaluation, physics, scenario
 

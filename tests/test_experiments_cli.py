@@ -6,7 +6,7 @@ import os
 
 import pytest
 
-from experiments import __main__ as cli
+from experiments import cli
 
 LEVEL = "--xla_gpu_autotune_level"
 

@@ -151,7 +151,7 @@ time.sleep(120)
 def test_a_command_takes_its_folders_before_its_set_up(tmp_path, monkeypatch):
     """A second command on a busy results folder is refused before its set-up (`results_folders`, locked by
     `python -m experiments`), not after minutes of DP tables: `train --out X` and `envelope`."""
-    from experiments import __main__ as cli, common
+    from experiments import cli, common
     from experiments.physics import envelope
 
     env = {**os.environ, "PYTHONPATH": str(pathlib.Path(__file__).resolve().parents[1]), "JAX_PLATFORMS": "cpu"}
@@ -188,7 +188,7 @@ def test_every_command_writing_results_declares_its_folders():
     `python -m experiments` takes their locks before the command's work."""
     import importlib.util
 
-    from experiments.__main__ import COMMANDS
+    from experiments.cli import COMMANDS
 
     for command, (module, _) in COMMANDS.items():
         spec = importlib.util.find_spec(module)

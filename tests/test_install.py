@@ -24,7 +24,7 @@ state = jax.jit(env.reset)(scenario.make_episode())
 state, reward, done = jax.jit(env.step)(state, jnp.int32(3))
 from gsp_jax import physics
 import importlib, experiments
-from experiments.__main__ import COMMANDS
+from experiments.cli import COMMANDS
 for module, _ in COMMANDS.values():  # every command's module, its group's subpackage included
     importlib.import_module(module)
 nbody = physics.Physics(env).model.nbody  # the physics subpackage and its scene (world, palm, 16 finger bodies, tool)

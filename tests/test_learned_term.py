@@ -100,8 +100,11 @@ def test_the_learned_term_is_finite_for_every_valid_episode(table_ik):
     sur = Surrogate(ik_config=table_ik)
     with_term = sur.replace(learned=_fitted(sur.model.digest, seed=1))
     d = corpus.Distribution()
-    corner = lambda lo: {f: ((v[0], v[0] + 0.02 * (v[1] - v[0])) if lo else (v[1] - 0.02 * (v[1] - v[0]), v[1]))
-                         for f, v in vars(d).items()}  # noqa: E731
+
+    def corner(lo):
+        return {f: ((v[0], v[0] + 0.02 * (v[1] - v[0])) if lo else (v[1] - 0.02 * (v[1] - v[0]), v[1]))
+                for f, v in vars(d).items()}
+
     eps = _episodes(2, seed=11)
     for seed, lo in ((5, True), (6, False)):
         eps += [e.head(T) for e in corpus.draw(corpus.Distribution(**corner(lo)), seed, 2, sur.model).values()]
@@ -111,7 +114,7 @@ def test_the_learned_term_is_finite_for_every_valid_episode(table_ik):
 
 
 def test_weights_of_another_model_or_none_are_refused_by_name(tmp_path):
-    from experiments import __main__ as cli
+    from experiments import cli
 
     wrench = model_lib.load_model("wrench")
     with pytest.raises(learned.LearnedTermError, match=r"fitted for another model .*not 'hammer'"):

@@ -25,7 +25,7 @@ import traceback
 
 import jax
 
-from experiments import common
+from experiments import cli, common
 from gsp_jax import model as model_lib, policies
 
 _PAPER = ("experiments/paper/reproduce.py", "experiments/paper/fig4a.py", "experiments/paper/fig4b.py",
@@ -45,8 +45,8 @@ def _other_models() -> tuple[str, ...]:
     return tuple(specs)
 
 
-_LIBRARY = ("gsp_jax", "models", *_other_models(), "experiments/common.py", "experiments/__main__.py",
-            "pyproject.toml", "requirements.lock")
+_LIBRARY = ("gsp_jax", "models", *_other_models(), "experiments/common.py", "experiments/cli.py",
+            "experiments/__main__.py", "pyproject.toml", "requirements.lock")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -211,7 +211,7 @@ def _run(chosen: list[Figure]) -> tuple[list[list], list[str]]:
         t0, outer = time.perf_counter(), common.COMMAND
         common.COMMAND = words  # its records name its own command
         try:
-            common.run_command(list(fig.command))
+            cli.run_command(list(fig.command))
             outcome = "done"
         except (Exception, SystemExit) as e:  # one figure's failure does not stop the others
             cause = f"{type(e).__name__}: {e}".splitlines()[0]

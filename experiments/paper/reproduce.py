@@ -24,7 +24,7 @@ import time
 import jax
 import numpy as np
 
-from experiments import common
+from experiments import cli, common
 from experiments.common import results_dir
 from gsp_jax import evaluation, files, planners, stats
 
@@ -79,7 +79,7 @@ def main(args: argparse.Namespace) -> None:
     print(f"reproduce --{preset} on {device.device_kind} ({device.platform}); report -> {out / 'REPORT.md'}", flush=True)
     if _trains(args, p):
         print("[0/3] training the PPO policy (DP pretraining, full preset, seed 0)", flush=True)
-        common.run_command(["train", "--pretrain", "dp", "--seeds", "1", "--preset", "full"])
+        cli.run_command(["train", "--pretrain", "dp", "--seeds", "1", "--preset", "full"])
     command = f"python -m experiments reproduce --{preset}" + (f" --policy-dir {args.policy_dir}" if args.policy_dir else "")
     command += f" --backend {args.backend}" if getattr(args, "backend", "mjx") != "mjx" else ""
     command += f" --skip {' '.join(args.skip)}" if args.skip else ""
@@ -101,19 +101,19 @@ def main(args: argparse.Namespace) -> None:
     if "fig4a" not in args.skip:
         backend_4a = getattr(args, "fig4a_backend", None) or p["backend"]
         print(f"[1/3] Fig. 4a ({backend_4a} backend)", flush=True)
-        common.run_command(["fig4a", "--backend", backend_4a, *only(p["fig4a_episodes"]), *policy])
+        cli.run_command(["fig4a", "--backend", backend_4a, *only(p["fig4a_episodes"]), *policy])
         sections["fig4a"] = files.read_json(results_dir("fig4a") / "returns.json")
         shutil.copy(results_dir("fig4a") / "fig4a.png", out / "fig4a.png")
     if "table1" not in args.skip:
         print("[2/3] Table 1", flush=True)
-        common.run_command(["table1", "--batch", str(p["batch"]), "--repeats", str(p["repeats"]), *policy])
+        cli.run_command(["table1", "--batch", str(p["batch"]), "--repeats", str(p["repeats"]), *policy])
         sections["table1"] = files.read_json(results_dir("table1") / f"{device.platform}.json")
     if "fig4b" not in args.skip:
         backend = getattr(args, "backend", "mjx")
         print(f"[3/3] Fig. 4b ({backend})", flush=True)
         # beyond the paper, in C MuJoCo: L1 verified in physics (its defaults, `evaluation.L1_PHYSICS`)
         names = planners.names("paper") + (planners.names("verified") if backend == "c" else ())
-        common.run_command(["fig4b", "--backend", backend, "--policies", *names, *only(p["fig4b_episodes"]), *policy])
+        cli.run_command(["fig4b", "--backend", backend, "--policies", *names, *only(p["fig4b_episodes"]), *policy])
         sections["fig4b"] = {n: files.read_json(results_dir("fig4b") / f"{n}.json") for n in names}
         shutil.copy(results_dir("fig4b") / "fig4b.png", out / "fig4b.png")
     files.write_json(out / "report.json", sections, default=str)

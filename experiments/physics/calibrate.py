@@ -29,7 +29,7 @@ import time
 import jax
 import numpy as np
 
-from experiments import common
+from experiments import cli, common
 from experiments.common import results_dir, table
 from gsp_jax import files, grasps, learned, physics, reward, scenario, stats
 from gsp_jax import model as model_lib
@@ -213,7 +213,7 @@ def learn(args: argparse.Namespace) -> None:
     t0 = time.perf_counter()
     folders = [pathlib.Path(f) for f in args.corpus] if args.corpus else [results_dir("corpus")]
     if args.shards:  # the corpus command extends it (it prints its progress and counts)
-        common.run_command(["corpus", "--folder", str(folders[0]), "--shards", str(args.shards), "--episodes",
+        cli.run_command(["corpus", "--folder", str(folders[0]), "--shards", str(args.shards), "--episodes",
                             str(args.episodes)])
     if args.corpus is None:  # the learned planners' sequences, where `corpus --learned` made them
         on_policy = folders[0].with_name(folders[0].name + "-learned")

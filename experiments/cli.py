@@ -1,0 +1,174 @@
+"""The commands' registry and their entry point: `python -m experiments <command> [options]` (`main`), and
+`run_command`, one command run by another in this process. `python -m experiments --help` lists them."""
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+COMMANDS = {  # command -> (module, one-line help)
+    "demo": ("experiments.demo", "the main job on one unseen episode: DP optimal and L1 plans, executed in C MuJoCo"),
+    "check-model": ("experiments.diagnostics.check_model", "every model convention a scene file breaks (your hand, your tool)"),
+    "import-hand": ("experiments.diagnostics.import_hand", "a published MJCF hand (meshes, boxes, servos) -> a hand file that follows the conventions"),
+    "planners": ("experiments.diagnostics.planners", "every registered planner (yours too, with --plugin): options, needs"),
+    "surrogate": ("experiments.diagnostics.surrogate", "reward terms of a few meaningful grasps on one episode"),
+    "bench-startup": ("experiments.bench.startup", "the Quickstart from a fresh process: first decision and DP table, cache off / empty / on disk"),
+    "bench-surrogate": ("experiments.bench.surrogate", "surrogate steps/s: vmapped vs one step at a time"),
+    "bench-dp": ("experiments.bench.dp", "DP solve time: one episode, 27 batched, vs the step-at-a-time table"),
+    "bench-gym": ("experiments.bench.gym", "Gymnasium vector env steps/s: the native vmapped one vs SyncVectorEnv"),
+    "dp": ("experiments.paper.dp", "exact DP (Bellman backups) over an episode set; grasp sequences and timeline"),
+    "train": ("experiments.paper.train", "PPO on the training episodes, with or without DP pretraining, over seeds"),
+    "train-curves": ("experiments.paper.train_curves", "Fig. 3: PPO training curves with and without DP pretraining"),
+    "bench-ppo": ("experiments.bench.ppo", "PPO env steps/s and wall time to the DP-baseline return"),
+    "physics": ("experiments.physics.check", "the physics check (MJX or C MuJoCo): a policy's grasp sequences, angle error under the torque; --compare: MJX against C"),
+    "bench-physics": ("experiments.bench.physics", "the physics check against the engine alone, on 1, 2 and all cores"),
+    "bench-scale": ("experiments.bench.scale", "physics episodes/s, DP tables/s and PPO steps/s for 1, 2, 4 ... processes (one GPU and C cores each)"),
+    "envelope": ("experiments.physics.envelope", "the stress envelope in physics: falls classified by the oracle, regret"),
+    "rescore": ("experiments.physics.rescore", "surrogate against physics: a recorded envelope pool scored under rewards (rho, AUC), no new physics"),
+    "corpus": ("experiments.physics.corpus", "a physics corpus of the model: surrogate features of grasp sequences with what C MuJoCo did (shards, resumable)"),
+    "calibrate": ("experiments.physics.calibrate", "the reward's weights and thresholds against physics (train + val episodes); --learn: the learned physics term"),
+    "fig4a": ("experiments.paper.fig4a", "Fig. 4a: surrogate returns relative to DP optimal, 95% CI, RM-ANOVA"),
+    "fig4b": ("experiments.paper.fig4b", "Fig. 4b: the same policies closed loop in C MuJoCo (or MJX), angle error under the torque"),
+    "table1": ("experiments.paper.table1", "Table 1: online wall-clock time per unseen episode, beside the paper's; --per-decision: latency per decision"),
+    "ik-spikes": ("experiments.diagnostics.ik_spikes", "IK local minima: spikes between converged neighbours, with and without extra starts"),
+    "precision": ("experiments.diagnostics.precision", "float32 reward spread across CPUs, 1-ulp inputs and float64 (test tolerances)"),
+    "reproduce": ("experiments.paper.reproduce", "everything above in sequence, one Markdown report (--quick on CPU)"),
+    "figures": ("experiments.paper.figures", "every figure the README shows, each by its documented command and size; --stale: which records the code has moved past"),
+}
+
+
+AUTOTUNED = ("train", "bench-ppo", "bench-startup")  # commands that keep XLA's GPU autotuner (see
+# deterministic_gpu_kernels); bench-startup's processes run as a user's own script does, with XLA's defaults
+
+
+def deterministic_gpu_kernels(command: str | None) -> None:
+    """Let XLA pick GPU kernels by its heuristics instead of timing candidates (`--xla_gpu_autotune_level=0`, unless
+    XLA_FLAGS sets a level): the timed choice varies between runs, most under load, and with it the last bits of
+    the policies' decisions; closed loop in physics such bits decide near-ties (Fig. 4b's marginal episodes:
+    docs/lookahead.md). Training (`AUTOTUNED`) keeps the autotuner: the networks' GEMMs run much faster with it
+    (docs/lookahead.md); its GPU runs can then differ between processes in the last bits. Must run before JAX
+    starts."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if command not in AUTOTUNED and "xla_gpu_autotune_level" not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} --xla_gpu_autotune_level=0".strip()
+
+
+def load_plugin(name: str) -> None:
+    """Import a user's module by name (on sys.path, the working directory first) or from a .py file."""
+    import importlib.util
+    import pathlib
+
+    path = pathlib.Path(name)
+    try:
+        if name.endswith(".py") or path.is_file():
+            if not path.is_file():
+                raise SystemExit(f"--plugin: no file {name!r}")
+            spec = importlib.util.spec_from_file_location(path.stem, path)
+            module = importlib.util.module_from_spec(spec)
+            sys.modules[path.stem] = module
+            spec.loader.exec_module(module)
+        else:
+            if "" not in sys.path and os.getcwd() not in sys.path:
+                sys.path.insert(0, os.getcwd())
+            importlib.import_module(name)
+    except ModuleNotFoundError as e:
+        raise SystemExit(f"--plugin: cannot import {name!r} ({e})") from None
+
+
+def processes_asked(words: list[str]) -> tuple[int | None, list[str]]:
+    """(N, the other words) of `--processes N` (or `--processes=N`) before the command; (None, words) without it."""
+    cut = next((i for i, w in enumerate(words) if w in COMMANDS), len(words))
+    for i, w in enumerate(words[:cut]):
+        if w == "--processes" or w.startswith("--processes="):
+            value = w.split("=", 1)[1] if "=" in w else (words[i + 1] if i + 1 < cut else "")
+            rest = words[:i] + words[i + (1 if "=" in w else 2):]
+            if not value.isdigit() or int(value) < 1:
+                raise SystemExit(f"--processes: expects a number of processes >= 1, got {value!r}")
+            return int(value), rest
+    return None, list(words)
+
+
+def main(argv: list[str] | None = None) -> None:
+    words = sys.argv[1:] if argv is None else argv
+    n_processes, words = processes_asked(words)
+    chosen = next((w for w in words if w in COMMANDS), None)  # only its module is imported (the others: help only)
+    deterministic_gpu_kernels(chosen)
+    from gsp_jax import distributed
+
+    if n_processes is not None and n_processes > 1 and not distributed.requested():
+        from experiments import processes
+
+        processes.launch(n_processes, words)  # this command as N processes of one run (their coordinator: here)
+        return
+    distributed.initialize()  # one of several processes (ours, Slurm's, Open MPI's): JAX's runtime, before JAX runs
+    import gsp_jax  # noqa: F401  (turns on XLA's compilation cache on disk: gsp_jax.cache, GSP_JAX_CACHE)
+
+    parser = argparse.ArgumentParser(prog="python -m experiments", description=__doc__)
+    parser.add_argument("--processes", type=int, default=None, metavar="N",  # read before parsing (processes_asked)
+                        help="run the command as N processes of one run on this host (one GPU each where there are "
+                             "GPUs, an equal share of the cores each); sweeps split their episodes between them "
+                             "(docs/scale.md)")
+    parser.add_argument("--record", action="store_true",
+                        help="also write the result to docs/data/<name>_<device>.json and append it to "
+                             "docs/data/history/")
+    sub = parser.add_subparsers(dest="command", required=True)
+    module = None
+    for name, (path, help_) in COMMANDS.items():
+        if name != chosen:
+            sub.add_parser(name, help=help_.replace("%", "%%"))
+            continue
+        module = importlib.import_module(path)
+        sp = sub.add_parser(name, help=help_.replace("%", "%%"), description=module.__doc__)
+        module.add_arguments(sp)
+        sp.add_argument("--plugin", action="append", default=[], metavar="MODULE",
+                        help="import this module (a name on the path, or a .py file) first: its planners register "
+                             "themselves (`gsp_jax.planners.register`); repeatable")
+        if name != "check-model":
+            sp.add_argument("--model", default=None, metavar="NAME_OR_PATH",
+                            help="the hand + tool scene: a shipped model (wrench, hammer, allegro) or a scene file "
+                                 "(default: wrench); checked first (check-model)")
+        if name not in ("check-model", "calibrate", "figures"):
+            sp.add_argument("--learned", action="store_true",
+                            help="plan with the learned physics term (the model's weights, `calibrate --learn`); "
+                                 "results and records are named -learned")
+    args = parser.parse_args(argv)
+    from experiments import common
+    from gsp_jax import model as model_lib
+
+    common.RECORD = common.RECORD or args.record  # a command run by another (`run_command`) keeps it
+    common.COMMAND = common.COMMAND or list(words)  # the command a record names: the outermost one
+    for plugin in args.plugin:
+        load_plugin(plugin)
+    if getattr(args, "model", None) is not None:
+        try:
+            model = model_lib.set_default(args.model)
+        except model_lib.ModelError as e:
+            raise SystemExit(f"--model: {e}") from None
+        print(f"model: {model.name} ({model.path})", flush=True)
+    from gsp_jax import learned
+
+    was_learned = learned.default_on()  # a command another runs (`run_command`) inherits it; restored after
+    if getattr(args, "learned", False):
+        try:
+            learned.resolve(True, model_lib.load_model())
+        except learned.LearnedTermError as e:
+            raise SystemExit(f"--learned: {e}") from None
+        learned.set_default(True)
+        print(f"learned physics term: {learned.path_of(model_lib.load_model())}", flush=True)
+    from gsp_jax import files, scenario
+
+    try:
+        for parts in getattr(module, "results_folders", lambda _: [])(args):  # its results folders, locked before
+            common.results_dir(*parts)  # any set-up: a busy one stops it here (its own results_dir calls: no-ops)
+        module.main(args)
+    except (files.FolderInUse, scenario.EpisodeError) as e:  # a user's input or a busy folder: the message, no trace
+        raise SystemExit(f"{args.command}: {e}") from None
+    finally:
+        learned.set_default(was_learned)
+
+
+def run_command(words: list[str]) -> None:
+    """Run another command in this process, as `python -m experiments <words>` would (the same --record, --model
+    and plugins): how a pipeline such as `reproduce` composes commands, reading their results from their files."""
+    main(list(words))

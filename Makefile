@@ -29,6 +29,7 @@ demo: $(STAMP)
 	JAX_PLATFORMS=cpu $(PY) -m experiments demo
 
 test: $(STAMP)
+	$(PY) -m ruff check .
 	JAX_PLATFORMS=cpu $(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder --durations=25 tests --nbmake --nbmake-timeout=1200 experiments/notebooks
 
 commands: $(STAMP)  # every `python -m experiments` command in its quickest form (long: a GPU host with -n 8)

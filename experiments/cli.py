@@ -9,11 +9,15 @@ import sys
 
 COMMANDS = {  # command -> (module, one-line help)
     "demo": ("experiments.demo", "the main job on one unseen episode: DP optimal and L1 plans, executed in C MuJoCo"),
-    "check-model": ("experiments.diagnostics.check_model", "every model convention a scene file breaks (your hand, your tool)"),
-    "import-hand": ("experiments.diagnostics.import_hand", "a published MJCF hand (meshes, boxes, servos) -> a hand file that follows the conventions"),
-    "planners": ("experiments.diagnostics.planners", "every registered planner (yours too, with --plugin): options, needs"),
+    "check-model": ("experiments.diagnostics.check_model", "every model convention a scene file breaks "
+                    "(your hand, your tool)"),
+    "import-hand": ("experiments.diagnostics.import_hand", "a published MJCF hand (meshes, boxes, "
+                    "servos) -> a hand file that follows the conventions"),
+    "planners": ("experiments.diagnostics.planners", "every registered planner (yours too, with --plugin): "
+                 "options, needs"),
     "surrogate": ("experiments.diagnostics.surrogate", "reward terms of a few meaningful grasps on one episode"),
-    "bench-startup": ("experiments.bench.startup", "the Quickstart from a fresh process: first decision and DP table, cache off / empty / on disk"),
+    "bench-startup": ("experiments.bench.startup", "the Quickstart from a fresh process: first decision and DP table, "
+                      "cache off / empty / on disk"),
     "bench-surrogate": ("experiments.bench.surrogate", "surrogate steps/s: vmapped vs one step at a time"),
     "bench-dp": ("experiments.bench.dp", "DP solve time: one episode, 27 batched, vs the step-at-a-time table"),
     "bench-gym": ("experiments.bench.gym", "Gymnasium vector env steps/s: the native vmapped one vs SyncVectorEnv"),
@@ -21,20 +25,31 @@ COMMANDS = {  # command -> (module, one-line help)
     "train": ("experiments.paper.train", "PPO on the training episodes, with or without DP pretraining, over seeds"),
     "train-curves": ("experiments.paper.train_curves", "Fig. 3: PPO training curves with and without DP pretraining"),
     "bench-ppo": ("experiments.bench.ppo", "PPO env steps/s and wall time to the DP-baseline return"),
-    "physics": ("experiments.physics.check", "the physics check (MJX or C MuJoCo): a policy's grasp sequences, angle error under the torque; --compare: MJX against C"),
+    "physics": ("experiments.physics.check", "the physics check (MJX or C MuJoCo): a policy's grasp sequences, "
+                "angle error under the torque; --compare: MJX against C"),
     "bench-physics": ("experiments.bench.physics", "the physics check against the engine alone, on 1, 2 and all cores"),
-    "bench-scale": ("experiments.bench.scale", "physics episodes/s, DP tables/s and PPO steps/s for 1, 2, 4 ... processes (one GPU and C cores each)"),
-    "envelope": ("experiments.physics.envelope", "the stress envelope in physics: falls classified by the oracle, regret"),
-    "rescore": ("experiments.physics.rescore", "surrogate against physics: a recorded envelope pool scored under rewards (rho, AUC), no new physics"),
-    "corpus": ("experiments.physics.corpus", "a physics corpus of the model: surrogate features of grasp sequences with what C MuJoCo did (shards, resumable)"),
-    "calibrate": ("experiments.physics.calibrate", "the reward's weights and thresholds against physics (train + val episodes); --learn: the learned physics term"),
+    "bench-scale": ("experiments.bench.scale", "physics episodes/s, DP tables/s and PPO steps/s "
+                    "for 1, 2, 4 ... processes (one GPU and C cores each)"),
+    "envelope": ("experiments.physics.envelope", "the stress envelope in physics: "
+                 "falls classified by the oracle, regret"),
+    "rescore": ("experiments.physics.rescore", "surrogate against physics: "
+                "a recorded envelope pool scored under rewards (rho, AUC), no new physics"),
+    "corpus": ("experiments.physics.corpus", "a physics corpus of the model: surrogate features of grasp sequences "
+               "with what C MuJoCo did (shards, resumable)"),
+    "calibrate": ("experiments.physics.calibrate", "the reward's weights and thresholds against physics "
+                  "(train + val episodes); --learn: the learned physics term"),
     "fig4a": ("experiments.paper.fig4a", "Fig. 4a: surrogate returns relative to DP optimal, 95% CI, RM-ANOVA"),
-    "fig4b": ("experiments.paper.fig4b", "Fig. 4b: the same policies closed loop in C MuJoCo (or MJX), angle error under the torque"),
-    "table1": ("experiments.paper.table1", "Table 1: online wall-clock time per unseen episode, beside the paper's; --per-decision: latency per decision"),
-    "ik-spikes": ("experiments.diagnostics.ik_spikes", "IK local minima: spikes between converged neighbours, with and without extra starts"),
-    "precision": ("experiments.diagnostics.precision", "float32 reward spread across CPUs, 1-ulp inputs and float64 (test tolerances)"),
+    "fig4b": ("experiments.paper.fig4b", "Fig. 4b: the same policies closed loop in C MuJoCo (or MJX), "
+              "angle error under the torque"),
+    "table1": ("experiments.paper.table1", "Table 1: online wall-clock time per unseen episode, beside the paper's; "
+               "--per-decision: latency per decision"),
+    "ik-spikes": ("experiments.diagnostics.ik_spikes", "IK local minima: spikes between converged neighbours, "
+                  "with and without extra starts"),
+    "precision": ("experiments.diagnostics.precision", "float32 reward spread across CPUs, "
+                  "1-ulp inputs and float64 (test tolerances)"),
     "reproduce": ("experiments.paper.reproduce", "everything above in sequence, one Markdown report (--quick on CPU)"),
-    "figures": ("experiments.paper.figures", "every figure the README shows, each by its documented command and size; --stale: which records the code has moved past"),
+    "figures": ("experiments.paper.figures", "every figure the README shows, each by its documented command and size; "
+                "--stale: which records the code has moved past"),
 }
 
 

@@ -20,9 +20,10 @@ RESULTS = pathlib.Path("results")
 
 
 def results_dir(*parts: str) -> pathlib.Path:
-    """results/<parts> (created, and locked for this process); a command run for another model than the wrench (`--model`) writes to
-    results/<first part>-<model>/... (results/<model> for no parts) instead, and one with the learned physics term
-    (`--learned`) to results/<first part>-learned/...: no model's or surrogate's results overwrite another's."""
+    """results/<parts> (created, and locked for this process); a command run for another model than the wrench
+    (`--model`) writes to results/<first part>-<model>/... (results/<model> for no parts) instead, and one with the
+    learned physics term (`--learned`) to results/<first part>-learned/...: no model's or surrogate's results
+    overwrite another's."""
     from gsp_jax import model as model_lib
 
     name = model_lib.load_model().name
@@ -135,8 +136,9 @@ def add_lookahead_argument(p, root_in_table: bool = False) -> None:
     the default there: the root's children too are the table's."""
     choices = ["table", "cached", "continuous"] if root_in_table else ["cached", "continuous"]
     p.add_argument("--lookahead", default=choices[0], choices=choices,
-                   help="L1/L2: " + ("the episode's table for the whole search (exact from its start), " if root_in_table
-                                     else "") + "below the root in the episode's table (cached), or none (continuous)")
+                   help="L1/L2: "
+                   + ("the episode's table for the whole search (exact from its start), " if root_in_table else "")
+                   + "below the root in the episode's table (cached), or none (continuous)")
 
 
 def check_planners(names, option: str = "--policies", backend: str | None = None) -> None:
@@ -197,6 +199,7 @@ def fig4b_png(results: dict, n: int, path) -> None:
     """Fig. 4b: each policy's mean tool angle error [deg] in physics ({policy: {mean_deg, ci95_deg, backend}})."""
     names = list(results)
     engine = {"mjx": "MJX", "c": "C MuJoCo"}.get(next(iter(results.values())).get("backend", "mjx"), "MJX")
-    bar_png(path, names, [results[k]["mean_deg"] for k in names], [np.nan_to_num(results[k]["ci95_deg"]) for k in names],
+    bar_png(path, names, [results[k]["mean_deg"] for k in names],
+            [np.nan_to_num(results[k]["ci95_deg"]) for k in names],
             "mean tool angle error [deg] (180 = fell)", f"{engine} physics, {n} unseen episodes (95% CI)", "#4c72b0",
             ylim=(0, 190))

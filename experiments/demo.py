@@ -258,7 +258,8 @@ def main(args: argparse.Namespace) -> None:
     plans, wall = {}, {}
     for name in PLANNERS:
         t1 = time.perf_counter()
-        plans[name] = float(planners.returns(ctx, name, "table", cached=True)[0])  # the plan's episode stepped in its table
+        # the plan's episode stepped in its table
+        plans[name] = float(planners.returns(ctx, name, "table", cached=True)[0])
         wall[name] = time.perf_counter() - t1
         print(f"  {LABEL[name]} planned in {wall[name]:.1f} s after the table (includes compiling)", flush=True)
     phys = physics.Physics(ctx.surrogate)

@@ -48,7 +48,8 @@ class GraspEnv(brax_base.Env):
     `state.metrics`: `episode_return` (the return of the episode that ended at this step; read it where `done`).
     """
 
-    def __init__(self, surrogate: Surrogate, episodes: Episode, tables: dp.Table | None = None, auto_reset: bool = True):
+    def __init__(self, surrogate: Surrogate, episodes: Episode, tables: dp.Table | None = None,
+                 auto_reset: bool = True):
         if episodes.waypoints.ndim != 3:
             raise ValueError(
                 f"episodes.waypoints: expected a stacked set (N, T, 3), got shape {tuple(episodes.waypoints.shape)}; "

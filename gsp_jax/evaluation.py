@@ -100,7 +100,8 @@ def load_rl(sur: Surrogate, policy_dir: str | pathlib.Path | None = None) -> tup
             made = (policies.model_tag(path) or {}).get("learned", "")
             if made != sur.learned_tag:
                 shown += (" (trained without the learned term)" if not made else
-                          " (trained with other learned weights)" if sur.learned_tag else " (trained with the learned term)")
+                          " (trained with other learned weights)" if sur.learned_tag else
+                          " (trained with the learned term)")
             return policies.load_network_policy(sur, path), shown
     raise FileNotFoundError(
         f"policy_dir: no PPO policy at {', '.join(map(str, candidates))}; run `python -m experiments train --seeds 1"

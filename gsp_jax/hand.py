@@ -162,7 +162,8 @@ def _text(model: mujoco.MjModel, name: str, default: str | None = None) -> str:
             return default
         raise ValueError(f"model: custom text {name!r} is missing")
     data = model.text_data
-    raw = data.tobytes() if hasattr(data, "tobytes") else bytes(data, "latin1") if isinstance(data, str) else bytes(data)
+    raw = (data.tobytes() if hasattr(data, "tobytes")
+           else bytes(data, "latin1") if isinstance(data, str) else bytes(data))
     return raw[model.text_adr[i] : model.text_adr[i] + model.text_size[i]].split(b"\0")[0].decode()
 
 
@@ -232,7 +233,8 @@ def table_geom(model: mujoco.MjModel) -> int:
 
 def tool_body(model: mujoco.MjModel) -> int:
     """The tool: the scene's one body with a free joint (any name)."""
-    free = sorted({int(model.jnt_bodyid[j]) for j in range(model.njnt) if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE})
+    free = sorted({int(model.jnt_bodyid[j]) for j in range(model.njnt)
+                   if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE})
     if len(free) != 1:
         names = [model.body(b).name for b in free]
         raise ValueError(f"model: the tool must be the scene's one free body (a body with <freejoint/>); found "
@@ -454,7 +456,8 @@ def _conventions(model: mujoco.MjModel, tree: _Tree, links: dict) -> dict:
     start = _numeric(model, "gsp_start_options")
     if start is None:
         start = np.array(tips)
-    if len(start) != n_links or np.any(start != np.round(start)) or np.any(start < 0) or np.any(start >= links["n_options"]):
+    if (len(start) != n_links or np.any(start != np.round(start)) or np.any(start < 0)
+            or np.any(start >= links["n_options"])):
         raise ValueError(f"model: gsp_start_options {start.tolist()} must give each of the {n_links} links an option "
                          f"in [0, n_options) = {list(links['n_options'])}")
     below = {b for b in tree.bodies for lb in links["link_body"] if _is_below(model, b, tree.bodies[lb])}

@@ -52,8 +52,8 @@ def input_names(space) -> tuple[str, ...]:
 def grasp_features(space, grasp) -> jax.Array:
     """(..., sum(n_options)) float32: each link's option in grasps (...) one-hot (`grasp_names`' order)."""
     options = space.decode(grasp)
-    return jnp.concatenate([(options[..., l:l + 1] == jnp.arange(n)).astype(jnp.float32)
-                            for l, n in enumerate(space.n_options)], -1)
+    return jnp.concatenate([(options[..., link:link + 1] == jnp.arange(n)).astype(jnp.float32)
+                            for link, n in enumerate(space.n_options)], -1)
 
 
 def inputs(features, grasp, space) -> jax.Array:

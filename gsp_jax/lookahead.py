@@ -25,8 +25,9 @@ on the waypoint, the grasp realised by IK from the fixed start configuration, th
 move. So two live leaves (paths that have not ended) with the same grasp are the same state up to `terms`,
 which no policy reads: the rollout runs once per distinct live leaf grasp. Paths that ended early stay frozen
 where they ended (another waypoint) and are not rolled out. An action sets one link, so the leaves lie within
-l link changes of the root's grasp: 11 distinct grasps for l = 1 and 51 for l = 2 with the paper's hand,
-against 17 and 289 leaves (the search rolls out one spare slot besides). Tests check the search against a plain recursive one and a brute-force enumeration.
+l link changes of the root's grasp: 11 distinct grasps for l = 1 and 51 for l = 2 with the paper's hand, against 17
+and 289 leaves (the search rolls out one spare slot besides). Tests check the search against a plain recursive one
+and a brute-force enumeration.
 """
 from __future__ import annotations
 

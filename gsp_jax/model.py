@@ -207,8 +207,8 @@ def _check_tool(m) -> list[str]:
             out.append(f"tool geom {_name(m, mujoco.mjtObj.mjOBJ_GEOM, g)!r} is a {kind}: a tool geom must be one of "
                        f"{', '.join(sorted(hand_lib.TOOL_GEOMS.values()))}")
     if not m.body_mass[tool] > 0:
-        out.append(f"tool body {_name(m, mujoco.mjtObj.mjOBJ_BODY, tool)!r} has no mass (give it an <inertial> or geoms "
-                   "with density)")
+        out.append(f"tool body {_name(m, mujoco.mjtObj.mjOBJ_BODY, tool)!r} has no mass "
+                   "(give it an <inertial> or geoms with density)")
     return out
 
 

@@ -9,13 +9,13 @@
         '''Keep the grasp with probability `hold` ... (the first line is what `python -m experiments planners` shows)'''
         return policy, policy_axis
 
-The library's planners register themselves at the end of this module. A builder takes the `evaluation.Context` of a batch of N episodes and keyword options (with defaults: they are the
-planner's documented options) and returns (policy, policy_axis): a policy for `physics.Physics.simulate` /
-`lookahead.rollout`, and 0 where it holds one policy per episode (a pytree of axes for a composite), None where one
-policy serves all. `needs` names what of the context it reads ("tables", "solutions", "rl", "nominal", or "base":
-the lookahead's base, the RL policy or else the DP baseline; a planner with a `cached` option reads the tables
-while it is on), so a command builds only that. The commands take
-any registered name; `--plugin MODULE` imports a user's module (which registers its planners) first.
+The library's planners register themselves at the end of this module. A builder takes the `evaluation.Context` of a
+batch of N episodes and keyword options (with defaults: they are the planner's documented options) and returns (policy,
+policy_axis): a policy for `physics.Physics.simulate` / `lookahead.rollout`, and 0 where it holds one policy per episode
+(a pytree of axes for a composite), None where one policy serves all. `needs` names what of the context it reads
+("tables", "solutions", "rl", "nominal", or "base": the lookahead's base, the RL policy or else the DP baseline; a
+planner with a `cached` option reads the tables while it is on), so a command builds only that. The commands take any
+registered name; `--plugin MODULE` imports a user's module (which registers its planners) first.
 """
 from __future__ import annotations
 
@@ -36,7 +36,8 @@ GROUPS = ("paper", "reference", "verified", "user")
 class Planner:
     name: str
     build: Callable  # build(ctx, **options) -> (policy, policy_axis)
-    group: str  # "paper" (the paper's five), "reference" (the physics check's), "verified" (branched in C MuJoCo), "user"
+    group: str  # "paper" (the paper's five), "reference" (the physics check's),
+    #             "verified" (branched in C MuJoCo), "user"
     needs: tuple[str, ...]  # what of the context it reads (`NEEDS`)
     options: dict[str, Any]  # its keyword options and their defaults
     backends: tuple[str, ...] | None  # the physics backends it runs on (None: any)

@@ -127,7 +127,8 @@ def load_network_policy(sur: Surrogate, path: str | pathlib.Path | None = None) 
     if path is None:
         path = shipped_policy(sur)
         if path is None:
-            raise FileNotFoundError(f"load_network_policy: no PPO policy ships for {model.label if model else 'this model'};"
+            raise FileNotFoundError("load_network_policy: no PPO policy ships for "
+                                    f"{model.label if model else 'this model'};"
                                     " train one with `python -m experiments train --model ...` and give its path")
     path = pathlib.Path(path)
     if not path.exists():
@@ -183,9 +184,9 @@ def rollout_batched(sur: Surrogate, policy, episode: Episode, ahead: int = 1) ->
     start an episode visits only discrete states (grasp, t), and a step's next grasp follows from its action alone
     (`GraspSpace.apply`), so the grasps a policy visits are known before any reward is: all T transitions (their IK
     and wrench solves) then run as one vmapped batch (`Surrogate.transition`), and the return sums the rewards up to
-    the first step that ends the episode (`reward.expected_return`). An open-loop `SequencePolicy` (DP baseline) needs nothing more. A
-    closed-loop policy first walks its chain of decisions, which needs each state it acts on realised (an IK):
-    `ahead` = k realises, in one batch, every state its next k decisions can reach -- the grasps within j link
+    the first step that ends the episode (`reward.expected_return`). An open-loop `SequencePolicy` (DP baseline) needs
+    nothing more. A closed-loop policy first walks its chain of decisions, which needs each state it acts on realised
+    (an IK): `ahead` = k realises, in one batch, every state its next k decisions can reach -- the grasps within j link
     changes of the current one at waypoint t + j, j < k (1, 11, 51, 133 ... states: `GraspSpace.within`) -- so the
     chain is ceil(T / k) batched IKs long instead of T single ones. A GPU runs a small batch in about the time of
     one problem (k = 3: 63 states per batch); a CPU pays for every state (keep k = 1 there: one IK a step more than

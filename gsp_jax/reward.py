@@ -137,7 +137,8 @@ class RewardConfig:
     max_step_cost: float = 10.0  # > 0: cap on a non-failing step's analytic cost ...
     r_min: float = -200.0  # < -max_step_cost: the reward of a failing step, below any T non-failing steps' sum
     risk_falls: float = 0.9  # in (0, 1): a transition whose learned fall probability exceeds this is a fall (a
-    # tighter one leaves more episodes with no feasible sequence, where planners choose among falls: docs/learned-physics.md)
+    # tighter one leaves more episodes with no feasible sequence, where planners choose among falls:
+    # docs/learned-physics.md)
 
     def __post_init__(self):
         for name in ("w_wrench_move", "w_ik", "w_wrench_hold", "w_wrench_ext", "w_redundant", "w_wrench_change"):

@@ -106,7 +106,8 @@ def make_episode(
         _number(name, value, none=name in ("torque", "mass"))
     for k, value in enumerate(np.ravel(np.asarray(lateral_mm, dtype=object))):
         _number(f"lateral_mm[{k}]", value)
-    if start_grasp is not None and not (isinstance(start_grasp, (int, np.integer)) and not isinstance(start_grasp, bool)):
+    if start_grasp is not None and not (isinstance(start_grasp, (int, np.integer))
+                                        and not isinstance(start_grasp, bool)):
         raise EpisodeError(f"episode.start_grasp: {start_grasp!r} (must be an int grasp index)")
     if isinstance(torque_axis, str):
         if torque_axis not in ("x", "y", "z"):
@@ -273,9 +274,10 @@ def stress_set(n: int = STRESS_SIZE, seed: int = STRESS_SEED, prefix: str = "str
         axis = "xyz"[i % 3]
         m = float(np.exp(log_mass[i]))
         name = f"{prefix}{i:03d}_{m:.2f}m0_mu{mu[i]:.2f}_{axis}{torque[i]:+.1f}Nm_{path}"
-        eps[name] = make_episode(model=model, shift_mm=round(float(shift[i]), 1), torque=round(float(torque[i]), 2), mass_factor=m,
-                                 com_y_cm=round(float(com_y[i]), 2), friction=round(float(mu[i]), 3),
-                                 com_x_cm=round(float(com_x[i]), 2), lateral_mm=(round(float(dx), 1), round(float(dy), 1)),
+        eps[name] = make_episode(model=model, shift_mm=round(float(shift[i]), 1), torque=round(float(torque[i]), 2),
+                                 mass_factor=m, com_y_cm=round(float(com_y[i]), 2), friction=round(float(mu[i]), 3),
+                                 com_x_cm=round(float(com_x[i]), 2),
+                                 lateral_mm=(round(float(dx), 1), round(float(dy), 1)),
                                  torque_axis=axis)
     return eps
 
@@ -286,8 +288,8 @@ def stress_calibration_set(model=None) -> dict[str, Episode]:
     return stress_set(60, STRESS_SEED + 1, prefix="envcal", model=model)
 
 
-SETS = {"nominal": nominal, "variations": variations_set, "train": training_set, "val": validation_set, "evalA": eval_set_a, "evalB": eval_set_b,
-        "stress": stress_set, "stress-cal": stress_calibration_set}
+SETS = {"nominal": nominal, "variations": variations_set, "train": training_set, "val": validation_set,
+        "evalA": eval_set_a, "evalB": eval_set_b, "stress": stress_set, "stress-cal": stress_calibration_set}
 
 
 def episode_set(name: str, model=None) -> dict[str, Episode]:
@@ -373,10 +375,12 @@ def validate(ep: Episode, name: str = "episode", n_grasps: int | None = None, ha
             bad = x[~np.isfinite(x)].flat[0]
             raise EpisodeError(f"{name}.{field}: contains {bad} (values must be finite)")
     if not DT_RANGE[0] <= float(ep.dt) <= DT_RANGE[1]:
-        raise EpisodeError(f"{name}.dt: {str(np.float32(float(ep.dt)))} s (must be in [{DT_RANGE[0]}, {DT_RANGE[1]}] s)")
+        raise EpisodeError(f"{name}.dt: {str(np.float32(float(ep.dt)))} s "
+                           f"(must be in [{DT_RANGE[0]}, {DT_RANGE[1]}] s)")
     m0 = hand.tool_mass
     if not m0 / SCALE_MAX <= float(ep.mass) <= m0 * SCALE_MAX:
-        raise EpisodeError(f"{name}.mass: {str(np.float32(float(ep.mass)))} kg (must be within {SCALE_MAX:g}x of the model's tool "
+        raise EpisodeError(f"{name}.mass: {str(np.float32(float(ep.mass)))} kg "
+                           f"(must be within {SCALE_MAX:g}x of the model's tool "
                            f"mass {m0:.4g} kg: [{m0 / SCALE_MAX:.4g}, {m0 * SCALE_MAX:.4g}] kg)")
     inertia = np.asarray(ep.inertia, np.float64)
     lo, hi = hand.tool_inertia.min() / SCALE_MAX**2, hand.tool_inertia.max() * SCALE_MAX**2
@@ -405,7 +409,8 @@ def validate(ep: Episode, name: str = "episode", n_grasps: int | None = None, ha
     if np.any(out):
         i = int(np.argmax(out))
         raise EpisodeError(
-            f"{name}.waypoints[{i}]: {wp[i].tolist()} is out of the hand's reach (table frame box {lo.tolist()} .. {hi.tolist()} m)"
+            f"{name}.waypoints[{i}]: {wp[i].tolist()} is out of the hand's reach "
+            f"(table frame box {lo.tolist()} .. {hi.tolist()} m)"
         )
     g = int(ep.start_grasp)
     if not 0 <= g < n_grasps:

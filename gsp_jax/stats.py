@@ -188,5 +188,6 @@ def relative_returns(returns: dict, reference: str, compared, r_min: float) -> d
     except ImportError as e:  # statsmodels missing (a bare GPU image): `reproduce --report-only` redoes this
         return dict(relative=summary, anova=None, rank=None, anova_text=f"statistics skipped: {e}")
     return dict(relative=summary, anova_text=anova.summary() + "\n" + rank.summary(),
-                anova=dict(f=anova.f, df=[anova.df_num, anova.df_den], p=anova.p, posthoc=[vars(c) for c in anova.posthoc]),
+                anova=dict(f=anova.f, df=[anova.df_num, anova.df_den], p=anova.p,
+                           posthoc=[vars(c) for c in anova.posthoc]),
                 rank=dict(chi2=rank.chi2, df=rank.df, p=rank.p, posthoc=[vars(c) for c in rank.posthoc]))

@@ -1,6 +1,6 @@
-"""Tests of the calibration (`gsp_jax.physics.calibration`, the `calibrate` command): the candidate tables (IK shared by all candidates, wrench solves by each
-grip) equal `dp.build_table` under each candidate's own surrogate; the winner is the fewest DP-optimal
-falls, then the highest correlation; the evaluation episodes are refused."""
+"""Tests of the calibration (`gsp_jax.physics.calibration`, the `calibrate` command): the candidate tables (IK shared
+by all candidates, wrench solves by each grip) equal `dp.build_table` under each candidate's own surrogate; the winner
+is the fewest DP-optimal falls, then the highest correlation; the evaluation episodes are refused."""
 from __future__ import annotations
 
 import argparse
@@ -54,7 +54,8 @@ def _sweep(rows):
 
 def test_winner_is_fewest_dp_optimal_falls_then_highest_rho(capsys):
     # a candidate with no feasible sequence (no correlation) never wins, however few its DP plans' falls
-    assert calibrate.choose_and_write(_sweep([(0.5, 2), (0.4, 1), (0.45, 1), (float("nan"), 0)]), False)["label"] == "c2"
+    assert calibrate.choose_and_write(_sweep([(0.5, 2), (0.4, 1), (0.45, 1), (float("nan"), 0)]),
+                                      False)["label"] == "c2"
     assert calibrate.choose_and_write(_sweep([(0.5, 2), (0.4, 3)]), False)["label"] == "c0"
     assert "chosen" in capsys.readouterr().out
 

@@ -126,9 +126,9 @@ def test_extend_resumes_after_a_kill_with_nothing_lost_or_duplicated(tmp_path, m
 
 def test_a_real_shard_agrees_with_the_surrogate_and_c_mujoco():
     """Two drawn episodes (their first 2 waypoints) x (four tips, DP optimal, one random, one perturbation) in C
-    MuJoCo: every feature finite; each transition's reward feature is the DP table's entry for it (the table's
-    batched kernels against the surrogate's replay); the labels say a run fell exactly where C MuJoCo says it did, and the perturbation differs from
-    its base in at most one step."""
+    MuJoCo: every feature finite; each transition's reward feature is the DP table's entry for it (the table's batched
+    kernels against the surrogate's replay); the labels say a run fell exactly where C MuJoCo says it did, and the
+    perturbation differs from its base in at most one step."""
     import jax.numpy as jnp
 
     from gsp_jax import dp, physics

@@ -148,7 +148,8 @@ def test_gather_moves_values_larger_than_a_piece_bit_for_bit_between_two_process
     env = dict(os.environ, JAX_PLATFORMS="cpu", **{distributed.ENV_COORDINATOR: f"127.0.0.1:{free_port()}",
                                                    distributed.ENV_NUM_PROCESSES: "2"})
     procs = [subprocess.Popen([sys.executable, str(script)], cwd=tmp_path, stdout=subprocess.PIPE,
-                              stderr=subprocess.STDOUT, text=True, env=dict(env, **{distributed.ENV_PROCESS_ID: str(p)}))
+                              stderr=subprocess.STDOUT, text=True,
+                              env=dict(env, **{distributed.ENV_PROCESS_ID: str(p)}))
              for p in range(2)]
     outs = [proc.communicate(timeout=300)[0] for proc in procs]
     for p, (proc, out) in enumerate(zip(procs, outs)):

@@ -12,7 +12,8 @@ README = ROOT / "README.md"
 
 def _links(path: pathlib.Path) -> list[str]:
     text = path.read_text()
-    return [m for m in re.findall(r"\]\(([^)\s]+)\)", text) if not m.startswith(("http://", "https://", "#", "mailto:"))]
+    return [m for m in re.findall(r"\]\(([^)\s]+)\)", text)
+            if not m.startswith(("http://", "https://", "#", "mailto:"))]
 
 
 def test_readme_is_short_and_cites_no_commit():
@@ -117,7 +118,8 @@ def test_every_readme_figure_names_the_machine_of_its_data_file():
             row = _file(name)
             machine = _machine(row["device"])
             assert name.endswith("_" + machine.lower()), f"{name}.json records {row['device']!r}"
-            assert re.search(rf"\b{machine}\b( host)?", unit), f"README names no {machine} where it cites {name}: {unit}"
+            assert re.search(rf"\b{machine}\b( host)?", unit), (f"README names no {machine} "
+                                                                 f"where it cites {name}: {unit}")
     assert cited >= 8, f"the README cites {cited} docs/data files"
     for label in ("Fig. 4a", "Fig. 4b: falls", "Fig. 4b: tool angle", "Table 1: ours"):
         assert _row(label)[0], f"README results row {label!r} cites no docs/data file"
@@ -170,7 +172,8 @@ def test_readme_sentences_are_docs_data():
     assert float(_claim(rf"One L1 decision takes ([\d.]+) ms \(median\) on the H\d+ host \(`{latency_name}`\)")[0]) \
         == round(1000 * latency, 1)
     fig4b = _file(fig4b_name)["figures"]["L1-physics"]
-    falls, n, angle = _claim(rf"evaluation set: (\d+) of (\d+) falls, ([\d.]+)° mean angle error \(H\d+ host, `{fig4b_name}`\)")
+    falls, n, angle = _claim(r"evaluation set: (\d+) of (\d+) falls, ([\d.]+)° mean angle error "
+                             rf"\(H\d+ host, `{fig4b_name}`\)")
     assert (int(falls), int(n), float(angle)) == (fig4b["falls"], fig4b["episodes"], round(fig4b["mean_deg"], 1))
     stress_name, eval_name = _named("envelope_stress_"), _named("envelope_eval_")
     stress = _file(stress_name)["figures"]
@@ -179,7 +182,8 @@ def test_readme_sentences_are_docs_data():
                  rf"H\d+ host, `{stress_name}`\)")
     assert tuple(map(int, got)) == (kinds["L1-physics"]["falls"], stress["episodes"], kinds["L1-physics"]["regret"],
                                     kinds["four-tips"]["falls"], kinds["dp-opt"]["falls"], kinds["L1"]["falls"])
-    got = _claim(r"The stress set has (\d+) episodes.*? The constant four-tip grasp drops (\d+) of them\. For (\d+) of those"
+    got = _claim(r"The stress set has (\d+) episodes.*? The constant four-tip grasp drops (\d+) of them\. "
+                 r"For (\d+) of those"
                  r".*?\(DP optimal (\d+), L1 (\d+), L2 (\d+), RL (\d+); L1-physics (\d+)\)\. Of the sequences the "
                  rf"surrogate calls feasible, (\d+)% hold \(the aim is 95%\)\. H\d+ host, `{stress_name}`")
     four = kinds["four-tips"]
@@ -211,7 +215,8 @@ def test_readme_learned_term_sentences_are_docs_data():
         kinds["rl"]["regret"], round(100 * pool["feasible_hold_share"]), round(pool["auc_pooled"], 2),
         round(100 * pool["predicted_hold_share"]))
     evals = _file("envelope_eval_learned_h200")["figures"]["summary"]["kinds"]
-    falls, n = _claim(r"Evaluation set: DP optimal, L1, L2 (\d+) of (\d+) falls \(H200 host, `envelope_eval_learned_h200`\)")
+    falls, n = _claim(r"Evaluation set: DP optimal, L1, L2 (\d+) of (\d+) falls "
+                      r"\(H200 host, `envelope_eval_learned_h200`\)")
     assert all(evals[k]["falls"] == int(falls) for k in ("dp-opt", "L1", "L2")) and int(n) == evals["L1"]["episodes"]
     latency = _file("bench_latency_learned_h200")["figures"]["policies"]["L1"]["decision_median_s"]
     ms = _claim(r"One L1 decision takes ([\d.]+) ms \(`bench_latency_learned_h200`, H200 host\)")[0]
@@ -276,11 +281,11 @@ STALE_MARK = "†"  # a README claim citing a stale record says so with this mar
 
 
 def test_no_readme_figure_is_stale():
-    """Every docs/data record the README cites was made by its figure's documented command (`experiments/paper/figures.py`)
-    at a commit whose code it measures is the code here: a change to that code since (`git diff`), a record from a
-    tree with uncommitted changes or by another command makes the figure stale until `python -m experiments --record
-    figures` records it again -- or until the README marks the claim stale (`STALE_MARK`). A marked claim must
-    cite a stale record: the mark goes when the figure is re-recorded."""
+    """Every docs/data record the README cites was made by its figure's documented command
+    (`experiments/paper/figures.py`) at a commit whose code it measures is the code here: a change to that code since
+    (`git diff`), a record from a tree with uncommitted changes or by another command makes the figure stale until
+    `python -m experiments --record figures` records it again -- or until the README marks the claim stale
+    (`STALE_MARK`). A marked claim must cite a stale record: the mark goes when the figure is re-recorded."""
     import subprocess
 
     import pytest
@@ -328,7 +333,8 @@ def test_staleness_sees_a_change_to_the_code_a_record_measures(tmp_path):
 
     clone, head = _scratch_clone(tmp_path)
     fig = next(f for f in figures.FIGURES if f.name == "envelope-stress")
-    row = dict(name="envelope_stress_h100", commit=head, command="python -m experiments --record " + " ".join(fig.command))
+    row = dict(name="envelope_stress_h100", commit=head,
+               command="python -m experiments --record " + " ".join(fig.command))
     original = common.ROOT
     try:
         common.ROOT = clone

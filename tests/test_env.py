@@ -114,7 +114,8 @@ def test_table_backend_equals_surrogate_backend_step_for_step(sur, episodes, tab
         np.testing.assert_array_equal(a.done, b.done, err_msg=msg)
         np.testing.assert_array_equal(a.info["episode_index"], b.info["episode_index"], err_msg=msg)
         tol.assert_close_with_rare_ties(a.info["return"], b.info["return"], T * tol.REWARD_ATOL, msg)
-        tol.assert_close_with_rare_ties(a.metrics["episode_return"], b.metrics["episode_return"], T * tol.REWARD_ATOL, msg)
+        tol.assert_close_with_rare_ties(a.metrics["episode_return"], b.metrics["episode_return"], T * tol.REWARD_ATOL,
+                                        msg)
         np.testing.assert_array_equal(a.pipeline_state.grasp, b.pipeline_state.grasp, err_msg=msg)
         np.testing.assert_array_equal(a.pipeline_state.t, b.pipeline_state.t, err_msg=msg)
         tol.assert_close_with_rare_ties(a.obs, b.obs, tol.Q_ATOL, msg)  # the joint angles are the imprecise part
@@ -151,7 +152,8 @@ def test_auto_reset_cycles_episodes_and_reports_the_return(table_env, table_fns,
         if bool(state.done):
             ended += 1
             np.testing.assert_allclose(float(state.metrics["episode_return"]), total, rtol=1e-6, atol=1e-5)
-            assert int(state.info["episode_index"]) == (ep + 1) % n, f"step {step}: {ep} -> {int(state.info['episode_index'])}"
+            assert int(state.info["episode_index"]) == (ep + 1) % n, (
+                f"step {step}: {ep} -> {int(state.info['episode_index'])}")
             assert int(state.pipeline_state.t) == 0 and not bool(state.pipeline_state.done)
             assert int(state.pipeline_state.grasp) == start[(ep + 1) % n]
             assert float(state.info["return"]) == 0.0
@@ -242,8 +244,9 @@ def test_bad_input_raises_naming_the_field(sur, episodes, tables):
 
 @pytest.mark.parametrize("bad", [-1, 17, 1000])
 def test_out_of_range_actions_raise_at_every_python_entry_point(sur, episodes, tables, table_env, bad):
-    """A concrete action outside [0, 17) raises a ValueError naming the value: the brax env, the table model,
-    the surrogate step and transition, the DP policies given the model's space. Inside jit it is clipped (documented in gsp_jax.grasps)."""
+    """A concrete action outside [0, 17) raises a ValueError naming the value: the brax env, the table model, the
+    surrogate step and transition, the DP policies given the model's space. Inside jit it is clipped (documented in
+    gsp_jax.grasps)."""
     from gsp_jax import env as env_lib, policies
 
     state = table_env.reset_to(0)

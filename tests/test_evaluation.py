@@ -65,4 +65,5 @@ def test_reference_sequences_reach_their_grasps(sur):
     assert [names[i] for i in np.flatnonzero(one)] == ["index"]
     policy, axis = planners.make(_bare(sur), "four-tips")
     assert axis is None and np.array_equal(np.asarray(policy.actions), evaluation.four_tips(space))
-    assert np.all(evaluation.one_tip(space)[2:] == grasps.NULL) and jnp.asarray(evaluation.one_tip(space)).dtype == jnp.int32
+    assert (np.all(evaluation.one_tip(space)[2:] == grasps.NULL)
+            and jnp.asarray(evaluation.one_tip(space)).dtype == jnp.int32)

@@ -1,5 +1,5 @@
-"""Fig. 4b's runner (`experiments.paper.fig4b.run`): in C MuJoCo every policy runs in one lockstep, and each gives what it
-gives alone (the controller program of another batch size: float reassociation only)."""
+"""Fig. 4b's runner (`experiments.paper.fig4b.run`): in C MuJoCo every policy runs in one lockstep, and each gives
+what it gives alone (the controller program of another batch size: float reassociation only)."""
 from __future__ import annotations
 
 import json

@@ -125,7 +125,8 @@ def test_a_results_folder_is_one_commands_at_a_time(tmp_path):
                              text=True)
     try:
         assert owner.stdout.readline().strip() == "holding"
-        second = subprocess.run([sys.executable, "-c", "from experiments.common import results_dir; results_dir('fig4b')"],
+        second = subprocess.run([sys.executable, "-c",
+                                 "from experiments.common import results_dir; results_dir('fig4b')"],
                                 cwd=tmp_path, env=env, capture_output=True, text=True)
         assert second.returncode != 0
         assert f"results/fig4b: in use by process {owner.pid}" in second.stderr, second.stderr

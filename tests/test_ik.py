@@ -19,7 +19,7 @@ import pytest
 
 import tolerances as tol
 from gsp_jax import model as model_lib
-from gsp_jax import grasps, ik, kinematics, scenario
+from gsp_jax import ik, kinematics, scenario
 
 CFG = ik.IKConfig()
 SINGLE = dataclasses.replace(CFG, extra_starts=())  # the model's start alone (the default before issue 14)

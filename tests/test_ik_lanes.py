@@ -14,7 +14,7 @@ import pytest
 
 import tolerances as tol
 from gsp_jax import model as model_lib
-from gsp_jax import dp, grasps, ik, ik_lanes, kinematics, scenario
+from gsp_jax import dp, ik, ik_lanes, kinematics, scenario
 from gsp_jax.surrogate import Surrogate
 
 CFG = ik.IKConfig()
@@ -141,7 +141,8 @@ def test_leading_axes_and_one_start(hand, problems):
     tol.assert_close_with_rare_ties(chunked.error, flat.error, tol.IK_ATOL, "chunked", tie_fraction=0.0)
     for bad in (0, 2.5, True):
         with pytest.raises(ValueError, match="IKConfig.lanes_chunk"):
-            ik_lanes.solve(hand, active[:2], targets[:2], pos[:2], mat[:2], dataclasses.replace(single, lanes_chunk=bad))
+            ik_lanes.solve(hand, active[:2], targets[:2], pos[:2], mat[:2],
+                           dataclasses.replace(single, lanes_chunk=bad))
 
 
 def test_table_is_the_same_either_way(hand):

@@ -46,7 +46,8 @@ def test_wheel_installs_outside_the_checkout_and_steps_the_surrogate(tmp_path):
     names = zipfile.ZipFile(wheel).namelist()
     shipped = [f.relative_to(ROOT / "models").as_posix() for f in (ROOT / "models").rglob("*")
                if f.is_file() and "__pycache__" not in f.parts]
-    assert {"scene.xml", "hand.xml", "wrench.xml", "reward_calibration.json", "policies/ppo_dp_seed0/_METADATA"} <= set(shipped)
+    assert {"scene.xml", "hand.xml", "wrench.xml", "reward_calibration.json",
+            "policies/ppo_dp_seed0/_METADATA"} <= set(shipped)
     missing = [f for f in shipped if f"gsp_jax/models/{f}" not in names]
     assert not missing, f"models/ files not in the wheel: {missing}"
     assert not any(n.startswith("models/") for n in names)  # one copy, inside the package
@@ -56,7 +57,8 @@ def test_wheel_installs_outside_the_checkout_and_steps_the_surrogate(tmp_path):
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH",)}
-    out = run([sys.executable, "-c", STEP_ONCE], cwd=elsewhere, env=dict(env, JAX_PLATFORMS="cpu", PYTHONPATH=str(site)))
+    out = run([sys.executable, "-c", STEP_ONCE], cwd=elsewhere,
+              env=dict(env, JAX_PLATFORMS="cpu", PYTHONPATH=str(site)))
     import json
 
     result = json.loads(out.stdout.strip().splitlines()[-1])

@@ -36,7 +36,8 @@ def discrete(sur):
 @pytest.fixture(scope="module")
 def network(sur):
     """A small PPO actor-critic with random weights (a deterministic policy that is neither DP nor trivial)."""
-    networks = nets.make_networks(observation_size(sur.space, 6, sur.hand.n_joints), sur.n_actions, nets.NetworkConfig(hidden=(32, 32)))
+    networks = nets.make_networks(observation_size(sur.space, 6, sur.hand.n_joints), sur.n_actions,
+                                  nets.NetworkConfig(hidden=(32, 32)))
     return policies.NetworkPolicy(networks.init(jax.random.PRNGKey(3)), networks, sur.space)
 
 
@@ -284,7 +285,8 @@ def test_vmapped_search_equals_looped_search(sur, solved, network):
     eps, tables, sols = solved
     model = TableModel(_pick(tables, 1), sur.space)
     ep = _pick(eps, 1)
-    states = jax.vmap(lambda g, t: table_state(ep, model.table, g, t))(jnp.array([0, 17, 101, 287]), jnp.array([0, 2, 3, 5]))
+    states = jax.vmap(lambda g, t: table_state(ep, model.table, g, t))(jnp.array([0, 17, 101, 287]),
+                                                                       jnp.array([0, 2, 3, 5]))
     search = jax.jit(lambda s: lookahead.search(model, s, network, depth=2))
     batched = jax.vmap(lambda s: lookahead.search(model, s, network, depth=2))(states)
     for i in range(4):
@@ -313,9 +315,9 @@ def test_shared_rollouts_cover_every_leaf(sur):
 
 
 def test_per_decision_latency_times_the_planners_own_decisions(sur, solved, network, stepped):
-    """`table1 --per-decision` times one decision at a time on the planner's own episode: DP optimal earns each episode's
-    DP optimum, and the cached L1 earns what the same policy earns run plan by plan (`stepped`, which the rollout
-    test below checks against the jitted `rollout_planned`); every step of every episode is a decision."""
+    """`table1 --per-decision` times one decision at a time on the planner's own episode: DP optimal earns each
+    episode's DP optimum, and the cached L1 earns what the same policy earns run plan by plan (`stepped`, which the
+    rollout test below checks against the jitted `rollout_planned`); every step of every episode is a decision."""
     from experiments.paper.table1 import decisions as bench_latency
     from gsp_jax import evaluation
 
@@ -332,9 +334,9 @@ def test_per_decision_latency_times_the_planners_own_decisions(sur, solved, netw
 
 
 def test_table1_dp_optimal_earns_its_dp_optimum_by_replaying_its_own_table(sur, solved, network):
-    """`online.plan`'s DP optimal (Table 1's) solves the unseen episode inside the timed call and runs its policy in that table
-    (from its start the surrogate visits only the table's states: `test_env` checks the two step for step): the
-    episode earns exactly the DP optimum of the episode."""
+    """`online.plan`'s DP optimal (Table 1's) solves the unseen episode inside the timed call and runs its policy in
+    that table (from its start the surrogate visits only the table's states: `test_env` checks the two step for step):
+    the episode earns exactly the DP optimum of the episode."""
     from gsp_jax import evaluation, online
 
     eps, tables, sols = solved
@@ -345,9 +347,9 @@ def test_table1_dp_optimal_earns_its_dp_optimum_by_replaying_its_own_table(sur, 
 
 
 def test_table1_lookahead_in_the_table_runs_the_cached_episode(sur, solved, network, stepped):
-    """`online.plan`'s L1 (Table 1's) searching in the unseen episode's table, root included (`lookahead="table"`, the default), runs
-    the episode that the cached L1 runs with the root's actions stepped in the surrogate (from its start the
-    surrogate visits only the table's states): the same return, to the tolerance of a few rewards."""
+    """`online.plan`'s L1 (Table 1's) searching in the unseen episode's table, root included (`lookahead="table"`, the
+    default), runs the episode that the cached L1 runs with the root's actions stepped in the surrogate (from its
+    start the surrogate visits only the table's states): the same return, to the tolerance of a few rewards."""
     from gsp_jax import evaluation, online
 
     eps, tables, sols = solved

@@ -157,8 +157,8 @@ def test_oracle_names_bad_input(oracle):
 
 
 def test_envelope_summary_counts_regret_and_classes():
-    """`gsp_jax.physics.envelope.summarise` on a hand-made pool: a planner's regret counts the episodes where it fell and
-    another sequence held; the falls' classes are counted; the AUC is the hold-above-fall probability."""
+    """`gsp_jax.physics.envelope.summarise` on a hand-made pool: a planner's regret counts the episodes where it fell
+    and another sequence held; the falls' classes are counted; the AUC is the hold-above-fall probability."""
     from gsp_jax.physics import envelope
 
     kinds = ["four-tips", "dp-opt", "random0"]

@@ -60,7 +60,8 @@ def batch(phys):
 @pytest.fixture(scope="module")
 def runs(phys, batch):
     episodes, policy, _ = batch
-    return {b: jax.device_get(phys.simulate_batch(policy, episodes, policy_axis=0, backend=b)) for b in physics.BACKENDS}
+    return {b: jax.device_get(phys.simulate_batch(policy, episodes, policy_axis=0, backend=b))
+            for b in physics.BACKENDS}
 
 
 @pytest.mark.parametrize("backend", physics.BACKENDS)
@@ -381,7 +382,7 @@ def test_c_branches_on_a_pool_past_its_size_are_the_runs_without_it(phys, batch,
     fields = jax.device_get(jax.vmap(phys.scene.episode_fields)(episodes))
     assert len({c_backend.Pool.key(jax.tree.map(lambda x: x[e], fields)) for e in range(5)}) >= 3
     pool = c_backend.Pool(most=3)
-    monkeypatch.setitem(phys._jitted, "c-pool", pool)
+    monkeypatch.setitem(phys._kept, "c-pool", pool)
     ref = pick(runs["c"])
     for outcomes in (False, True, False):
         out, = c_backend.simulate(phys, [(pick(policy), 0)], pick(episodes), start=snap.take(rows), outcomes=outcomes)
@@ -410,7 +411,7 @@ def test_c_continuation_from_a_snapshot_is_the_original_run(phys, batch, runs):
         np.testing.assert_array_equal(getattr(cont, f), getattr(ref, f), err_msg=f)
     # a branch's outcomes alone (`outcomes=True`, what L1-physics reads) are the full result's, bit for bit, from
     # the models and datas the continuation above left in the pool (`c_backend.Pool`: used, not new)
-    assert phys._jitted["c-pool"]._count >= 5
+    assert phys._kept["c-pool"]._count >= 5
     (fell, error, actions), = c_backend.simulate(phys, [(policy, 0)], episodes, start=snap, outcomes=True)
     for got, want in ((fell, ref.fell), (error, ref.angle_error), (actions, ref.actions)):
         np.testing.assert_array_equal(got, want)

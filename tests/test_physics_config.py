@@ -87,9 +87,10 @@ def _table_pairs(m: mujoco.MjModel) -> np.ndarray:
 
 
 def test_the_physics_step_and_table_friction_are_the_scene_files(tmp_path):
-    """The physics model keeps the scene file's `<option timestep>`, and every contact pair with the table takes
-    the table geom's sliding friction (read back from MuJoCo's own compile of the file); the scene's control tick
-    is that step (`Scene.timestep`). The solver settings are `config.sim`'s and the joints' damping is explicit (`mjDSBL_EULERDAMP`)."""
+    """The physics model keeps the scene file's `<option timestep>`, and every contact pair with the table takes the
+    table geom's sliding friction (read back from MuJoCo's own compile of the file); the scene's control tick is that
+    step (`Scene.timestep`). The solver settings are `config.sim`'s and the joints' damping is explicit
+    (`mjDSBL_EULERDAMP`)."""
     shipped = physics.physics_model(model_lib.load_hand())
     file = mujoco.MjModel.from_xml_path(str(hand_lib.SCENE_XML))
     assert shipped.opt.timestep == file.opt.timestep

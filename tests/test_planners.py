@@ -9,11 +9,10 @@ import pathlib
 import subprocess
 import sys
 
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gsp_jax import evaluation, planners, policies, scenario
+from gsp_jax import evaluation, planners, scenario
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 PROJECT = ("dp-base", "rl", "L1", "L2", "dp-opt", "four-tips", "one-tip", "random", "L1-physics")

@@ -48,9 +48,11 @@ def test_network_policy_acts_the_same_in_the_surrogate_and_the_table_env(sur, so
 
     eps, tables, sols = solved
     table_env = GraspEnv(sur, eps, tables, auto_reset=False)
-    networks = nets.make_networks(table_env.observation_size, table_env.action_size, nets.NetworkConfig(hidden=(64, 64)))
+    networks = nets.make_networks(table_env.observation_size, table_env.action_size,
+                                  nets.NetworkConfig(hidden=(64, 64)))
     data = pretrain.dp_dataset(sur, eps, tables)
-    params, _ = pretrain.pretrain(networks, data, pretrain.BCConfig(epochs=150, batch_size=64), jax.random.PRNGKey(0), progress=False)
+    params, _ = pretrain.pretrain(networks, data, pretrain.BCConfig(epochs=150, batch_size=64), jax.random.PRNGKey(0),
+                                  progress=False)
     policy = policies.NetworkPolicy(params, networks, sur.space)
     ret, _ = jax.jit(jax.vmap(lambda e: lookahead.rollout(sur, policy, sur.reset(e))))(eps)
     greedy = jax.jit(lambda p: ppo.greedy_returns(table_env, networks, p))(params)
@@ -89,7 +91,8 @@ def test_batched_rollout_runs_the_episode_that_stepping_runs(sur, solved, kind, 
         policy = policies.NetworkPolicy(networks.init(jax.random.PRNGKey(19)), networks, sur.space)
     else:
         policy = {"dp-base": policies.SequencePolicy(sols.actions[0]), "dp-opt": policies.TablePolicy(sols.policy[1]),
-                  "ends-early": policies.SequencePolicy(_early_end(table, int(ep.start_grasp), int(sols.actions[1][0])))}[kind]
+                  "ends-early": policies.SequencePolicy(_early_end(table, int(ep.start_grasp),
+                                                                   int(sols.actions[1][0])))}[kind]
     step, act = jax.jit(sur.step), jax.jit(lambda p, s: p.act(s))
     s, ret, n = jax.jit(sur.reset)(ep), 0.0, 0
     while not bool(s.done):

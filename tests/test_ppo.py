@@ -112,10 +112,10 @@ def _gae_by_definition(r, v, d, boot, gamma, lam):
     for b in range(n_b):
         for u in range(n_u):
             total = 0.0
-            for k, l in enumerate(range(u, n_u)):
-                delta = r[l, b] + (0.0 if d[l, b] else gamma * vv[l + 1, b]) - vv[l, b]
+            for k, step in enumerate(range(u, n_u)):
+                delta = r[step, b] + (0.0 if d[step, b] else gamma * vv[step + 1, b]) - vv[step, b]
                 total += (gamma * lam) ** k * delta
-                if d[l, b]:
+                if d[step, b]:
                     break
             adv[u, b] = total
     return adv
@@ -129,9 +129,9 @@ def _returns(r, d, boot, gamma):
     for b in range(n_b):
         for u in range(n_u):
             total, ended = 0.0, False
-            for k, l in enumerate(range(u, n_u)):
-                total += gamma**k * r[l, b]
-                if d[l, b]:
+            for k, step in enumerate(range(u, n_u)):
+                total += gamma**k * r[step, b]
+                if d[step, b]:
                     ended = True
                     break
             if not ended:

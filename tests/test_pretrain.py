@@ -173,7 +173,8 @@ def test_behaviour_cloning_fits_the_dp_dataset(dataset):
     rmse, spread = float(np.sqrt(np.mean((value - target) ** 2))), float(np.std(target))
     optimal = float(np.mean(np.take_along_axis(np.asarray(dataset.optimal), np.argmax(logits, axis=1)[:, None], 1)))
     n_opt = np.asarray(dataset.optimal).sum(1)
-    print(f"BC accuracy {accuracy:.3f}, optimal {optimal:.3f}, states with several optimal actions {np.mean(n_opt > 1):.3f}")
+    print(f"BC accuracy {accuracy:.3f}, optimal {optimal:.3f}, "
+          f"states with several optimal actions {np.mean(n_opt > 1):.3f}")
     assert accuracy > 0.95, f"BC accuracy {accuracy:.3f} (any optimal action {optimal:.3f}) on {dataset.size} DP states"
     assert rmse < 0.1 * spread, f"critic RMSE {rmse:.3f} vs value spread (std) {spread:.3f}"
     assert history[-1]["epoch"] == cfg.epochs

@@ -1,6 +1,7 @@
 """Tests of experiments/physics/rescore.py: a recorded pool's sequences rescored step by step equal their returns
 replayed in the DP table (`calibration.candidate_tables`, itself tested against `dp.build_table`: the table scores
-every (grasp, action, waypoint) through its own path), under the calibrated reward and a variant; bad --reward and --pool inputs are named."""
+every (grasp, action, waypoint) through its own path), under the calibrated reward and a variant; bad --reward and
+--pool inputs are named."""
 from __future__ import annotations
 
 import dataclasses

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from gsp_jax import model as model_lib
-from gsp_jax import grasps, scenario as sc
+from gsp_jax import scenario as sc
 
 M0 = 0.35
 Z0, Z1 = 0.014, 0.06

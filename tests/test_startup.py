@@ -9,7 +9,6 @@ import sys
 
 import jax
 import jax.numpy as jnp
-import pytest
 
 from gsp_jax import cache, platform, scenario, surrogate
 from gsp_jax.reward import RewardConfig

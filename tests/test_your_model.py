@@ -92,7 +92,8 @@ def test_a_users_scene_follows_the_conventions(user_scene, user_model):
     assert float(ep.mass) == pytest.approx(0.5) and np.allclose(ep.inertia, 2 * m.body_inertia[b], rtol=1e-6)
     assert np.allclose(ep.com, h.tool_com, atol=1e-7) and float(ep.waypoints[0, 2]) == pytest.approx(0.02)
     assert np.asarray(space.decode(ep.start_grasp)).tolist() == [1, 1, 0, 1, 0]
-    assert scenario.make_episode(model=user_model, start={"thumb_distal": 2}).start_grasp == space.encode([2, 0, 0, 0, 0])
+    assert (scenario.make_episode(model=user_model, start={"thumb_distal": 2}).start_grasp
+            == space.encode([2, 0, 0, 0, 0]))
     absolute = scenario.make_episode(model=user_model, mass=0.3, inertia=(1e-4, 2e-4, 2e-4), com=(0.01, 0, 0),
                                      torque=0.5, torque_axis=(1, 1, 0))
     assert float(absolute.mass) == pytest.approx(0.3) and np.allclose(absolute.com, (0.01, 0, 0))
@@ -197,7 +198,8 @@ def _write(folder: pathlib.Path, tool: str, hand: str | None = None) -> pathlib.
      "link 'index_medial' has no contact option on the tool: add site 'opt_index_medial_1'"),
     (lambda t: t.replace("<freejoint/>", ""), "the tool must be the scene's one free body"),
     (lambda t: t.replace('type="sphere" pos="0.075 0 0" size="0.016"', 'type="mesh" mesh="knob" pos="0.075 0 0"')
-     .replace("<worldbody>", '<asset><mesh name="knob" vertex="0 0 0  0.02 0 0  0 0.02 0  0 0 0.02"/></asset><worldbody>'),
+     .replace("<worldbody>",
+              '<asset><mesh name="knob" vertex="0 0 0  0.02 0 0  0 0.02 0  0 0 0.02"/></asset><worldbody>'),
      "tool geom 'knob' is a mesh: a tool geom must be one of box, capsule, cylinder, ellipsoid, sphere"),
     (lambda t: t.replace('name="opt_middle_medial_1"', 'name="opt_pinky_distal_1"'),
      "site 'opt_pinky_distal_1' names no contact link"),

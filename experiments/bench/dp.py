@@ -64,7 +64,8 @@ def main(args: argparse.Namespace) -> None:
 
     result = dict(
         device=f"{device.platform}:{device.device_kind}", one_episode_s=t_one, one_episode_compile_s=compile_one,
-        batch_episodes=len(evals), batch_s=t_many, batch_compile_s=compile_many, per_episode_in_batch_s=t_many / len(evals),
+        batch_episodes=len(evals), batch_s=t_many, batch_compile_s=compile_many,
+        per_episode_in_batch_s=t_many / len(evals),
         loop_step_s=per_step, loop_table_s_extrapolated=t_loop, speedup_one=t_loop / t_one,
         speedup_batched=t_loop / (t_many / len(evals)), paper_s=PAPER_DP_SECONDS,
     )

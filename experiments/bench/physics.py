@@ -88,7 +88,8 @@ def main(args: argparse.Namespace) -> None:
             for cores, workers in runs:
                 phys = physics.Physics(env, config)  # fresh: the first call compiles
                 run = lambda: phys.simulate_many([(policy, None)], batch, backend=backend,  # noqa: E731
-                                                 **({} if cores is None else dict(cores=cores, workers=workers or None)))[0]
+                                                 **({} if cores is None
+                                                    else dict(cores=cores, workers=workers or None)))[0]
                 res, first = timed(run)
                 _, warm = timed(run)
                 rate = steps / warm

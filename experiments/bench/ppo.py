@@ -58,7 +58,8 @@ def gym_rate(s, n_steps: int) -> float:
 
 def time_to_baseline(s, mode: str, seed: int, max_iterations: int | None) -> dict:
     target = s.reference["train"]["dp_baseline"]
-    cfg = dataclasses.replace(pipeline.ppo_config(s, mode), eval_every=1, patience=0, max_iterations=max_iterations or s.ppo_config.max_iterations)
+    cfg = dataclasses.replace(pipeline.ppo_config(s, mode), eval_every=1, patience=0,
+                              max_iterations=max_iterations or s.ppo_config.max_iterations)
     t0 = time.perf_counter()
     params = None
     bc_s = 0.0
@@ -66,7 +67,8 @@ def time_to_baseline(s, mode: str, seed: int, max_iterations: int | None) -> dic
         params, _ = pipeline.pretrained(s, seed, progress=False)
         bc_s = time.perf_counter() - t0
     trainer = ppo.Trainer(s.env, s.networks, cfg, s.eval_envs)
-    result = ppo.train(trainer, seed, params=params, progress=False, stop_when=lambda r: r.get("train_greedy_return", -np.inf) >= target)
+    result = ppo.train(trainer, seed, params=params, progress=False,
+                       stop_when=lambda r: r.get("train_greedy_return", -np.inf) >= target)
     h = result.history
     hit = next((r for r in h if r.get("train_greedy_return", -np.inf) >= target), None)
     first = h[1]["wall_s"] if len(h) > 1 else float("nan")
@@ -102,10 +104,13 @@ def main(args: argparse.Namespace) -> None:
     runs = [time_to_baseline(s, m, args.seed, args.max_iterations) for m in ("none", "dp")]
     print(f"\nDP-baseline mean return on the training set: {target:.3f}")
     print(table(
-        ["PPO", "reached", "iteration", "wall s (all)", "pretraining s", "first iteration s (compile)", "final greedy train return"],
-        [[r["mode"], r["reached"], str(r["iteration"]), r["wall_s"], r["pretrain_s"], r["first_iteration_s"], r["final_train_greedy_return"]] for r in runs],
+        ["PPO", "reached", "iteration", "wall s (all)", "pretraining s", "first iteration s (compile)",
+         "final greedy train return"],
+        [[r["mode"], r["reached"], str(r["iteration"]), r["wall_s"], r["pretrain_s"], r["first_iteration_s"],
+          r["final_train_greedy_return"]] for r in runs],
     ))
     common.record("bench_ppo", dict(preset=preset, steps_per_s={r[0]: dict(envs=r[1], steps_per_s=r[2], compile_s=r[3])
                                                               for r in rows}, time_to_baseline=runs))
-    print(f"\ntable backend: {table_rate / loop_rate:,.0f}x the one-env loop; {table_rate / sur_rate:,.0f}x the surrogate backend\n")
+    print(f"\ntable backend: {table_rate / loop_rate:,.0f}x the one-env loop; "
+          f"{table_rate / sur_rate:,.0f}x the surrogate backend\n")
     print(table(["env steps/s", "envs", "steps/s", "compile s"], rows, floatfmt=",.1f"))

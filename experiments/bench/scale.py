@@ -20,7 +20,6 @@ against one process, and whether the physics outcomes and the tables equal one p
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import hashlib
 import json
 import os

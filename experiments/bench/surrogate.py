@@ -18,7 +18,8 @@ from gsp_jax import files, scenario, surrogate
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--waypoint", type=int, default=7, help="waypoint whose 288 x 17 pairs are stepped")
-    p.add_argument("--loop-steps", type=int, default=64, help="pairs stepped one at a time (a sample; rate extrapolated)")
+    p.add_argument("--loop-steps", type=int, default=64,
+                   help="pairs stepped one at a time (a sample; rate extrapolated)")
     p.add_argument("--repeats", type=int, default=3, help="timed repeats of the batched call (best is reported)")
     p.add_argument("--out", default=None, help="JSON file for the results (default results/bench_surrogate.json)")
 
@@ -35,7 +36,8 @@ def main(args: argparse.Namespace) -> None:
     if not 0 <= args.waypoint < ep.n_steps:
         raise SystemExit(f"--waypoint: {args.waypoint} is out of range 0..{ep.n_steps - 1}")
     device = jax.local_devices()[0]
-    print(f"device: {device.platform} ({device.device_kind}); host {platform.node()}; jax {jax.__version__}", flush=True)
+    print(f"device: {device.platform} ({device.device_kind}); host {platform.node()}; jax {jax.__version__}",
+          flush=True)
 
     states = jax.jit(jax.vmap(env.discrete_state, (None, 0, None)))(ep, jnp.arange(n_g), args.waypoint)
     pairs_s = jax.tree.map(lambda x: jnp.repeat(x, n_a, axis=0), states)  # (G*A, ...)
@@ -80,7 +82,8 @@ def main(args: argparse.Namespace) -> None:
         ["mode", "steps", "wall [s]", "steps/s", f"{n_g}x{n_a}x{ep.n_steps} table by steps [s]"],
         [
             ["vmapped (one call)", n_pairs, t_b, f"{rate_b:,.0f}", f"{t_b * ep.n_steps:.2f}"],
-            ["one at a time (Gym loop)", len(idx), t_loop, f"{rate_l:,.1f}", f"{n_pairs * ep.n_steps / rate_l:.1f} (extrapolated)"],
+            ["one at a time (Gym loop)", len(idx), t_loop, f"{rate_l:,.1f}",
+             f"{n_pairs * ep.n_steps / rate_l:.1f} (extrapolated)"],
             ["speed-up", "", "", f"{rate_b / rate_l:,.0f}x", ""],
         ],
     ))

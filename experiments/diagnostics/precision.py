@@ -51,7 +51,8 @@ def _episode(name: str, x64: bool):
     set_name, key = EPISODES[name]
     ep = scenario.episode_set(set_name)[key]
     if x64:
-        ep = ep.replace(**{f: jnp.asarray(getattr(ep, f), jnp.float64) for f in ("waypoints", "quats", "dt", "w_ext", "mass", "inertia", "com", "friction")})
+        ep = ep.replace(**{f: jnp.asarray(getattr(ep, f), jnp.float64)
+                           for f in ("waypoints", "quats", "dt", "w_ext", "mass", "inertia", "com", "friction")})
     return ep
 
 
@@ -66,7 +67,8 @@ def _perturbed(ep, seed: int):
         toward = np.where(rng.random(x.shape) < 0.5, -np.inf, np.inf).astype(x.dtype)  # x's dtype: its ulp
         return jnp.asarray(np.nextafter(x, toward))
 
-    return ep.replace(waypoints=nudge(ep.waypoints), mass=nudge(ep.mass), com=nudge(ep.com), friction=nudge(ep.friction))
+    return ep.replace(waypoints=nudge(ep.waypoints), mass=nudge(ep.mass), com=nudge(ep.com),
+                      friction=nudge(ep.friction))
 
 
 def _terms(env, ep, g, t):
@@ -116,7 +118,8 @@ def _run(path, label: str, episodes, isa: str | None = None, perturb: int = -1, 
         env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} --xla_cpu_max_isa={isa}".strip()
     if x64:
         env["JAX_ENABLE_X64"] = "1"
-    cmd = [sys.executable, "-m", "experiments", "precision", "--worker", str(path), "--perturb", str(perturb), "--episodes", *episodes]
+    cmd = [sys.executable, "-m", "experiments", "precision", "--worker", str(path), "--perturb", str(perturb),
+           "--episodes", *episodes]
     print(f"  {label} ...", flush=True)
     subprocess.run(cmd, env=env, check=True)
 
@@ -127,7 +130,8 @@ def _compare(ref: dict, other: dict, episodes) -> dict:
         [np.abs(ref[f"{e}/{key}"] - other[f"{e}/{key}"])[mask(e) if mask else ...].ravel() for e in episodes]
     )
     live = lambda e: ~ref[f"{e}/failed"] & ~other[f"{e}/failed"]  # noqa: E731
-    dr, wrench = cat("reward", live), np.concatenate([cat("wrench_move", live), cat("wrench_hold", live), cat("unmet", live)])
+    dr, wrench = cat("reward", live), np.concatenate([cat("wrench_move", live), cat("wrench_hold", live),
+                                                      cat("unmet", live)])
     value = cat("value", lambda e: (ref[f"{e}/value"] > -200) & (other[f"{e}/value"] > -200))
     flips = sum(int(np.sum(ref[f"{e}/failed"] != other[f"{e}/failed"])) for e in episodes)
     return dict(
@@ -157,7 +161,8 @@ def main(args) -> None:
     from experiments.common import results_dir, table
 
     raw = results_dir("precision", "raw")
-    print(f"precision of the surrogate's float32 rewards: every (grasp, waypoint) of {', '.join(args.episodes)}", flush=True)
+    print(f"precision of the surrogate's float32 rewards: every (grasp, waypoint) of {', '.join(args.episodes)}",
+          flush=True)
     runs = {"native": ("native float32 (reference)", {})}
     runs.update({f"isa_{isa}": (f"isa={isa}", dict(isa=isa)) for isa in args.isa})
     runs.update({f"ulp{k}": (f"inputs +-1 ulp (seed {k})", dict(perturb=k)) for k in range(args.ulp)})

@@ -48,7 +48,8 @@ def main(args: argparse.Namespace) -> None:
 
     grid_g, grid_t = jnp.meshgrid(gs, jnp.asarray(ts, jnp.int32), indexing="ij")
     print(f"episode {args.episode}: tool z {float(ep.waypoints[0, 2]):.3f} -> {float(ep.waypoints[-1, 2]):.3f} m, "
-          f"mass {float(ep.mass):.3f} kg, friction {float(ep.friction):.2f}, final torque {float(ep.w_ext[5]):+.1f} N m")
+          f"mass {float(ep.mass):.3f} kg, friction {float(ep.friction):.2f}, "
+          f"final torque {float(ep.w_ext[5]):+.1f} N m")
     print("computing (one vmapped call over grasps x waypoints) ...", flush=True)
     res, pen = jax.vmap(jax.vmap(terms))(grid_g, grid_t)
     res, pen = jax.tree.map(np.asarray, (res, pen))

@@ -4,10 +4,11 @@ Every policy (DP baseline, RL, L1, L2, DP optimal) runs each unseen evaluation e
 episodes of a policy in one vmapped program; the return is reported relative to DP optimal (return - DP optimal
 return: 0 is optimal), with 95% t-intervals over episodes and a one-way repeated-measures ANOVA (episodes as
 subjects) with Holm-corrected paired post-hoc tests (the paper's analysis), and beside it the rank-based Friedman
-test with Wilcoxon post-hoc tests (returns with rare -200 falls are far from normal). `--backend surrogate` steps the surrogate itself (three IK
-and four wrench solves per step, also inside the lookahead trees: a GPU job); `table` steps the episodes' DP tables,
-which give the same MDP for the discrete states the surrogate visits from a reset (tests check it) at a fraction of
-the cost (the CPU default). Writes results/fig4a/returns.json and fig4a.png; prints the table last.
+test with Wilcoxon post-hoc tests (returns with rare -200 falls are far from normal). `--backend surrogate` steps
+the surrogate itself (three IK and four wrench solves per step, also inside the lookahead trees: a GPU job); `table`
+steps the episodes' DP tables, which give the same MDP for the discrete states the surrogate visits from a reset
+(tests check it) at a fraction of the cost (the CPU default). Writes results/fig4a/returns.json and fig4a.png;
+prints the table last.
 """
 from __future__ import annotations
 
@@ -27,8 +28,10 @@ COMPARED = ("dp-base", "rl", "L1", "L2")  # relative to dp-opt
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", default="eval", choices=["evalA", "evalB", "eval", "val"])
     p.add_argument("--episodes", type=int, default=None, help="only N episodes, spread over the set")
-    p.add_argument("--backend", default=None, choices=["table", "surrogate"], help="default: surrogate on a GPU, else table")
-    p.add_argument("--policy-dir", default=None, help="PPO policy (default: results/train/dp/seed0, else the shipped one)")
+    p.add_argument("--backend", default=None, choices=["table", "surrogate"],
+                   help="default: surrogate on a GPU, else table")
+    p.add_argument("--policy-dir", default=None,
+                   help="PPO policy (default: results/train/dp/seed0, else the shipped one)")
     common.add_lookahead_argument(p)
 
 
@@ -38,7 +41,8 @@ def run(ctx: evaluation.Context, backend: str, out, cached: bool = True) -> dict
         t0 = time.perf_counter()
         rets[name] = np.asarray(planners.returns(ctx, name, backend, cached=cached))
         wall[name] = time.perf_counter() - t0
-        print(f"  {name:8s} mean return {rets[name].mean():9.3f}   ({wall[name]:.1f} s incl. compile, {backend})", flush=True)
+        print(f"  {name:8s} mean return {rets[name].mean():9.3f}   ({wall[name]:.1f} s incl. compile, {backend})",
+              flush=True)
     gap = float(np.max(np.abs(rets["dp-opt"] - np.asarray(ctx.solutions.ret))))
     result = dict(set=ctx.set_name, episodes=ctx.names, backend=backend, rl_policy=ctx.rl_source,
                   returns={n: r.tolist() for n, r in rets.items()}, dp_opt_rollout_vs_table_max_abs=gap, wall_s=wall,
@@ -74,7 +78,8 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 def main(args: argparse.Namespace) -> None:
     backend = args.backend or ("surrogate" if jax.default_backend() == "gpu" else "table")
     ctx = evaluation.context(args.set, args.episodes, args.policy_dir)
-    print(f"Fig. 4a: {len(ctx.names)} episodes of '{args.set}', backend {backend}, RL policy {ctx.rl_source}", flush=True)
+    print(f"Fig. 4a: {len(ctx.names)} episodes of '{args.set}', backend {backend}, RL policy {ctx.rl_source}",
+          flush=True)
     out = results_dir("fig4a")
     result = run(ctx, backend, out, cached=args.lookahead == "cached")
     print(f"wrote {out / 'returns.json'}, {out / 'fig4a.png'}")

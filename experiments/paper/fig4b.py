@@ -83,7 +83,8 @@ def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str =
         result = dict(policy=name, episodes=ctx.names, rl_policy=ctx.rl_source, mean_deg=mean, ci95_deg=ci,
                       falls=int(np.sum(res.fell)), held=[r for r in rows if not r["fell"]], per_episode=rows,
                       wall_s_incl_compile=wall, jobs=jobs, platform=jax.default_backend(), backend=backend,
-                      fingerprint=stamp, **(dict(k=k, bases=list(bases)) if "bases" in planners.get(name).options else {}))
+                      fingerprint=stamp,
+                      **(dict(k=k, bases=list(bases)) if "bases" in planners.get(name).options else {}))
         files.write_json(out / f"{name}.json", result)
         print(f"  {name:8s} mean angle error {mean:.1f} deg (+-{ci:.1f}), {result['falls']}/{len(ctx.names)} "
               f"fell ({wall:.1f} s incl. compile)", flush=True)
@@ -162,7 +163,8 @@ def main(args: argparse.Namespace) -> None:
         raise SystemExit(f"fig4b: --backend {args.backend} runs as one process (an XLA batch per policy); "
                          f"only C MuJoCo's chunks are shared by --processes")
     ctx = evaluation.context(args.set, args.episodes, args.policy_dir,  # only what the policies read
-                             **planners.context_flags([*args.policies, *(args.bases if 'L1-physics' in args.policies else ())]))
+                             **planners.context_flags([*args.policies,
+                                                       *(args.bases if 'L1-physics' in args.policies else ())]))
     print(f"Fig. 4b: {len(ctx.names)} episodes of '{args.set}' in {args.backend} (JAX on {jax.default_backend()}), "
           f"RL policy {ctx.rl_source}", flush=True)
     out = results_dir("fig4b")

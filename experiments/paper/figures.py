@@ -6,8 +6,9 @@ A *figure* here is a command behind the current records in `docs/data/` (the REA
 cite a record): its words after `python -m experiments --record`, the records it writes (`<name>_<device>`), the
 machine it belongs on (`gpu`: an H100/H200 host; `cpu`: the 2-core CPU the README names) and the code it measures
 (git pathspecs). A record is *stale* when that code differs between the record's commit and the working tree
-(`git diff`: a file changed, deleted or renamed; a new file counts once a measured one imports it), when it was made from a tree with uncommitted changes (`+dirty`), or when it was made by another
-command than the figure's; `tests/test_docs.py` fails on a stale record the README cites.
+(`git diff`: a file changed, deleted or renamed; a new file counts once a measured one imports it), when it was made
+from a tree with uncommitted changes (`+dirty`), or when it was made by another command than the figure's;
+`tests/test_docs.py` fails on a stale record the README cites.
 
 The figures run one after another (a failure is reported and the next one runs; the command exits non-zero at the
 end if any failed). Prints a table last: each figure, its records, minutes and outcome.

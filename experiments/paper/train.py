@@ -53,7 +53,8 @@ def main(args: argparse.Namespace) -> None:
         h = result.history
         vals = [r["val_return"] for r in h if "val_return" in r]
         rows.append(
-            [seed, h[-1]["iteration"], vals[0], float(result.state.best_return), h[-1].get("train_return", np.nan), h[-1]["wall_s"]]
+            [seed, h[-1]["iteration"], vals[0], float(result.state.best_return), h[-1].get("train_return", np.nan),
+             h[-1]["wall_s"]]
         )
     ref = s.reference
     print(
@@ -62,4 +63,5 @@ def main(args: argparse.Namespace) -> None:
         f"{ref['train']['dp_baseline']:.3f}"
     )
     print(f"\nPPO, pretrain={args.pretrain} (policies in {root / args.pretrain}/seed*/policy)")
-    print(table(["seed", "iterations", "val return at 0", "best val return", "last train return (stoch.)", "wall s"], rows))
+    print(table(["seed", "iterations", "val return at 0", "best val return", "last train return (stoch.)", "wall s"],
+                rows))

@@ -6,7 +6,6 @@ curves.json."""
 from __future__ import annotations
 
 import argparse
-import json
 
 import numpy as np
 
@@ -118,23 +117,28 @@ def main(args: argparse.Namespace) -> None:
     root = results_dir(args.out)
     runs = load_runs(root)
     if not runs:
-        raise SystemExit(f"train-curves: no runs under {root}/{{dp,none}}/seed*/history.json; run `python -m experiments train` first")
+        raise SystemExit(f"train-curves: no runs under {root}/{{dp,none}}/seed*/history.json; "
+                         "run `python -m experiments train` first")
     ref_file = root / "reference.json"
     reference = files_lib.read_json(ref_file) if ref_file.exists() else {}
     summary = {"raw": summarise(runs), "best_so_far": summarise(runs, best_so_far=True), "reference": reference}
     files_lib.write_json(root / "curves.json", summary)
     plot(runs, reference, root / "curves.png")
     if reference:
-        print(f"validation set: DP optimal {reference['val']['dp_optimal']:.3f}, DP baseline {reference['val']['dp_baseline']:.3f}")
+        print(f"validation set: DP optimal {reference['val']['dp_optimal']:.3f}, "
+              f"DP baseline {reference['val']['dp_baseline']:.3f}")
     print(f"wrote {root / 'curves.png'} and {root / 'curves.json'}")
-    for kind, title in (("raw", "validation return of the current policy"), ("best_so_far", "validation return of the best policy so far (what early stopping deploys)")):
+    for kind, title in (("raw", "validation return of the current policy"),
+                        ("best_so_far", "validation return of the best policy so far (what early stopping deploys)")):
         s = summary[kind]
         print(f"\n{title}: target {s['target_val_return']:.3f} (the best seed-mean every mode reaches)")
         if "pretraining_speedup" in s:
             print(f"iterations to the target: {s['modes']['none']['iterations_to_target']} without pretraining, "
-                  f"{s['modes']['dp']['iterations_to_target']} with: speed-up {s['pretraining_speedup']:.1f}x (paper: 4x)")
+                  f"{s['modes']['dp']['iterations_to_target']} with: "
+                  f"speed-up {s['pretraining_speedup']:.1f}x (paper: 4x)")
         rows = [
-            [MODES[m], r["seeds"], r["val_return_at_0"], r["best_val_return"], r["final_val_return"], str(r["iterations_to_target"]), str(r["iterations_to_target_per_seed"])]
+            [MODES[m], r["seeds"], r["val_return_at_0"], r["best_val_return"], r["final_val_return"],
+             str(r["iterations_to_target"]), str(r["iterations_to_target_per_seed"])]
             for m, r in s["modes"].items()
         ]
         print(table(["", "seeds", "at 0", "best mean", "final mean", "iterations to target", "per seed"], rows))

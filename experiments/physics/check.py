@@ -1,7 +1,8 @@
-"""`python -m experiments physics --set evalA|evalB|eval|all --policy dp-opt|dp-base|rl|random|four-tips|scripted|one-tip
-[--backend mjx|c]`: grasp sequences executed by the contact controller in MuJoCo (MJX, one batch, or C MuJoCo), all
-episodes together. At every waypoint the policy acts on the simulated state; `rl` reads all of it (closed loop),
-`dp-opt` reads the grasp and waypoint; the others are fixed sequences (open loop):
+"""`python -m experiments physics --set evalA|evalB|eval|all
+--policy dp-opt|dp-base|rl|random|four-tips|scripted|one-tip [--backend mjx|c]`: grasp sequences executed by the
+contact controller in MuJoCo (MJX, one batch, or C MuJoCo), all episodes together. At every waypoint the policy acts
+on the simulated state; `rl` reads all of it (closed loop), `dp-opt` reads the grasp and waypoint; the others are
+fixed sequences (open loop):
 
   four-tips  add the ring tip at waypoint 0 (T1 I1 . M1 . R1), then keep the grasp;
   scripted   three sequences on every episode: (i) `add-slide` adds the ring tip at waypoint 2, slides the middle
@@ -74,7 +75,8 @@ def compare(set_name: str, names) -> None:
     out = results_dir("physics")
     rows, fell_a, fell_b, diffs = [], [], [], []
     for policy in names:
-        missing = [p.name for p in (out / f"{set_name}_{policy}.json", out / f"{set_name}_{policy}_c.json") if not p.exists()]
+        missing = [p.name for p in (out / f"{set_name}_{policy}.json", out / f"{set_name}_{policy}_c.json")
+                   if not p.exists()]
         if missing:
             raise SystemExit(f"--compare {policy}: no {', '.join(missing)} in {out} (run `physics --set {set_name} "
                              f"--policy {policy}` with --backend mjx and with --backend c first)")
@@ -96,8 +98,8 @@ def compare(set_name: str, names) -> None:
 
 
 def _agreement(fa, fb, d) -> list:
-    return [len(fa), int(np.sum(fa & fb)), int(np.sum(~fa & ~fb)), int(np.sum(fa != fb)), 100 * float(np.mean(fa == fb)),
-            float(d.max()) if d.size else float("nan"), int(np.sum(d > 2.0))]
+    return [len(fa), int(np.sum(fa & fb)), int(np.sum(~fa & ~fb)), int(np.sum(fa != fb)),
+            100 * float(np.mean(fa == fb)), float(d.max()) if d.size else float("nan"), int(np.sum(d > 2.0))]
 
 
 def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
@@ -170,12 +172,14 @@ def main(args: argparse.Namespace) -> None:
             # mu, no controller can hold the tool
             held = {(int(g), n) for i_n, n in enumerate(names) for g in np.asarray(part.grasps[i_n])}
             by_com = {(g, tuple(np.asarray(episodes[n].com).tolist())): episodes[n] for g, n in held}  # mass scales out
-            need = max(report.least_friction(env, g, ep) for (g, _), ep in by_com.items())  # the hardest, by its bracket
+            # the hardest, by its bracket
+            need = max(report.least_friction(env, g, ep) for (g, _), ep in by_com.items())
             summary["sequences"][k] = dict(actions=[int(a) for a in seqs[k]], least_friction_needed=need,
                                            episode_friction=sorted({float(e.friction) for e in episodes.values()}),
                                            **report.summary(names, part))
     files.write_json(stem.with_suffix(".json"), dict(summary=summary, episodes=rows))
-    files.savez(f"{stem}_trace.npz", compressed=True, angle=np.asarray(res.angle), qpos=np.asarray(res.qpos), names=labels)
+    files.savez(f"{stem}_trace.npz", compressed=True, angle=np.asarray(res.angle), qpos=np.asarray(res.qpos),
+                names=labels)
     report.angle_png(phys, labels, res, f"{stem}_angle.png", f"{args.policy} on {args.set} ({args.backend})")
     written = [stem.with_suffix(".json"), f"{stem}_trace.npz", f"{stem}_angle.png"]
     if args.render:
@@ -187,9 +191,10 @@ def main(args: argparse.Namespace) -> None:
                 [[r["episode"], r["angle_error_deg"], r["position_error_mm"], r["max_lift_angle_deg"],
                   f"{r['fall_time_s']:.2f}" if r["fell"] else "-"] for r in rows], ".1f"))
     for k, part in summary.get("sequences", {"": summary}).items():
-        print(f"\n{args.policy}{' ' + k if k else ''} on {args.set}: {part['falls']}/{part['episodes']} fell; mean angle "
-              f"error {part['mean_angle_error_deg']:.1f} deg (95% CI +-{part['ci95_deg']:.1f}); where held: hold angle "
-              f"{part['mean_hold_angle_deg_where_held']} deg, largest lift tilt {part['max_lift_tilt_deg_where_held']} deg"
+        print(f"\n{args.policy}{' ' + k if k else ''} on {args.set}: {part['falls']}/{part['episodes']} fell; "
+              f"mean angle error {part['mean_angle_error_deg']:.1f} deg (95% CI +-{part['ci95_deg']:.1f}); "
+              f"where held: hold angle {part['mean_hold_angle_deg_where_held']} deg, "
+              f"largest lift tilt {part['max_lift_tilt_deg_where_held']} deg"
               + ("; its hardest grasp needs mu > {:.4f} (bracket {:.4f}-{:.4f}; episodes: {})".format(
                   part["least_friction_needed"][0], *part["least_friction_needed"], part["episode_friction"])
                  if "least_friction_needed" in part else ""))

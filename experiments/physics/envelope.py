@@ -136,7 +136,8 @@ def main(args: argparse.Namespace) -> None:
         raise SystemExit(f"envelope: --physics-lookahead must be >= 0, got {args.physics_lookahead}")
     if args.chunk < 1:
         raise SystemExit(f"envelope: --chunk must be >= 1, got {args.chunk}")
-    reads = gsp_planners.context_flags([*args.policies, *(["L1-physics", *args.bases] if args.physics_lookahead else [])])
+    reads = gsp_planners.context_flags([*args.policies,
+                                        *(["L1-physics", *args.bases] if args.physics_lookahead else [])])
     ctx = evaluation.context(args.set, args.episodes, args.policy_dir,  # the tables always: every sequence is scored
                              **(reads | dict(tables=True, nominal=reads["nominal"] or reads["rl"])))
     sur, N, T = ctx.surrogate, len(ctx.names), ctx.batch.n_steps
@@ -158,7 +159,8 @@ def main(args: argparse.Namespace) -> None:
     print(f"envelope: {N} episodes of '{args.set}' x {len(kinds)} sequences = {N * len(kinds)} episodes in C MuJoCo, "
           f"{len(pieces)} chunk{'s' * (len(pieces) > 1)} of up to {args.chunk} episodes (JAX on "
           f"{jax.default_backend()})" + (f"; process {distributed.rank()} of {distributed.count()} runs chunks "
-                                         f"{mine.start + 1}-{mine.stop}" if distributed.count() > 1 else ""), flush=True)
+                                         f"{mine.start + 1}-{mine.stop}" if distributed.count() > 1 else ""),
+          flush=True)
     if done:
         print(f"  reusing {sum(len(pieces[c]) for c in done)} finished episodes of {N} from {folder}", flush=True)
     for c in mine:

@@ -9,12 +9,12 @@ within episodes) and its Spearman rho with -angle error (`envelope.summarise`). 
 the recorded run chose: a reward whose own optimum differs is judged on its ranking of this pool, not on its plans
 (for those, rerun `envelope` with it as the default).
 
-The first row is the calibrated reward; each `--reward` adds one, as fields of `reward.RewardConfig` to change
-(e.g. `--reward grip=0 --reward grip=2,grip_scales_with_mass=false,fall_unmet=0.2`). Beside the pooled Spearman rho the table gives its mean
-within episodes, and a scatter of the calibrated reward's returns against the simulated angle errors shows the pool.
-Prints a table; writes results/rescore/<set>.json and <set>.png. (A pool of your own: `envelope --set S --random R`
-records one, in C MuJoCo.) Several processes (`--processes N`) share the states and steps in fixed chunks of
-`--batch`; process 0 writes.
+The first row is the calibrated reward; each `--reward` adds one, as fields of `reward.RewardConfig` to change (e.g.
+`--reward grip=0 --reward grip=2,grip_scales_with_mass=false,fall_unmet=0.2`). Beside the pooled Spearman rho the
+table gives its mean within episodes, and a scatter of the calibrated reward's returns against the simulated angle
+errors shows the pool. Prints a table; writes results/rescore/<set>.json and <set>.png. (A pool of your own:
+`envelope --set S --random R` records one, in C MuJoCo.) Several processes (`--processes N`) share the states and
+steps in fixed chunks of `--batch`; process 0 writes.
 """
 from __future__ import annotations
 
@@ -211,7 +211,8 @@ def scatter_png(returns, angle, kinds, path, title: str, pool: dict) -> None:
     for g, kind in enumerate(kinds):
         planner = not kind.startswith("random")
         ax.scatter(returns[g], angle[g], s=14 if planner else 8, c=None if planner else "0.65",
-                   label=kind if planner else ("random feasible" if g == len(kinds) - 1 else None), zorder=2 if planner else 1)
+                   label=kind if planner else ("random feasible" if g == len(kinds) - 1 else None),
+                   zorder=2 if planner else 1)
     ax.set_xscale("symlog", linthresh=1.0)
     ax.set_xlabel("surrogate return (symlog)")
     ax.set_ylabel("simulated angle error under the torque [deg]\n(180 = fell)")

@@ -117,10 +117,8 @@ class _Programs:
 def programs(phys, episodes: Episode) -> _Programs:
     """The C backend's jitted programs of `phys` for episodes of this length (made on first use: the flat
     layout of an episode depends on its number of waypoints)."""
-    key = ("c", episodes.n_steps)
-    if key not in phys._jitted:
-        phys._jitted[key] = _Programs(phys, jax.tree.map(lambda x: np.asarray(x)[0], episodes))
-    return phys._jitted[key]
+    return phys.kept(("c", episodes.n_steps), lambda: _Programs(phys, jax.tree.map(lambda x: np.asarray(x)[0],
+                                                                                    episodes)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -306,7 +304,7 @@ class _Lockstep:
         self.chunks = np.array_split(np.arange(M), workers)  # contiguous rows
         if engine_log is not None and workers != 1:
             raise ValueError(f"engine_log needs workers=1, got workers={workers}")
-        pool = phys._jitted.setdefault("c-pool", Pool()) if start is not None and engine_log is None else None
+        pool = phys.kept("c-pool", Pool) if start is not None and engine_log is None else None
         self.engine = Engine(scene, fields, self.qpos0, engine_log, pool)
         self.grasp = cat(lambda e: np.asarray(e.start_grasp, np.int32))
         self.fell, self.fall_tick = np.zeros(M, bool), np.full(M, -1, np.int32)
@@ -488,9 +486,7 @@ def action_table(policy, axis, rows: int, n_grasps: int, n_steps: int) -> np.nda
 
 def native_tick(phys) -> native.Tick:
     """The native tick of `phys` (made once)."""
-    if "native" not in phys._jitted:
-        phys._jitted["native"] = native.Tick(phys)
-    return phys._jitted["native"]
+    return phys.kept("native", lambda: native.Tick(phys))
 
 
 def simulate(phys, groups, episodes: Episode | list[Episode], cores: int | None = None, progress: bool = False,

@@ -168,7 +168,8 @@ def choose(results: list[dict], incumbent: str | None) -> dict:
     rho; a candidate under which no sequence is feasible has no rho and comes last), the incumbent row (labelled
     `incumbent`, if in the sweep), the sign test between them (`challenge`: held only by each, p, ALPHA) and the row
     chosen: the incumbent unless the challenger falls significantly less."""
-    rho = np.nan_to_num(np.array([np.nan if r["spearman"] is None else r["spearman"] for r in results], float), nan=-1.0)
+    rho = np.nan_to_num(np.array([np.nan if r["spearman"] is None else r["spearman"] for r in results], float),
+                        nan=-1.0)
     finite = np.isfinite([np.nan if r["spearman"] is None else r["spearman"] for r in results])
     best = min(range(len(results)), key=lambda i: (not finite[i], results[i]["dp_opt_falls"], -rho[i]))
     challenger = chosen = results[best]

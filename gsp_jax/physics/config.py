@@ -25,7 +25,8 @@ def _check(obj, positive=(), nonnegative=(), counts=(), nonnegative_counts=(), f
     path = f"PhysicsConfig.{obj.GROUP}"
     for names, ok, rule in ((positive, lambda v: _number(v) and v > 0, "> 0"),
                             (nonnegative, lambda v: _number(v) and v >= 0, ">= 0"),
-                            (counts, lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 1, "an int >= 1"),
+                            (counts, lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 1,
+                             "an int >= 1"),
                             (nonnegative_counts, lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0,
                              "an int >= 0"),
                             (finite, _number, "finite")):
@@ -186,7 +187,8 @@ class PhysicsConfig:
         by_group: dict[str, dict] = {}
         for name, value in changes.items():
             by_group.setdefault(_group(name), {})[name] = value
-        return dataclasses.replace(self, **{g: dataclasses.replace(getattr(self, g), **kw) for g, kw in by_group.items()})
+        return dataclasses.replace(self, **{g: dataclasses.replace(getattr(self, g), **kw)
+                                            for g, kw in by_group.items()})
 
     def value(self, name: str):
         """The value of the field `name` of any group."""

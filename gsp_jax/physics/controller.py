@@ -202,7 +202,8 @@ class Controller:
                                anchor=self._on_surface(here, opts), anchored=touching,
                                load=touching.astype(jnp.float32), f_with=zeros, f_without=zeros, q_rest=q0)
 
-    def begin_segment(self, cs: ControllerState, obs: Observation, grasp: jax.Array, time: jax.Array) -> ControllerState:
+    def begin_segment(self, cs: ControllerState, obs: Observation, grasp: jax.Array,
+                      time: jax.Array) -> ControllerState:
         """A new segment at `time` with reference grasp `grasp` (at most one link differs from the current one):
         the changed link's path, and parking points."""
         gap, L = self.config.timeline.standoff, self.hand.n_links

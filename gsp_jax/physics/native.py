@@ -888,7 +888,8 @@ def _solve3(m, v, x, c0, c1, c2):
 @_jit
 def _control_row(K, j, r, cs, obs, episodes, out, S):
     _control(K, j, cs[r], obs[r], episodes.waypoints[r], episodes.quats[r], episodes.dt[r], episodes.w_ext[r],
-             episodes.mass[r], episodes.inertia[r], episodes.com[r], episodes.friction[r], episodes.hold_time[r], out, S)
+             episodes.mass[r], episodes.inertia[r], episodes.com[r], episodes.friction[r], episodes.hold_time[r],
+             out, S)
 
 
 @_jit

@@ -25,7 +25,8 @@ def least_friction(sur, grasp: int, episode: scenario.Episode) -> tuple[float, f
 
 
 def result_rows(names, res) -> list[dict]:
-    """One dict per episode of a `physics.Result` (angles [deg], position error [mm], fall time [s], the grasps held)."""
+    """One dict per episode of a `physics.Result` (angles [deg], position error [mm], fall time [s], the grasps
+    held)."""
     return [
         dict(episode=n, angle_error_deg=float(res.angle_error[i]), position_error_mm=1e3 * float(res.position_error[i]),
              max_lift_angle_deg=float(res.max_angle[i]), fell=bool(res.fell[i]), fall_time_s=float(res.fall_time[i]),
@@ -39,7 +40,8 @@ def summary(names, res, **extra) -> dict:
     mean, ci = mean_ci(res.angle_error)
     held = ~np.asarray(res.fell)
     return dict(episodes=len(names), falls=int(np.sum(res.fell)), mean_angle_error_deg=mean, ci95_deg=ci,
-                mean_hold_angle_deg_where_held=float(np.mean(np.asarray(res.angle_error)[held])) if held.any() else None,
+                mean_hold_angle_deg_where_held=(float(np.mean(np.asarray(res.angle_error)[held])) if held.any()
+                                                else None),
                 max_lift_tilt_deg_where_held=float(np.max(np.asarray(res.max_angle)[held])) if held.any() else None,
                 **extra)
 

@@ -3,11 +3,12 @@ MuJoCo MJX (`Physics.simulate`, pure JAX: jit and vmap over episodes) or by C Mu
 reference implementation of the engine; `gsp_jax.physics.c_backend`).
 
 Timeline of an episode (`PhysicsConfig.timeline`): T decision segments of the episodes' dt (`scenario.DT`), then
-`hold` seconds at the final pose, in control ticks of the scene's physics step (the controller acts at every step). At the start of segment k < T the policy observes the *simulated* state (joint angles, tool
-pose and velocity: the surrogate's `State`) and picks an action; the new reference grasp is executed by the
-controller during the segment while the tool tracks the reference motion from waypoint k to k+1. In the hold the
-episode's external wrench ramps on (`xfrc_applied` at the tool's CoM, known to the controller); the tool's angle
-and position errors are averaged over the hold.
+`hold` seconds at the final pose, in control ticks of the scene's physics step (the controller acts at every step).
+At the start of segment k < T the policy observes the *simulated* state (joint angles, tool pose and velocity: the
+surrogate's `State`) and picks an action; the new reference grasp is executed by the controller during the segment
+while the tool tracks the reference motion from waypoint k to k+1. In the hold the episode's external wrench ramps
+on (`xfrc_applied` at the tool's CoM, known to the controller); the tool's angle and position errors are averaged
+over the hold.
 
 A tool that touches the table (after the first segment, when the start pedestals drop), moves `fall_distance`
 from its reference or turns more than `fall_angle` has fallen (`PhysicsConfig.outcome`): its angle error is
@@ -73,7 +74,15 @@ class Physics:
                                      self.timestep)
         self.n_segment = self.ticks(self.segment)  # control ticks per segment
         self.n_hold = max(1, int(round(config.timeline.hold / self.segment)))  # hold segments
-        self._jitted = {}
+        self._kept = {}  # `kept`: this Physics's programs and what else its backends make once
+
+    def kept(self, key, make):
+        """What `make()` gives, made on the first call with this key and kept for this Physics: its compiled
+        programs (the MJX batch per policy axis, the C backend's per episode length, L1-physics's decisions) and
+        the backends' state made once (the native tick, the branches' model pool, the widths already compiled)."""
+        if key not in self._kept:
+            self._kept[key] = make()
+        return self._kept[key]
 
     def ticks(self, seconds: float) -> int:
         """Whole control ticks (at least 1) nearest `seconds`."""
@@ -240,10 +249,9 @@ class Physics:
             return c_backend.simulate(self, list(policies), episodes, cores=cores, progress=progress, workers=workers)
         out = []
         for policy, policy_axis in policies:
-            key = policy_axis
-            if key not in self._jitted:
-                self._jitted[key] = jax.jit(lambda policy, episodes, a=policy_axis: self._run(policy, episodes, a, True))
-            out.append(self._jitted[key](policy, episodes))
+            run = self.kept(("mjx", policy_axis), lambda a=policy_axis: jax.jit(
+                lambda policy, episodes: self._run(policy, episodes, a, True)))
+            out.append(run(policy, episodes))
         return out
 
 
@@ -263,8 +271,8 @@ class Physics:
                 continue
             sizes = {np.shape(x)[0] if np.ndim(x) else None for x in jax.tree.leaves(policy)}
             if sizes != {n}:
-                raise ValueError(f"policies[{k}]: a per-episode policy (policy_axis=0) needs a leading axis of {n} (the "
-                                 f"episodes) on every array, got {sorted(sizes, key=str)}")
+                raise ValueError(f"policies[{k}]: a per-episode policy (policy_axis=0) needs a leading axis of {n} "
+                                 f"(the episodes) on every array, got {sorted(sizes, key=str)}")
 
 
 def check_episodes(episodes: Episode) -> None:

@@ -11,9 +11,9 @@ physics step is the scene file's (`<option timestep>`), the pairs with the table
 friction. The surrogate's geometry (the same model file) is unchanged.
 
 The start: the tool rests at waypoint 0 on small pedestals (the model's start supports: support by contact, standing
-in for the table the scene starts it on: at the table's height the fingertips cannot reach the side faces); they sink
-away after the first segment (at `pedestal_speed`: the fingers take the weight over a few tens of milliseconds), and from
-then on the fingers alone hold the tool.
+in for the table the scene starts it on: at the table's height the fingertips cannot reach the side faces); they
+sink away after the first segment (at `pedestal_speed`: the fingers take the weight over a few tens of
+milliseconds), and from then on the fingers alone hold the tool.
 """
 from __future__ import annotations
 
@@ -176,7 +176,8 @@ class Scene:
                                         for k in range(n_sup)])
         others = {hand_lib.table_geom(m), *self.pedestal_geoms.tolist()}
         self.finger_tool_pairs = np.array(
-            [p for p in range(m.npair) if self.tool_body in (m.geom_bodyid[m.pair_geom1[p]], m.geom_bodyid[m.pair_geom2[p]])
+            [p for p in range(m.npair)
+             if self.tool_body in (m.geom_bodyid[m.pair_geom1[p]], m.geom_bodyid[m.pair_geom2[p]])
              and not others & {int(m.pair_geom1[p]), int(m.pair_geom2[p])}])
         self.support_top = hand.support_top.astype(np.float32)  # (P, 3) tool frame
         self.support_drop = (hand.support_half[:, 2]).astype(np.float32)  # (P,) centre below the top
@@ -255,7 +256,8 @@ class Scene:
         a, v = self.tool_qpos, self.tool_dof
         quat = qpos[a + 3 : a + 7]
         return Observation(q=qpos[self.hand_qpos], dq=qvel[self.hand_dof], tool_pos=qpos[a : a + 3],
-                           tool_quat=quat / jnp.linalg.norm(quat), tool_vel=qvel[v : v + 6], bias=qfrc_bias[self.hand_dof])
+                           tool_quat=quat / jnp.linalg.norm(quat), tool_vel=qvel[v : v + 6],
+                           bias=qfrc_bias[self.hand_dof])
 
     def status(self, obs: Observation, ref_pos, ref_quat, lifted) -> tuple[jax.Array, jax.Array, jax.Array]:
         """(angle error [deg], position error [m], fallen?) of the tool against a reference pose; the table

@@ -115,9 +115,8 @@ class PhysicsLookahead:
 
 
 def _program(phys, key, make):
-    if key not in phys._jitted:
-        phys._jitted[key] = jax.jit(make())
-    return phys._jitted[key]
+    """`jax.jit(make())`, made once per Physics and key (`Physics.kept`)."""
+    return phys.kept(key, lambda: jax.jit(make()))
 
 
 def root_q(phys, root_axis, observe):
@@ -248,7 +247,7 @@ def _run_tabled(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, epis
     step = max(1, most // 8)
     if warm_width is None:
         key = ("tabled-widths", len(rows), most, policy.branch_device)
-        done = phys._jitted.setdefault(key, set())
+        done = phys.kept(key, set)
         for w in range(step, -(-most // step) * step + 1, step):
             if w not in done:
                 _run_tabled(policy, phys, snapshot, rows, episodes, k, todo, tables, most, {}, warm_width=w)
@@ -281,7 +280,7 @@ def _warm(policy: PhysicsLookahead, phys, snapshot, rows, episodes, k: int, todo
     in the tail of the decision times). Each is a one-segment lockstep of the given branches repeated."""
     key = ("branch-widths", len(rows), len(todo), tuple(axis is None for _, axis in policy.bases),
            policy.branch_device)
-    done = phys._jitted.setdefault(key, set())
+    done = phys.kept(key, set)
     if all(len(t) == len(todo[0]) for t in todo):
         done.add(len(todo[0]))
     some = next(t for t in todo if t)

@@ -38,7 +38,8 @@ class PPOConfig:
                 raise ValueError(f"PPOConfig.{name}: must be >= 1, got {getattr(self, name)}")
         if (self.n_envs * self.unroll) % self.minibatches:
             raise ValueError(
-                f"PPOConfig.minibatches: {self.minibatches} does not divide n_envs * unroll = {self.n_envs * self.unroll}"
+                f"PPOConfig.minibatches: {self.minibatches} does not divide n_envs * unroll = "
+                f"{self.n_envs * self.unroll}"
             )
         if self.target_kl is not None and not self.target_kl > 0:
             raise ValueError(f"PPOConfig.target_kl: must be > 0 or None, got {self.target_kl}")

@@ -39,7 +39,8 @@ from tqdm.auto import tqdm
 
 from gsp_jax import files
 from gsp_jax.ppo import losses
-from gsp_jax.ppo.checkpoint import load_policy, save_policy, uncommitted
+# load_policy and save_policy re-exported: tests/test_ppo.py calls them as `train.save_policy`/`train.load_policy`
+from gsp_jax.ppo.checkpoint import load_policy, save_policy, uncommitted  # noqa: F401
 from gsp_jax.ppo.config import PPOConfig
 from gsp_jax.ppo import networks as nets
 
@@ -320,7 +321,8 @@ def _train(trainer, seed, params, checkpoint_dir, progress, stop_after, stop_whe
         if it % cfg.eval_every == 0 or it == cfg.max_iterations:
             ts, record = _validate(trainer, ts, record)
         record.update(
-            env_steps=it * env_steps_per_iter, wall_s=wall0 + time.perf_counter() - t0, max_iterations=cfg.max_iterations
+            env_steps=it * env_steps_per_iter, wall_s=wall0 + time.perf_counter() - t0,
+            max_iterations=cfg.max_iterations,
         )
         history.append(record)
         bar.update(1)
@@ -378,7 +380,8 @@ def _differences(old, new, prefix: str = "") -> list[str]:
 def _manager(directory, trainer: Trainer, seed: int) -> ocp.CheckpointManager:
     directory = pathlib.Path(directory).absolute()
     directory.mkdir(parents=True, exist_ok=True)
-    meta = {"seed": seed, "config": _jsonable(dataclasses.asdict(trainer.config)), "networks": _jsonable(dataclasses.asdict(trainer.networks.config))}
+    meta = {"seed": seed, "config": _jsonable(dataclasses.asdict(trainer.config)),
+            "networks": _jsonable(dataclasses.asdict(trainer.networks.config))}
     hand = trainer.env.surrogate.hand
     if hand.source:  # the model it trains for: a run is never resumed for another one
         model = trainer.env.surrogate.model

@@ -63,19 +63,25 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("per episode (the default)")
     g.add_argument("--set", default="eval", choices=["evalA", "evalB", "eval"])
     g.add_argument("--batch", type=int, default=0, help="also time N episodes planned in one vmapped call (0: skip)")
-    g.add_argument("--repeats", type=int, default=None, help="warm calls per measurement (default 3 on a GPU, 1 on CPU)")
-    g.add_argument("--ik-unroll", type=_at_least_one, default=None, help="IK iterations per loop trip (`IKConfig.unroll`; "
-                   f"the same result): default {episode.GPU_IK_UNROLL} on a GPU, 1 on a CPU (where it only lengthens compiles)")
-    g.add_argument("--ahead", type=_at_least_one, default=None, help="batched RL: decisions per batch of realised states "
+    g.add_argument("--repeats", type=int, default=None,
+                   help="warm calls per measurement (default 3 on a GPU, 1 on CPU)")
+    g.add_argument("--ik-unroll", type=_at_least_one, default=None,
+                   help="IK iterations per loop trip (`IKConfig.unroll`; "
+                   f"the same result): default {episode.GPU_IK_UNROLL} on a GPU, 1 on a CPU "
+                   "(where it only lengthens compiles)")
+    g.add_argument("--ahead", type=_at_least_one, default=None,
+                   help="batched RL: decisions per batch of realised states "
                    f"(`policies.rollout_batched`; the same episode): default {online.GPU_AHEAD} on a GPU, 1 on a CPU "
                    "(which pays for every state)")
     g.add_argument("--before", action="store_true", help="also time DP optimal, L1 and L2 as the code stood before the "
                    "batch-last IK (the table's IK vmapped, L1/L2's root in the surrogate), side by side in this run")
     g = p.add_argument_group("per decision (--per-decision)")
     g.add_argument("--per-decision", action="store_true", help="time each decision, one episode at a time")
-    g.add_argument("--episodes", type=_at_least_one, default=7, help="evaluation episodes (each gives up to 16 decisions)")
+    g.add_argument("--episodes", type=_at_least_one, default=7,
+                   help="evaluation episodes (each gives up to 16 decisions)")
     g.add_argument("--k", nargs="+", type=_at_least_one, default=[evaluation.L1_PHYSICS["k"]],
-                   help="L1-physics: the surrogate's best k root actions are branched per decision (several: a row each)")
+                   help="L1-physics: the surrogate's best k root actions are branched per decision "
+                   "(several: a row each)")
     common.add_bases_argument(g)
 
 
@@ -93,7 +99,8 @@ def main(args: argparse.Namespace) -> None:
         allowed = PAPER
     wrong = [n for n in names if n not in allowed]
     if wrong:
-        raise SystemExit(f"table1: --policies {' '.join(wrong)}: {'--per-decision' if args.per_decision else 'per episode'} "
+        raise SystemExit(f"table1: --policies {' '.join(wrong)}: "
+                         f"{'--per-decision' if args.per_decision else 'per episode'} "
                          f"times {', '.join(allowed)}" + ("" if args.per_decision else " (L1-physics: --per-decision)"))
     return per_decision(args, names) if args.per_decision else per_episode(args, names)
 

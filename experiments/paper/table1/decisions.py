@@ -32,7 +32,8 @@ def run(ctx: evaluation.Context, names: list[str], cached: bool, ks=(evaluation.
     # setup per episode, shared by the planners that need it: the table (cached L1/L2, DP optimal) and its backup
     jax.block_until_ready(backup(build(episodes[0]), episodes[0].start_grasp))  # compile both
     tables, t_build, t_backup = [], [], []
-    needs_table = "dp-opt" in names or any(_verified(n) for n in names) or (cached and any(n in LOOKAHEADS for n in names))
+    needs_table = ("dp-opt" in names or any(_verified(n) for n in names)
+                   or (cached and any(n in LOOKAHEADS for n in names)))
     for i, ep in enumerate(episodes if needs_table else []):
         tab, tb = timed(build, ep)
         sol, tk = timed(backup, tab, ep.start_grasp)
@@ -74,11 +75,13 @@ def run(ctx: evaluation.Context, names: list[str], cached: bool, ks=(evaluation.
                     break
             per_episode.append(spent), returns.append(ret)
         d = np.asarray(decide)
-        rows[name] = dict(decisions=len(d), decision_median_s=float(np.median(d)), decision_p99_s=float(np.percentile(d, 99)),
+        rows[name] = dict(decisions=len(d), decision_median_s=float(np.median(d)),
+                          decision_p99_s=float(np.percentile(d, 99)),
                           setup_median_s=float(np.median(setup)), step_median_s=float(np.median(stepping)),
                           episode_median_s=float(np.median(per_episode)), returns=returns)
         print(f"  {name:8s} decision median {rows[name]['decision_median_s'] * 1e3:8.2f} ms, p99 "
-              f"{rows[name]['decision_p99_s'] * 1e3:8.2f} ms ({len(d)} decisions), setup {rows[name]['setup_median_s']:.3f} s",
+              f"{rows[name]['decision_p99_s'] * 1e3:8.2f} ms ({len(d)} decisions), "
+              f"setup {rows[name]['setup_median_s']:.3f} s",
               flush=True)
     device = jax.local_devices()[0]
     return dict(platform=device.platform, device=str(device.device_kind), episodes=ctx.names,
@@ -130,7 +133,8 @@ def print_result(result: dict) -> None:
     headers = ["planner", "setup / episode [s]", "decision median [ms]", "decision p99 [ms]", "surrogate step [ms]",
                "episode [s]", "engine alone: decision [ms]", "engine alone: episode [s]", "paper, episode [s]"]
     engine = lambda r, key, scale: f"{r[key] * scale:.2f}" if key in r else "-"  # noqa: E731
-    rows = [[name, f"{r['setup_median_s']:.3f}", f"{r['decision_median_s'] * 1e3:.2f}", f"{r['decision_p99_s'] * 1e3:.2f}",
+    rows = [[name, f"{r['setup_median_s']:.3f}", f"{r['decision_median_s'] * 1e3:.2f}",
+             f"{r['decision_p99_s'] * 1e3:.2f}",
              f"{r['step_median_s'] * 1e3:.2f}", f"{r['episode_median_s']:.3f}",
              engine(r, "engine_decision_median_s", 1e3), engine(r, "engine_episode_median_s", 1.0),
              common.PAPER["table1_s"].get(name.split()[0].removesuffix("-physics"), "-")]

@@ -74,7 +74,8 @@ def run(ctx: evaluation.Context, batch: int, repeats: int, out, lookahead: str =
               (f"   (stepped {row['stepped_warm_s']:.4f} s, batched steps {row['batched_warm_s']:.4f} s)"
                if name in online.BATCHED else "") +
               (f"   before: {row['before_warm_s']:.4f} s ({row['speedup']:.1f}x)" if "before_warm_s" in row else "") +
-              (f"   batch of {row['batch']}: {row['batch_per_episode_s']:.4f} s per episode" if batch else ""), flush=True)
+              (f"   batch of {row['batch']}: {row['batch_per_episode_s']:.4f} s per episode" if batch else ""),
+              flush=True)
     device = jax.local_devices()[0]
     result = dict(platform=device.platform, device=str(device.device_kind), episode=ctx.names[0], repeats=repeats,
                   ik_unroll=ctx.surrogate.ik_config.unroll, ahead=ahead, lookahead=lookahead,
@@ -82,7 +83,8 @@ def run(ctx: evaluation.Context, batch: int, repeats: int, out, lookahead: str =
     if jax.default_backend() == "cpu":
         result["cores"] = os.cpu_count()
     if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
-        result["note"] = "JAX's persistent compilation cache was on (JAX_COMPILATION_CACHE_DIR): compile times may be cache hits"
+        result["note"] = ("JAX's persistent compilation cache was on (JAX_COMPILATION_CACHE_DIR): "
+                          "compile times may be cache hits")
     files.write_json(out / f"{device.platform}.json", result)
     return result
 
@@ -97,7 +99,8 @@ def figures(result: dict) -> dict:
 def print_result(result: dict) -> None:
     batched = any("batch" in r for r in result["policies"].values())
     before = any("before_warm_s" in r for r in result["policies"].values())
-    headers = ["policy", "paper [s]", f"ours warm [s] ({result['platform']})", "stepped / batched steps [s]", "compile [s]"]
+    headers = ["policy", "paper [s]", f"ours warm [s] ({result['platform']})", "stepped / batched steps [s]",
+               "compile [s]"]
     headers += ["per episode, batched [s]"] if batched else []
     headers += ["before issue 37 [s]", "speed-up"] if before else []
     rows = []
@@ -105,7 +108,8 @@ def print_result(result: dict) -> None:
         forms = f"{r['stepped_warm_s']:.4f} / {r['batched_warm_s']:.4f}" if "rollout" in r else "-"
         row = [name, common.PAPER["table1_s"][name], f"{r['warm_s']:.4f}", forms, f"{r['compile_s']:.1f}"]
         row += [f"{r['batch_per_episode_s']:.4f} (of {r['batch']})"] if batched else []
-        row += ([f"{r['before_warm_s']:.4f}", f"{r['speedup']:.1f}x"] if "before_warm_s" in r else ["-", "-"]) if before else []
+        row += (([f"{r['before_warm_s']:.4f}", f"{r['speedup']:.1f}x"] if "before_warm_s" in r else ["-", "-"])
+                if before else [])
         rows.append(row)
     unroll = f"; IK unrolled {result['ik_unroll']}" if result.get("ik_unroll", 1) != 1 else ""
     unroll += f"; RL realises {result['ahead']} decisions' states a batch" if result.get("ahead", 1) != 1 else ""

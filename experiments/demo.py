@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.common import results_dir, table
+from experiments.common import RESULTS, results_dir, table
 from gsp_jax import dp, evaluation, files, physics, planners, scenario
 from gsp_jax.grasps import NULL
 from gsp_jax.surrogate import Surrogate
@@ -48,9 +48,9 @@ def _context(name: str | None) -> evaluation.Context:
     tables = jax.block_until_ready(jax.jit(lambda b: dp.build_tables(sur, b))(batch))
     solutions = jax.jit(jax.vmap(dp.backup))(tables, batch.start_grasp)
     try:
-        rl, source, base = *evaluation.load_rl(sur), None
+        rl, source, base = *evaluation.load_rl(sur, results=RESULTS), None
     except FileNotFoundError:
-        rl, base = None, evaluation.nominal_actions(sur)
+        rl, base = None, evaluation.nominal_actions(sur, RESULTS / evaluation.TABLES)
         source = f"none for model {sur.model.name!r}: L1 looks ahead over the DP baseline"
     return evaluation.Context(sur, "demo", [name], batch, tables, solutions, base, rl, source)
 

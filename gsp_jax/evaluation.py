@@ -27,9 +27,10 @@ from gsp_jax.surrogate import Surrogate
 L1_PHYSICS = dict(k=2, bases=("four-tips", "dp-opt"))  # its defaults: L1's 2 best and each base's own action,
 # under the constant four-tip grasp and DP optimal (never worse than either); their falls and regret against other
 # settings: docs/lookahead.md ("Lookahead verified in physics")
-TRAINED_POLICY = pathlib.Path("results/train/dp/seed0/policy")  # what `python -m experiments train` writes
+TRAINED_POLICY = pathlib.Path("dp", "seed0", "policy")  # the first seed's policy in a `train` folder of a results
+# folder (what `python -m experiments train` writes: results/train/dp/seed0/policy)
 SHIPPED_POLICY = policies.SHIPPED_POLICY  # a copy of results/train/dp/seed0/policy of a full GPU run
-TABLE_CACHE = pathlib.Path("results/tables")  # `dp_tables` keeps built tables here (relative to the working dir)
+TABLES = "tables"  # the subfolder of a results folder where `context` keeps the DP tables it built
 
 
 @dataclasses.dataclass
@@ -78,21 +79,25 @@ def subset(episodes: dict, n: int | None) -> dict:
     return dict(items[i] for i in keep)
 
 
-def trained_policy(sur: Surrogate) -> pathlib.Path:
-    """Where `python -m experiments train` writes the first seed's policy for the surrogate's model (with
-    `--learned` where the surrogate has the learned physics term: results/train[-model]-learned/...)."""
+def trained_policy(sur: Surrogate, results: str | pathlib.Path) -> pathlib.Path:
+    """Where `python -m experiments train` writes the first seed's policy for the surrogate's model under the
+    results folder `results`: <results>/train[-model][-learned]/dp/seed0/policy (`-learned` where the surrogate has
+    the learned physics term)."""
     folder = "train" + ("" if sur.model.name == model_lib.DEFAULT else f"-{sur.model.name}")
     folder += "-learned" * (sur.learned is not None)
-    return pathlib.Path(TRAINED_POLICY.parts[0], folder, *TRAINED_POLICY.parts[2:])  # results/<folder>/dp/seed0/policy
+    return pathlib.Path(results, folder, TRAINED_POLICY)
 
 
-def load_rl(sur: Surrogate, policy_dir: str | pathlib.Path | None = None) -> tuple[policies.NetworkPolicy, str]:
-    """The PPO policy: `policy_dir` if given, else the one `train` wrote for the model (`trained_policy`), else the
-    one shipped for a shipped model (`policies.shipped_policy`); and where it was read from (with "trained without
-    the learned term" or "with other learned weights" where the policy's reward differs from the surrogate's). A
-    policy made for another model is refused (`policies.load_network_policy`)."""
+def load_rl(sur: Surrogate, policy_dir: str | pathlib.Path | None = None,
+            results: str | pathlib.Path | None = None) -> tuple[policies.NetworkPolicy, str]:
+    """The PPO policy: `policy_dir` if given, else the one `train` wrote for the model under the results folder
+    `results` (`trained_policy`; None: none looked for), else the one shipped for a shipped model
+    (`policies.shipped_policy`); and where it was read from (with "trained without the learned term" or "with other
+    learned weights" where the policy's reward differs from the surrogate's). A policy made for another model is
+    refused (`policies.load_network_policy`)."""
     shipped = [p] if (p := policies.shipped_policy(sur)) is not None else []
-    candidates = [pathlib.Path(policy_dir)] if policy_dir else [trained_policy(sur), *shipped]
+    trained = [] if results is None else [trained_policy(sur, results)]
+    candidates = [pathlib.Path(policy_dir)] if policy_dir else [*trained, *shipped]
     for path in candidates:
         if path.exists():
             here = pathlib.Path.cwd()
@@ -110,7 +115,7 @@ def load_rl(sur: Surrogate, policy_dir: str | pathlib.Path | None = None) -> tup
 
 
 def dp_tables(sur: Surrogate, set_name: str, episodes: dict, batch_size: int = 4,
-              cache: pathlib.Path | None = TABLE_CACHE) -> dp.Table:
+              cache: pathlib.Path | None = None) -> dp.Table:
     """The stacked `dp.Table`s of named episodes, kept under `cache` (keyed by the episodes, the model files and
     the surrogate's configuration, so a change to any of them rebuilds; None: no cache). Builds `batch_size` at a
     time on each local device; with several processes each builds its share of the batches."""
@@ -160,10 +165,12 @@ def table_builder():
     return distributed.over_local_devices(jax.vmap(dp.build_table, (None, 0)))
 
 
-def nominal_actions(sur: Surrogate) -> jax.Array:
-    """The DP baseline's open-loop sequence: the nominal training episode's optimal actions (T,)."""
+def nominal_actions(sur: Surrogate, cache: pathlib.Path | None = None) -> jax.Array:
+    """The DP baseline's open-loop sequence: the nominal training episode's optimal actions (T,); its table kept
+    under `cache` (`dp_tables`)."""
     nominal = scenario.nominal(sur.model)
-    tables = dp_tables(sur, f"nominal-{sur.model.name}" if sur.model.name != model_lib.DEFAULT else "nominal", nominal)
+    tables = dp_tables(sur, f"nominal-{sur.model.name}" if sur.model.name != model_lib.DEFAULT else "nominal", nominal,
+                       cache=cache)
     first = jax.tree.map(lambda x: x[0], tables)
     return dp.backup(first, nominal["nominal"].start_grasp).actions
 
@@ -205,11 +212,14 @@ def scripted_sequences(space: grasps.GraspSpace, n_steps: int = scenario.N_WAYPO
 
 
 def context(set_name: str = "eval", n_episodes: int | None = None, policy_dir=None, episodes: dict | None = None,
-            tables: bool = True, rl: bool = True, nominal: bool = True, model=None) -> Context:
+            tables: bool = True, rl: bool = True, nominal: bool = True, model=None,
+            results: str | pathlib.Path | None = None) -> Context:
     """The context of an episode set (`scenario.episode_set(set_name, model)`, or the named `episodes` given),
     `n_episodes` of it spread evenly (all if None), for `model` (a name, path or `Model`; None: the default): with
-    their DP tables and solutions (`tables`), the PPO policy (`rl`, `load_rl(policy_dir)`) and the DP baseline's
-    sequence (`nominal`: the nominal episode's table, built once and cached)."""
+    their DP tables and solutions (`tables`), the PPO policy (`rl`, `load_rl(policy_dir, results)`) and the DP
+    baseline's sequence (`nominal`: the nominal episode's table). With a results folder `results`, the tables are
+    kept in its `TABLES` subfolder (built once) and the policy `train` wrote there is looked for; None: neither."""
+    cache = None if results is None else pathlib.Path(results, TABLES)
     sur = Surrogate(model)
     everything = scenario.episode_set(set_name, sur.model) if episodes is None else episodes
     chosen = subset(everything, n_episodes)
@@ -217,17 +227,17 @@ def context(set_name: str = "eval", n_episodes: int | None = None, policy_dir=No
     batch = scenario.stack(list(chosen.values()))
     tabs = sols = None
     if tables:
-        tabs = dp_tables(sur, tag, chosen)
+        tabs = dp_tables(sur, tag, chosen, cache=cache)
         sols = jax.jit(jax.vmap(dp.backup))(tabs, batch.start_grasp)
     net, source = None, ""
     if rl:
         try:
-            net, source = load_rl(sur, policy_dir)
+            net, source = load_rl(sur, policy_dir, results)
         except FileNotFoundError:
             if policy_dir or sur.model.name == model_lib.DEFAULT or not nominal:
                 raise
             source = (f"none for model {sur.model.name!r}: L1 and L2 look ahead over the DP baseline (train a PPO "
                       f"policy with `python -m experiments train --model {sur.model.name}`)")
             print(f"RL policy: {source}", flush=True)
-    base = nominal_actions(sur) if nominal else None
+    base = nominal_actions(sur, cache) if nominal else None
     return Context(sur, set_name, list(chosen), batch, tabs, sols, base, net, source)

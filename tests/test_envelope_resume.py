@@ -92,7 +92,8 @@ def test_a_failed_chunk_keeps_the_finished_ones_and_a_rerun_continues_from_them(
     assert sorted(p.name for p in parts.glob("*.npz")) == sorted([kept[0].name, broken.name])
 
     # uninterrupted, in a fresh folder; only the DP tables' cache is copied (building them is most of a run's time)
-    shutil.copytree(resumed / evaluation.TABLE_CACHE, fresh / evaluation.TABLE_CACHE)
+    cache = pathlib.Path("results", evaluation.TABLES)
+    shutil.copytree(resumed / cache, fresh / cache)
     assert run(monkeypatch, fresh) == 2
     assert result(resumed) == result(fresh)
 

@@ -5,6 +5,7 @@ named by `check_model`, and what was made for one model is refused by another.""
 from __future__ import annotations
 
 import pathlib
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -244,18 +245,23 @@ def test_shipped_models_follow_the_conventions():
         assert made["learned"] == learned.tag(learned.load(learned.path_of(model), model)), name
 
 
-def test_the_learned_term_finds_the_policy_trained_with_it(sur, tmp_path, monkeypatch):
-    """With the learned term the evaluation loads the policy `train --learned` wrote, else the shipped one trained
-    with the term; without it, the analytic one; a policy trained under another reward than the surrogate's is
-    loaded and said to be."""
-    monkeypatch.chdir(tmp_path)  # no results/ here
+def test_the_learned_term_finds_the_policy_trained_with_it(sur, tmp_path):
+    """With the learned term the evaluation loads the policy `train --learned` wrote under the results folder it is
+    given, else the shipped one trained with the term; without it, the analytic one; a policy trained under another
+    reward than the surrogate's is loaded and said to be."""
     with_term = sur.replace(learned=True)
-    assert evaluation.trained_policy(with_term) == pathlib.Path("results/train-learned/dp/seed0/policy")
-    assert evaluation.trained_policy(sur) == evaluation.TRAINED_POLICY
+    assert evaluation.trained_policy(with_term, tmp_path) == tmp_path / "train-learned/dp/seed0/policy"
+    assert evaluation.trained_policy(sur, "results") == pathlib.Path("results/train/dp/seed0/policy")
     assert policies.shipped_policy(with_term) == policies.SHIPPED_LEARNED_POLICIES["wrench"]
     assert policies.shipped_policy(sur) == policies.SHIPPED_POLICY
-    _, source = evaluation.load_rl(with_term)
+    _, source = evaluation.load_rl(with_term, results=tmp_path)  # no policy trained there: the shipped one
     assert source.endswith("ppo_dp_learned") and "trained" not in source  # trained with these very weights
+    trained = evaluation.trained_policy(sur, tmp_path)
+    shipped = policies.SHIPPED_LEARNED_POLICIES["wrench"]  # copied there with its model tag, as `train` writes it
+    shutil.copytree(shipped, trained)
+    shutil.copy(shipped.parent / f"{shipped.name}.model.json", trained.parent / f"{trained.name}.model.json")
+    _, source = evaluation.load_rl(sur, results=tmp_path)  # the trained one, before the shipped one
+    assert source.startswith(str(trained)) and source.endswith("(trained with the learned term)")
     _, source = evaluation.load_rl(sur)
     assert source.endswith("ppo_dp_seed0") and "trained" not in source
     _, source = evaluation.load_rl(with_term, policies.SHIPPED_POLICY)

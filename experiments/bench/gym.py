@@ -16,7 +16,7 @@ import numpy as np
 
 from experiments import common
 from experiments.common import table
-from gsp_jax import scenario
+from gsp_jax import evaluation, scenario
 from gsp_jax.env import GraspEnv
 from gsp_jax.evaluation import dp_tables
 from gsp_jax.gym_env import GraspVectorEnv, GymGraspEnv
@@ -44,7 +44,8 @@ def rate(envs, n: int, seconds: float) -> float:
 def main(args) -> None:
     sur = Surrogate()
     eps = scenario.training_set()
-    env = GraspEnv(sur, scenario.stack(list(eps.values())), dp_tables(sur, "train", eps), auto_reset=False)
+    tables = dp_tables(sur, "train", eps, cache=common.RESULTS / evaluation.TABLES)
+    env = GraspEnv(sur, scenario.stack(list(eps.values())), tables, auto_reset=False)
     rows = []
     for n in args.envs:
         native = rate(GraspVectorEnv(env, n), n, args.seconds)

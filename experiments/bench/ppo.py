@@ -18,6 +18,7 @@ import numpy as np
 
 from experiments import common
 from experiments.common import best_time, table
+from gsp_jax import evaluation
 from gsp_jax.env import GraspEnv
 from gsp_jax.gym_env import GymGraspEnv
 from gsp_jax.ppo import pipeline
@@ -86,7 +87,7 @@ def time_to_baseline(s, mode: str, seed: int, max_iterations: int | None) -> dic
 def main(args: argparse.Namespace) -> None:
     gpu = jax.default_backend() == "gpu"
     preset = args.preset or ("full" if gpu else "quick")
-    s = pipeline.setup(preset)
+    s = pipeline.setup(preset, table_cache=common.RESULTS / evaluation.TABLES)
     n_envs = s.ppo_config.n_envs
     sur_envs = args.surrogate_envs or (1024 if gpu else 16)
     print(f"device: {jax.local_devices()[0].device_kind} ({jax.default_backend()}); preset {preset}")

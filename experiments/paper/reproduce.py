@@ -55,7 +55,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def _trains(args: argparse.Namespace, p: dict) -> bool:
     """Whether the run trains the PPO policy first (--train, or the preset trains and no policy is there)."""
-    have_policy = evaluation.TRAINED_POLICY.exists() or evaluation.SHIPPED_POLICY.exists()
+    have_policy = (common.RESULTS / "train" / evaluation.TRAINED_POLICY).exists() or evaluation.SHIPPED_POLICY.exists()
     return args.policy_dir is None and (args.train or (p["train"] and not have_policy))
 
 

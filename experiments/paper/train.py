@@ -15,8 +15,8 @@ import argparse
 import jax
 import numpy as np
 
-from experiments.common import results_dir, table
-from gsp_jax import distributed, files
+from experiments.common import RESULTS, results_dir, table
+from gsp_jax import distributed, evaluation, files
 from gsp_jax.ppo.pipeline import PRESETS, run_seed, setup
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -40,7 +40,7 @@ def main(args: argparse.Namespace) -> None:
         raise SystemExit("train: runs as one process (one writer of its checkpoints and policies); one process "
                          "already splits the environments over every GPU of its host (docs/scale.md)")
     preset = args.preset or ("full" if jax.default_backend() == "gpu" else "quick")
-    s = setup(preset, args.iterations, args.envs, args.patience)
+    s = setup(preset, args.iterations, args.envs, args.patience, table_cache=RESULTS / evaluation.TABLES)
     root = results_dir(args.out)  # results/train-<model> for another model: where evaluation.load_rl looks
     files.write_json(root / "reference.json", {**s.reference, "preset": preset})
     print(

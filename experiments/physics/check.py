@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.common import check_planners, results_dir, table
+from experiments.common import RESULTS, check_planners, results_dir, table
 from gsp_jax import distributed, evaluation, files, physics, planners, policies, scenario, surrogate
 from gsp_jax.physics import report
 
@@ -63,7 +63,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def make_policy(kind: str, set_name: str, episodes: dict, args=None):
     """(policy, policy_axis) of registered planner `kind` for a batch of named `episodes`, from a context with only
     what it reads (`planners.context_flags`)."""
-    ctx = evaluation.context(set_name, episodes=episodes, policy_dir=getattr(args, "policy_dir", None),
+    ctx = evaluation.context(set_name, episodes=episodes, policy_dir=getattr(args, "policy_dir", None), results=RESULTS,
                              **planners.context_flags([kind]))
     return planners.make(ctx, kind, dict(seed=getattr(args, "seed", 0)))
 

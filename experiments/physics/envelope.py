@@ -138,7 +138,8 @@ def main(args: argparse.Namespace) -> None:
         raise SystemExit(f"envelope: --chunk must be >= 1, got {args.chunk}")
     reads = gsp_planners.context_flags([*args.policies,
                                         *(["L1-physics", *args.bases] if args.physics_lookahead else [])])
-    ctx = evaluation.context(args.set, args.episodes, args.policy_dir,  # the tables always: every sequence is scored
+    ctx = evaluation.context(args.set, args.episodes, args.policy_dir, results=common.RESULTS,
+                             # the tables always: every sequence is scored
                              **(reads | dict(tables=True, nominal=reads["nominal"] or reads["rl"])))
     sur, N, T = ctx.surrogate, len(ctx.names), ctx.batch.n_steps
     planners = [p for p in args.policies if p != "rl" or ctx.rl is not None]  # a model without a PPO policy: no RL row

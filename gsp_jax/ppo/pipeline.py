@@ -40,16 +40,17 @@ class Setup:
     reference: dict
 
 
-def setup(preset: str, iterations=None, envs=None, patience=None) -> Setup:
+def setup(preset: str, iterations=None, envs=None, patience=None, table_cache=None) -> Setup:
     """The training and validation environments, networks and configs of `preset` ("quick" | "full"), with the
-    overrides given (PPO iterations, parallel environments, validations without improvement before stopping)."""
+    overrides given (PPO iterations, parallel environments, validations without improvement before stopping); the
+    episodes' DP tables kept under `table_cache` (`evaluation.dp_tables`; None: built every time)."""
     if preset not in PRESETS:
         raise ValueError(f"setup: preset must be one of {sorted(PRESETS)}, got {preset!r}")
     p = PRESETS[preset]
     sur = Surrogate()
     train_eps, val_eps = scenario.training_set(), scenario.validation_set()
-    train_tables = dp_tables(sur, "train", train_eps)
-    val_tables = dp_tables(sur, "val", val_eps)
+    train_tables = dp_tables(sur, "train", train_eps, cache=table_cache)
+    val_tables = dp_tables(sur, "val", val_eps, cache=table_cache)
     train_batch, val_batch = scenario.stack(list(train_eps.values())), scenario.stack(list(val_eps.values()))
     env = GraspEnv(sur, train_batch, train_tables)
     eval_envs = {

@@ -155,22 +155,26 @@ def main(argv: list[str] | None = None) -> None:
     common.COMMAND = common.COMMAND or list(words)  # the command a record names: the outermost one
     for plugin in args.plugin:
         load_plugin(plugin)
-    if getattr(args, "model", None) is not None:
+    was_model = common.MODEL  # a command another runs (`run_command`) inherits the run's model; restored after
+    if "model" in args:  # every command but check-model: `args.model` becomes the `Model` it passes down
+        given = args.model is not None
         try:
-            model = model_lib.set_default(args.model)
+            args.model = model_lib.load_model(args.model if given else common.MODEL)
         except model_lib.ModelError as e:
             raise SystemExit(f"--model: {e}") from None
-        print(f"model: {model.name} ({model.path})", flush=True)
+        if given:
+            print(f"model: {args.model.name} ({args.model.path})", flush=True)
+        common.MODEL = args.model
     from gsp_jax import learned
 
     was_learned = learned.default_on()  # a command another runs (`run_command`) inherits it; restored after
     if getattr(args, "learned", False):
         try:
-            learned.resolve(True, model_lib.load_model())
+            learned.resolve(True, args.model)
         except learned.LearnedTermError as e:
             raise SystemExit(f"--learned: {e}") from None
         learned.set_default(True)
-        print(f"learned physics term: {learned.path_of(model_lib.load_model())}", flush=True)
+        print(f"learned physics term: {learned.path_of(args.model)}", flush=True)
     from gsp_jax import files, scenario
 
     try:
@@ -181,6 +185,7 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(f"{args.command}: {e}") from None
     finally:
         learned.set_default(was_learned)
+        common.MODEL = was_model
 
 
 def run_command(words: list[str]) -> None:

@@ -26,7 +26,7 @@ def results_dir(*parts: str) -> pathlib.Path:
     overwrite another's."""
     from gsp_jax import model as model_lib
 
-    name = model_lib.load_model().name
+    name = model_lib.load_model(MODEL).name
     if name != model_lib.DEFAULT:
         parts = (f"{parts[0]}-{name}", *parts[1:]) if parts else (name,)
     if learned_on():
@@ -90,6 +90,7 @@ def fingerprint(ctx) -> str:
 
 
 DATA = ROOT / "docs" / "data"  # the current result of each benchmark and figure, and their histories
+MODEL = None  # the run's `Model` (`--model`, set by `cli.main` for the command it runs; None: the default model)
 RECORD = False  # `python -m experiments --record <command>`: `record` writes to DATA (off: runs leave docs alone)
 COMMAND: list[str] | None = None  # the words of the command a record names (set by the outermost `main`)
 

@@ -35,15 +35,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gif-from", default=None, help=argparse.SUPPRESS)  # (internal) render a saved trace, then stop
 
 
-def _context(name: str | None) -> evaluation.Context:
-    """The evaluation context of one episode of the model (`--model`; its table built here, timed by the caller).
+def _context(name: str | None, model) -> evaluation.Context:
+    """The evaluation context of one episode of `model` (`--model`; its table built here, timed by the caller).
     L1 looks ahead over the model's PPO policy where there is one, else over the DP baseline (the nominal
     episode's optimal sequence)."""
-    sur = Surrogate()
+    sur = Surrogate(model)
     if name is None:
         name, episode = next(iter(scenario.episode_set("evalA", sur.model).items()))  # the first of 'eval'
     else:
-        episode = scenario.find(name)
+        episode = scenario.find(name, sur.model)
     batch = scenario.stack([episode])
     tables = jax.block_until_ready(jax.jit(lambda b: dp.build_tables(sur, b))(batch))
     solutions = jax.jit(jax.vmap(dp.backup))(tables, batch.start_grasp)
@@ -202,7 +202,7 @@ def _gif(phys: physics.Physics, ctx, r, stem) -> list[str]:
     import subprocess
     import sys
 
-    from gsp_jax import model as model_lib, render
+    from gsp_jax import render
 
     tick = _timeline(phys, ctx.batch.n_steps)[0]
     every = max(1, int(round(1 / (render.GIF_FPS * tick))))
@@ -211,7 +211,7 @@ def _gif(phys: physics.Physics, ctx, r, stem) -> list[str]:
     files.write_json(f"{stem}_captions.json", _captions(phys, ctx, r, every))
     env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
     run = subprocess.run([sys.executable, "-m", "experiments", "demo", "--gif-from", trace, "--model",
-                          str(model_lib.load_model().path)], env=env, capture_output=True, text=True)
+                          str(ctx.surrogate.model.path)], env=env, capture_output=True, text=True)
     if run.returncode != 0:
         print(f"  GIF skipped (no OpenGL backend for MuJoCo? set MUJOCO_GL=egl or osmesa): "
               f"{run.stderr.strip().splitlines()[-1:] or run.returncode}")
@@ -239,16 +239,14 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 
 def main(args: argparse.Namespace) -> None:
     if args.gif_from:
-        _render_gif(physics.Physics(Surrogate()), args.gif_from)
+        _render_gif(physics.Physics(Surrogate(args.model)), args.gif_from)
         return
-    from gsp_jax import model as model_lib
-
-    model = model_lib.load_model()
+    model = args.model
     out = results_dir("demo")  # results/demo-<model> for another model
     print(f"demo on JAX {jax.default_backend()}: one unseen episode of model {model.name!r}, planned by DP optimal and "
           "L1, executed in C MuJoCo", flush=True)
     t0 = time.perf_counter()
-    ctx = _context(args.episode)
+    ctx = _context(args.episode, model)
     t_table = time.perf_counter() - t0
     print(f"  episode {ctx.names[0]}: DP table of {ctx.surrogate.space.n_grasps} grasps x {ctx.batch.n_steps} "
           f"waypoints built in {t_table:.1f} s (includes compiling)", flush=True)

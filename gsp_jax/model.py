@@ -83,28 +83,15 @@ def resolve(name_or_path) -> pathlib.Path:
     return path.resolve()
 
 
-_default: list = [DEFAULT]  # what `load_model(None)` gives: `set_default` (the CLI's --model) changes it
-
-
 def load_model(name_or_path=None) -> Model:
-    """The `Model` of a shipped name or a scene file (None: the default model, ``wrench`` unless `set_default`
-    chose another; a `Model` or a loaded `HandModel` is returned as its `Model`). One object per file in a
-    process."""
+    """The `Model` of a shipped name or a scene file (None: the shipped default, ``wrench``; a `Model` or a loaded
+    `HandModel` is returned as its `Model`). One object per file in a process. There is no process-wide model:
+    whatever is built for another model is given it (`Surrogate(model)`, `scenario.episode_set(name, model)`, ...)."""
     if isinstance(name_or_path, Model):
         return name_or_path
     if isinstance(name_or_path, hand_lib.HandModel):
         return of_hand(name_or_path)
-    if name_or_path is None:
-        return load_model(_default[0])
-    return _load(str(resolve(name_or_path)))
-
-
-def set_default(name_or_path) -> Model:
-    """Make a model the one that `load_model(None)` -- and so `Surrogate()`, the episode sets and everything built
-    without a model named -- gives in this process (the CLI's ``--model``); returns it, checked and loaded."""
-    model = load_model(DEFAULT if name_or_path is None else name_or_path)
-    _default[0] = model
-    return model
+    return _load(str(resolve(DEFAULT if name_or_path is None else name_or_path)))
 
 
 @functools.lru_cache(maxsize=8)
@@ -119,8 +106,7 @@ def load_hand(path: str | pathlib.Path = hand_lib.SCENE_XML) -> hand_lib.HandMod
 
 
 def default_space() -> grasps.GraspSpace:
-    """The grasp space of the default model (`load_model()`: the shipped wrench unless `set_default` chose
-    another)."""
+    """The grasp space of the shipped default model (`load_model()`: the wrench)."""
     return load_model().space
 
 

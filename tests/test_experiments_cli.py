@@ -82,3 +82,20 @@ def test_every_command_lives_in_its_group():
         assert group in ("paper", "bench", "physics", "diagnostics") or module == "experiments.demo", (command, module)
         if command.startswith("bench-"):
             assert group == "bench", command
+
+
+def test_a_commands_model_is_handed_down_and_left_behind_nowhere(monkeypatch, capsys):
+    """`--model` becomes the `Model` the command is given (`args.model`), and a command run by another inherits
+    it; nothing of it stays in the process after the command (no process-wide model)."""
+    from experiments import common
+    from gsp_jax import model as model_lib
+
+    seen = []
+    monkeypatch.setattr("experiments.diagnostics.planners.main", lambda args: seen.append(args.model)
+                        or (len(seen) == 1 and cli.run_command(["planners"])))
+    cli.main(["planners", "--model", "hammer"])
+    assert "model: hammer" in capsys.readouterr().out
+    assert [m.name for m in seen] == ["hammer", "hammer"]  # the command, and the one it ran
+    assert common.MODEL is None and model_lib.load_model().name == model_lib.DEFAULT
+    cli.main(["planners"])
+    assert seen[-1].name == model_lib.DEFAULT

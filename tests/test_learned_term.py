@@ -131,7 +131,7 @@ def test_weights_of_another_model_or_none_are_refused_by_name(tmp_path):
             Surrogate("hammer", learned=True)
         with pytest.raises(SystemExit, match=r"--learned: model 'hammer' has no learned physics term"):
             cli.main(["dp", "--model", "hammer", "--learned"])
-    model_lib.set_default(None)
+    assert model_lib.load_model().name == model_lib.DEFAULT  # a command's --model leaves no process-wide model
 
 
 def test_dp_and_lookahead_back_up_the_learned_term_as_expectimax(case):

@@ -127,7 +127,8 @@ def shipped_files_unreadable(monkeypatch):
     monkeypatch.setattr(hand_lib, "load_mjmodel", guard(hand_lib.load_mjmodel))
     monkeypatch.setattr(model_lib, "load_hand", guard(model_lib.load_hand))
     monkeypatch.setattr(mujoco.MjSpec, "from_file", staticmethod(guard(mujoco.MjSpec.from_file)))
-    monkeypatch.setattr(model_lib, "_default", [None])  # load_model(None) fails instead of giving the wrench
+    monkeypatch.setattr(model_lib, "DEFAULT", "no-default-here")  # load_model(None) fails instead of giving the
+    # wrench (even where the process has loaded the wrench already)
 
 
 def test_surrogate_dp_physics_on_a_users_model(user_model, shipped_files_unreadable, table_ik):

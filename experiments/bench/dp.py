@@ -29,8 +29,8 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 
 
 def main(args: argparse.Namespace) -> None:
-    env = surrogate.Surrogate()
-    evals = list(scenario.episode_set("eval").values())[: args.episodes]
+    env = surrogate.Surrogate(args.model)
+    evals = list(scenario.episode_set("eval", env.model).values())[: args.episodes]
     device = jax.local_devices()[0]
     print(f"device: {device.platform} ({device.device_kind}); jax {jax.__version__}", flush=True)
 

@@ -42,8 +42,8 @@ def rate(envs, n: int, seconds: float) -> float:
 
 
 def main(args) -> None:
-    sur = Surrogate()
-    eps = scenario.training_set()
+    sur = Surrogate(args.model)
+    eps = scenario.training_set(sur.model)
     tables = dp_tables(sur, "train", eps, cache=common.RESULTS / evaluation.TABLES)
     env = GraspEnv(sur, scenario.stack(list(eps.values())), tables, auto_reset=False)
     rows = []

@@ -61,11 +61,11 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 
 
 def main(args: argparse.Namespace) -> None:
-    env = surrogate.Surrogate()
+    env = surrogate.Surrogate(args.model)
     device = jax.local_devices()[0]
     if args.copies < 1:
         raise SystemExit(f"bench-physics: --copies must be >= 1, got {args.copies}")
-    eps = [e.head(args.waypoints) for e in scenario.episode_set(args.set).values()] * args.copies
+    eps = [e.head(args.waypoints) for e in scenario.episode_set(args.set, env.model).values()] * args.copies
     batch = scenario.stack(eps)
     policy = policies.SequencePolicy(jnp.asarray(evaluation.four_tips(env.space, args.waypoints)))
     all_cores = c_backend.available_cores()

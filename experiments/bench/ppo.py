@@ -23,6 +23,7 @@ from gsp_jax.env import GraspEnv
 from gsp_jax.gym_env import GymGraspEnv
 from gsp_jax.ppo import pipeline
 from gsp_jax.ppo import train as ppo
+from gsp_jax.surrogate import Surrogate
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -87,7 +88,7 @@ def time_to_baseline(s, mode: str, seed: int, max_iterations: int | None) -> dic
 def main(args: argparse.Namespace) -> None:
     gpu = jax.default_backend() == "gpu"
     preset = args.preset or ("full" if gpu else "quick")
-    s = pipeline.setup(preset, table_cache=common.RESULTS / evaluation.TABLES)
+    s = pipeline.setup(preset, table_cache=common.RESULTS / evaluation.TABLES, surrogate=Surrogate(args.model))
     n_envs = s.ppo_config.n_envs
     sur_envs = args.surrogate_envs or (1024 if gpu else 16)
     print(f"device: {jax.local_devices()[0].device_kind} ({jax.default_backend()}); preset {preset}")

@@ -78,10 +78,10 @@ def worker(args: argparse.Namespace) -> None:
     import jax.numpy as jnp
     import numpy as np
 
-    from gsp_jax import distributed, evaluation, physics, policies, scenario
+    from gsp_jax import distributed, evaluation, physics, policies, scenario, surrogate
     from gsp_jax.physics import corpus
 
-    phys = physics.Physics()
+    phys = physics.Physics(surrogate.Surrogate(args.model))
     sur = phys.surrogate
     P = distributed.count()
     cut = (lambda eps: {k: e.head(args.steps) for k, e in eps.items()}) if args.steps else (lambda eps: eps)
@@ -194,7 +194,7 @@ def main(args: argparse.Namespace) -> None:
           f"{len(PHYSICS_KINDS)} sequences, {args.tables} DP tables, PPO {args.envs} envs per process", flush=True)
     words = ["bench-scale", *(f"--{k}={getattr(args, k)}" for k in ("episodes", "chunk", "tables", "batch", "envs",
                                                                     "iterations", "seed")),
-             *([f"--steps={args.steps}"] if args.steps else [])]
+             *([f"--steps={args.steps}"] if args.steps else []), f"--model={args.model.path}"]
     runs = {}
     for n in counts:
         path = out / f"processes{n}.json"

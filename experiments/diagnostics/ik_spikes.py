@@ -57,7 +57,7 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 
 
 def main(args: argparse.Namespace) -> None:
-    episodes = scenario.episode_set(args.set)
+    episodes = scenario.episode_set(args.set, args.model)
     batch = scenario.stack(list(episodes.values()))
     default = ik.IKConfig()
     variants = {"start alone": dataclasses.replace(default, extra_starts=()), "IKConfig()": default}
@@ -65,7 +65,7 @@ def main(args: argparse.Namespace) -> None:
         variants[f"starts {spec}"] = dataclasses.replace(default, extra_starts=_parse(spec))
     rows, out = [], {}
     for name, cfg in variants.items():
-        env = surrogate.Surrogate(ik_config=cfg)
+        env = surrogate.Surrogate(args.model, ik_config=cfg)
         t0 = time.perf_counter()
         err, col = ik_table(env, batch)
         wall = time.perf_counter() - t0

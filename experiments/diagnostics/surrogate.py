@@ -29,12 +29,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> None:
-    ep = scenario.find(args.episode)
+    ep = scenario.find(args.episode, args.model)
     ts = [int(t) for t in args.waypoints.split(",")]
     bad = [t for t in ts if not 0 <= t < ep.n_steps]
     if bad:
         raise SystemExit(f"--waypoints: {bad[0]} is out of range 0..{ep.n_steps - 1}")
-    env = surrogate.Surrogate()
+    env = surrogate.Surrogate(args.model)
     space = env.space
     gs = jnp.asarray([int(space.encode(o)) for _, o in GRASPS], jnp.int32)
 

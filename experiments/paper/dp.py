@@ -73,8 +73,8 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 
 
 def main(args: argparse.Namespace) -> None:
-    env = surrogate.Surrogate()
-    episodes = scenario.episode_set(args.set)
+    env = surrogate.Surrogate(args.model)
+    episodes = scenario.episode_set(args.set, env.model)
     if args.plot is not None and args.plot not in episodes:
         raise SystemExit(f"--plot: episode {args.plot!r} is not in set {args.set!r}: {', '.join(episodes)}")
     t0 = time.perf_counter()
@@ -82,7 +82,7 @@ def main(args: argparse.Namespace) -> None:
     if "nominal" in names:  # the DP baseline: the nominal episode's optimal sequence
         nominal_actions = sols.actions[names.index("nominal")]
     else:
-        nominal_actions = solve_set(env, scenario.nominal(), 1, desc="DP nominal (baseline)")[2].actions[0]
+        nominal_actions = solve_set(env, scenario.nominal(env.model), 1, desc="DP nominal (baseline)")[2].actions[0]
     elapsed = time.perf_counter() - t0
     if not distributed.is_main():
         return  # process 0 writes

@@ -162,7 +162,8 @@ def main(args: argparse.Namespace) -> None:
     if args.backend != "c" and distributed.count() > 1:
         raise SystemExit(f"fig4b: --backend {args.backend} runs as one process (an XLA batch per policy); "
                          f"only C MuJoCo's chunks are shared by --processes")
-    ctx = evaluation.context(args.set, args.episodes, args.policy_dir, results=common.RESULTS,  # what they read
+    ctx = evaluation.context(args.set, args.episodes, args.policy_dir, model=args.model, results=common.RESULTS,
+                             # only what the policies read
                              **planners.context_flags([*args.policies,
                                                        *(args.bases if 'L1-physics' in args.policies else ())]))
     print(f"Fig. 4b: {len(ctx.names)} episodes of '{args.set}' in {args.backend} (JAX on {jax.default_backend()}), "

@@ -18,6 +18,7 @@ import numpy as np
 from experiments.common import RESULTS, results_dir, table
 from gsp_jax import distributed, evaluation, files
 from gsp_jax.ppo.pipeline import PRESETS, run_seed, setup
+from gsp_jax.surrogate import Surrogate
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pretrain", default="dp", choices=["dp", "none"])
@@ -40,7 +41,8 @@ def main(args: argparse.Namespace) -> None:
         raise SystemExit("train: runs as one process (one writer of its checkpoints and policies); one process "
                          "already splits the environments over every GPU of its host (docs/scale.md)")
     preset = args.preset or ("full" if jax.default_backend() == "gpu" else "quick")
-    s = setup(preset, args.iterations, args.envs, args.patience, table_cache=RESULTS / evaluation.TABLES)
+    s = setup(preset, args.iterations, args.envs, args.patience, table_cache=RESULTS / evaluation.TABLES,
+              surrogate=Surrogate(args.model))
     root = results_dir(args.out)  # results/train-<model> for another model: where evaluation.load_rl looks
     files.write_json(root / "reference.json", {**s.reference, "preset": preset})
     print(

@@ -32,7 +32,6 @@ import numpy as np
 from experiments import cli, common
 from experiments.common import results_dir, table
 from gsp_jax import files, grasps, learned, physics, reward, scenario, stats
-from gsp_jax import model as model_lib
 from gsp_jax.physics import calibration, corpus
 from gsp_jax.physics.calibration import candidate_tables, candidates, pool_key, score_candidates, sequence_pool
 from gsp_jax.stats import cluster_bootstrap_se
@@ -99,17 +98,17 @@ def main(args: argparse.Namespace) -> None:
         raise SystemExit(f"--sets: calibration never uses the evaluation episodes, got {args.sets!r}")
     episodes = {}
     for s in sets:
-        episodes.update(scenario.episode_set(s))
+        episodes.update(scenario.episode_set(s, args.model))
     names, batch = list(episodes), scenario.stack(list(episodes.values()))
     configs = candidates()
     t0 = time.perf_counter()
     print(f"calibrate: {len(configs)} candidate rewards x {len(names)} episodes ({'+'.join(sets)}) ...", flush=True)
-    tables = candidate_tables(configs, batch)
-    nominal_tables = candidate_tables(configs, scenario.stack([scenario.make_episode()]))
+    tables = candidate_tables(configs, batch, args.model)
+    nominal_tables = candidate_tables(configs, scenario.stack([scenario.make_episode(model=args.model)]), args.model)
     print(f"  tables: {time.perf_counter() - t0:.0f} s", flush=True)
-    pool = sequence_pool(configs, tables, nominal_tables, batch, args.random, args.seed)
+    pool = sequence_pool(configs, tables, nominal_tables, batch, args.random, args.seed, args.model)
     cache = calibration.simulate_pool(pool, episodes, args.backend, args.chunk,
-                                      results_dir("calibrate") / f"physics_{args.backend}.json", t0)
+                                      results_dir("calibrate") / f"physics_{args.backend}.json", t0, args.model)
     flat = [(e, kind, seq) for e in range(len(names)) for kind, seq in pool[e]]
     angle = np.array([cache[pool_key(names, e, seq)][0] for e, _, seq in flat])
     fell = np.array([cache[pool_key(names, e, seq)][1] for e, _, seq in flat])
@@ -209,7 +208,7 @@ def _checks(data: dict, fitted: learned.Fitted, cfg: reward.RewardConfig) -> dic
 
 def learn(args: argparse.Namespace) -> None:
     """`--learn`: the model's learned physics term, corpus to weights (see the section's comment)."""
-    model = model_lib.load_model()
+    model = args.model
     t0 = time.perf_counter()
     folders = [pathlib.Path(f) for f in args.corpus] if args.corpus else [results_dir("corpus")]
     if args.shards:  # the corpus command extends it (it prints its progress and counts)

@@ -15,7 +15,7 @@ import pathlib
 import time
 
 from experiments.common import results_dir, table
-from gsp_jax import physics
+from gsp_jax import physics, surrogate
 from gsp_jax.physics import corpus
 
 
@@ -53,7 +53,7 @@ def check(args: argparse.Namespace) -> None:
 def build(args: argparse.Namespace) -> corpus.Store:
     """The corpus of `args` extended to its shards; returns its store."""
     check(args)
-    phys = physics.Physics()
+    phys = physics.Physics(surrogate.Surrogate(args.model))
     folder = folder_of(args)
     try:
         store = corpus.Store.open(folder, phys.surrogate.model)

@@ -138,7 +138,7 @@ def main(args: argparse.Namespace) -> None:
         raise SystemExit(f"envelope: --chunk must be >= 1, got {args.chunk}")
     reads = gsp_planners.context_flags([*args.policies,
                                         *(["L1-physics", *args.bases] if args.physics_lookahead else [])])
-    ctx = evaluation.context(args.set, args.episodes, args.policy_dir, results=common.RESULTS,
+    ctx = evaluation.context(args.set, args.episodes, args.policy_dir, model=args.model, results=common.RESULTS,
                              # the tables always: every sequence is scored
                              **(reads | dict(tables=True, nominal=reads["nominal"] or reads["rl"])))
     sur, N, T = ctx.surrogate, len(ctx.names), ctx.batch.n_steps
@@ -203,7 +203,7 @@ def main(args: argparse.Namespace) -> None:
         return sim["reached"][g, e], int(np.sum(np.arange(1, T + 1) * n_seg - 1 < fall_tick))
 
     verdicts = classify(episodes, [(e, [int(x) for x in sim["grasps"][g, e]], *reached(g, e))
-                                   for g, e in falls], args.jobs or c_backend.available_cores())
+                                   for g, e in falls], args.jobs or c_backend.available_cores(), sur.model)
     classes = {ge: v[0] for ge, v in zip(falls, verdicts)}
     summary = summarise(kinds, fell, angle, feasible, returns, classes, {ge: v[3] for ge, v in zip(falls, verdicts)},
                         hold if sur.learned is not None else None)

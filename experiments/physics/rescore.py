@@ -67,9 +67,10 @@ def parse_reward(text: str, base: reward_lib.RewardConfig) -> reward_lib.RewardC
         raise SystemExit(f"--reward {text!r}: {e}") from None
 
 
-def load_pool(path: str, n_episodes: int | None):
+def load_pool(path: str, n_episodes: int | None, model=None):
     """(set name, episode names (N,), the batch, kinds (G,), grasps (G, N, T), fell (G, N), angle (G, N)) of an
-    envelope result, its sequences laid out kind by kind as `envelope` writes them."""
+    envelope result of `model` (None: the default), its sequences laid out kind by kind as `envelope` writes
+    them."""
     file = pathlib.Path(path)
     if not file.is_file():
         raise SystemExit(f"--pool: no envelope result at {path!r} (python -m experiments envelope writes one)")
@@ -82,7 +83,7 @@ def load_pool(path: str, n_episodes: int | None):
     if len(seqs) != len(names) * len(kinds):
         raise SystemExit(f"--pool: {len(seqs)} sequences for {len(kinds)} kinds x {len(names)} episodes")
     keep = names[:n_episodes] if n_episodes else names
-    episodes = scenario.episode_set(data["set"])
+    episodes = scenario.episode_set(data["set"], model)
     batch = scenario.stack([episodes[n] for n in keep])
     rows = np.array([[seqs[g * len(names) + e] for e in range(len(keep))] for g in range(len(kinds))], object)
     grasps = np.array([[r["grasps"] for r in row] for row in rows], np.int32)
@@ -166,8 +167,8 @@ def main(args: argparse.Namespace) -> None:
         raise SystemExit(f"--batch must be >= 1, got {args.batch}")
     base = reward_lib.RewardConfig()
     rewards = [("calibrated", base)] + [(text, parse_reward(text, base)) for text in args.reward]
-    set_name, names, batch, kinds, grasps, fell, angle = load_pool(args.pool, args.episodes)
-    sur = surrogate.Surrogate()
+    sur = surrogate.Surrogate(args.model)
+    set_name, names, batch, kinds, grasps, fell, angle = load_pool(args.pool, args.episodes, sur.model)
     t0 = time.perf_counter()
     keys, index, changed = step_states(sur, np.asarray(batch.start_grasp), grasps)
     print(f"rescore: {grasps.shape[0]} x {len(names)} sequences of '{set_name}' ({grasps.size} steps, {len(keys)} "

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gsp_jax import dp, evaluation, files, policies, reward, scenario, surrogate
+from gsp_jax import dp, evaluation, files, model as model_lib, policies, reward, scenario, surrogate
 from gsp_jax.physics.runner import Physics
 from gsp_jax.stats import sign_test, spearman
 
@@ -47,10 +47,11 @@ def label(cfg: reward.RewardConfig) -> str:
     return f"mu x1, grip {grip}, fall {cfg.fall_unmet:g}, change {change}"  # "mu x1": as the saved sweeps name it
 
 
-def candidate_tables(configs, episodes: scenario.Episode) -> list[dp.Table]:
-    """Every candidate's tables (leaves (E, ...)): IK once, wrench solves once per grip."""
+def candidate_tables(configs, episodes: scenario.Episode, model=None) -> list[dp.Table]:
+    """Every candidate's tables (leaves (E, ...)) for `model` (None: the default): IK once, wrench solves once per
+    grip."""
     grip_key = lambda c: (c.grip, c.grip_scales_with_mass)  # noqa: E731
-    base = surrogate.Surrogate(reward=configs[0])
+    base = surrogate.Surrogate(model, reward=configs[0])
     contacts = jax.jit(jax.vmap(lambda ep: dp.realise_all(base, ep)))(episodes)
     terms = {}
     for gr, gm in sorted({grip_key(c) for c in configs}):
@@ -65,9 +66,11 @@ def candidate_tables(configs, episodes: scenario.Episode) -> list[dp.Table]:
     return out
 
 
-def sequence_pool(configs, tables, nominal_tables, batch, n_random: int, seed: int) -> list[list[tuple[str, tuple]]]:
+def sequence_pool(configs, tables, nominal_tables, batch, n_random: int, seed: int,
+                  model=None) -> list[list[tuple[str, tuple]]]:
     """Per episode, the distinct (kind, actions) sequences the candidates are scored on: the scripted ones, four
-    tips, one tip, every candidate's DP optimum and DP baseline, and `n_random` random feasible ones."""
+    tips, one tip, every candidate's DP optimum and DP baseline, and `n_random` random feasible ones (`model`'s
+    grasp space; None: the default model)."""
     n_e, n_t = int(np.shape(batch.mass)[0]), scenario.N_WAYPOINTS
     backup = jax.jit(jax.vmap(dp.backup))
     pool: list[list[tuple[str, tuple]]] = [[] for _ in range(n_e)]
@@ -77,14 +80,14 @@ def sequence_pool(configs, tables, nominal_tables, batch, n_random: int, seed: i
         if key not in {k for _, k in pool[e]}:
             pool[e].append((kind, key))
 
-    space = surrogate.Surrogate().space
+    space = model_lib.load_model(model).space
     for name, seq in evaluation.scripted_sequences(space).items():
         for e in range(n_e):
             add(e, name, seq)
     for e in range(n_e):
         add(e, "four-tips", evaluation.four_tips(space, n_t))
         add(e, "one-tip", evaluation.one_tip(space, n_t))
-    nominal = scenario.make_episode()
+    nominal = scenario.make_episode(model=model)
     for i, tab in enumerate(tables):
         opt = np.asarray(backup(tab, batch.start_grasp).actions)
         nom = jax.tree.map(lambda x: x[0], nominal_tables[i])
@@ -103,8 +106,9 @@ def sequence_pool(configs, tables, nominal_tables, batch, n_random: int, seed: i
     return pool
 
 
-def simulate_pool(pool, episodes: dict, backend: str, chunk_size: int, cache_path, t0: float) -> dict:
-    """Every (episode, sequence) of the pool in physics (`backend`, at most `chunk_size` a batch), cached in the JSON
+def simulate_pool(pool, episodes: dict, backend: str, chunk_size: int, cache_path, t0: float, model=None) -> dict:
+    """Every (episode, sequence) of the pool in `model`'s physics (None: the default model; `backend`, at most
+    `chunk_size` a batch), cached in the JSON
     file `cache_path` (kept after each chunk, so an interrupted run resumes): {"<episode>|<actions>": [angle error
     [deg], fell]}. Prints progress against the start time `t0` [s, perf_counter]."""
     names = list(episodes)
@@ -112,7 +116,7 @@ def simulate_pool(pool, episodes: dict, backend: str, chunk_size: int, cache_pat
     todo = [(e, seq) for e in range(len(names)) for _, seq in pool[e] if pool_key(names, e, seq) not in cache]
     n_pool = sum(len(p) for p in pool)
     print(f"  pool: {n_pool} distinct (episode, sequence) pairs, {len(todo)} to simulate ({backend})", flush=True)
-    phys = Physics(surrogate.Surrogate())
+    phys = Physics(surrogate.Surrogate(model))
     n_chunks = max(1, -(-len(todo) // chunk_size))
     chunk = -(-len(todo) // n_chunks) if todo else 0  # equal chunks: one MJX compile
     for i in range(0, len(todo), max(chunk, 1)):

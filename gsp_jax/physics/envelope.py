@@ -71,8 +71,7 @@ def _start_worker(model_path) -> None:
     from gsp_jax.physics.scene import Scene
     from gsp_jax.surrogate import Surrogate
 
-    model_lib.set_default(model_path)
-    sur = Surrogate()
+    sur = Surrogate(model_lib.load_model(model_path))
     _ORACLE = Oracle(sur, Scene(sur.hand))
 
 
@@ -95,15 +94,15 @@ def _classify(job) -> tuple:
     return (kind, point, ratio, early, *sim.worst)
 
 
-def classify(episodes: list, jobs: list, processes: int) -> list:
+def classify(episodes: list, jobs: list, processes: int, model=None) -> list:
     """The oracle's class of each (episode index, grasps, reached configurations (T, nq), rows before the fall) in
-    `jobs`, in `processes` processes (`_classify`), for this process's default model (`model.load_model()`)."""
+    `jobs`, in `processes` processes (`_classify`), for `model` (a `Model`, name or path; None: the default)."""
     from gsp_jax import model as model_lib
 
     if not jobs:
         return []
     work = [(scenario.to_dict(episodes[job[0]]), *job[1:]) for job in jobs]
-    path = str(model_lib.load_model().path)
+    path = str(model_lib.load_model(model).path)
     if processes <= 1:
         _start_worker(path)
         return [_classify(w) for w in work]

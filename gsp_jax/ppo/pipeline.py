@@ -40,15 +40,16 @@ class Setup:
     reference: dict
 
 
-def setup(preset: str, iterations=None, envs=None, patience=None, table_cache=None) -> Setup:
-    """The training and validation environments, networks and configs of `preset` ("quick" | "full"), with the
-    overrides given (PPO iterations, parallel environments, validations without improvement before stopping); the
-    episodes' DP tables kept under `table_cache` (`evaluation.dp_tables`; None: built every time)."""
+def setup(preset: str, iterations=None, envs=None, patience=None, table_cache=None, surrogate=None) -> Setup:
+    """The training and validation environments, networks and configs of `preset` ("quick" | "full") for
+    `surrogate` (None: `Surrogate()`, the default model), with the overrides given (PPO iterations, parallel
+    environments, validations without improvement before stopping); the episodes' DP tables kept under
+    `table_cache` (`evaluation.dp_tables`; None: built every time)."""
     if preset not in PRESETS:
         raise ValueError(f"setup: preset must be one of {sorted(PRESETS)}, got {preset!r}")
     p = PRESETS[preset]
-    sur = Surrogate()
-    train_eps, val_eps = scenario.training_set(), scenario.validation_set()
+    sur = surrogate or Surrogate()
+    train_eps, val_eps = scenario.training_set(sur.model), scenario.validation_set(sur.model)
     train_tables = dp_tables(sur, "train", train_eps, cache=table_cache)
     val_tables = dp_tables(sur, "val", val_eps, cache=table_cache)
     train_batch, val_batch = scenario.stack(list(train_eps.values())), scenario.stack(list(val_eps.values()))

@@ -98,7 +98,7 @@ class NetworkPolicy:
 
 
 SHIPPED_POLICY = hand_lib.MODELS_DIR / "policies/ppo_dp_seed0"  # PPO with DP pretraining for the wrench, a GPU run
-SHIPPED_POLICIES = {  # each shipped model's: `train --model NAME --seeds 1` on an H100 (docs/your-model.md)
+SHIPPED_POLICIES = {  # each shipped model's: `train --model NAME --seeds 1` on a GPU (docs/your-model.md)
     "wrench": SHIPPED_POLICY, "hammer": hand_lib.MODELS_DIR / "policies/hammer_ppo_dp_seed0",
     "allegro": hand_lib.MODELS_DIR / "policies/allegro_ppo_dp_seed0"}
 SHIPPED_LEARNED_POLICIES = {  # trained with the model's learned physics term: `train --learned --seeds 1` on a GPU
@@ -190,7 +190,7 @@ def rollout_batched(sur: Surrogate, policy, episode: Episode, ahead: int = 1) ->
     changes of the current one at waypoint t + j, j < k (1, 11, 51, 133 ... states: `GraspSpace.within`) -- so the
     chain is ceil(T / k) batched IKs long instead of T single ones. A GPU runs a small batch in about the time of
     one problem (k = 3: 63 states per batch); a CPU pays for every state (keep k = 1 there: one IK a step more than
-    stepping). Realising all n_grasps x T states in one batch was measured slower on an H100 (about 16 single IKs).
+    stepping). Realising all n_grasps x T states in one batch is slower on a GPU (docs/lookahead.md).
     For policies that act on a state's grasp, waypoint, joint angles and episode, not on the last step's `terms`
     (a discrete state's are zeros); a `Lookahead` would search from each state, but `lookahead.rollout_planned` reuses
     its search's steps instead. Returns (return, final state); the same episode as stepping, to float32 rounding

@@ -207,8 +207,11 @@ class Surrogate:
         move, hold, ext = (jax.tree.map(lambda x, i=i: x[i], solved) for i in range(3))
         is_last = t >= last
         motor_unmet = None
-        if np.isfinite(cfg.motor_fall_unmet):
-            motor_unmet = self.motor_unmet(nxt, episode, pos_n, quat_n, ext.forces, hold_wrench - episode.w_ext)
+        if np.isfinite(cfg.motor_fall_unmet):  # counts at the last step only (`reward.arrival`): a `cond`, so that a
+            # step of one t solves it only there (under a vmap over t both sides run, as a `where` would)
+            motor_unmet = jax.lax.cond(
+                is_last, lambda: self.motor_unmet(nxt, episode, pos_n, quat_n, ext.forces, hold_wrench - episode.w_ext),
+                lambda: jnp.zeros((), ext.forces.dtype))
         if during is None:
             change_error = change_unmet = jnp.zeros((), jnp.float32)
         else:

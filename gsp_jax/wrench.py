@@ -19,7 +19,7 @@ stop runs every problem to the slowest one's count, and `jaxopt.ProjectedGradien
   is one 6x6 solve plus a line search whose step sizes are tried side by side. On the DP tables' problems (3
   evaluation episodes, 41,472 solves) 10 iterations give every unmet fraction within 1.5e-5 of 3,000 projected-
   gradient iterations' (150 of those: 5e-3); on a GPU one step's depth is what counts, and 10 Newton iterations
-  replace 150 gradient ones (H100: one surrogate step 8.0 -> 5.9 ms).
+  replace 150 gradient ones (the surrogate step's times: docs/lookahead.md).
 * "apg": accelerated projected gradient. The problem is strongly convex (rho > 0), so the step 1/L_c (L_c =
   lambda_max(S G G^T S) + rho, from a 6x6 eigenvalue problem) and the constant momentum (sqrt(k) - 1) / (sqrt(k) +
   1), k = L_c / rho, converge linearly without restarts or a stopping test, but slowly: after 150 iterations the

@@ -115,7 +115,7 @@ def main(args: argparse.Namespace) -> None:
         raise SystemExit(f"--episodes: {args.episodes} (must be >= 1)")
     if args.policy != "scripted":
         check_planners([args.policy], "--policy", args.backend)
-    env = surrogate.Surrogate(args.model)
+    env = surrogate.Surrogate(getattr(args, "model", None))  # the CLI's `Model`; None (called directly): the default
     episodes = scenario.episode_set(args.set, env.model)
     if args.episodes:
         episodes = dict(list(episodes.items())[: args.episodes])

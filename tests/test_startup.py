@@ -2,6 +2,7 @@
 and the surrogate's programs built once per model."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -9,6 +10,7 @@ import sys
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from gsp_jax import cache, platform, scenario, surrogate
 from gsp_jax.reward import RewardConfig
@@ -59,11 +61,14 @@ def test_the_cpu_tag_is_stable_and_names_the_architecture():
 
 def test_kernels_are_traced_in_the_platforms_form_alone(sur):
     """The surrogate step's program holds one form of each CPU/GPU kernel pair (`platform.by_platform`), not both
-    behind a platform switch (`lax.platform_dependent` lowered 208 such branch pairs into it)."""
+    behind a platform switch (`lax.platform_dependent` lowered 208 such branch pairs into it): its one branch is
+    the motor check's `cond` on the last step (`Surrogate.score`)."""
     assert platform.current() == "cpu"
     state = sur.reset(scenario.make_episode())
     text = jax.jit(sur.step).lower(state, jnp.int32(3)).as_text()
-    assert "stablehlo.case" not in text and "platform_index" not in text
+    assert text.count("stablehlo.case") == 1 and "platform_index" not in text
+    no_motor = surrogate.Surrogate(sur.hand, reward=dataclasses.replace(sur.reward_config, motor_fall_unmet=np.inf))
+    assert "stablehlo.case" not in jax.jit(no_motor.step).lower(state, jnp.int32(3)).as_text()
     with jax.default_device(jax.devices("cpu")[0]):
         assert platform.current() == "cpu"
     assert platform.by_platform(2, cpu=lambda x: x + 1, default=lambda x: x - 1) == 3

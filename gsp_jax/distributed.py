@@ -117,6 +117,14 @@ def chunks(n: int, size: int) -> list[np.ndarray]:
     return [np.arange(i, min(i + size, n)) for i in range(0, n, size)]
 
 
+def chunk_size(n: int, size: int | None = None) -> int:
+    """`size` items a chunk, or where None one chunk per process: ceil(n / count()). ValueError below 1."""
+    size = -(-n // count()) if size is None else size
+    if size < 1:
+        raise ValueError(f"chunk (--chunk) must be >= 1, got {size}")
+    return size
+
+
 def share(n: int) -> range:
     """This process's contiguous share of n items (`split`): all of them for one process."""
     return split(n)[rank()]

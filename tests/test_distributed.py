@@ -69,6 +69,12 @@ def test_chunks_are_fixed_runs_of_size_whatever_the_processes():
         distributed.chunks(4, 0)
 
 
+def test_chunk_size_is_one_chunk_per_process_by_default():
+    assert distributed.chunk_size(7) == 7 and distributed.chunk_size(7, 3) == 3  # one process
+    with pytest.raises(ValueError, match="must be >= 1, got 0"):
+        distributed.chunk_size(7, 0)
+
+
 def test_map_chunks_joins_each_chunks_result_in_order():
     seen = []
 

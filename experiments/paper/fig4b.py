@@ -57,9 +57,7 @@ def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str =
     only process 0 saves and returns the results (the others return {})."""
     phys = physics.Physics(ctx.surrogate)
     n_episodes = len(ctx.names)
-    chunk = -(-n_episodes // distributed.count()) if chunk is None else chunk
-    if chunk < 1:
-        raise ValueError(f"chunk (--chunk) must be >= 1, got {chunk}")
+    chunk = distributed.chunk_size(n_episodes, chunk)
     stamp = f"{common.fingerprint(ctx)}-{backend}" + ("" if cached else "-continuous") + (
         f"-k{k}-" + "+".join(bases) if any("bases" in planners.get(n).options for n in names) else "") + (
         f"-chunk{chunk}" if backend == "c" and chunk < n_episodes else "")

@@ -142,9 +142,10 @@ def main(args: argparse.Namespace) -> None:
         def made(idx):
             sub = {names[i]: episodes[names[i]] for i in idx}
             return *make_policy(args.policy, args.set, sub, args), scenario.stack(list(sub.values()))
-    chunk = -(-len(labels) // distributed.count()) if args.chunk is None else args.chunk
-    if chunk < 1:
-        raise SystemExit(f"--chunk: {chunk} (must be >= 1)")
+    try:
+        chunk = distributed.chunk_size(len(labels), args.chunk)
+    except ValueError as e:
+        raise SystemExit(f"physics: {e}") from None
     print(f"physics check: {len(labels)} episodes of '{args.set}', policy {args.policy}, backend {args.backend}, "
           f"{phys.n_ticks(scenario.N_WAYPOINTS)} physics steps each "
           f"({jax.local_devices()[0].platform}; compiling first) ...", flush=True)

@@ -167,14 +167,16 @@ def main(argv: list[str] | None = None) -> None:
         common.MODEL = args.model
     from gsp_jax import learned
 
-    was_learned = learned.default_on()  # a command another runs (`run_command`) inherits it; restored after
-    if getattr(args, "learned", False):
+    was_learned = common.LEARNED  # a command another runs (`run_command`) inherits it; restored after
+    args.learned = bool(getattr(args, "learned", False) or common.LEARNED)  # passed down: `Surrogate(learned=)`
+    if args.learned and "model" in args:  # the model's weights exist (checked before any work)
         try:
             learned.resolve(True, args.model)
         except learned.LearnedTermError as e:
             raise SystemExit(f"--learned: {e}") from None
-        learned.set_default(True)
-        print(f"learned physics term: {learned.path_of(args.model)}", flush=True)
+        if not was_learned:
+            print(f"learned physics term: {learned.path_of(args.model)}", flush=True)
+    common.LEARNED = args.learned
     from gsp_jax import files, scenario
 
     try:
@@ -184,7 +186,7 @@ def main(argv: list[str] | None = None) -> None:
     except (files.FolderInUse, scenario.EpisodeError) as e:  # a user's input or a busy folder: the message, no trace
         raise SystemExit(f"{args.command}: {e}") from None
     finally:
-        learned.set_default(was_learned)
+        common.LEARNED = was_learned
         common.MODEL = was_model
 
 

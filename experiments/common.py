@@ -39,10 +39,8 @@ def results_dir(*parts: str) -> pathlib.Path:
 
 
 def learned_on() -> bool:
-    """Whether this process's surrogates have the learned physics term (`--learned`, `gsp_jax.learned.set_default`)."""
-    from gsp_jax import learned
-
-    return learned.default_on()
+    """Whether the run plans with the learned physics term (`--learned`: `LEARNED`)."""
+    return LEARNED
 
 
 def table(headers: list[str], rows: list[list], floatfmt: str = ".3f") -> str:
@@ -93,6 +91,7 @@ DATA = ROOT / "docs" / "data"  # the current result of each benchmark and figure
 MODEL = None  # the run's `Model` (`--model`, set by `cli.main` for the command it runs; None: the default model)
 RECORD = False  # `python -m experiments --record <command>`: `record` writes to DATA (off: runs leave docs alone)
 COMMAND: list[str] | None = None  # the words of the command a record names (set by the outermost `main`)
+LEARNED = False  # the run's `--learned` (set by `cli.main`; a command run by another inherits it): `args.learned`
 
 
 def device_slug() -> str:

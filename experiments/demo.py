@@ -35,11 +35,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gif-from", default=None, help=argparse.SUPPRESS)  # (internal) render a saved trace, then stop
 
 
-def _context(name: str | None, model) -> evaluation.Context:
+def _context(name: str | None, model, learned=False) -> evaluation.Context:
     """The evaluation context of one episode of `model` (`--model`; its table built here, timed by the caller).
     L1 looks ahead over the model's PPO policy where there is one, else over the DP baseline (the nominal
     episode's optimal sequence)."""
-    sur = Surrogate(model)
+    sur = Surrogate(model, learned=learned)
     if name is None:
         name, episode = next(iter(scenario.episode_set("evalA", sur.model).items()))  # the first of 'eval'
     else:
@@ -239,14 +239,14 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 
 def main(args: argparse.Namespace) -> None:
     if args.gif_from:
-        _render_gif(physics.Physics(Surrogate(args.model)), args.gif_from)
+        _render_gif(physics.Physics(Surrogate(args.model, learned=args.learned)), args.gif_from)
         return
     model = args.model
     out = results_dir("demo")  # results/demo-<model> for another model
     print(f"demo on JAX {jax.default_backend()}: one unseen episode of model {model.name!r}, planned by DP optimal and "
           "L1, executed in C MuJoCo", flush=True)
     t0 = time.perf_counter()
-    ctx = _context(args.episode, model)
+    ctx = _context(args.episode, model, args.learned)
     t_table = time.perf_counter() - t0
     print(f"  episode {ctx.names[0]}: DP table of {ctx.surrogate.space.n_grasps} grasps x {ctx.batch.n_steps} "
           f"waypoints built in {t_table:.1f} s (includes compiling)", flush=True)

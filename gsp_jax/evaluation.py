@@ -213,14 +213,15 @@ def scripted_sequences(space: grasps.GraspSpace, n_steps: int = scenario.N_WAYPO
 
 def context(set_name: str = "eval", n_episodes: int | None = None, policy_dir=None, episodes: dict | None = None,
             tables: bool = True, rl: bool = True, nominal: bool = True, model=None,
-            results: str | pathlib.Path | None = None) -> Context:
+            results: str | pathlib.Path | None = None, learned=None) -> Context:
     """The context of an episode set (`scenario.episode_set(set_name, model)`, or the named `episodes` given),
     `n_episodes` of it spread evenly (all if None), for `model` (a name, path or `Model`; None: the default): with
     their DP tables and solutions (`tables`), the PPO policy (`rl`, `load_rl(policy_dir, results)`) and the DP
     baseline's sequence (`nominal`: the nominal episode's table). With a results folder `results`, the tables are
-    kept in its `TABLES` subfolder (built once) and the policy `train` wrote there is looked for; None: neither."""
+    kept in its `TABLES` subfolder (built once) and the policy `train` wrote there is looked for; None: neither.
+    `learned`: the surrogate's learned physics term, as `Surrogate(learned=)` takes it (None: off)."""
     cache = None if results is None else pathlib.Path(results, TABLES)
-    sur = Surrogate(model)
+    sur = Surrogate(model, learned=learned)
     everything = scenario.episode_set(set_name, sur.model) if episodes is None else episodes
     chosen = subset(everything, n_episodes)
     tag = set_name if len(chosen) == len(everything) else f"{set_name}{len(chosen)}"

@@ -259,27 +259,11 @@ def reliability(p: np.ndarray, event: np.ndarray, bins: int = 10) -> list[dict]:
 
 
 # ---------------------------------------------------------------------------------------------------- files
-_DEFAULT = [False]  # the learned term of `Surrogate(learned=None)` in this process (`set_default`)
-
-
-def set_default(on: bool) -> None:
-    """Whether a `Surrogate` built without `learned` has the learned physics term (the model's own weights) in this
-    process (the CLI's ``--learned``)."""
-    _DEFAULT[0] = bool(on)
-
-
-def default_on() -> bool:
-    """Whether `Surrogate(learned=None)` has the learned physics term in this process (`set_default`)."""
-    return _DEFAULT[0]
-
-
 def resolve(learned, model) -> "Fitted | None":
-    """The weights a `Surrogate(learned=...)` uses for `model`: None (off) for False, or for None while
-    `set_default` is off; the model's own (`path_of`) for True or None while on; a `Fitted` or a weights file as
-    given (checked: fitted for this model). `LearnedTermError` naming the model and the file where there are none."""
-    if learned is None:
-        learned = _DEFAULT[0]
-    if learned is False:
+    """The weights a `Surrogate(learned=...)` uses for `model`: None (off) for None or False; the model's own
+    (`path_of`) for True; a `Fitted` or a weights file as given (checked: fitted for this model).
+    `LearnedTermError` naming the model and the file where there are none."""
+    if learned is None or learned is False:
         return None
     if learned is True:
         path = path_of(model)

@@ -72,8 +72,7 @@ class Surrogate:
         """`hand`: the model, as a shipped name, a scene path, a `gsp_jax.model.Model` or a loaded `HandModel`
         (None: the shipped wrench, `gsp_jax.model.DEFAULT`). `learned`: the learned physics term
         (`gsp_jax.reward.with_risk`): False off (the paper's surrogate), True the model's own weights
-        (`learned.path_of`), a `learned.Fitted` or a weights file; None: this process's default
-        (`learned.set_default`, the CLI's ``--learned``; off unless set). Weights of another model are refused."""
+        (`learned.path_of`), a `learned.Fitted` or a weights file; None: off. Weights of another model are refused."""
         self.hand = hand if isinstance(hand, hand_lib.HandModel) else model_lib.load_model(hand).hand
         self.space = grasps.space_of(self.hand)
         self.reward_config, self.ik_config, self.wrench_config = reward, ik_config, wrench_config

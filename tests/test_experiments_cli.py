@@ -99,3 +99,26 @@ def test_a_commands_model_is_handed_down_and_left_behind_nowhere(monkeypatch, ca
     assert common.MODEL is None and model_lib.load_model().name == model_lib.DEFAULT
     cli.main(["planners"])
     assert seen[-1].name == model_lib.DEFAULT
+
+
+def test_learned_is_handed_down_and_left_behind_nowhere(monkeypatch, capsys):
+    """`--learned` becomes `args.learned`, which a command run by another inherits; no surrogate built outside
+    the command has the learned term, during or after (no process-wide default)."""
+    from experiments import common
+    from gsp_jax.surrogate import Surrogate
+
+    seen = []
+
+    def main(args):
+        seen.append((args.learned, common.learned_on(), Surrogate(args.model).learned is None))
+        if len(seen) == 1:
+            cli.run_command(["planners"])
+
+    monkeypatch.setattr("experiments.diagnostics.planners.main", main)
+    cli.main(["planners", "--learned"])
+    assert "learned physics term:" in capsys.readouterr().out
+    assert seen == [(True, True, True), (True, True, True)]  # the command, the one it ran; Surrogate() stays off
+    assert common.LEARNED is False and not common.learned_on()
+    cli.main(["planners"])
+    assert seen[-1] == (False, False, True)
+    assert Surrogate(learned=True).learned is not None  # the shipped wrench's weights, asked for by name

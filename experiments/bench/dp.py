@@ -29,7 +29,7 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 
 
 def main(args: argparse.Namespace) -> None:
-    env = surrogate.Surrogate(args.model)
+    env = surrogate.Surrogate(args.model, learned=args.learned)
     evals = list(scenario.episode_set("eval", env.model).values())[: args.episodes]
     device = jax.local_devices()[0]
     print(f"device: {device.platform} ({device.device_kind}); jax {jax.__version__}", flush=True)

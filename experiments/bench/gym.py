@@ -42,7 +42,7 @@ def rate(envs, n: int, seconds: float) -> float:
 
 
 def main(args) -> None:
-    sur = Surrogate(args.model)
+    sur = Surrogate(args.model, learned=args.learned)
     eps = scenario.training_set(sur.model)
     tables = dp_tables(sur, "train", eps, cache=common.RESULTS / evaluation.TABLES)
     env = GraspEnv(sur, scenario.stack(list(eps.values())), tables, auto_reset=False)

@@ -61,7 +61,7 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 
 
 def main(args: argparse.Namespace) -> None:
-    env = surrogate.Surrogate(args.model)
+    env = surrogate.Surrogate(args.model, learned=args.learned)
     device = jax.local_devices()[0]
     if args.copies < 1:
         raise SystemExit(f"bench-physics: --copies must be >= 1, got {args.copies}")

@@ -88,7 +88,8 @@ def time_to_baseline(s, mode: str, seed: int, max_iterations: int | None) -> dic
 def main(args: argparse.Namespace) -> None:
     gpu = jax.default_backend() == "gpu"
     preset = args.preset or ("full" if gpu else "quick")
-    s = pipeline.setup(preset, table_cache=common.RESULTS / evaluation.TABLES, surrogate=Surrogate(args.model))
+    s = pipeline.setup(preset, table_cache=common.RESULTS / evaluation.TABLES,
+                       surrogate=Surrogate(args.model, learned=args.learned))
     n_envs = s.ppo_config.n_envs
     sur_envs = args.surrogate_envs or (1024 if gpu else 16)
     print(f"device: {jax.local_devices()[0].device_kind} ({jax.default_backend()}); preset {preset}")

@@ -81,7 +81,7 @@ def worker(args: argparse.Namespace) -> None:
     from gsp_jax import distributed, evaluation, physics, policies, scenario, surrogate
     from gsp_jax.physics import corpus
 
-    phys = physics.Physics(surrogate.Surrogate(args.model))
+    phys = physics.Physics(surrogate.Surrogate(args.model, learned=args.learned))
     sur = phys.surrogate
     P = distributed.count()
     cut = (lambda eps: {k: e.head(args.steps) for k, e in eps.items()}) if args.steps else (lambda eps: eps)

@@ -31,7 +31,7 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 
 def main(args: argparse.Namespace) -> None:
     ep = scenario.make_episode(model=args.model)
-    env = surrogate.Surrogate(args.model)
+    env = surrogate.Surrogate(args.model, learned=args.learned)
     n_g, n_a = env.space.n_grasps, env.space.n_actions
     if not 0 <= args.waypoint < ep.n_steps:
         raise SystemExit(f"--waypoint: {args.waypoint} is out of range 0..{ep.n_steps - 1}")

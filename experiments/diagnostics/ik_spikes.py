@@ -65,7 +65,7 @@ def main(args: argparse.Namespace) -> None:
         variants[f"starts {spec}"] = dataclasses.replace(default, extra_starts=_parse(spec))
     rows, out = [], {}
     for name, cfg in variants.items():
-        env = surrogate.Surrogate(args.model, ik_config=cfg)
+        env = surrogate.Surrogate(args.model, ik_config=cfg, learned=args.learned)
         t0 = time.perf_counter()
         err, col = ik_table(env, batch)
         wall = time.perf_counter() - t0

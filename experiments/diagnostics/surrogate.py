@@ -34,7 +34,7 @@ def main(args: argparse.Namespace) -> None:
     bad = [t for t in ts if not 0 <= t < ep.n_steps]
     if bad:
         raise SystemExit(f"--waypoints: {bad[0]} is out of range 0..{ep.n_steps - 1}")
-    env = surrogate.Surrogate(args.model)
+    env = surrogate.Surrogate(args.model, learned=args.learned)
     space = env.space
     gs = jnp.asarray([int(space.encode(o)) for _, o in GRASPS], jnp.int32)
 

@@ -73,7 +73,7 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 
 
 def main(args: argparse.Namespace) -> None:
-    env = surrogate.Surrogate(args.model)
+    env = surrogate.Surrogate(args.model, learned=args.learned)
     episodes = scenario.episode_set(args.set, env.model)
     if args.plot is not None and args.plot not in episodes:
         raise SystemExit(f"--plot: episode {args.plot!r} is not in set {args.set!r}: {', '.join(episodes)}")

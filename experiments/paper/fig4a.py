@@ -77,7 +77,8 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 
 def main(args: argparse.Namespace) -> None:
     backend = args.backend or ("surrogate" if jax.default_backend() == "gpu" else "table")
-    ctx = evaluation.context(args.set, args.episodes, args.policy_dir, model=args.model, results=common.RESULTS)
+    ctx = evaluation.context(args.set, args.episodes, args.policy_dir, model=args.model, results=common.RESULTS,
+                             learned=args.learned)
     print(f"Fig. 4a: {len(ctx.names)} episodes of '{args.set}', backend {backend}, RL policy {ctx.rl_source}",
           flush=True)
     out = results_dir("fig4a")

@@ -161,6 +161,7 @@ def main(args: argparse.Namespace) -> None:
         raise SystemExit(f"fig4b: --backend {args.backend} runs as one process (an XLA batch per policy); "
                          f"only C MuJoCo's chunks are shared by --processes")
     ctx = evaluation.context(args.set, args.episodes, args.policy_dir, model=args.model, results=common.RESULTS,
+                             learned=args.learned,
                              # only what the policies read
                              **planners.context_flags([*args.policies,
                                                        *(args.bases if 'L1-physics' in args.policies else ())]))

@@ -42,7 +42,7 @@ def main(args: argparse.Namespace) -> None:
                          "already splits the environments over every GPU of its host (docs/scale.md)")
     preset = args.preset or ("full" if jax.default_backend() == "gpu" else "quick")
     s = setup(preset, args.iterations, args.envs, args.patience, table_cache=RESULTS / evaluation.TABLES,
-              surrogate=Surrogate(args.model))
+              surrogate=Surrogate(args.model, learned=args.learned))
     root = results_dir(args.out)  # results/train-<model> for another model: where evaluation.load_rl looks
     files.write_json(root / "reference.json", {**s.reference, "preset": preset})
     print(

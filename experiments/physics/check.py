@@ -64,7 +64,7 @@ def make_policy(kind: str, set_name: str, episodes: dict, args=None):
     """(policy, policy_axis) of registered planner `kind` for a batch of named `episodes`, from a context with only
     what it reads (`planners.context_flags`)."""
     ctx = evaluation.context(set_name, episodes=episodes, policy_dir=getattr(args, "policy_dir", None), results=RESULTS,
-                             model=getattr(args, "model", None),
+                             model=getattr(args, "model", None), learned=getattr(args, "learned", False),
                              **planners.context_flags([kind]))
     return planners.make(ctx, kind, dict(seed=getattr(args, "seed", 0)))
 
@@ -115,7 +115,8 @@ def main(args: argparse.Namespace) -> None:
         raise SystemExit(f"--episodes: {args.episodes} (must be >= 1)")
     if args.policy != "scripted":
         check_planners([args.policy], "--policy", args.backend)
-    env = surrogate.Surrogate(getattr(args, "model", None))  # the CLI's `Model`; None (called directly): the default
+    env = surrogate.Surrogate(getattr(args, "model", None), learned=getattr(args, "learned", False))  # the CLI's
+    # `Model` and --learned; called directly without them: the default model, no learned term
     episodes = scenario.episode_set(args.set, env.model)
     if args.episodes:
         episodes = dict(list(episodes.items())[: args.episodes])

@@ -53,7 +53,7 @@ def check(args: argparse.Namespace) -> None:
 def build(args: argparse.Namespace) -> corpus.Store:
     """The corpus of `args` extended to its shards; returns its store."""
     check(args)
-    phys = physics.Physics(surrogate.Surrogate(args.model))
+    phys = physics.Physics(surrogate.Surrogate(args.model, learned=args.learned))
     folder = folder_of(args)
     try:
         store = corpus.Store.open(folder, phys.surrogate.model)

@@ -139,6 +139,7 @@ def main(args: argparse.Namespace) -> None:
     reads = gsp_planners.context_flags([*args.policies,
                                         *(["L1-physics", *args.bases] if args.physics_lookahead else [])])
     ctx = evaluation.context(args.set, args.episodes, args.policy_dir, model=args.model, results=common.RESULTS,
+                             learned=args.learned,
                              # the tables always: every sequence is scored
                              **(reads | dict(tables=True, nominal=reads["nominal"] or reads["rl"])))
     sur, N, T = ctx.surrogate, len(ctx.names), ctx.batch.n_steps

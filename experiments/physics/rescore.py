@@ -167,7 +167,7 @@ def main(args: argparse.Namespace) -> None:
         raise SystemExit(f"--batch must be >= 1, got {args.batch}")
     base = reward_lib.RewardConfig()
     rewards = [("calibrated", base)] + [(text, parse_reward(text, base)) for text in args.reward]
-    sur = surrogate.Surrogate(args.model)
+    sur = surrogate.Surrogate(args.model, learned=args.learned)
     set_name, names, batch, kinds, grasps, fell, angle = load_pool(args.pool, args.episodes, sur.model)
     t0 = time.perf_counter()
     keys, index, changed = step_states(sur, np.asarray(batch.start_grasp), grasps)

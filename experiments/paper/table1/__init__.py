@@ -108,7 +108,8 @@ def main(args: argparse.Namespace) -> None:
 def per_episode(args: argparse.Namespace, names: list[str]) -> None:
     repeats = args.repeats or (3 if jax.default_backend() == "gpu" else 1)
     ctx = episode.with_ik_unroll(evaluation.context(args.set, 1 if not args.batch else args.batch, args.policy_dir,
-                                                    model=args.model, results=common.RESULTS), args.ik_unroll)
+                                                    model=args.model, results=common.RESULTS,
+                                                    learned=args.learned), args.ik_unroll)
     print(f"Table 1 on {jax.local_devices()[0].device_kind}: episode {ctx.names[0]} ...", flush=True)
     result = episode.run(ctx, args.batch, repeats, results_dir("table1"), lookahead=args.lookahead,
                          names=tuple(n for n in PAPER if n in names), ahead=args.ahead, compare_before=args.before)
@@ -117,7 +118,8 @@ def per_episode(args: argparse.Namespace, names: list[str]) -> None:
 
 
 def per_decision(args: argparse.Namespace, names: list[str]) -> None:
-    ctx = evaluation.context("eval", args.episodes, args.policy_dir, model=args.model, results=common.RESULTS)
+    ctx = evaluation.context("eval", args.episodes, args.policy_dir, model=args.model, results=common.RESULTS,
+                             learned=args.learned)
     print(f"table1 --per-decision on {jax.local_devices()[0].device_kind}: {len(ctx.names)} episodes ...", flush=True)
     # a decision starts from the surrogate's continuous state: the root is never in the table ("table" = "cached")
     result = decisions.run(ctx, names, cached=args.lookahead != "continuous", ks=args.k, bases=args.bases)

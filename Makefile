@@ -6,6 +6,11 @@
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+# The installer: uv, pinned, installed into .venv by pip from the package registry (faster than pip, above all on
+# 2 cores). INSTALLER=pip installs with pip alone; so does make, saying so, when uv cannot be installed or fails
+# (e.g. a pip.conf index or proxy, which uv does not read). Either installs requirements.lock's set.
+UV_VERSION := 0.13.8
+INSTALLER ?= uv
 
 # First Python >= 3.12 found: $(PYTHON), python3.12, python3.13, pyenv's 3.12.x/3.13.x, python3.
 PYTHON ?= $(shell for p in python3.12 python3.13 $$HOME/.pyenv/versions/3.12*/bin/python $$HOME/.pyenv/versions/3.13*/bin/python python3; do \
@@ -19,10 +24,20 @@ $(STAMP): pyproject.toml requirements.lock
 	@if [ -z "$(PYTHON)" ]; then echo "error: no Python >= 3.12 found (jax 0.11.2 needs it). Install CPython 3.12 or set PYTHON=/path/to/python3.12" >&2; exit 1; fi
 	@echo "using $(PYTHON) ($$($(PYTHON) --version))"
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip
 	@# setuptools' notice "Editable installation." (every flat-layout editable install gets it; it says nothing
-	@# about this project) is the one backend message left once pyproject.toml is right: only it is filtered out.
-	PYTHONWARNINGS="ignore:Editable installation" $(PY) -m pip install -q -c requirements.lock -e ".[test]"
+	@# about this project) is the one backend message pip shows once pyproject.toml is right: only it is filtered out.
+	@run() { echo "$$*"; "$$@"; }; \
+	with_pip() { run $(PY) -m pip install -q --upgrade pip && \
+	  run env PYTHONWARNINGS="ignore:Editable installation" $(PY) -m pip install -q -c requirements.lock -e ".[test]"; }; \
+	with_uv() { run $(VENV)/bin/uv pip install -q --python $(PY) --upgrade pip && \
+	  run $(VENV)/bin/uv pip install -q --python $(PY) -c requirements.lock -e ".[test]"; }; \
+	if [ "$(INSTALLER)" = pip ]; then echo "installing the pinned set with pip (INSTALLER=pip)"; with_pip; \
+	elif [ "$(INSTALLER)" != uv ]; then echo "error: INSTALLER=$(INSTALLER): uv or pip" >&2; exit 2; \
+	elif ! run $(PY) -m pip install -q uv==$(UV_VERSION); then \
+	  echo "note: uv $(UV_VERSION) could not be installed (above); installing the pinned set with pip (slower)" >&2; \
+	  with_pip; \
+	else with_uv || { echo "note: uv failed (above); installing the pinned set with pip instead (slower)" >&2; with_pip; }; fi \
+	  || { echo "error: the install into $(VENV) failed (above); make clean, then make again" >&2; exit 1; }
 	@touch $(STAMP)
 
 demo: $(STAMP)

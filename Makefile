@@ -26,11 +26,13 @@ $(STAMP): pyproject.toml requirements.lock
 	$(PYTHON) -m venv $(VENV)
 	@# setuptools' notice "Editable installation." (every flat-layout editable install gets it; it says nothing
 	@# about this project) is the one backend message pip shows once pyproject.toml is right: only it is filtered out.
+	@# uv compiles the bytecode as pip does (--compile-bytecode), so the first run does not (nor, with
+	@# PYTHONDONTWRITEBYTECODE set, every run: 4.0 s against 1.6 s for `python -m experiments --help` on 2 cores).
 	@run() { echo "$$*"; "$$@"; }; \
 	with_pip() { run $(PY) -m pip install -q --upgrade pip && \
 	  run env PYTHONWARNINGS="ignore:Editable installation" $(PY) -m pip install -q -c requirements.lock -e ".[test]"; }; \
 	with_uv() { run $(VENV)/bin/uv pip install -q --python $(PY) --upgrade pip && \
-	  run $(VENV)/bin/uv pip install -q --python $(PY) -c requirements.lock -e ".[test]"; }; \
+	  run $(VENV)/bin/uv pip install -q --python $(PY) --compile-bytecode -c requirements.lock -e ".[test]"; }; \
 	if [ "$(INSTALLER)" = pip ]; then echo "installing the pinned set with pip (INSTALLER=pip)"; with_pip; \
 	elif [ "$(INSTALLER)" != uv ]; then echo "error: INSTALLER=$(INSTALLER): uv or pip" >&2; exit 2; \
 	elif ! run $(PY) -m pip install -q uv==$(UV_VERSION); then \

@@ -68,8 +68,9 @@ class IKConfig:
     lanes: bool | None = None  # an episode's table (`dp.realise_all`) solves its G x T problems in the batch-last
     # form (`ik_lanes`: the same solve, to float32 rounding; on a CPU faster to run and slower to compile than
     # `solve` vmapped, docs/performance.md): None on a CPU only, True everywhere, False never (`solve` vmapped).
-    # True also for a lookahead root's few problems (`Surrogate.step_every`; None: vmapped there, as its ~20 s
-    # compile outweighs what a few dozen problems save, except online: `planners` L1-physics on a CPU)
+    # True also for a lookahead root's few problems (`Surrogate.step_every`; None: vmapped there, as its longer
+    # compile outweighs what a few dozen problems save, docs/performance.md; except online: `planners` L1-physics
+    # on a CPU)
     lanes_chunk: int = 288  # the batch-last form solves its batch this many problems at a time (`lax.map` over
     # chunks, each chunk's iterations run to the end before the next starts): a chunk's arrays stay in the CPU's
     # caches, where the whole batch at once goes to memory every operation (docs/performance.md); the same
@@ -244,7 +245,9 @@ def residuals_and_jacobian(hand: HandModel, cfg: IKConfig, q, active, targets, t
     axes: every row is d(residual)/d(gap) times a contact normal or surface gradient at a point, and that
     direction at that point is a wrench against the joints' twists (`kinematics.direction_jacobian`; all rows
     in one product). Rows: link gaps (L), sphere-tool (S), sphere-table (S), self capsule pairs (P),
-    regularisation (J)."""
+    regularisation (J).
+    The reference of `ik_lanes._Problem.evaluate`, whose normal equations must equal those of these rows; checked
+    by `tests/test_ik_lanes.py::test_normal_equations_match_the_reference`."""
     pos, mat, axes, anchors = kinematics.chain(hand, q)
     geo = _geometry(hand, pos, mat, targets, tool_pos, tool_mat)
     # contact links: distance of the tool point to the link's segment, minus the radius
@@ -290,6 +293,8 @@ def solve(
 
     Differentiable (the iterations are a `lax.scan`); `vmap` it over grasps, poses and episodes. Matmuls run
     in full float32 (no TF32 on GPUs: sub-millimetre targets need it).
+    The reference of `ik_lanes.solve` (the same solve, batch last), which must equal it; checked by
+    `tests/test_ik_lanes.py::test_solve_matches_vmapped_solve`.
     """
     with jax.default_matmul_precision("highest"):
         return _solve(hand, active, targets, tool_pos, tool_mat, cfg)
@@ -355,7 +360,10 @@ def _damped_step(jtj: jax.Array, jtr: jax.Array, lam: jax.Array) -> jax.Array:
     """The Levenberg-Marquardt step (J,): solves (J^T J + lam I) step = -J^T r, positive definite for lam > 0. On a
     CPU by LAPACK's Cholesky; on a GPU by Gauss-Jordan elimination written out for the static size
     (`_gauss_jordan_solve`): fused kernels instead of the solver library's seven calls, and small enough to compile
-    fast (against the Cholesky forms tried: docs/lookahead.md)."""
+    fast (against the Cholesky forms tried: docs/lookahead.md). Both forms, and the batch-last copy
+    `ik_lanes._cholesky_solve`, must equal numpy's float64 solve (the reference); checked by
+    `tests/test_ik.py::test_damped_step_solves_the_normal_equations_like_float64_lapack` and
+    `tests/test_ik_lanes.py::test_cholesky_solve_matches_float64`."""
     a = jtj + lam * jnp.eye(jtj.shape[-1], dtype=jtj.dtype)
     return platform.by_platform(
         a, -jtr, cpu=lambda a, b: jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(a), True), b),
@@ -378,7 +386,8 @@ def _gauss_jordan_solve(a: jax.Array, b: jax.Array) -> jax.Array:
 
 def _normal_equations(jac: jax.Array, r: jax.Array) -> tuple[jax.Array, jax.Array]:
     """J^T J (J, J) and J^T r (J,) from the Jacobian (R, J) and residuals (R,). On a CPU as broadcast products and
-    sums, on a GPU as matmuls: each the faster form on its platform for these sizes (docs/performance.md)."""
+    sums, on a GPU as matmuls: each the faster form on its platform for these sizes (docs/performance.md). The two
+    forms must be equal (the matmuls the reference); checked by `tests/test_ik.py::test_normal_equations_both_forms`."""
     return platform.by_platform(
         jac, r,
         cpu=lambda jac, r: (jnp.sum(jac[:, :, None] * jac[:, None, :], 0), jnp.sum(jac * r[:, None], 0)),

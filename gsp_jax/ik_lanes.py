@@ -21,11 +21,13 @@ XLA's loop fusion would otherwise recompute them inside every consumer (the cost
 the chain inside every point). And the batch is solved in chunks (`IKConfig.lanes_chunk` problems) whose arrays
 stay in the caches. Neither changes the arithmetic.
 
-The result agrees with `ik.solve` to float32 rounding (tests/test_ik_lanes.py: the normal equations to ~1e-6
-relative, the solution within the tolerances of two float32 computations of the IK, tests/tolerances.py: the
-Levenberg-Marquardt accept/reject test can take the other branch on a rounding tie, as between two CPUs). The
-table of an episode (`dp.realise_all`) uses it on a CPU; `ik.solve` stays the form for one problem, for `vmap`,
-for GPUs and for gradients (this form is not meant to be differentiated).
+Must equal `ik.solve` (its reference) to float32 rounding; checked by
+`tests/test_ik_lanes.py::test_solve_matches_vmapped_solve` (the normal equations:
+`::test_normal_equations_match_the_reference`; a DP table built either way: `::test_table_is_the_same_either_way`),
+within the tolerances of two float32 computations of the IK (tests/tolerances.py: the Levenberg-Marquardt
+accept/reject test can take the other branch on a rounding tie, as between two CPUs). The table of an episode
+(`dp.realise_all`) uses it on a CPU; `ik.solve` stays the form for one problem, for `vmap`, for GPUs and for
+gradients (this form is not meant to be differentiated).
 """
 from __future__ import annotations
 
@@ -142,7 +144,8 @@ class Chain:
 
 def chain(hand: HandModel, q: jax.Array) -> Chain:
     """`kinematics.chain` over a batch: q (J, N) -> `Chain` (the tree walked level by level, all bodies of a level
-    at once, as there)."""
+    at once, as there). Must equal `kinematics.chain` (its reference); checked by
+    `tests/test_kinematics.py::test_batch_last_chain_equals_chain`."""
     dtype = q.dtype
     n_b = len(hand.body_parent)
     pos, mat, axes, anchors = [None] * n_b, [None] * n_b, [None] * hand.n_joints, [None] * hand.n_joints
@@ -213,7 +216,8 @@ def _slice(members: np.ndarray):
 
 
 def _segment_closest(p0: Vec, p1: Vec, q0: Vec, q1: Vec):
-    """`ik.segment_closest` over a batch: parameters s, t (n, N)."""
+    """`ik.segment_closest` over a batch: parameters s, t (n, N). Must equal it (its reference); checked within
+    `_Problem.evaluate` by `tests/test_ik_lanes.py::test_normal_equations_match_the_reference`."""
     d1, d2, r = _sub(p1, p0), _sub(q1, q0), _sub(p0, q0)
     a, e = _dot(d1, d1), _dot(d2, d2)
     b, c, f = _dot(d1, d2), _dot(d1, r), _dot(d2, r)
@@ -240,7 +244,8 @@ def _box_frames(hand: HandModel, tool_pos, tool_mat):
 
 def _box_sdf_and_grad(points: Vec, frames, hand: HandModel):
     """`ik.box_sdf_and_grad` over a batch: distance (n, N) from points to the union of the tool's primitives, and
-    its gradient (Vec; the nearest primitive's, ties to the earlier one, as there)."""
+    its gradient (Vec; the nearest primitive's, ties to the earlier one, as there). Must equal it (its reference);
+    checked within `_Problem.evaluate` by `tests/test_ik_lanes.py::test_normal_equations_match_the_reference`."""
     dtype = points[0].dtype
     best = None
     shapes = [("box", h) for h in hand.tool_box_half] + list(zip(hand.tool_round_type, hand.tool_round_size))
@@ -315,7 +320,9 @@ class _Problem:
 
     def evaluate(self, q):
         """The normal equations at q (J, N): J^T J packed (its upper triangle row by row, (J (J + 1) / 2, N)),
-        J^T r (J, N), the cost |r|^2 (N,) and the cost without the pull towards the start (N,)."""
+        J^T r (J, N), the cost |r|^2 (N,) and the cost without the pull towards the start (N,). Must equal those of
+        `ik.residuals_and_jacobian` (its reference); checked by
+        `tests/test_ik_lanes.py::test_normal_equations_match_the_reference`."""
         hand, cfg, dtype = self.hand, self.cfg, self.dtype
         ch = chain(hand, q)
         twist = [ax + _cross(an, ax) for ax, an in zip(ch.axis, ch.anchor)]  # (J) 6 components (N,) each
@@ -418,7 +425,9 @@ def _packed_index(n: int) -> dict:
 def _cholesky_solve(packed: jax.Array, lam: jax.Array, b: jax.Array) -> jax.Array:
     """x (n, N) with (A + lam I) x = b, for A positive semidefinite given packed (`_Problem.evaluate`), lam (N,)
     > 0 and b (n, N): Cholesky entry by entry, unrolled over the static n, every operation over the batch lane
-    (XLA fuses it into a few loops over the batch; no intermediate matrix is stored)."""
+    (XLA fuses it into a few loops over the batch; no intermediate matrix is stored). Must equal numpy's float64
+    solve (its reference, as `ik._damped_step` must); checked by
+    `tests/test_ik_lanes.py::test_cholesky_solve_matches_float64`."""
     n = b.shape[0]
     index = _packed_index(n)
     low = [[None] * n for _ in range(n)]

@@ -1,7 +1,8 @@
 """Forward kinematics of the hand in pure JAX, built from the model file's kinematic tree.
 
 All functions take joint angles `q` of shape (J,) and are differentiable; `jax.vmap` them for batches.
-They agree with MuJoCo's own `mj_kinematics` (tests/test_kinematics.py).
+They agree with MuJoCo's own `mj_kinematics` (tests/test_kinematics.py). The chain is written twice more, each copy
+checked against `chain` here: batch last in `ik_lanes.chain`, in numba in `physics.native._chain` and `_links`.
 """
 from __future__ import annotations
 
@@ -37,7 +38,10 @@ def chain(hand: HandModel, q: jax.Array):
 
     The tree is walked level by level (all bodies at one depth at once: for this hand, one body per finger), with
     the 3x3 products as `small_einsum`s, so on a GPU a pose costs a few fused kernels per level rather than a few
-    matmuls per body (the IK evaluates it every iteration, and each kernel is a launch)."""
+    matmuls per body (the IK evaluates it every iteration, and each kernel is a launch).
+    The reference of `ik_lanes.chain` and `physics.native._chain`, which must equal it; checked by
+    `tests/test_kinematics.py::test_batch_last_chain_equals_chain` and
+    `tests/test_native.py::test_native_chain_and_links_are_kinematics`."""
     dtype = q.dtype
     q_ext = jnp.concatenate([q, jnp.zeros(1, dtype)])  # index J: the angle of a body without a joint (identity)
     pos_l, mat_l, axis_l, anchor_l, order = [], [], [], [], []
@@ -106,7 +110,9 @@ def small_einsum(spec: str, a: jax.Array, b: jax.Array) -> jax.Array:
     GPU it is written as a broadcast product and a sum, which XLA fuses with its neighbours (a tiny matmul is a
     kernel launch of its own, and the IK runs hundreds of them per iteration); the CPU keeps the matmul (there
     the broadcast form is slower). Two operands; "..." stands for leading axes that broadcast as in numpy.
-    Both forms agree to float32 rounding (tests/test_kinematics.py)."""
+    Both forms must equal numpy's einsum (the reference); checked by
+    `tests/test_kinematics.py::test_small_einsum_both_forms_match_numpy` (in the chain and the IK:
+    `::test_gpu_form_of_the_contractions_gives_the_same_fk_and_ik`)."""
     return platform.by_platform(a, b, cpu=lambda a, b: jnp.einsum(spec, a, b),
                                 default=lambda a, b: _broadcast_einsum(spec, a, b))
 
@@ -191,7 +197,9 @@ def closest_on_links(hand: HandModel, q: jax.Array, points: jax.Array) -> jax.Ar
 
 
 def closest_on_links_and_jacobians(hand: HandModel, q: jax.Array, points: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """`closest_on_links` (L, 3) and the point Jacobians (L, 3, J) there, from one pass of the kinematic chain."""
+    """`closest_on_links` (L, 3) and the point Jacobians (L, 3, J) there, from one pass of the kinematic chain.
+    The reference of `physics.native._links`, which must equal it; checked by
+    `tests/test_native.py::test_native_chain_and_links_are_kinematics`."""
     pos, mat, axes, anchors = chain(hand, q)
     x = closest_on_segments(hand, *segments_on_links(hand, pos, mat), points)
     return x, point_jacobian(hand, axes, anchors, hand.link_body, x)

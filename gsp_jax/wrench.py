@@ -11,8 +11,8 @@ The objective value is the *wrench error*; `unmet` is the fraction |S(Gf - w)| /
 the contacts cannot supply (the surrogate's falling test).
 
 Solvers (`WrenchConfig.method`), both with a fixed iteration count (static shapes: under `vmap` a data-dependent
-stop runs every problem to the slowest one's count, and `jaxopt.ProjectedGradient` was ~7x slower per batch here,
-`../shared/ENVIRONMENT.md`; a fixed count keeps the whole DP table one kernel); tests check both against scipy.
+stop runs every problem to the slowest one's count, and a library solver with a stopping test was slower per batch,
+docs/performance.md; a fixed count keeps the whole DP table one kernel); tests check both against scipy.
 
 * "newton" (default): semismooth Newton on the problem's dual, a smooth concave function of 6 variables (one per
   wrench component) whose generalised Hessian is negative definite everywhere (`_solve_newton`): each iteration
@@ -24,7 +24,9 @@ stop runs every problem to the slowest one's count, and `jaxopt.ProjectedGradien
   lambda_max(S G G^T S) + rho, from a 6x6 eigenvalue problem) and the constant momentum (sqrt(k) - 1) / (sqrt(k) +
   1), k = L_c / rho, converge linearly without restarts or a stopping test, but slowly: after 150 iterations the
   unmet fraction is still off by up to 5e-3. Cheap per iteration and warm-startable, so the physics' contact
-  controller runs it at every control tick (`physics.controller`).
+  controller runs it at every control tick (`physics.controller`). The reference of its numba copy
+  `physics.native._solve` (and of `native._project`, this `project_cone`), which must equal it; checked by
+  `tests/test_native.py::test_native_force_solve_is_the_wrench_solve`.
 """
 from __future__ import annotations
 

@@ -368,6 +368,34 @@ def test_damped_step_solves_the_normal_equations_like_float64_lapack(hand, space
             assert np.all(forward < 1e-5 * cond + 1e-6), (name, lam, forward, cond)
 
 
+def test_normal_equations_both_forms(hand, space, nominal_waypoints, random_q, monkeypatch):
+    """`ik._normal_equations`' two forms (broadcast products and sums on a CPU; matmuls elsewhere, forced here by
+    `platform.current`) on the IK's own Jacobians at random configurations: J^T J and J^T r equal to float32
+    rounding of sums of ~200 rows, relative to each problem's largest entry."""
+    from gsp_jax import platform
+
+    rng = np.random.default_rng(17)
+    qs = random_q(hand, rng, 6)
+    opts = np.asarray(space.decode(rng.integers(0, space.n_grasps, size=6)))
+    tp = jnp.asarray(nominal_waypoints[5], jnp.float32)
+
+    def rows(q, options):
+        active, targets, _ = ik.grasp_targets(hand, options, tp, I3)
+        return ik.residuals_and_jacobian(hand, CFG, q, active, targets, tp, I3)
+
+    r, jac = jax.vmap(rows)(jnp.asarray(qs), jnp.asarray(opts))
+    with jax.default_matmul_precision("highest"):
+        cpu = jax.vmap(ik._normal_equations)(jac, r)
+        monkeypatch.setattr(platform, "current", lambda: "gpu")
+        matmul = jax.vmap(ik._normal_equations)(jac, r)
+    for name, a, b in zip(("J^T J", "J^T r"), cpu, matmul):
+        a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+        scale = np.abs(b).reshape(len(qs), -1).max(1)
+        assert np.all(scale > 0), name
+        rel = np.abs(a - b).reshape(len(qs), -1).max(1) / scale
+        assert np.all(rel < 1e-5), (name, rel)
+
+
 def test_reachable_problems_cover_every_link(hand, reachable):
     active, _, _, _ = reachable
     assert np.all(active.sum(-1) == 1)

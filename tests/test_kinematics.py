@@ -1,4 +1,5 @@
-"""Forward kinematics (gsp_jax.kinematics) against MuJoCo's own mj_kinematics / mj_jac on the same model file."""
+"""Forward kinematics (gsp_jax.kinematics) against MuJoCo's own mj_kinematics / mj_jac on the same model file, and
+the batch-last copy of its chain (`ik_lanes.chain`) against it."""
 import jax
 import jax.numpy as jnp
 import mujoco
@@ -6,7 +7,7 @@ import numpy as np
 import pytest
 
 from gsp_jax import hand as hand_lib
-from gsp_jax import kinematics
+from gsp_jax import ik_lanes, kinematics
 
 N_CONFIGS = 20
 TOL = 1e-5  # float32 FK vs float64 MuJoCo [m] / [-]
@@ -260,6 +261,21 @@ def test_vmapped_fk_equals_looped_fk(hand, qs, out):
         pos, mat = one(jnp.asarray(q))
         np.testing.assert_allclose(out["pos"][i], pos, atol=1e-6)
         np.testing.assert_allclose(out["mat"][i], mat, atol=1e-6)
+
+
+def test_batch_last_chain_equals_chain(hand, qs, out):
+    """`ik_lanes.chain` (the batch as the last axis, component by component) against `kinematics.chain`, its
+    reference (checked against MuJoCo above), at the random configurations: body poses, joint axes and anchors
+    within 1e-6 [m], [-] (two float32 orders of the same products)."""
+    ch = jax.jit(lambda q: ik_lanes.chain(hand, q))(jnp.asarray(qs.T))
+    n = len(qs)
+    vec = lambda v: np.stack([np.broadcast_to(np.asarray(c), (n,)) for c in v], -1)  # noqa: E731  Vec -> (N, 3)
+    got = dict(pos=np.stack([vec(p) for p in ch.pos], 1), axes=np.stack([vec(a) for a in ch.axis], 1),
+               anchors=np.stack([vec(a) for a in ch.anchor], 1),
+               mat=np.stack([np.stack([vec(row) for row in m], -2) for m in ch.mat], 1))
+    for name, value in got.items():
+        assert value.shape == out[name].shape, name
+        np.testing.assert_allclose(value, out[name], atol=1e-6, err_msg=name)
 
 
 def test_quat_to_mat_matches_mujoco(rng):

@@ -1,4 +1,5 @@
-"""The native controller tick (`gsp_jax.physics.native`) against the JAX controller it was written from.
+"""The native controller tick (`gsp_jax.physics.native`) against the JAX controller it was written from, and its
+kinematic chain and force solve against `kinematics` and `wrench.solve`, the references they were written from.
 
 Tick by tick on recorded states: the C backend runs episodes with the JAX controller (`controller="jax"`), and
 at every tick the native tick reads the same controller state and observation; its motor commands, external
@@ -17,7 +18,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from gsp_jax import evaluation, physics, policies, scenario  # noqa: E402
+from gsp_jax import evaluation, kinematics, physics, policies, scenario, wrench  # noqa: E402
 from gsp_jax.physics import c_backend, native  # noqa: E402
 from gsp_jax.surrogate import Surrogate  # noqa: E402
 
@@ -106,3 +107,76 @@ def test_native_and_jax_controllers_give_the_same_outcomes(phys, episodes):
     assert not np.any(res["native"].fell)
     with pytest.raises(ValueError, match="controller"):
         c_backend.simulate(phys, [(policy, None)], episodes, controller="python")
+
+
+def test_native_chain_and_links_are_kinematics(phys, rng):
+    """`native._chain` and `native._links` (float64) against `kinematics.chain` and
+    `kinematics.closest_on_links_and_jacobians` (float32, themselves checked against MuJoCo in
+    tests/test_kinematics.py) at random joint angles within the limits and random points near the links: body poses,
+    joint axes and anchors, the links' nearest points and their Jacobians within 1e-6 [m], [-], [m/rad] (float32
+    rounding of a few 3x3 products: ~1e-7 seen)."""
+    hand = phys.hand
+    K = c_backend.native_tick(phys).constants
+    S = native.scratch(K)
+    n_b, n_j, n_l = len(hand.body_parent), hand.n_joints, hand.n_links
+    lo, hi = hand.joint_range[:, 0], hand.joint_range[:, 1]
+    qs = rng.uniform(lo, hi, size=(8, n_j)).astype(np.float32)
+
+    def reference(q, near):
+        return kinematics.chain(hand, q), kinematics.closest_on_links_and_jacobians(hand, q, near)
+
+    ref = jax.jit(reference)
+    for q in qs:
+        (pos_w, mat_w, axes_w, anchors_w), (x_w, jac_w) = ref(jnp.asarray(q), jnp.zeros((n_l, 3)))
+        near = (np.asarray(x_w, np.float64) + rng.normal(0.0, 0.02, (n_l, 3))).astype(np.float32)
+        _, (x_w, jac_w) = ref(jnp.asarray(q), jnp.asarray(near))
+        pos, mat = np.zeros((n_b, 3)), np.zeros((n_b, 3, 3))
+        axes, anchors = np.zeros((n_j, 3)), np.zeros((n_j, 3))
+        native._chain(K, q.astype(np.float64), pos, mat, axes, anchors, np.zeros((3, 3)), np.zeros((3, 3)))
+        for name, got, want in (("pos", pos, pos_w), ("mat", mat, mat_w), ("axes", axes, axes_w),
+                                ("anchors", anchors, anchors_w)):
+            np.testing.assert_allclose(got, np.asarray(want), atol=1e-6, err_msg=name)
+        x, jac = np.zeros((n_l, 3)), np.zeros((n_l, 3, n_j))
+        native._links(K, q.astype(np.float64), near.astype(np.float64), x, jac, pos, mat, axes, anchors, S)
+        np.testing.assert_allclose(x, np.asarray(x_w), atol=1e-6, err_msg="closest points")
+        np.testing.assert_allclose(jac, np.asarray(jac_w), atol=1e-6, err_msg="Jacobians")
+
+
+def test_native_force_solve_is_the_wrench_solve(phys, rng):
+    """`native._solve` (float64) against `wrench.solve` ("apg", the controller's config, `Controller._forces`'
+    preferred grip and warm start; float32) on random grasps of 2 to 4 active contacts of L around a tool-sized
+    centre, random wrenches, friction and warm starts: the same fixed iterations, so the same forces within 2e-4 N
+    (float32 rounding carried through `force_iterations` momentum steps: ~4e-5 N seen, on forces of 1-5 N; one
+    iteration fewer moves them ~1.6e-3 N)."""
+    K = c_backend.native_tick(phys).constants
+    S = native.scratch(K)
+    ctl = phys.controller
+    n_l = phys.hand.n_links
+    grip = K.grip_force
+
+    @jax.jit
+    def reference(points, normals, active, mu, required, center, init):
+        return wrench.solve(points, normals, active, mu, required, center, ctl.wrench_config, init,
+                            grip * normals).forces
+
+    worst = 0.0
+    for _ in range(16):
+        center = rng.normal(0.0, 0.02, 3)
+        points = center + rng.normal(0.0, 0.03, (n_l, 3))
+        normals = center - points + rng.normal(0.0, 0.01, (n_l, 3))  # inward, roughly
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        active = np.zeros(n_l, bool)
+        active[rng.choice(n_l, rng.integers(2, 5), replace=False)] = True
+        mu = float(rng.uniform(0.3, 1.0))
+        required = np.concatenate([rng.normal(0.0, 3.0, 3), rng.normal(0.0, 0.1, 3)])
+        init = rng.normal(0.0, 2.0, (n_l, 3))
+        points, normals, required, center, init = (np.asarray(x, np.float32)
+                                                    for x in (points, normals, required, center, init))
+        mu = np.float32(mu)
+        want = np.asarray(reference(points, normals, active, mu, required, center, init))
+        got = np.zeros((n_l, 3))
+        f64 = lambda x: np.asarray(x, np.float64)  # noqa: E731
+        native._solve(K, f64(points), f64(normals), active, float(mu), f64(required), f64(center), f64(init), got, S)
+        assert np.all(got[~active] == 0)
+        worst = max(worst, np.abs(got - want).max())
+    assert worst < 2e-4, worst

@@ -16,8 +16,11 @@ One lockstep runs every episode of every policy given (Fig. 4b's 5 policies x 27
 
 Each episode's controller and physics are its own: a row's result does not depend on the rows beside it, the
 chunking or the core count. Episodes that fell are frozen (no longer stepped). `controller="jax"` runs the JAX
-tick instead (one XLA call a tick and chunk: ~0.15 ms fixed on a CPU core, the cost the native tick removes), the
-reference the native tick is tested against (tests/test_native.py).
+tick instead (one XLA call a tick and chunk, with the fixed cost per call the native tick removes:
+docs/performance.md), the reference the native tick must equal; checked by
+`tests/test_native.py::test_native_tick_is_the_jax_tick_on_recorded_states`. A policy decided in numpy
+(`ActionTable`, `native.keep_grasp`) must give the JAX decisions' run bit for bit; checked by
+`tests/test_physics.py::test_c_lockstep_decides_table_policies_in_numpy_as_jax_does`.
 """
 from __future__ import annotations
 
@@ -153,7 +156,7 @@ class Pool:
     """C models and datas kept for reuse, per episode (its fields): a lockstep that starts from a snapshot (a
     branch of L1-physics) sets every state it reads (`mj_setState` of the whole integration state, and the
     pedestals, controls and applied wrench before every step), so a model and data used before serve as a new
-    copy would (bit for bit: tests/test_physics.py), without the ~0.6 ms a row of making them."""
+    copy would (bit for bit: tests/test_physics.py), without the cost of making them (docs/performance.md)."""
 
     def __init__(self, most: int = 256):
         self.most, self._free, self._count = most, collections.OrderedDict(), 0  # at most `most` pairs kept

@@ -1,7 +1,9 @@
 """The contact controller: object-level impedance on the observed tool, the wrench spread over the active
 contacts by the friction-cone force solve, fingers in Cartesian impedance through J^T, and grasp changes of one
 link at a time. Pure JAX, one episode (vmap for batches), backend-neutral: it reads an `Observation` and returns
-motor commands, so MJX and C MuJoCo step the same controller.
+motor commands, so MJX and C MuJoCo step the same controller. It is the reference of its numba copy,
+`physics.native` (this control law, `Physics.tick` and `Physics.check` over plain arrays), which must equal it;
+checked by `tests/test_native.py::test_native_tick_is_the_jax_tick_on_recorded_states`.
 
 Per control tick, with the tool observed at pose (p, R), velocity (v, w), and the reference motion (p_r, v_r, a_r)
 of the episode's waypoints (a cubic Hermite spline through them):
@@ -205,7 +207,9 @@ class Controller:
     def begin_segment(self, cs: ControllerState, obs: Observation, grasp: jax.Array,
                       time: jax.Array) -> ControllerState:
         """A new segment at `time` with reference grasp `grasp` (at most one link differs from the current one):
-        the changed link's path, and parking points."""
+        the changed link's path, and parking points. Where the grasp stays the same, the reference of
+        `native.keep_grasp`, which must equal it bit for bit; checked by
+        `tests/test_physics.py::test_c_lockstep_decides_table_policies_in_numpy_as_jax_does`."""
         gap, L = self.config.timeline.standoff, self.hand.n_links
         new, old = self.space.decode(grasp), cs.options
         changed = new != old
@@ -267,7 +271,9 @@ class Controller:
 
     def _forces(self, points, normals, active, mu, required, com, init):
         """Cone forces (L, 3) on the links `active` (L,) that supply `required`, pulled towards `grip_force`
-        newtons along each normal (the grip: it lives in the grasp matrix's null space, inside the cones)."""
+        newtons along each normal (the grip: it lives in the grasp matrix's null space, inside the cones). The
+        reference of `native._solve`, which must equal it; checked by
+        `tests/test_native.py::test_native_force_solve_is_the_wrench_solve`."""
         prefer = self.config.controller.grip_force * normals
         return wrench.solve(points, normals, active, mu, required, com, self.wrench_config, init, prefer).forces
 
@@ -317,7 +323,8 @@ class Controller:
     def control(self, cs: ControllerState, obs: Observation, episode: Episode, ref: Motion, time: jax.Array,
                 external: jax.Array) -> tuple[jax.Array, ControllerState]:
         """Joint torques (J,) for one tick at `time`, and the next state. `external` (6,): the external wrench
-        the controller feeds forward (zero while lifting)."""
+        the controller feeds forward (zero while lifting). The reference of `native._control`, which must equal it;
+        checked by `tests/test_native.py::test_native_tick_is_the_jax_tick_on_recorded_states`."""
         timeline, tick = self.config.timeline, self.timestep
         with jax.default_matmul_precision("highest"):
             p, mat, omega = self._frame(obs)

@@ -1,14 +1,16 @@
 """The contact controller's tick in native code (numba), for the C backend: the control law of
 `controller.Controller.control`, `Physics.tick` and `Physics.check`, written once more over plain arrays, so a tick
-of a few episodes costs microseconds instead of an XLA call's fixed cost (~0.15 ms on a CPU core: hundreds of
-small kernels, whatever the batch). It runs without Python's lock, in the threads that step the episodes.
+of a few episodes has no fixed cost per call (an XLA call's is that of hundreds of small kernels, whatever the
+batch: docs/performance.md). It runs without Python's lock, in the threads that step the episodes.
 
-The same numbers as the JAX tick: it reads the same flat controller states (`c_backend._Flat` layout, float32)
-and observations, and writes the same output rows [ctrl (nu) | external wrench (6) | angle, position error, fell
-of the tick before]. The continuous arithmetic runs in float64 (the JAX controller's float32 differs from it in
-the last bits: tests/test_native.py compares the two tick by tick); the timeline (time, phases, load fractions,
-the reference spline's interval) runs in float32 exactly as the JAX tick does, so both switch phase at the same
-tick.
+Must equal the JAX tick, `runner.Physics.tick` and `Physics.check` (its reference); checked by
+`tests/test_native.py::test_native_tick_is_the_jax_tick_on_recorded_states` (whole runs:
+`::test_native_and_jax_controllers_give_the_same_outcomes`). It reads the same flat controller states
+(`c_backend._Flat` layout, float32) and observations, and writes the same output rows [ctrl (nu) | external
+wrench (6) | angle, position error, fell of the tick before]. The continuous arithmetic runs in float64 (the JAX
+controller's float32 differs from it in the last bits); the timeline (time, phases, load fractions, the reference
+spline's interval) runs in float32 exactly as the JAX tick does, so both switch phase at the same tick. The small
+helpers below (`_reference`, `_rotation_error`, `_solve3`, `_status`) are checked through the tick.
 
     ctl = native.Tick(phys)                          # the constants of one `Physics`
     ctl(j, rows, cs, obs, episodes, out)             # tick j of the episodes `rows`: cs updated in place
@@ -349,7 +351,8 @@ def _reference(wp, quats, dt, time, pos, vel, acc, quat):
 @_jit
 def _chain(K, q, pos, mat, axes, anchors, r, rot):
     """Body poses pos (B, 3), mat (B, 3, 3) and the joints' world axes, anchors (J, 3) at joint angles q.
-    r, rot: (3, 3) scratch."""
+    r, rot: (3, 3) scratch. Must equal `kinematics.chain` (its reference); checked by
+    `tests/test_native.py::test_native_chain_and_links_are_kinematics`."""
     B = K.body_parent.shape[0]
     for b in range(B):
         pa = K.body_parent[b]
@@ -392,7 +395,8 @@ def _chain(K, q, pos, mat, axes, anchors, r, rot):
 @_jit
 def _links(K, q, near, x, jac, pos, mat, axes, anchors, S):
     """The links' centre-line points x (L, 3) nearest the world points `near` (L, 3), and their Jacobians
-    jac (L, 3, J) (`kinematics.closest_on_links_and_jacobians`). S: `Scratch` (its kin_v, kin_m)."""
+    jac (L, 3, J). S: `Scratch` (its kin_v, kin_m). Must equal `kinematics.closest_on_links_and_jacobians` (its
+    reference); checked by `tests/test_native.py::test_native_chain_and_links_are_kinematics`."""
     _chain(K, q, pos, mat, axes, anchors, S.kin_m[0], S.kin_m[1])
     L, J = K.link_body.shape[0], q.shape[0]
     centre, axis, d, c = S.kin_v[0], S.kin_v[1], S.kin_v[2], S.kin_v[3]
@@ -425,7 +429,9 @@ def _links(K, q, near, x, jac, pos, mat, axes, anchors, S):
 # ------------------------------------------------------------------------------------------ force solve
 @_jit
 def _project(x, normals, mu, mask):
-    """Each contact's force x[3k:3k+3] projected onto its friction cone (`wrench.project_cone`), 0 if masked."""
+    """Each contact's force x[3k:3k+3] projected onto its friction cone, 0 if masked. Must equal
+    `wrench.project_cone` (its reference); checked within `_solve` by
+    `tests/test_native.py::test_native_force_solve_is_the_wrench_solve`."""
     for k in range(normals.shape[0]):
         if not mask[k]:
             x[3 * k], x[3 * k + 1], x[3 * k + 2] = 0.0, 0.0, 0.0
@@ -449,6 +455,8 @@ def _project(x, normals, mu, mask):
 def _solve(K, points, normals, active, mu, wrench, center, init, forces, S, lip=-1.0):
     """`wrench.solve` ("apg", `Controller._forces`): cone forces (L, 3) on the `active` links supplying `wrench`
     (6,) about `center`, pulled towards `grip_force` along each normal, from `init` (L, 3); written to forces.
+    Must equal `wrench.solve` (its reference); checked by
+    `tests/test_native.py::test_native_force_solve_is_the_wrench_solve`.
 
     The grasp matrix's products are written per contact (its force rows are identities, its torque rows cross
     products with the contact's lever r_k): G y = (sum y_k, sum r_k x y_k) and (G^T e)_k = e_f + e_t x r_k,
@@ -976,8 +984,9 @@ def segment(K, j0, drops, rows, cs, obs, episodes, addr, pedestals, geoms, fell,
 def keep_grasp(K: Constants, rows, cs: np.ndarray, start: np.float32) -> None:
     """`Controller.begin_segment` for the episodes `rows` whose reference grasp stays the same at a segment that
     starts at `start` [s] (float32): no link moves, so only the timeline's fields change (previous options = the
-    current ones, nothing changed, the segment's start), the same numbers as the JAX decision's
-    (tests/test_physics.py). cs (E, C) float32 flat controller states, updated in place."""
+    current ones, nothing changed, the segment's start). cs (E, C) float32 flat controller states, updated in
+    place. Must equal `Controller.begin_segment` there (its reference), bit for bit; checked by
+    `tests/test_physics.py::test_c_lockstep_decides_table_policies_in_numpy_as_jax_does`."""
     L = K.link_body.shape[0]
     cs[rows, K.cs_previous:K.cs_previous + L] = cs[rows, K.cs_options:K.cs_options + L]
     cs[rows, K.cs_changed:K.cs_changed + L] = 0.0

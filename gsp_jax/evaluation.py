@@ -118,7 +118,8 @@ def dp_tables(sur: Surrogate, set_name: str, episodes: dict, batch_size: int = 4
               cache: pathlib.Path | None = None) -> dp.Table:
     """The stacked `dp.Table`s of named episodes, kept under `cache` (keyed by the episodes, the model files and
     the surrogate's configuration, so a change to any of them rebuilds; None: no cache). Builds `batch_size` at a
-    time on each local device; with several processes each builds its share of the batches."""
+    time on each local device (all at once for a smaller set: the batch depends on the set, never on the process
+    count); with several processes each builds its share of the batches."""
     batch = sur.check(scenario.stack(list(episodes.values())))
     h = hashlib.sha256()
     for leaf in jax.tree.leaves(batch):
@@ -138,6 +139,7 @@ def dp_tables(sur: Surrogate, set_name: str, episodes: dict, batch_size: int = 4
     # process a contiguous share of the batches: whatever the process count, every table comes from the same
     # program, to the last bit (over several local devices XLA's partitioned program: float rounding apart)
     n = len(episodes)
+    batch_size = max(1, min(batch_size, n))  # one episode: one table built, not a batch of copies
     batches = distributed.share(-(-n // batch_size))
     mine = range(min(batches.start * batch_size, n), min(batches.stop * batch_size, n))
     print(f"building DP tables for {len(episodes)} episodes of '{set_name}'"

@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 
 from gsp_jax import dp, evaluation, platform, policies
+from gsp_jax.grasps import NULL
 
 NEEDS = ("tables", "solutions", "rl", "nominal", "base")
 GROUPS = ("paper", "reference", "verified", "user")
@@ -164,6 +165,78 @@ def returns(ctx, name: str, backend: str = "table", **options):
         return lookahead.rollout(model, pol, model.reset(ep))[0]
 
     return jax.jit(jax.vmap(one, (0, 0, axis)))(ctx.batch, ctx.tables, policy)
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    """A planner's whole episode for each episode of a context, stepped from its reset (`plan`). Shapes: N episodes,
+    T waypoints."""
+
+    name: str  # the planner's registered name
+    episodes: list[str]  # (N,) the episodes' names
+    actions: jax.Array  # (N, T) int32: the decision at each waypoint (`grasps.NULL`, keep the grasp, once ended)
+    rewards: jax.Array  # (N, T) float32: each step's reward (0 once the episode has ended)
+    ret: jax.Array  # (N,) float32: the return, each reward weighted by the chance that the segments before held
+    space: Any  # the model's `grasps.GraspSpace` (what the actions mean)
+
+    def changes(self, i: int = 0) -> list[str]:
+        """Episode i's grasp changes as "t<waypoint>:<link>-><option>" (keeping the grasp is left out)."""
+        return [f"t{t}:{self.space.action_label(int(a))}" for t, a in enumerate(jax.device_get(self.actions[i]))
+                if a != NULL]
+
+
+def plan(ctx, name: str, backend: str = "table", **options) -> Plan:
+    """Planner `name`'s episode for every episode of `ctx` (`evaluation.context`), stepped from its reset in its DP
+    table (`backend="table"`) or in the surrogate (`"surrogate"`), as `returns` steps it; with the decisions and
+    rewards kept. `options` as `returns` takes them."""
+    from gsp_jax.env import TableModel
+
+    if backend not in ("table", "surrogate"):
+        raise ValueError(f"plan: backend must be 'table' or 'surrogate', got {backend!r}")
+    if backend == "table" and ctx.tables is None:
+        raise ValueError("plan: backend 'table' needs the context's DP tables (`evaluation.context(tables=True)`)")
+    policy, axis = make(ctx, name, options)
+    space, n_steps = ctx.surrogate.space, int(ctx.batch.waypoints.shape[-2])
+
+    def one(ep, table, pol):
+        model = TableModel(table, space) if backend == "table" else ctx.surrogate
+        if isinstance(pol, policies.Lookahead):
+            pol = pol.replace(model=model)
+
+        def step(carry, _):
+            s, reach = carry
+            a = jnp.where(s.done, NULL, pol.act(s)).astype(jnp.int32)
+            nxt, r = model.step(s, a)[:2]
+            nxt = jax.tree.map(lambda new, old: jnp.where(s.done, old, new), nxt, s)  # an ended episode stays
+            r = jnp.where(s.done, 0.0, r)
+            return (nxt, jnp.where(s.done, reach, reach * (1.0 - nxt.terms.fall_risk))), (a, r, reach * r)
+
+        start = model.reset(ep)
+        _, (acts, rewards, weighted) = jax.lax.scan(step, (start, jnp.ones((), jnp.float32)), None, n_steps)
+        return acts, rewards, jnp.sum(weighted)
+
+    acts, rewards, ret = jax.jit(jax.vmap(one, (0, 0, axis)))(ctx.batch, ctx.tables, policy)
+    return Plan(name, list(ctx.names), acts, rewards, ret, space)
+
+
+def check(ctx, names_: "str | list[str]", backend: str = "c", physics=None, **kwargs) -> dict:
+    """The physics check of planners `names_` (one name or several) on every episode of `ctx`: each executed closed
+    loop (every decision on the simulated state) in C MuJoCo (`backend="c"`) or MJX (`"mjx"`); {name:
+    `physics.Result`}. `physics`: a `physics.Physics` of the context's surrogate to reuse (None: a new one, whose
+    compiled programs go with it); `kwargs` go to `Physics.simulate_many` (`cores`, `workers`, `progress`)."""
+    from gsp_jax.physics import Physics
+
+    chosen = [names_] if isinstance(names_, str) else list(names_)
+    phys = Physics(ctx.surrogate) if physics is None else physics
+    results = phys.simulate_many([make(ctx, n) for n in chosen], ctx.batch, backend=backend, **kwargs)
+    return dict(zip(chosen, results))
+
+
+@jax.jit
+def decide(policy, state):
+    """`policy.act(state)`, jitted: one decision of any policy (`policies`, a planner's) from a surrogate state;
+    () int32 for one state."""
+    return policy.act(state)
 
 
 # ------------------------------------------------------------------------------------------ the library's planners

@@ -9,6 +9,8 @@ import pathlib
 import subprocess
 import sys
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -95,3 +97,38 @@ def test_a_planner_from_outside_the_package_runs_through_the_commands(tmp_path):
                          env=dict(os.environ, PYTHONPATH=str(ROOT), JAX_PLATFORMS="cpu"), capture_output=True,
                          text=True)
     assert bad.returncode != 0 and "--policies: planner: 'keep-start' is not registered" in bad.stderr, bad.stderr
+
+
+@pytest.fixture(scope="module")
+def small_context(sur, solve_each):
+    """Two evaluation episodes cut to 6 waypoints, their DP tables, solutions and DP baseline (no PPO policy)."""
+    a = scenario.eval_set_a()
+    names = ["shift+4mm_-1Nm", "shift-6mm_+1Nm"]
+    eps = scenario.stack([a[n].head(6) for n in names])
+    tables, sols = solve_each(sur, eps)
+    return evaluation.Context(sur, "test", names, eps, tables, sols, sols.actions[0], None, "")
+
+
+def test_a_plan_is_the_planners_episode_in_its_table(small_context):
+    """`planners.plan` (the public `gsp.plan`): DP optimal's plan is the DP solution (its return the Bellman
+    optimum, its actions the optimal sequence while the episode lasts); every plan's return is what `returns` (a
+    while loop, not a scan) gives and what `dp.sequence_return` scores its actions at; keeping the grasp after the
+    end, and `changes` lists only the non-null actions."""
+    from gsp_jax import dp
+    from gsp_jax.grasps import NULL
+
+    ctx = small_context
+    opt = planners.plan(ctx, "dp-opt")
+    np.testing.assert_allclose(np.asarray(opt.ret), np.asarray(ctx.solutions.ret), atol=1e-5)
+    assert opt.actions.shape == (2, 6) and opt.rewards.shape == (2, 6) and opt.episodes == ctx.names
+    for name in ("dp-opt", "dp-base", "four-tips"):
+        p = planners.plan(ctx, name)
+        np.testing.assert_allclose(np.asarray(p.ret), np.asarray(planners.returns(ctx, name)), atol=1e-5)
+        for i in range(2):
+            table = jax.tree.map(lambda x, i=i: x[i], ctx.tables)
+            scored = dp.sequence_return(table, ctx.batch.start_grasp[i], jnp.asarray(p.actions[i]))
+            np.testing.assert_allclose(float(scored), float(p.ret[i]), atol=1e-5)
+            acts = np.asarray(p.actions[i])
+            assert len(p.changes(i)) == int(np.sum(acts != NULL))
+    with pytest.raises(ValueError, match="backend must be 'table' or 'surrogate', got 'mjx'"):
+        planners.plan(ctx, "dp-opt", backend="mjx")

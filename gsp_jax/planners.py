@@ -321,7 +321,7 @@ def _l1_physics(ctx: evaluation.Context, *, k: int = evaluation.L1_PHYSICS["k"],
         raise ValueError(f"bases: one or more registered planners other than L1-physics, got {bases!r}")
     root_model = model
     if model is None and platform.current() == "cpu":  # online, the root's few dozen IK problems in the batch-last
-        # form: 3x faster on a CPU, after a ~20 s compile that the disk cache keeps (`gsp_jax.cache`)
+        # form (`IKConfig.lanes`; its cost and gain: docs/performance.md), its compile kept on disk (`gsp_jax.cache`)
         sur = ctx.surrogate
         root_model = sur.replace(ik_config=dataclasses.replace(sur.ik_config, lanes=True))
     root, axis = _lookahead(ctx, 1, root_model, cached)

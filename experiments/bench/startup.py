@@ -1,7 +1,7 @@
 """`python -m experiments bench-startup`: the README's Quickstart as a new user meets it, from a fresh process.
 
 Each row is a new Python process that imports the library, builds `Surrogate()`, loads the shipped PPO policy, builds
-L1 over it (`policies.Lookahead(policy, sur, depth=1)`) and takes one decision, `jax.jit(l1.act)(sur.reset(ep))`, on
+L1 over it (`gsp.Lookahead(policy, sur, depth=1)`) and takes one decision, `gsp.decide(l1, sur.reset(ep))`, on
 an unseen episode; then one decision on another episode, the warm decision (the fastest of three more on that
 episode's start) and one DP table (`jax.jit(dp.solve)`). The processes run one after another, side by side in one
 run: with the compilation cache off, with an empty cache folder, and with the cache that the previous process left
@@ -34,14 +34,16 @@ def child(first: int, other: int) -> dict:
     """The Quickstart in this process; seconds since the module was imported (`T0`)."""
     import jax
 
-    from gsp_jax import dp, policies, scenario
-    from gsp_jax.surrogate import Surrogate
+    import gsp_jax as gsp
+    from gsp_jax import dp
 
     out = dict(import_s=time.perf_counter() - T0)
-    sur = Surrogate()
-    episodes = list(scenario.episode_set("eval").values())
-    l1 = policies.Lookahead(policies.load_network_policy(sur), sur, depth=1)
-    act = jax.jit(l1.act)
+    sur = gsp.Surrogate()
+    episodes = list(gsp.episode_set("eval").values())
+    l1 = gsp.Lookahead(gsp.load_network_policy(sur), sur, depth=1)
+
+    def act(state):
+        return gsp.decide(l1, state)
     int(act(sur.reset(episodes[first])))
     out["first_decision_s"] = time.perf_counter() - T0
     t = time.perf_counter()

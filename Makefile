@@ -41,7 +41,7 @@ $(STAMP): pyproject.toml requirements.lock
 	  echo "note: uv $(UV_VERSION) could not be installed (above); installing the pinned set with pip (slower)" >&2; \
 	  with_pip; \
 	else with_uv || { echo "note: uv failed (above); installing the pinned set with pip instead (slower)" >&2; with_pip; }; fi \
-	  || { echo "error: the install into $(VENV) failed (above); make clean, then make again" >&2; exit 1; }
+	  || { echo "error: the install into $(VENV) failed (above); make again once its cause is fixed" >&2; exit 1; }
 	@touch $(STAMP)
 
 demo: $(STAMP)

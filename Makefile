@@ -6,14 +6,14 @@
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-# The installer: uv, pinned, installed into .venv by pip from the package registry (faster than pip, above all on
-# 2 cores). INSTALLER=pip installs with pip alone; so does make, saying so, when uv cannot be installed or fails
-# (e.g. a pip.conf index or proxy, which uv does not read). Either installs requirements.lock's set.
+# The installer: uv, pinned, installed into .venv by pip from the package registry (make venv 11-32 s against pip's
+# 59-120 s on 2 cores: docs/setup.md). INSTALLER=pip installs with pip alone; so does make, saying so, when uv
+# cannot be installed or fails (e.g. a pip.conf index or proxy, which uv does not read). Both install the same set.
 UV_VERSION := 0.13.8
 INSTALLER ?= uv
-# pip compiles every module's bytecode at install (~40 s of its ~60 s on 2 cores); uv leaves it to the first import,
-# which writes what it imports, except where PYTHONDONTWRITEBYTECODE is set: there nothing would ever be written
-# (4.0 s against 1.6 s for `python -m experiments --help`, every time), so uv compiles at install as pip does.
+# pip compiles every module's bytecode at install (26-33 s of a uv install on 2 cores); uv leaves it to the first
+# import, which writes what it imports (~5 s for the demo's), except where PYTHONDONTWRITEBYTECODE is set: there
+# nothing is ever written (4.0 s against 1.6 s for `python -m experiments --help`, every time), so uv compiles then.
 UV_COMPILE := $(if $(PYTHONDONTWRITEBYTECODE),--compile-bytecode)
 
 # First Python >= 3.12 found: $(PYTHON), python3.12, python3.13, pyenv's 3.12.x/3.13.x, python3.

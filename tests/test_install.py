@@ -1,12 +1,14 @@
 """The package installs as a package: the wheel carries the model files and the shipped policy, and a
 non-editable install of it (into a directory of its own, first on the path, the dependencies those of the test's
-environment) steps the surrogate from a directory outside the checkout. That the pinned dependencies resolve on a
-fresh machine is what `make test` and `make demo` do each time they create their environment.
+environment) steps the surrogate from a directory outside the checkout; and the environment the tests run in is
+requirements.lock's set, whichever installer made it (the Makefile's uv, or pip). That the pinned dependencies
+resolve on a fresh machine is what `make test` and `make demo` do each time they create their environment.
 """
 from __future__ import annotations
 
 import os
 import pathlib
+import re
 import subprocess
 import sys
 import zipfile
@@ -69,3 +71,23 @@ def test_wheel_installs_outside_the_checkout_and_steps_the_surrogate(tmp_path):
     assert result["nbody"] == 19, "the physics scene did not build from the installed package"
     assert -200.0 <= result["reward"] < 0.0 and result["grasp"] >= 0, result
     assert "Failed to import warp" not in out.stdout + out.stderr  # users' output stays clean
+
+
+def _name(name: str) -> str:
+    return re.sub(r"[-_.]+", "-", name).lower()  # PEP 503's normalised name
+
+
+def test_the_environment_is_the_pinned_set():
+    """Every distribution of requirements.lock is installed at its pinned version (uv and pip resolve the same set
+    from it), and nothing else but the installers and the package itself, unless an extra other than `test`
+    (`[gpu]`, `[sb3]`) was added by hand."""
+    from importlib import metadata
+
+    pins = dict(line.split("==") for line in (ROOT / "requirements.lock").read_text().split() if "==" in line)
+    pins = {_name(name): version for name, version in pins.items()}
+    installed = {_name(d.metadata["Name"]): d.version for d in metadata.distributions()}
+    wrong = {name: (installed.get(name), pin) for name, pin in pins.items() if installed.get(name) != pin}
+    assert not wrong, f"(installed, pinned) against requirements.lock: {wrong}"
+    if not {"stable-baselines3", "jax-cuda13-plugin"} & set(installed):  # no extra added by hand
+        unpinned = set(installed) - set(pins) - {"gsp-jax", "pip", "setuptools", "wheel", "uv"}
+        assert not unpinned, f"installed but not in requirements.lock: {sorted(unpinned)}"

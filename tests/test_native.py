@@ -180,3 +180,12 @@ def test_native_force_solve_is_the_wrench_solve(phys, rng):
         assert np.all(got[~active] == 0)
         worst = max(worst, np.abs(got - want).max())
     assert worst < 2e-4, worst
+
+
+def test_warm_up_compiles_the_native_code_in_the_background(phys):
+    """`c_backend.warm_up` (the demo's: numba's compile beside XLA's) runs a real C MuJoCo episode in another
+    thread: its future gives None, and the lockstep's native entry points are compiled for the types a run passes."""
+    future = c_backend.warm_up(phys)
+    assert future.result(timeout=600) is None
+    for entry in (native.segment, native.status_rows):
+        assert entry.signatures, entry.__name__

@@ -492,6 +492,25 @@ def native_tick(phys) -> native.Tick:
     return phys.kept("native", lambda: native.Tick(phys))
 
 
+def warm_up(phys):
+    """Compile the native code a C MuJoCo run calls (numba's, kept in its cache on disk once compiled) in a
+    background thread: runs the model's nominal episode under the constant four-tip grasp, one episode, in `phys`.
+    XLA releases Python's lock while it compiles, so the caller compiles its own programs meanwhile (a DP table,
+    a lookahead) on the other cores. Returns a `concurrent.futures.Future`: `.result()` waits for it (and raises
+    what the run raised)."""
+    from gsp_jax import evaluation, scenario
+
+    def run():
+        sur = phys.surrogate
+        sequence = SequencePolicy(jnp.asarray(evaluation.four_tips(sur.space)), sur.space)
+        simulate(phys, [(sequence, None)], scenario.stack(list(scenario.nominal(sur.model).values())), workers=1)
+
+    pool = ThreadPoolExecutor(1, thread_name_prefix="gsp_jax-warm-up")
+    future = pool.submit(run)
+    pool.shutdown(wait=False)
+    return future
+
+
 def simulate(phys, groups, episodes: Episode | list[Episode], cores: int | None = None, progress: bool = False,
              workers: int | None = None, engine_log: list | None = None, start: Snapshot | None = None,
              until: int | None = None, controller: str = "native", stats: dict | None = None, device=None,

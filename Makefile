@@ -11,7 +11,7 @@ STAMP := $(VENV)/.installed
 # cannot be installed or fails (e.g. a pip.conf index or proxy, which uv does not read). Both install the same set.
 UV_VERSION := 0.13.8
 INSTALLER ?= uv
-# pip compiles every module's bytecode at install (26-33 s of a uv install on 2 cores); uv leaves it to the first
+# pip compiles every module's bytecode at install (25-33 s of a uv install on 2 cores); uv leaves it to the first
 # import, which writes what it imports (~5 s for the demo's), except where PYTHONDONTWRITEBYTECODE is set: there
 # nothing is ever written (4.0 s against 1.6 s for `python -m experiments --help`, every time), so uv compiles then.
 UV_COMPILE := $(if $(PYTHONDONTWRITEBYTECODE),--compile-bytecode)

@@ -1,4 +1,4 @@
-"""Checked at every door (issue 50's probes): each bad input to a public entry point is refused with an error that
+"""Checked at every door: each bad input to a public entry point is refused with an error that
 names the field and the value, before any work; a value on the documented edge is accepted."""
 from __future__ import annotations
 

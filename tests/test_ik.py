@@ -22,7 +22,7 @@ from gsp_jax import model as model_lib
 from gsp_jax import ik, kinematics, scenario
 
 CFG = ik.IKConfig()
-SINGLE = dataclasses.replace(CFG, extra_starts=())  # the model's start alone (the default before issue 14)
+SINGLE = dataclasses.replace(CFG, extra_starts=())  # the model's start alone (no extra starts)
 I3 = jnp.eye(3, dtype=jnp.float32)
 FAR = jnp.asarray([0.0, 0.0, -1.0], jnp.float32)  # a tool placement no finger can touch
 FAST = {"xla_backend_optimization_level": 0}

@@ -1,4 +1,4 @@
-"""A first plan in seconds (issue 48): the compilation cache the package turns on, the kernels traced in one form,
+"""A first plan in seconds: the compilation cache the package turns on, the kernels traced in one form,
 and the surrogate's programs built once per model."""
 from __future__ import annotations
 

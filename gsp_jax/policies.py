@@ -222,7 +222,7 @@ def rollout_batched(sur: Surrogate, policy, episode: Episode, ahead: int = 1) ->
         n_blocks = -(-n_t // ahead)
         _, (grasps, actions) = jax.lax.scan(decide, start, jnp.arange(n_blocks, dtype=jnp.int32) * ahead)
         grasps, actions = grasps.reshape(-1)[:n_t], actions.reshape(-1)[:n_t]
-    moved, rewards, ends = jax.vmap(sur.transition, (None, 0, 0, 0))(episode, grasps, ts, actions)
+    moved, rewards, ends = sur.transitions(episode, grasps, actions)  # the motor check for the last step only
     alive = jnp.cumsum(ends) - ends == 0  # no earlier step ended the episode
     final = jax.tree.map(lambda x: x[jnp.argmax(ends)], moved)  # the first step that ends it (the last one does)
     risk = None if sur.learned is None else moved.terms.fall_risk

@@ -251,6 +251,15 @@ def with_previous(cfg: RewardConfig, terms: RewardTerms, redundant, changed, cha
     return terms.replace(reward=total(cfg, terms))
 
 
+def with_motor(cfg: RewardConfig, terms: RewardTerms, motor_unmet) -> RewardTerms:
+    """`terms` of steps scored without the motor check (`motor_unmet` 0: `Surrogate.score_deferred`) with it:
+    `motor_unmet` (broadcasting with the terms; 0 where the step is not the last) set, the fall flag and the reward
+    recomputed. Before the learned term (`with_risk`, which reads it) and `with_invalid`. Broadcasts."""
+    motor_unmet = jnp.broadcast_to(jnp.asarray(motor_unmet, jnp.float32), terms.wrench_move.shape)
+    terms = terms.replace(motor_unmet=motor_unmet, fall=terms.fall | (motor_unmet > cfg.motor_fall_unmet))
+    return terms.replace(reward=total(cfg, terms))
+
+
 def of_transitions(cfg: RewardConfig, arrived: RewardTerms, next_grasp, redundant, changed, shared, t) -> RewardTerms:
     """The terms of many transitions at once from the arrival terms of every grasp (leaves (G, T, ...): `arrival` of
     each grasp at each waypoint): each transition reads its new grasp's terms, adds its redundant flag and, as its

@@ -54,6 +54,18 @@ class Contacts:
     realised: jax.Array  # (L,) bool, active and within contact_tol: these links carry force
 
 
+@struct.dataclass
+class MotorProblem:
+    """The motor check's inputs of one step (`Surrogate.motor_check`): the new grasp's contacts at waypoint t+1 and
+    the final wrench (d), whose solve's forces warm-start it."""
+
+    contacts: Contacts
+    tool_pos: jax.Array  # (3,) [m]
+    tool_quat: jax.Array  # (4,)
+    init: jax.Array  # (L, 3) [N] the forces of the wrench solve (d)
+    required: jax.Array  # (6,) the wrench (d): gravity plus the external wrench
+
+
 @jax.tree_util.register_static
 class Surrogate:
     """The surrogate model of a hand + tool scene. Stateless: all methods are pure functions of their inputs.
@@ -186,7 +198,23 @@ class Surrogate:
         """Reward terms of moving, with new grasp contacts `now` (at the current pose) and `nxt` (at waypoint
         t+1), from waypoint t: the wrench problems solved here, the terms assembled by `gsp_jax.reward`. The previous
         grasp enters through `redundant`, `changed` (the grasp changes) and `during` (the shared grasp's contacts at
-        the current pose; None: no change term)."""
+        the current pose; None: no change term). The motor check counts at the last step only (`reward.arrival`):
+        under a `cond` (`_only_where`), so a step of one t solves it only there and a batch of steps only where one
+        of its rows is a last step; a batch over t solves it for its last step's rows alone through `score_deferred`
+        and `motor_check` (`dp.grasp_terms`, `transitions`)."""
+        terms, problem = self.score_deferred(episode, t, tool_pos, tool_quat, now, nxt, redundant, during, changed)
+        if problem is None:
+            return terms
+        motor = _only_where(t >= episode.n_steps - 1, self.motor_check, episode, problem)
+        return reward_lib.with_motor(self.reward_config, terms, motor)
+
+    def score_deferred(
+        self, episode: Episode, t: jax.Array, tool_pos, tool_quat, now: Contacts, nxt: Contacts, redundant,
+        during: Contacts | None = None, changed=False,
+    ) -> tuple[RewardTerms, MotorProblem | None]:
+        """`score` without the motor check: (the terms with `motor_unmet` 0, the check's `MotorProblem`; None
+        without the check, `motor_fall_unmet` inf). `reward.with_motor(cfg, terms, motor_check(episode, problem))`
+        completes a last step's terms; every other step's are complete."""
         cfg = self.reward_config
         wp, m = episode.waypoints, episode.mass
         last = episode.n_steps - 1
@@ -205,19 +233,22 @@ class Surrogate:
         solved = jax.vmap(lambda c, p, q, w: self.wrench_error(c, episode, p, q, w))(*stacked)
         move, hold, ext = (jax.tree.map(lambda x, i=i: x[i], solved) for i in range(3))
         is_last = t >= last
-        motor_unmet = None
-        if np.isfinite(cfg.motor_fall_unmet):  # counts at the last step only (`reward.arrival`): a `cond`, so that a
-            # step of one t solves it only there (under a vmap over t both sides run, as a `where` would)
-            motor_unmet = jax.lax.cond(
-                is_last, lambda: self.motor_unmet(nxt, episode, pos_n, quat_n, ext.forces, hold_wrench - episode.w_ext),
-                lambda: jnp.zeros((), ext.forces.dtype))
+        problem = None
+        if np.isfinite(cfg.motor_fall_unmet):
+            problem = MotorProblem(contacts=nxt, tool_pos=pos_n, tool_quat=quat_n, init=ext.forces,
+                                   required=hold_wrench - episode.w_ext)
         if during is None:
             change_error = change_unmet = jnp.zeros((), jnp.float32)
         else:
             change_error, change_unmet = reward_lib.wrench_term(cfg, jax.tree.map(lambda x: x[3], solved))
         terms = reward_lib.arrival(cfg, move, hold, ext, nxt.ik.error, now.ik.collision | nxt.ik.collision,
-                                   motor_unmet, is_last)
-        return reward_lib.with_previous(cfg, terms, redundant, changed, change_error, change_unmet, t)
+                                   None, is_last)
+        return reward_lib.with_previous(cfg, terms, redundant, changed, change_error, change_unmet, t), problem
+
+    def motor_check(self, episode: Episode, problem: MotorProblem) -> jax.Array:
+        """() the motor check of a `MotorProblem` (`motor_unmet`); leaves with leading axes: `vmap` it."""
+        return self.motor_unmet(problem.contacts, episode, problem.tool_pos, problem.tool_quat, problem.init,
+                                problem.required)
 
     def motor_unmet(self, contacts: Contacts, episode: Episode, tool_pos, tool_quat, init, required) -> jax.Array:
         """() unmet fraction of a wrench `required` (6,) with forces the hand's motors can give at the contacts' IK
@@ -360,8 +391,37 @@ class Surrogate:
             ep, grasp, t, tool_pos, tool_quat, new_grasp, redundant, now, nxt, during)
 
     @jax.jit
+    def transitions(self, episode: Episode, grasps: jax.Array, actions: jax.Array
+                    ) -> tuple[State, jax.Array, jax.Array]:
+        """`transition` of every step of one episode at once, vmapped: grasps (T,) and actions (T,) at waypoints 0 ..
+        T - 1 -> (next states, rewards, done), each with a leading axis T. The motor check (the last step's only) is
+        solved for the last row alone, not for every row as a vmapped `transition` does (`score`)."""
+        n_t = episode.n_steps
+        ts = jnp.arange(n_t, dtype=jnp.int32)
+
+        def deferred(grasp, t, action):
+            pos, quat = episode.waypoints[t], episode.quats[t]
+            new_grasp, redundant, now, nxt, during = self._realised(episode, grasp, t, pos, quat, action)
+            changed = new_grasp != grasp
+            terms, problem = self.score_deferred(episode, t, pos, quat, now, nxt, redundant, during, changed)
+            return new_grasp, changed, nxt.ik.q, terms, problem
+
+        new_grasp, changed, q, terms, problem = jax.vmap(deferred)(jnp.asarray(grasps, jnp.int32), ts, actions)
+        if problem is not None:
+            motor = self.motor_check(episode, jax.tree.map(lambda x: x[-1], problem))
+            terms = reward_lib.with_motor(self.reward_config, terms, jnp.zeros(n_t, motor.dtype).at[-1].set(motor))
+        moved = jax.vmap(lambda t, g, c, qn, tm: self._settle(episode, t, episode.waypoints[t], g, c, qn, tm))(
+            ts, new_grasp, changed, q, terms)
+        return moved, moved.terms.reward, moved.done
+
+    @jax.jit
     def _move(self, ep: Episode, grasp, t, tool_pos, tool_quat, action) -> State:
         """The state after `action` from grasp `grasp` at waypoint `t` with the tool at (tool_pos, tool_quat)."""
+        new_grasp, redundant, now, nxt, during = self._realised(ep, grasp, t, tool_pos, tool_quat, action)
+        return self._arrive(ep, grasp, t, tool_pos, tool_quat, new_grasp, redundant, now, nxt, during)
+
+    def _realised(self, ep: Episode, grasp, t, tool_pos, tool_quat, action):
+        """(new grasp, redundant, its contacts now, at waypoint t + 1, the shared grasp's now or None) of `action`."""
         new_grasp, redundant = self.space.apply(grasp, action)
         t_next = jnp.minimum(t + 1, ep.n_steps - 1)
         pos_n, quat_n = ep.waypoints[t_next], ep.quats[t_next]
@@ -372,17 +432,21 @@ class Surrogate:
         quat_in = [tool_quat, quat_n, tool_quat][: len(grasp_in)]
         realised = jax.vmap(self.realise)(jnp.stack(grasp_in), jnp.stack(pos_in), jnp.stack(quat_in))
         now, nxt, *rest = (jax.tree.map(lambda x, i=i: x[i], realised) for i in range(len(grasp_in)))
-        during = rest[0] if rest else None
-        return self._arrive(ep, grasp, t, tool_pos, tool_quat, new_grasp, redundant, now, nxt, during)
+        return new_grasp, redundant, now, nxt, rest[0] if rest else None
 
     def _arrive(self, ep: Episode, grasp, t, tool_pos, tool_quat, new_grasp, redundant, now: Contacts, nxt: Contacts,
                 during: Contacts | None) -> State:
         """The state after moving from `grasp` at waypoint t (tool at tool_pos, tool_quat) to `new_grasp`, its
         contacts realised: `now` at the current pose, `nxt` at waypoint t + 1, `during` (the shared grasp's) now."""
-        t_next = jnp.minimum(t + 1, ep.n_steps - 1)
-        pos_n, quat_n = ep.waypoints[t_next], ep.quats[t_next]
         changed = new_grasp != grasp
         terms = self.score(ep, t, tool_pos, tool_quat, now, nxt, redundant, during, changed)
+        return self._settle(ep, t, tool_pos, new_grasp, changed, nxt.ik.q, terms)
+
+    def _settle(self, ep: Episode, t, tool_pos, new_grasp, changed, q_next, terms: RewardTerms) -> State:
+        """The state at waypoint t + 1 in `new_grasp` (joint angles `q_next`) after a step from waypoint t (tool at
+        tool_pos) whose analytic `terms` (`score`) get the learned term and the episode's validity here."""
+        t_next = jnp.minimum(t + 1, ep.n_steps - 1)
+        pos_n, quat_n = ep.waypoints[t_next], ep.quats[t_next]
         terms = self.with_learned(ep, t, new_grasp, changed, terms)
         invalid = ~episode_ok(ep, self.space.n_grasps)  # traced inputs cannot raise: r_min and a flag, never NaN
         terms = reward_lib.with_invalid(self.reward_config, terms, invalid)
@@ -391,7 +455,7 @@ class Surrogate:
         return State(
             grasp=new_grasp,
             t=t + 1,
-            q=nxt.ik.q,
+            q=q_next,
             tool_pos=pos_n,
             tool_quat=quat_n,
             tool_vel=vel,
@@ -399,6 +463,32 @@ class Surrogate:
             done=done,
             terms=terms,
         )
+
+
+def _only_where(pred, fn, *operands):
+    """`fn(*operands)` where `pred` (() bool) holds, zeros of its shape elsewhere: a `lax.cond`. Under `vmap` (a
+    batched `cond` predicate becomes a `select`, which runs both sides), one `cond` on whether any row's `pred`
+    holds, which then runs `fn` for every row and zeroes the others: a batch none of whose rows needs `fn` (steps
+    in lock step before the last waypoint) skips it. Nested `vmap`s nest the rule. `fn` closes over no tracer."""
+    @jax.custom_batching.custom_vmap
+    def run(pred, *ops):
+        def zeros(*o):
+            return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(fn, *o))
+        return jax.lax.cond(pred, fn, zeros, *ops)
+
+    @run.def_vmap
+    def rule(axis_size, in_batched, pred, *ops):
+        axes = tuple(jax.tree.map(lambda b: 0 if b else None, b) for b in in_batched[1:])
+        each = jax.vmap(fn, in_axes=axes, axis_size=axis_size)
+        if not in_batched[0]:
+            out = _only_where(pred, each, *ops)
+        else:
+            def masked(p, *o):
+                return jax.tree.map(lambda x: jnp.where(p.reshape(p.shape + (1,) * (x.ndim - 1)), x, 0), each(*o))
+            out = _only_where(jnp.any(pred), masked, pred, *ops)
+        return out, jax.tree.map(lambda _: True, out)
+
+    return run(pred, *operands)
 
 
 def _absorbing(state: State, moved: State) -> tuple[State, jax.Array, jax.Array]:

@@ -191,6 +191,24 @@ def test_arrival_normalises_and_masks_the_final_terms():
     assert float(_arrival(cfg, rng, True, None).motor_unmet) == 0.0  # no motor check
 
 
+def test_with_motor_equals_the_check_scored_in_arrival():
+    """Terms scored without the motor check (0) and completed by `with_motor` equal those whose `arrival` had it, at
+    the last step (a fall beyond `motor_fall_unmet`, r_min) and before it (the check given there as 0), batched."""
+    cfg = RewardConfig()
+    for unmet in (0.05, cfg.motor_fall_unmet + 0.01):
+        for last in (False, True):
+            rng, rng2 = np.random.default_rng(5), np.random.default_rng(5)
+            want = reward.with_previous(cfg, _arrival(cfg, rng, last, unmet), True, True, 0.4, 0.1, 3)
+            plain = reward.with_previous(cfg, _arrival(cfg, rng2, last, None), True, True, 0.4, 0.1, 3)
+            got = reward.with_motor(cfg, plain, jnp.float32(unmet if last else 0.0))
+            for name in ("reward", "fall", "motor_unmet", "unmet", "wrench_change"):
+                np.testing.assert_array_equal(np.asarray(getattr(got, name)), np.asarray(getattr(want, name)), name)
+            assert bool(got.fall) == (last and unmet > cfg.motor_fall_unmet)
+    batch = jax.tree.map(lambda x: jnp.broadcast_to(x, (3,) + x.shape), plain)
+    got = reward.with_motor(cfg, batch, jnp.asarray([0.0, 0.1, 0.9], jnp.float32))
+    assert np.asarray(got.fall).tolist() == [False, False, True] and float(got.reward[2]) == cfg.r_min
+
+
 def test_previous_grasp_part_prices_changes_past_the_start_support():
     """The change term counts only when the grasp changes at t >= supported_steps; it drops the tool (r_min) when
     more than fall_unmet of it is unmet, and only if change_falls; a final wrench beyond the motors drops it too."""

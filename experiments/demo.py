@@ -194,10 +194,11 @@ def _captions(phys: physics.Physics, ctx, r, every: int) -> list[str]:
     return out
 
 
-def _gif(phys: physics.Physics, ctx, r, stem) -> list[str]:
+def _gif(phys: physics.Physics, ctx, r, stem):
     """Key frame PNG and GIF of one episode's result `r`, each frame captioned (`_captions`), drawn in a child
     process with MUJOCO_GL=egl unless the environment names a backend (it must be set before mujoco is imported,
-    and where libEGL is missing the import fails: the child's failure then only skips the GIF)."""
+    and where libEGL is missing the import fails: the child's failure then only skips the GIF). The child starts
+    now; the function returned waits for it and gives the files written (none where it failed)."""
     import os
     import subprocess
     import sys
@@ -210,13 +211,19 @@ def _gif(phys: physics.Physics, ctx, r, stem) -> list[str]:
     np.save(trace, np.asarray(r.qpos[0])[::every])
     files.write_json(f"{stem}_captions.json", _captions(phys, ctx, r, every))
     env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
-    run = subprocess.run([sys.executable, "-m", "experiments", "demo", "--gif-from", trace, "--model",
-                          str(ctx.surrogate.model.path)], env=env, capture_output=True, text=True)
-    if run.returncode != 0:
-        print(f"  GIF skipped (no OpenGL backend for MuJoCo? set MUJOCO_GL=egl or osmesa): "
-              f"{run.stderr.strip().splitlines()[-1:] or run.returncode}")
-        return []
-    return [f"{stem}_keyframe.png", f"{stem}.gif"]
+    child = subprocess.Popen([sys.executable, "-m", "experiments", "demo", "--gif-from", trace, "--model",
+                              str(ctx.surrogate.model.path)], env=env, stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+
+    def done() -> list[str]:
+        _, err = child.communicate()
+        if child.returncode != 0:
+            print(f"  GIF skipped (no OpenGL backend for MuJoCo? set MUJOCO_GL=egl or osmesa): "
+                  f"{err.strip().splitlines()[-1:] or child.returncode}")
+            return []
+        return [f"{stem}_keyframe.png", f"{stem}.gif"]
+
+    return done
 
 
 def _render_gif(phys: physics.Physics, trace: str) -> None:
@@ -271,10 +278,9 @@ def main(args: argparse.Namespace) -> None:
     print(f"  physics: {len(PLANNERS)} closed-loop episodes in {t_phys:.1f} s (includes compiling)", flush=True)
     space = ctx.surrogate.space
     grasps = {n: [int(x) for x in np.asarray(r.grasps[0])] for n, r in res.items()}
+    gif = None if args.no_gif else _gif(phys, ctx, res["L1"], out / "demo_L1")  # drawn beside the picture
     _picture(phys, ctx, grasps, res, out / "demo.png")
-    written = [str(out / "demo.png")]
-    if not args.no_gif:
-        written += _gif(phys, ctx, res["L1"], out / "demo_L1")
+    written = [str(out / "demo.png")] + ([] if gif is None else gif())
     rows, record = [], {}
     for name in PLANNERS:
         r = res[name]

@@ -29,6 +29,10 @@ from gsp_jax.reward import RewardConfig, RewardTerms
 from gsp_jax.scenario import Episode, unstack, validate
 
 
+MOTOR_GPU_UNROLL = 10  # the motor check's solve: iterations per loop trip on a GPU (`WrenchConfig.unroll`; the same
+# result), where each trip of XLA's loop costs a sync on the device; a CPU keeps `wrench_config.unroll`
+
+
 @struct.dataclass
 class State:
     """Continuous surrogate state plus the episode input. Shapes for one state (vmap adds axes)."""
@@ -258,7 +262,9 @@ class Surrogate:
         com = tool_pos + kinematics.quat_to_mat(tool_quat) @ episode.com
         _, jac = kinematics.closest_on_links_and_jacobians(self.hand, contacts.ik.q, contacts.points)
         motors = wrench.MotorLimits(jacobians=jac, offset=jnp.zeros_like(self.torque_limit), limit=self.torque_limit)
-        cfg = dataclasses.replace(self.wrench_config, method="apg", iterations=self.reward_config.motor_iterations)
+        unroll = platform.by_platform(cpu=lambda: self.wrench_config.unroll, default=lambda: MOTOR_GPU_UNROLL)
+        cfg = dataclasses.replace(self.wrench_config, method="apg", iterations=self.reward_config.motor_iterations,
+                                  unroll=unroll)
         res = wrench.solve(contacts.points, contacts.normals, contacts.realised, episode.friction, required, com, cfg,
                            init=init, motors=motors)
         delivered = wrench.saturate(res.forces, jac, self.torque_limit, self.link_joints)

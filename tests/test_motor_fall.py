@@ -17,7 +17,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from gsp_jax import dp, kinematics, reward, scenario, surrogate, wrench  # noqa: E402
+from gsp_jax import dp, kinematics, platform, reward, scenario, surrogate, wrench  # noqa: E402
 
 N_GRASPS = 48  # grasps of the nominal final pose compared with the LP
 SCALES = (0.5, 8.0)  # the external torque times these: grasps that clearly hold the first, clearly not the second
@@ -76,6 +76,30 @@ def test_motor_fall_agrees_with_the_oracle_lp(sur, final_pose_problems, scale):
     threshold = sur.reward_config.motor_fall_unmet
     assert np.all(unmet[holds] < threshold - 0.1), (unmet[holds], ratios[holds])
     assert np.all(unmet[cannot] > threshold + 0.1), (unmet[cannot], ratios[cannot])
+
+
+def test_the_gpu_form_of_the_motor_check_unrolls_its_solve_to_the_same_result(sur, final_pose_problems,
+                                                                             monkeypatch):
+    """Traced for a GPU, the motor check's solve runs `MOTOR_GPU_UNROLL` iterations per loop trip (a CPU's keeps
+    `wrench_config.unroll`), with the same unmet fractions (the GPU's other kernel forms round apart in float32)."""
+    ep, pos, quat, contacts, _, _ = final_pose_problems
+    required = jnp.concatenate([-ep.mass * sur.gravity, jnp.zeros(3)]) - ep.w_ext
+    init = jnp.zeros((N_GRASPS,) + contacts.points.shape[1:], jnp.float32)
+
+    def check(c, f):
+        return sur.motor_unmet(c, ep, pos, quat, f, required)
+
+    def unrolls():
+        jaxpr = jax.make_jaxpr(jax.vmap(check))(contacts, init).jaxpr
+        return {e.params["unroll"] for e in jaxpr.eqns if e.primitive.name == "scan"
+                and e.params["length"] == sur.reward_config.motor_iterations}
+
+    cpu = np.asarray(jax.jit(jax.vmap(check))(contacts, init))
+    assert unrolls() == {sur.wrench_config.unroll}
+    monkeypatch.setattr(platform, "current", lambda: "gpu")
+    assert unrolls() == {surrogate.MOTOR_GPU_UNROLL} != {1}
+    gpu = np.asarray(jax.jit(jax.vmap(check))(contacts, init))
+    np.testing.assert_allclose(gpu, cpu, atol=1e-4)
 
 
 def test_a_torque_beyond_the_motors_is_a_fall_and_said_so(sur, solve_each):

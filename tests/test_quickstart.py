@@ -41,8 +41,8 @@ def test_every_public_name_resolves_and_importing_the_package_stays_light():
 
 
 def test_the_quickstart_runs_as_written(tmp_path):
-    """In a fresh process in an empty folder (it writes nothing there): its first decision, L1's plan, both plans
-    executed in C MuJoCo and the planners' names, as its comments say."""
+    """In a fresh process in an empty folder (it writes nothing there): its first decision, L1's plan and both plans
+    executed in C MuJoCo, as its comments say."""
     script = tmp_path / "quickstart.py"
     script.write_text(quickstart())
     proc = subprocess.run([sys.executable, str(script)], cwd=tmp_path, capture_output=True, text=True,
@@ -55,5 +55,5 @@ def test_the_quickstart_runs_as_written(tmp_path):
     assert float(ret) > -200.0, ret  # above `RewardConfig.r_min`: the plan holds in the surrogate
     for line, name in zip(lines[2:4], ["dp-opt", "L1"]):
         assert re.fullmatch(rf"{re.escape(name)} (held|fell) \d+\.\d deg", line), line
-    assert "L1-physics" in lines[4] and "dp-opt" in lines[4], lines[4]
+    assert len(lines) == 4, lines
     assert sorted(p.name for p in tmp_path.iterdir()) == ["quickstart.py"]  # nothing written to the folder

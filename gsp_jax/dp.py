@@ -80,7 +80,7 @@ def grasp_terms(sur: Surrogate, episode: Episode, contacts: Contacts) -> RewardT
     """The reward terms (G', T) of arriving in grasp g' by a step from waypoint t, without the previous grasp's
     part (not redundant, no change): the null action's terms from (g', t) (`Surrogate.score`). The motor check,
     which counts at the last step only, is solved for the last waypoint's G' arrivals alone
-    (`Surrogate.score_deferred`, `Surrogate.motor_check`)."""
+    (`Surrogate.score_deferred`, `Surrogate.with_last_motor`)."""
     n_t = episode.n_steps
     ts = jnp.arange(n_t, dtype=jnp.int32)
     nxt = jax.tree.map(lambda x: x[:, jnp.minimum(ts + 1, n_t - 1)], contacts)
@@ -89,11 +89,7 @@ def grasp_terms(sur: Surrogate, episode: Episode, contacts: Contacts) -> RewardT
         return sur.score_deferred(episode, t, episode.waypoints[t], episode.quats[t], now, nx, False)
 
     terms, problem = jax.vmap(jax.vmap(score, (0, 0, 0)), (0, 0, None))(contacts, nxt, ts)
-    if problem is None:
-        return terms
-    motor = jax.vmap(lambda p: sur.motor_check(episode, p))(jax.tree.map(lambda x: x[:, -1], problem))  # (G',)
-    return reward_lib.with_motor(sur.reward_config, terms,
-                                 jnp.zeros(terms.wrench_move.shape, motor.dtype).at[:, -1].set(motor))
+    return jax.vmap(lambda tm, pb: sur.with_last_motor(episode, tm, pb))(terms, problem)  # each grasp's T steps
 
 
 def table_from_terms(sur: Surrogate, episode: Episode, plain: RewardTerms, contacts: Contacts) -> Table:

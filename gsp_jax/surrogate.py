@@ -249,6 +249,16 @@ class Surrogate:
                                    None, is_last)
         return reward_lib.with_previous(cfg, terms, redundant, changed, change_error, change_unmet, t), problem
 
+    def with_last_motor(self, episode: Episode, terms: RewardTerms, problem: MotorProblem | None) -> RewardTerms:
+        """The terms of an episode's T steps (leaves with a leading axis T, from `score_deferred`) with the motor
+        check solved for the last step alone, 0 before it (`reward.with_motor`); unchanged without the check
+        (`problem` None). `vmap` it over further leading axes (`dp.grasp_terms`: the table's G' grasps)."""
+        if problem is None:
+            return terms
+        motor = self.motor_check(episode, jax.tree.map(lambda x: x[-1], problem))
+        n_t = terms.wrench_move.shape[0]
+        return reward_lib.with_motor(self.reward_config, terms, jnp.zeros(n_t, motor.dtype).at[-1].set(motor))
+
     def motor_check(self, episode: Episode, problem: MotorProblem) -> jax.Array:
         """() the motor check of a `MotorProblem` (`motor_unmet`); leaves with leading axes: `vmap` it."""
         return self.motor_unmet(problem.contacts, episode, problem.tool_pos, problem.tool_quat, problem.init,
@@ -413,9 +423,7 @@ class Surrogate:
             return new_grasp, changed, nxt.ik.q, terms, problem
 
         new_grasp, changed, q, terms, problem = jax.vmap(deferred)(jnp.asarray(grasps, jnp.int32), ts, actions)
-        if problem is not None:
-            motor = self.motor_check(episode, jax.tree.map(lambda x: x[-1], problem))
-            terms = reward_lib.with_motor(self.reward_config, terms, jnp.zeros(n_t, motor.dtype).at[-1].set(motor))
+        terms = self.with_last_motor(episode, terms, problem)
         moved = jax.vmap(lambda t, g, c, qn, tm: self._settle(episode, t, episode.waypoints[t], g, c, qn, tm))(
             ts, new_grasp, changed, q, terms)
         return moved, moved.terms.reward, moved.done

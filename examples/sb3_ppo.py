@@ -17,7 +17,9 @@ import numpy as np
 import torch
 from stable_baselines3 import PPO
 
-import gsp_jax  # noqa: F401  (registers gsp_jax/GraspSequence-v0)
+import gsp_jax
+
+gsp_jax.register_gymnasium()  # gsp_jax/GraspSequence-v0
 
 parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
 parser.add_argument("--steps", type=int, default=30_000)

@@ -109,7 +109,7 @@ def main(argv: list[str] | None = None) -> None:
     n_processes, words = processes_asked(words)
     chosen = next((w for w in words if w in COMMANDS), None)  # only its module is imported (the others: help only)
     deterministic_gpu_kernels(chosen)
-    from gsp_jax import distributed
+    from gsp_jax.core import distributed
 
     if n_processes is not None and n_processes > 1 and not distributed.requested():
         from experiments import processes
@@ -117,7 +117,9 @@ def main(argv: list[str] | None = None) -> None:
         processes.launch(n_processes, words)  # this command as N processes of one run (their coordinator: here)
         return
     distributed.initialize()  # one of several processes (ours, Slurm's, Open MPI's): JAX's runtime, before JAX runs
-    import gsp_jax  # noqa: F401  (turns on XLA's compilation cache on disk: gsp_jax.cache, GSP_JAX_CACHE)
+    import gsp_jax
+
+    gsp_jax.enable_cache()  # XLA's compiled programs on disk (gsp_jax.core.cache; GSP_JAX_CACHE=off: none)
 
     parser = argparse.ArgumentParser(prog="python -m experiments", description=__doc__)
     parser.add_argument("--processes", type=int, default=None, metavar="N",  # read before parsing (processes_asked)
@@ -138,7 +140,7 @@ def main(argv: list[str] | None = None) -> None:
         module.add_arguments(sp)
         sp.add_argument("--plugin", action="append", default=[], metavar="MODULE",
                         help="import this module (a name on the path, or a .py file) first: its planners register "
-                             "themselves (`gsp_jax.planners.register`); repeatable")
+                             "themselves (`gsp_jax.planners.registry.register`); repeatable")
         if name != "check-model":
             sp.add_argument("--model", default=None, metavar="NAME_OR_PATH",
                             help="the hand + tool scene: a shipped model (wrench, hammer, allegro) or a scene file "
@@ -149,7 +151,7 @@ def main(argv: list[str] | None = None) -> None:
                                  "results and records are named -learned")
     args = parser.parse_args(argv)
     from experiments import common
-    from gsp_jax import model as model_lib
+    from gsp_jax.model import load as model_lib
 
     common.RECORD = common.RECORD or args.record  # a command run by another (`run_command`) keeps it
     common.COMMAND = common.COMMAND or list(words)  # the command a record names: the outermost one
@@ -165,7 +167,7 @@ def main(argv: list[str] | None = None) -> None:
         if given:
             print(f"model: {args.model.name} ({args.model.path})", flush=True)
         common.MODEL = args.model
-    from gsp_jax import learned
+    from gsp_jax.surrogate import learned
 
     was_learned = common.LEARNED  # a command another runs (`run_command`) inherits it; restored after
     args.learned = bool(getattr(args, "learned", False) or common.LEARNED)  # passed down: `Surrogate(learned=)`
@@ -177,7 +179,8 @@ def main(argv: list[str] | None = None) -> None:
         if not was_learned:
             print(f"learned physics term: {learned.path_of(args.model)}", flush=True)
     common.LEARNED = args.learned
-    from gsp_jax import files, scenario
+    from gsp_jax.core import files
+    from gsp_jax.model import scenario
 
     try:
         for parts in getattr(module, "results_folders", lambda _: [])(args):  # its results folders, locked before

@@ -14,7 +14,8 @@ import time
 import jax
 import numpy as np
 
-from gsp_jax import distributed, files, hand
+from gsp_jax.core import distributed, files
+from gsp_jax.model import hand
 
 RESULTS = pathlib.Path("results")
 
@@ -24,7 +25,7 @@ def results_dir(*parts: str) -> pathlib.Path:
     (`--model`) writes to results/<first part>-<model>/... (results/<model> for no parts) instead, and one with the
     learned physics term (`--learned`) to results/<first part>-learned/...: no model's or surrogate's results
     overwrite another's."""
-    from gsp_jax import model as model_lib
+    from gsp_jax.model import load as model_lib
 
     name = model_lib.load_model(MODEL).name
     if name != model_lib.DEFAULT:
@@ -144,7 +145,7 @@ def add_lookahead_argument(p, root_in_table: bool = False) -> None:
 def check_planners(names, option: str = "--policies", backend: str | None = None) -> None:
     """SystemExit naming the option and the name unless each of `names` is a registered planner (after --plugin)
     that runs on the physics `backend` (None: no physics)."""
-    from gsp_jax import planners
+    from gsp_jax.planners import registry as planners
 
     for name in names:
         try:
@@ -157,7 +158,7 @@ def check_planners(names, option: str = "--policies", backend: str | None = None
 
 
 def add_bases_argument(p) -> None:
-    from gsp_jax import evaluation
+    from gsp_jax.planning import evaluation
 
     p.add_argument("--bases", nargs="+", default=list(evaluation.L1_PHYSICS["bases"]), metavar="NAME",
                    help="L1-physics: the policies its branches follow after their first action (each candidate is "

@@ -20,10 +20,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments.common import RESULTS, results_dir, table
-from gsp_jax import dp, evaluation, files, physics, planners, scenario
-from gsp_jax.grasps import NULL
+from gsp_jax.planning import dp, evaluation
+from gsp_jax.core import files
+from gsp_jax import physics
+from gsp_jax.planners import registry as planners
+from gsp_jax.model import scenario
+from gsp_jax.model.grasps import NULL
 from gsp_jax.physics import c_backend
-from gsp_jax.surrogate import Surrogate
+from gsp_jax.surrogate.step import Surrogate
 
 PLANNERS = ("dp-opt", "L1")
 LABEL = {"dp-opt": "DP optimal", "L1": "L1 lookahead"}
@@ -92,7 +96,7 @@ def _picture(phys: physics.Physics, ctx, grasps: dict, res: dict, path) -> None:
     import matplotlib.pyplot as plt
     from matplotlib.patches import Patch
 
-    from gsp_jax import render
+    from gsp_jax.physics import render
 
     space, links = ctx.surrogate.space, ctx.surrogate.hand.link_names
     places = render.option_places(phys.model)
@@ -171,7 +175,7 @@ def _captions(phys: physics.Physics, ctx, r, every: int) -> list[str]:
     """The text of each GIF frame (every `every`-th control tick of result `r`, one episode): the simulated time,
     the waypoint, the grasp being executed (`GraspSpace.label`) and, in a segment that changes it, the change named
     by where the link goes on the tool; the hold and a fall named as they come."""
-    from gsp_jax import render
+    from gsp_jax.physics import render
 
     space, places = ctx.surrogate.space, render.option_places(phys.model)
     T = ctx.batch.n_steps
@@ -203,7 +207,7 @@ def _gif(phys: physics.Physics, ctx, r, stem):
     import subprocess
     import sys
 
-    from gsp_jax import render
+    from gsp_jax.physics import render
 
     tick = _timeline(phys, ctx.batch.n_steps)[0]
     every = max(1, int(round(1 / (render.GIF_FPS * tick))))
@@ -229,7 +233,7 @@ def _gif(phys: physics.Physics, ctx, r, stem):
 def _render_gif(phys: physics.Physics, trace: str) -> None:
     """(The child of `_gif`) the GIF of a saved trace `<stem>_qpos.npy` (a frame each) with its captions
     `<stem>_captions.json`, and its last frame large as `<stem>_keyframe.png`."""
-    from gsp_jax import render
+    from gsp_jax.physics import render
 
     stem = trace.removesuffix("_qpos.npy")
     qpos = np.load(trace)

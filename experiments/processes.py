@@ -2,7 +2,7 @@
 
 Each process gets an equal contiguous share of this process's CPU cores (its affinity) and, where there are GPUs,
 one GPU (process p the p-th, round robin; processes that share a GPU share its memory equally); process 0 also runs
-the coordinator of JAX's distributed runtime on a free local port (`gsp_jax.distributed` reads the three variables
+the coordinator of JAX's distributed runtime on a free local port (`gsp_jax.core.distributed` reads the three variables
 set here). Process 0's output is this command's; the others' goes to results/processes/rank<p>.log. When a process
 fails, the others are stopped at once and the run ends with an error that names its rank, its exit status and the
 last lines of its output.
@@ -19,7 +19,7 @@ import sys
 import time
 
 from experiments.common import RESULTS
-from gsp_jax import distributed
+from gsp_jax.core import distributed
 
 LOG_DIR = RESULTS / "processes"
 POLL_S = 0.2  # [s] how often the launcher looks at its processes

@@ -1,18 +1,26 @@
 """Shared fixtures. JAX is forced onto the CPU before anything imports it (tests are small and deterministic).
 
-Compiled programs are shared between the tests and the xdist workers of one run through the package's persistent
-compilation cache (`gsp_jax.cache`), here in a fresh folder of the run (many tests jit the same surrogate, table and
-lookahead programs; compiling them is most of the suite's time on a CPU). The folder is removed at the end of the
-run, so a run never loads what another run compiled; GSP_JAX_TEST_CACHE=off turns the cache off."""
+Compiled programs are kept across runs in the user's cache folder: JAX's persistent compilation cache
+(`gsp_jax.core.cache`), in `$XDG_CACHE_HOME` (or ~/.cache) / gsp_jax / xla-tests / <this CPU>. JAX's key holds the
+program, the jax and XLA versions, the backend and XLA_FLAGS, so a changed program is compiled again and an
+unchanged one is loaded: a second run traces and runs, it does not compile. Within one run the xdist workers share
+the folder too (many tests jit the same surrogate, table and lookahead programs).
+
+    GSP_JAX_TEST_CACHE unset      the folder above, kept
+    GSP_JAX_TEST_CACHE=<folder>   that folder, kept (a subfolder per CPU is made inside it)
+    GSP_JAX_TEST_CACHE=off        no cache at all: a cold run (also 0, none); it must pass too
+"""
 import os
-import tempfile
 
 os.environ["JAX_PLATFORMS"] = "cpu"
-CACHE_OFF = os.environ.get("GSP_JAX_TEST_CACHE", "").lower() in ("off", "0", "none")
-# made here, in the process that starts the xdist workers, so they inherit one folder
-if not CACHE_OFF and "_GSP_JAX_TEST_CACHE_DIR" not in os.environ:
-    os.environ["_GSP_JAX_TEST_CACHE_DIR"] = tempfile.mkdtemp(prefix="gsp_jax_test_xla_")
-os.environ["GSP_JAX_CACHE"] = "off" if CACHE_OFF else os.environ["_GSP_JAX_TEST_CACHE_DIR"]  # read by gsp_jax.cache
+_SETTING = os.environ.get("GSP_JAX_TEST_CACHE", "").strip()
+CACHE_OFF = _SETTING.lower() in ("off", "0", "none", "false")
+_DEFAULT = os.path.join(os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "gsp_jax", "xla-tests")
+os.environ["GSP_JAX_CACHE"] = "off" if CACHE_OFF else (_SETTING or _DEFAULT)  # read by gsp_jax.core.cache
+
+import gsp_jax  # noqa: E402
+
+gsp_jax.enable_cache()  # importing the package changes no setting: the tests turn the cache on (GSP_JAX_CACHE above)
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
@@ -20,8 +28,9 @@ import pytest  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
-from gsp_jax import dp, ik  # noqa: E402
-from gsp_jax import hand as hand_lib  # noqa: E402
+from gsp_jax.planning import dp  # noqa: E402
+from gsp_jax.solvers import ik  # noqa: E402
+from gsp_jax.model import hand as hand_lib  # noqa: E402
 
 # The tests' surrogate solves a table's IK problems with `ik.solve` vmapped (`IKConfig.lanes=False`), not in the
 # batch-last form a CPU uses by default: the same solve to float32 rounding (tests/test_ik_lanes.py checks the two
@@ -42,18 +51,10 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
 
 
-def pytest_sessionfinish(session, exitstatus):
-    """The run's compilation cache goes with it (in the process that made it: not an xdist worker)."""
-    import shutil
-
-    if not CACHE_OFF and not hasattr(session.config, "workerinput"):
-        shutil.rmtree(os.environ.pop("_GSP_JAX_TEST_CACHE_DIR", ""), ignore_errors=True)
-
-
 @pytest.fixture(scope="session")
 def hand():
     """The HandModel of the shipped wrench (`load_model().hand`: the default surrogate's own object)."""
-    from gsp_jax import model as model_lib
+    from gsp_jax.model import load as model_lib
 
     return model_lib.load_model().hand
 
@@ -115,6 +116,6 @@ def table_ik():
 @pytest.fixture(scope="session")
 def sur(hand):
     """A Surrogate of that hand (stateless, so one serves every module), its tables' IK vmapped (`TABLE_IK`)."""
-    from gsp_jax import surrogate
+    from gsp_jax.surrogate import step as surrogate
 
     return surrogate.Surrogate(hand, ik_config=TABLE_IK)

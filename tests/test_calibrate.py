@@ -17,8 +17,10 @@ import pytest  # noqa: E402
 import tolerances as tol  # noqa: E402
 from experiments.physics import calibrate  # noqa: E402
 from gsp_jax.physics import calibration  # noqa: E402
-from gsp_jax import dp, reward, scenario, surrogate  # noqa: E402
-from gsp_jax.reward import RewardConfig  # noqa: E402
+from gsp_jax.planning import dp  # noqa: E402
+from gsp_jax.surrogate import reward, step as surrogate  # noqa: E402
+from gsp_jax.model import scenario  # noqa: E402
+from gsp_jax.surrogate.reward import RewardConfig  # noqa: E402
 
 
 def test_candidate_tables_equal_each_candidates_own_table(table_ik):

@@ -10,8 +10,8 @@ import jax
 import numpy as np
 import pytest
 
-from gsp_jax import model as model_lib
-from gsp_jax import scenario
+from gsp_jax.model import load as model_lib
+from gsp_jax.model import scenario
 from gsp_jax.physics import corpus
 
 
@@ -131,8 +131,9 @@ def test_a_real_shard_agrees_with_the_surrogate_and_c_mujoco():
     perturbation differs from its base in at most one step."""
     import jax.numpy as jnp
 
-    from gsp_jax import dp, physics
-    from gsp_jax.surrogate import Surrogate
+    from gsp_jax.planning import dp
+    from gsp_jax import physics
+    from gsp_jax.surrogate.step import Surrogate
     import tolerances as tol
 
     phys = physics.Physics(Surrogate())

@@ -1,4 +1,4 @@
-"""`gsp_jax.distributed` in one process and `--processes`'s parts that need no second process (the runs of two
+"""`gsp_jax.core.distributed` in one process and `--processes`'s parts that need no second process (the runs of two
 processes: tests/test_envelope_resume.py, tests/test_fig4b.py); one process over two local devices."""
 import os
 import subprocess
@@ -10,7 +10,7 @@ import tolerances as tol
 
 from experiments import processes
 from experiments.cli import processes_asked
-from gsp_jax import distributed
+from gsp_jax.core import distributed
 
 
 @pytest.mark.parametrize("n,parts", [(0, 1), (1, 3), (7, 1), (7, 2), (7, 3), (12, 4), (5, 8)])

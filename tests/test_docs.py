@@ -345,8 +345,8 @@ def test_staleness_sees_a_change_to_the_code_a_record_measures(tmp_path):
         (clone / "gsp_jax" / "new_module.py").write_text("x = 1\n")  # added: reached only through an import
         subprocess.run(["git", "add", "-A"], cwd=clone, check=True)
         assert figures.stale(row) == []
-        subprocess.run(["git", "rm", "-q", "gsp_jax/stats.py"], cwd=clone, check=True)
-        assert any("gsp_jax/stats.py" in why for why in figures.stale(row))
+        subprocess.run(["git", "rm", "-q", "gsp_jax/core/stats.py"], cwd=clone, check=True)
+        assert any("gsp_jax/core/stats.py" in why for why in figures.stale(row))
         subprocess.run(["git", "reset", "-q", "--hard"], cwd=clone, check=True)
         for other in ("models/allegro/scene.learned.npz", "models/policies/hammer_ppo_dp_seed0.model.json"):
             with open(clone / other, "ab") as f:  # another shipped model's: not what a figure of the default measures
@@ -358,7 +358,7 @@ def test_staleness_sees_a_change_to_the_code_a_record_measures(tmp_path):
         subprocess.run(["git", "reset", "-q", "--hard"], cwd=clone, check=True)
         with open(clone / "gsp_jax" / "reward.py", "a") as f:
             f.write("\n# changed\n")
-        assert any("gsp_jax/reward.py" in why for why in figures.stale(row))
+        assert any("gsp_jax/surrogate/reward.py" in why for why in figures.stale(row))
     finally:
         common.ROOT = original
 

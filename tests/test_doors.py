@@ -9,8 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gsp_jax import physics, policies, scenario
-from gsp_jax.scenario import EpisodeError
+from gsp_jax import physics
+from gsp_jax.planning import policies
+from gsp_jax.model import scenario
+from gsp_jax.model.scenario import EpisodeError
 
 NOMINAL = scenario.make_episode()
 
@@ -82,7 +84,7 @@ def test_the_physics_batch_is_checked_before_it_runs(sur):
 
 
 def test_gym_env_checks_the_episodes_it_is_given():
-    from gsp_jax import gym_env
+    from gsp_jax.learning import gym_env
 
     with pytest.raises(EpisodeError, match=r"bad\.dt: 0\.0"):
         gym_env.make(episodes={"bad": NOMINAL.replace(dt=jnp.float32(0.0))}, backend="surrogate", progress=False)
@@ -127,7 +129,7 @@ def test_the_physics_batch_check_takes_a_pytree_of_policy_axes(sur):
 
 def test_dp_checks_concrete_episodes_before_any_work(sur):
     """`dp.solve` / `dp.build_tables` called from Python name the bad episode of a batch and its field."""
-    from gsp_jax import dp
+    from gsp_jax.planning import dp
 
     with pytest.raises(EpisodeError, match=r"episode\.mass: 0\.0 kg"):
         dp.solve(sur, NOMINAL.replace(mass=jnp.float32(0.0)))

@@ -1,4 +1,4 @@
-"""Tests of gsp_jax.dp: the table against the surrogate it discretises, the Bellman backup against brute-force
+"""Tests of gsp_jax.planning.dp: the table against the surrogate it discretises, the Bellman backup against brute-force
 enumeration of every action sequence, the optimal sequence against a rollout of the surrogate, batching, the
 IK count, and the open-loop replay (`sequence_return`).
 
@@ -20,8 +20,11 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import tolerances as tol  # noqa: E402
-from gsp_jax import dp, grasps, ik, scenario, surrogate  # noqa: E402
-from gsp_jax.reward import RewardConfig  # noqa: E402
+from gsp_jax.planning import dp  # noqa: E402
+from gsp_jax.model import grasps, scenario  # noqa: E402
+from gsp_jax.solvers import ik  # noqa: E402
+from gsp_jax.surrogate import step as surrogate  # noqa: E402
+from gsp_jax.surrogate.reward import RewardConfig  # noqa: E402
 
 T = 5  # waypoints of the reduced episodes
 N_BATCH = 20  # batch of every vmapped surrogate call (one compile each)

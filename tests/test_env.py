@@ -1,4 +1,4 @@
-"""Tests of gsp_jax.env (the brax `GraspEnv`); its Gymnasium views are tested in test_gym.py.
+"""Tests of gsp_jax.learning.env (the brax `GraspEnv`); its Gymnasium views are tested in test_gym.py.
 
 Everything runs on a set of three reduced episodes (the first T = 3 waypoints of the nominal lift, of a +6 mm
 shift with -1 N m, and of an evaluation-set-B episode), whose DP tables are built once per module. The surrogate
@@ -17,8 +17,8 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import tolerances as tol  # noqa: E402
-from gsp_jax import scenario  # noqa: E402
-from gsp_jax.env import GraspEnv  # noqa: E402
+from gsp_jax.model import scenario  # noqa: E402
+from gsp_jax.learning.env import GraspEnv  # noqa: E402
 
 T = 3  # waypoints of the reduced episodes
 N_ENVS = 12  # vmapped environments of the backend comparison
@@ -246,8 +246,9 @@ def test_bad_input_raises_naming_the_field(sur, episodes, tables):
 def test_out_of_range_actions_raise_at_every_python_entry_point(sur, episodes, tables, table_env, bad):
     """A concrete action outside [0, 17) raises a ValueError naming the value: the brax env, the table model, the
     surrogate step and transition, the DP policies given the model's space. Inside jit it is clipped (documented in
-    gsp_jax.grasps)."""
-    from gsp_jax import env as env_lib, policies
+    gsp_jax.model.grasps)."""
+    from gsp_jax.learning import env as env_lib
+    from gsp_jax.planning import policies
 
     state = table_env.reset_to(0)
     msg = rf"action: {bad} is not in \[0, 17\)"

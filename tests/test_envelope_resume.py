@@ -17,7 +17,9 @@ import launch
 from experiments import common
 from experiments.cli import main
 from experiments.physics import envelope
-from gsp_jax import evaluation, physics, scenario
+from gsp_jax.planning import evaluation
+from gsp_jax import physics
+from gsp_jax.model import scenario
 
 # 2 evaluation episodes x (the four tips, 1 random sequence), one episode a chunk: 2 chunks; falls classified here
 LINE = ["envelope", "--set", "eval", "--episodes", "2", "--random", "1", "--policies", "four-tips", "--chunk", "1",

@@ -1,11 +1,14 @@
-"""`gsp_jax.evaluation`: the library's planners (registered in `gsp_jax.planners`) and its reference sequences."""
+"""`gsp_jax.planning.evaluation`: the library's planners (registered in `gsp_jax.planners.registry`) and its reference
+sequences."""
 from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gsp_jax import evaluation, grasps, planners, scenario
+from gsp_jax.planning import evaluation
+from gsp_jax.model import grasps, scenario
+from gsp_jax.planners import registry as planners
 
 
 def _bare(sur, rl=None):

@@ -88,7 +88,7 @@ def test_a_commands_model_is_handed_down_and_left_behind_nowhere(monkeypatch, ca
     """`--model` becomes the `Model` the command is given (`args.model`), and a command run by another inherits
     it; nothing of it stays in the process after the command (no process-wide model)."""
     from experiments import common
-    from gsp_jax import model as model_lib
+    from gsp_jax.model import load as model_lib
 
     seen = []
     monkeypatch.setattr("experiments.diagnostics.planners.main", lambda args: seen.append(args.model)
@@ -105,7 +105,7 @@ def test_learned_is_handed_down_and_left_behind_nowhere(monkeypatch, capsys):
     """`--learned` becomes `args.learned`, which a command run by another inherits; no surrogate built outside
     the command has the learned term, during or after (no process-wide default)."""
     from experiments import common
-    from gsp_jax.surrogate import Surrogate
+    from gsp_jax.surrogate.step import Surrogate
 
     seen = []
 

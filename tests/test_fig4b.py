@@ -12,9 +12,10 @@ import jax.numpy as jnp  # noqa: E402
 import launch  # noqa: E402
 
 from experiments.paper import fig4b  # noqa: E402
-from gsp_jax import evaluation  # noqa: E402
-from gsp_jax import policies, scenario  # noqa: E402
-from gsp_jax.env import observation_size  # noqa: E402
+from gsp_jax.planning import evaluation  # noqa: E402
+from gsp_jax.planning import policies  # noqa: E402
+from gsp_jax.model import scenario  # noqa: E402
+from gsp_jax.learning.env import observation_size  # noqa: E402
 from gsp_jax.ppo import networks as nets  # noqa: E402
 
 T = 3
@@ -61,7 +62,7 @@ NET_PLUGIN = '''"""A planner that decides in JAX at every waypoint of the physic
 import jax
 
 from gsp_jax import planners, policies
-from gsp_jax.env import observation_size
+from gsp_jax.learning.env import observation_size
 from gsp_jax.ppo import networks as nets
 
 

@@ -1,4 +1,4 @@
-"""Atomic writes, checked reads and folder locks (`gsp_jax.files`): nothing intact is lost to a crash, a truncated
+"""Atomic writes, checked reads and folder locks (`gsp_jax.core.files`): nothing intact is lost to a crash, a truncated
 file is named, two runs on one folder are told apart."""
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from gsp_jax import files
+from gsp_jax.core import files
 
 
 def test_atomic_write_replaces_whole_and_leaves_no_temporary(tmp_path):
@@ -85,7 +85,8 @@ def test_a_truncated_table_cache_is_rebuilt_and_a_broken_episode_file_named(tmp_
     import jax.numpy as jnp
     import numpy as np
 
-    from gsp_jax import dp, evaluation, scenario
+    from gsp_jax.planning import dp, evaluation
+    from gsp_jax.model import scenario
 
     def build(_, batch, batch_size=4):
         n, t = batch.mass.shape[0], batch.n_steps

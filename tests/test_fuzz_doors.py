@@ -9,8 +9,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from gsp_jax import scenario
-from gsp_jax.scenario import EpisodeError
+from gsp_jax.model import scenario
+from gsp_jax.model.scenario import EpisodeError
 
 SETTINGS = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 VALID = dict(

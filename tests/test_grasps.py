@@ -1,11 +1,11 @@
-"""The discrete grasp/action spaces (gsp_jax.grasps) against brute-force enumeration with itertools."""
+"""The discrete grasp/action spaces (gsp_jax.model.grasps) against brute-force enumeration with itertools."""
 import itertools
 
 import numpy as np
 import pytest
 
-from gsp_jax import model as model_lib
-from gsp_jax import grasps, scenario
+from gsp_jax.model import load as model_lib
+from gsp_jax.model import grasps, scenario
 
 COUNTS = (3, 3, 2, 4, 2, 2)  # the paper's option counts (option 0 = not in contact)
 

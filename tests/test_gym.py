@@ -1,4 +1,5 @@
-"""Gymnasium users' own tools on the registered environment (gsp_jax.gym_env): gymnasium.make and its env checker,
+"""Gymnasium users' own tools on the registered environment (gsp_jax.learning.gym_env): gymnasium.make and its env
+checker,
 seeding and episode choice against the brax env and the DP, RecordEpisodeStatistics, the native vector env against
 Gymnasium's own SyncVectorEnv step for step (autoreset included), RecordVideo, and clear errors for bad arguments.
 
@@ -23,8 +24,9 @@ import pytest  # noqa: E402
 from gymnasium.utils.env_checker import check_env  # noqa: E402
 
 import gsp_jax  # noqa: E402, F401  (registers the environment)
-from gsp_jax import dp, scenario  # noqa: E402
-from gsp_jax.gym_env import ENV_ID, GraspVectorEnv, GymGraspEnv, make_grasp_env  # noqa: E402
+from gsp_jax.planning import dp  # noqa: E402
+from gsp_jax.model import scenario  # noqa: E402
+from gsp_jax.learning.gym_env import ENV_ID, GraspVectorEnv, GymGraspEnv, make_grasp_env  # noqa: E402
 
 T = 3  # waypoints of the reduced episodes
 N_ENVS = 6
@@ -207,7 +209,7 @@ RECORD = """
 import json, pathlib, sys
 import gymnasium as gym, imageio.v3 as iio, numpy as np
 import gsp_jax
-from gsp_jax.gym_env import ENV_ID
+from gsp_jax.learning.gym_env import ENV_ID
 out = pathlib.Path(sys.argv[2])
 env = gym.make(ENV_ID, episodes=sys.argv[1], render_mode="rgb_array", progress=False)
 env = gym.wrappers.RecordVideo(env, str(out), episode_trigger=lambda e: True, disable_logger=True)

@@ -1,4 +1,4 @@
-"""Collision-avoiding IK (gsp_jax.ik): closed-form Jacobian vs autodiff, reaching targets that are reachable by
+"""Collision-avoiding IK (gsp_jax.solvers.ik): closed-form Jacobian vs autodiff, reaching targets that are reachable by
 construction, flagging unreachable targets and collisions, gradients vs finite differences, joint limits, vmap.
 
 Every jitted function is built once per module (module-scoped fixtures) and called with fixed shapes. They are
@@ -18,8 +18,9 @@ import numpy as np
 import pytest
 
 import tolerances as tol
-from gsp_jax import model as model_lib
-from gsp_jax import ik, kinematics, scenario
+from gsp_jax.model import load as model_lib
+from gsp_jax.solvers import ik
+from gsp_jax.model import kinematics, scenario
 
 CFG = ik.IKConfig()
 SINGLE = dataclasses.replace(CFG, extra_starts=())  # the model's start alone (no extra starts)
@@ -372,7 +373,7 @@ def test_normal_equations_both_forms(hand, space, nominal_waypoints, random_q, m
     """`ik._normal_equations`' two forms (broadcast products and sums on a CPU; matmuls elsewhere, forced here by
     `platform.current`) on the IK's own Jacobians at random configurations: J^T J and J^T r equal to float32
     rounding of sums of ~200 rows, relative to each problem's largest entry."""
-    from gsp_jax import platform
+    from gsp_jax.core import platform
 
     rng = np.random.default_rng(17)
     qs = random_q(hand, rng, 6)

@@ -1,4 +1,5 @@
-"""The batch-last IK (gsp_jax.ik_lanes) against `ik.solve` vmapped: the normal equations at random configurations,
+"""The batch-last IK (gsp_jax.solvers.ik_lanes) against `ik.solve` vmapped: the normal equations at random
+configurations,
 the solved grasps of a table's problems, leading batch axes, and the table built either way.
 
 Two float32 computations of the same solve in another order of arithmetic: compared with the tolerances of
@@ -13,9 +14,11 @@ import numpy as np
 import pytest
 
 import tolerances as tol
-from gsp_jax import model as model_lib
-from gsp_jax import dp, ik, ik_lanes, kinematics, scenario
-from gsp_jax.surrogate import Surrogate
+from gsp_jax.model import load as model_lib
+from gsp_jax.planning import dp
+from gsp_jax.solvers import ik, ik_lanes
+from gsp_jax.model import kinematics, scenario
+from gsp_jax.surrogate.step import Surrogate
 
 CFG = ik.IKConfig()
 FAST = {"xla_backend_optimization_level": 0}

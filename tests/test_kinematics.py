@@ -1,4 +1,4 @@
-"""Forward kinematics (gsp_jax.kinematics) against MuJoCo's own mj_kinematics / mj_jac on the same model file, and
+"""Forward kinematics (gsp_jax.model.kinematics) against MuJoCo's own mj_kinematics / mj_jac on the same model file, and
 the batch-last copy of its chain (`ik_lanes.chain`) against it."""
 import jax
 import jax.numpy as jnp
@@ -6,8 +6,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from gsp_jax import hand as hand_lib
-from gsp_jax import ik_lanes, kinematics
+from gsp_jax.model import hand as hand_lib
+from gsp_jax.solvers import ik_lanes
+from gsp_jax.model import kinematics
 
 N_CONFIGS = 20
 TOL = 1e-5  # float32 FK vs float64 MuJoCo [m] / [-]
@@ -324,7 +325,8 @@ def test_small_einsum_both_forms_match_numpy(spec, shape_a, shape_b):
 def test_gpu_form_of_the_contractions_gives_the_same_fk_and_ik(hand, qs, monkeypatch):
     """`small_einsum` lowers to a broadcast product on a GPU: forced here on the CPU, the chain (against the CPU form
     and so against MuJoCo) and the IK's residuals and Jacobian agree to float32 rounding."""
-    from gsp_jax import grasps, ik
+    from gsp_jax.model import grasps
+    from gsp_jax.solvers import ik
 
     space = grasps.space_of(hand)
     tool_pos, tool_mat = jnp.array([0.0, 0.0, 0.05]), jnp.eye(3)

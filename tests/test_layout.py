@@ -92,40 +92,95 @@ def test_the_library_and_the_commands_have_no_import_circle():
 
 
 def _layer_table() -> dict[str, int]:
-    """Each file and folder the library table of docs/architecture.md names -> its row (0: the top row)."""
+    """Each folder the library table of docs/architecture.md names -> its row (0: the top row); one folder a row."""
     text = (ROOT / "docs" / "architecture.md").read_text()
     section = text.split("### `gsp_jax/`: the library", 1)[1].split("\n#", 1)[0]
     rows = [line.split("|") for line in section.splitlines() if line.startswith("| ") and "`" in line]
     table = {}
     for i, cells in enumerate(rows):
-        for name in re.findall(r"`([\w/]+?)(?:\.py)?`", cells[2]):
-            table["gsp_jax." + name.strip("/").replace("/", ".")] = i
+        folders = re.findall(r"`gsp_jax/(\w+)/`", cells[2])
+        assert len(folders) == 1, f"row {i} of the layer table names {folders}: one folder a row"
+        table["gsp_jax." + folders[0]] = i
     return table
 
 
 def _layer(table: dict[str, int], module: str) -> int | None:
-    """The row of the most specific file or folder the table names for `module`."""
+    """The row of the folder `module` sits in (None: the package's own `__init__`, or a module in no folder)."""
     parts = module.split(".")
-    return next((table[".".join(parts[:k])] for k in range(len(parts), 1, -1) if ".".join(parts[:k]) in table), None)
+    return table.get(".".join(parts[:2])) if len(parts) > 1 else None
 
 
-def test_the_layer_finder_takes_the_most_specific_row():
-    table = {"gsp_jax.a": 0, "gsp_jax.ppo": 2, "gsp_jax.ppo.networks": 1}
-    assert [_layer(table, m) for m in ("gsp_jax.a", "gsp_jax.ppo.train", "gsp_jax.ppo.networks", "gsp_jax.b")] == \
-        [0, 2, 1, None]
+def test_the_layer_finder_reads_the_folder():
+    table = {"gsp_jax.core": 0, "gsp_jax.ppo": 1}
+    assert [_layer(table, m) for m in ("gsp_jax.core.files", "gsp_jax.ppo", "gsp_jax.ppo.train", "gsp_jax",
+                                       "gsp_jax.other.x")] == [0, 1, 1, None, None]
 
 
 def test_every_library_import_follows_the_layer_table():
-    """A module imports only its own row's modules or those of the rows above (docs/architecture.md), and every
-    module of the library has a row."""
+    """The folders are the layers: a module imports only its own folder's modules or those of the folders above
+    (docs/architecture.md), every module of the library sits in a folder of the table, and every folder has a row."""
     table = _layer_table()
-    assert len(set(table.values())) >= 8 and "gsp_jax.planners" in table and "gsp_jax.ppo.networks" in table
+    folders = {"gsp_jax." + p.name for p in (ROOT / "gsp_jax").iterdir() if (p / "__init__.py").is_file()} - \
+        {"gsp_jax.models"}
+    assert set(table) == folders, f"folders without a row: {sorted(folders - set(table))}; " \
+        f"rows without a folder: {sorted(set(table) - folders)}"
     graph = _graph("gsp_jax")
     unplaced = sorted(m for m in graph if m != "gsp_jax" and _layer(table, m) is None)
-    assert not unplaced, f"modules docs/architecture.md's table does not place: {unplaced}"
-    upward = [f"{m} (row {_layer(table, m)}) imports {t} (row {_layer(table, t)})" for m in sorted(graph)
-              if m != "gsp_jax" for t in sorted(graph[m]) if t != "gsp_jax" and _layer(table, t) > _layer(table, m)]
+    assert not unplaced, f"modules in no folder of docs/architecture.md's table: {unplaced}"
+    upward = _upward(table, graph)
     assert not upward, "\n".join(upward)
+
+
+def _upward(table: dict[str, int], graph: dict[str, set[str]]) -> list[str]:
+    """Every import of a module from a folder below its own."""
+    return [f"{m} (row {_layer(table, m)}) imports {t} (row {_layer(table, t)})" for m in sorted(graph)
+            if m != "gsp_jax" for t in sorted(graph[m]) if t != "gsp_jax" and _layer(table, t) > _layer(table, m)]
+
+
+def test_the_layer_check_finds_an_upward_import():
+    """A model module importing the surrogate's folder is named; one importing its own folder or core is not."""
+    table = _layer_table()
+    graph = {"gsp_jax.model.scenario": {"gsp_jax.surrogate.step", "gsp_jax.model.hand", "gsp_jax.core.files"},
+             "gsp_jax.surrogate.step": {"gsp_jax.model.scenario"}, "gsp_jax.model.hand": set(),
+             "gsp_jax.core.files": set()}
+    assert _upward(table, graph) == [f"gsp_jax.model.scenario (row {table['gsp_jax.model']}) imports "
+                                     f"gsp_jax.surrogate.step (row {table['gsp_jax.surrogate']})"]
+
+
+def _functions(path: pathlib.Path):
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            yield node.name, node.end_lineno - node.lineno + 1
+
+
+def test_no_library_function_is_longer_than_120_lines():
+    long = [f"{p.relative_to(ROOT)}: {name} ({n} lines)" for p in sorted((ROOT / "gsp_jax").rglob("*.py"))
+            for name, n in _functions(p) if n > 120]
+    assert not long, "\n".join(long)
+
+
+def test_importing_the_package_changes_no_jax_setting():
+    """`import gsp_jax` (and the public face's names) leaves every JAX config value as it was, and registers no
+    Gymnasium environment: the cache and the environment are switched on by a call."""
+    import subprocess
+    import sys
+
+    probe = """
+import json, os, jax
+before = {k: repr(v) for k, v in jax.config.values.items()}
+import gymnasium
+envs = set(gymnasium.registry)
+import gsp_jax
+from gsp_jax import Surrogate, context, plan, Physics  # the lazy names too
+after = {k: repr(v) for k, v in jax.config.values.items()}
+print(json.dumps(dict(changed=sorted(k for k in after if after[k] != before.get(k)),
+                      envs=sorted(set(gymnasium.registry) - envs))))
+"""
+    env = {k: v for k, v in __import__("os").environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR",)}
+    env.update(JAX_PLATFORMS="cpu", GSP_JAX_CACHE="")
+    out = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True, check=True)
+    got = __import__("json").loads(out.stdout.strip().splitlines()[-1])
+    assert got == {"changed": [], "envs": []}
 
 
 SHARED = ("experiments", "experiments.common", "experiments.processes", "experiments.cli")  # every command may

@@ -1,4 +1,5 @@
-"""The learned physics term (`gsp_jax.learned`): the fit recovers a known synthetic hazard, the split keeps episodes
+"""The learned physics term (`gsp_jax.surrogate.learned`): the fit recovers a known synthetic hazard, the split keeps
+episodes
 whole, and weights refuse another model or another feature set by name."""
 from __future__ import annotations
 
@@ -6,8 +7,9 @@ import jax
 import numpy as np
 import pytest
 
-from gsp_jax import learned, stats
-from gsp_jax import model as model_lib
+from gsp_jax.surrogate import learned
+from gsp_jax.core import stats
+from gsp_jax.model import load as model_lib
 
 
 def _synthetic(n_runs=3000, T=4, seed=0):

@@ -10,12 +10,14 @@ import numpy as np
 import pytest
 
 import tolerances as tol
-from gsp_jax import dp, evaluation, grasps, learned, lookahead, policies, reward, scenario
-from gsp_jax.env import GraspEnv
-from gsp_jax import model as model_lib
+from gsp_jax.planning import dp, evaluation, lookahead, policies
+from gsp_jax.model import grasps, scenario
+from gsp_jax.surrogate import learned, reward
+from gsp_jax.learning.env import GraspEnv
+from gsp_jax.model import load as model_lib
 from gsp_jax.physics import corpus
-from gsp_jax.reward import RewardConfig
-from gsp_jax.surrogate import Surrogate
+from gsp_jax.surrogate.reward import RewardConfig
+from gsp_jax.surrogate.step import Surrogate
 
 T = 3  # waypoints of the episodes here (the first three of drawn ones)
 

@@ -8,8 +8,10 @@ import numpy as np
 import pytest
 
 import tolerances as tol
-from gsp_jax import lookahead, planners, policies, scenario
-from gsp_jax.env import TableModel, observation_size, table_state
+from gsp_jax.planning import lookahead, policies
+from gsp_jax.planners import registry as planners
+from gsp_jax.model import scenario
+from gsp_jax.learning.env import TableModel, observation_size, table_state
 from gsp_jax.ppo import networks as nets
 
 
@@ -147,7 +149,7 @@ def test_experiments_cached_lookahead_is_one_policy_per_episode_table(sur, solve
     """`planners.make` (Fig. 4a/4b): the cached L1 carries every episode's table with in_axes 0 (hashable, as the
     physics runner keys its programs by them), and vmapped over the episodes it acts as a per-episode Lookahead
     whose interior is that episode's table."""
-    from gsp_jax import evaluation
+    from gsp_jax.planning import evaluation
 
     eps, tables, sols = solved
     ctx = evaluation.Context(sur, "test", [f"e{i}" for i in range(4)], eps, tables, sols, sols.actions[0], network, "x")
@@ -319,7 +321,7 @@ def test_per_decision_latency_times_the_planners_own_decisions(sur, solved, netw
     episode's DP optimum, and the cached L1 earns what the same policy earns run plan by plan (`stepped`, which the
     rollout test below checks against the jitted `rollout_planned`); every step of every episode is a decision."""
     from experiments.paper.table1 import decisions as bench_latency
-    from gsp_jax import evaluation
+    from gsp_jax.planning import evaluation
 
     eps, tables, sols = solved
     one = jax.tree.map(lambda x: x[:1], (eps, tables, sols))
@@ -337,7 +339,8 @@ def test_table1_dp_optimal_earns_its_dp_optimum_by_replaying_its_own_table(sur, 
     """`online.plan`'s DP optimal (Table 1's) solves the unseen episode inside the timed call and runs its policy in
     that table (from its start the surrogate visits only the table's states: `test_env` checks the two step for step):
     the episode earns exactly the DP optimum of the episode."""
-    from gsp_jax import evaluation, online
+    from gsp_jax.planning import evaluation
+    from gsp_jax.planners import online
 
     eps, tables, sols = solved
     one = jax.tree.map(lambda x: x[:1], (eps, tables, sols))
@@ -350,7 +353,8 @@ def test_table1_lookahead_in_the_table_runs_the_cached_episode(sur, solved, netw
     """`online.plan`'s L1 (Table 1's) searching in the unseen episode's table, root included (`lookahead="table"`, the
     default), runs the episode that the cached L1 runs with the root's actions stepped in the surrogate (from its
     start the surrogate visits only the table's states): the same return, to the tolerance of a few rewards."""
-    from gsp_jax import evaluation, online
+    from gsp_jax.planning import evaluation
+    from gsp_jax.planners import online
 
     eps, tables, sols = solved
     one = jax.tree.map(lambda x: x[:1], (eps, tables, sols))

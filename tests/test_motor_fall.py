@@ -17,7 +17,11 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from gsp_jax import dp, kinematics, platform, reward, scenario, surrogate, wrench  # noqa: E402
+from gsp_jax.planning import dp  # noqa: E402
+from gsp_jax.model import kinematics, scenario  # noqa: E402
+from gsp_jax.core import platform  # noqa: E402
+from gsp_jax.surrogate import reward, step as surrogate  # noqa: E402
+from gsp_jax.solvers import wrench  # noqa: E402
 
 N_GRASPS = 48  # grasps of the nominal final pose compared with the LP
 SCALES = (0.5, 8.0)  # the external torque times these: grasps that clearly hold the first, clearly not the second

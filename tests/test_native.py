@@ -18,9 +18,12 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from gsp_jax import evaluation, kinematics, physics, policies, scenario, wrench  # noqa: E402
+from gsp_jax.planning import evaluation, policies  # noqa: E402
+from gsp_jax.model import kinematics, scenario  # noqa: E402
+from gsp_jax import physics  # noqa: E402
+from gsp_jax.solvers import wrench  # noqa: E402
 from gsp_jax.physics import c_backend, native  # noqa: E402
-from gsp_jax.surrogate import Surrogate  # noqa: E402
+from gsp_jax.surrogate.step import Surrogate  # noqa: E402
 
 T = 4
 CONFIG = physics.PhysicsConfig().replace(hold=0.25)

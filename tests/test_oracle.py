@@ -11,9 +11,10 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from gsp_jax import physics, scenario  # noqa: E402
+from gsp_jax import physics  # noqa: E402
+from gsp_jax.model import scenario  # noqa: E402
 from gsp_jax.physics.oracle import Oracle  # noqa: E402
-from gsp_jax.surrogate import Surrogate  # noqa: E402
+from gsp_jax.surrogate.step import Surrogate  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -186,7 +187,7 @@ def test_envelope_summary_counts_regret_and_classes():
 def test_the_envelope_oracle_process_judges_the_callers_model():
     """`envelope.classify`'s worker processes start with the library's default model; they are handed the caller's
     (`--model`), so a hammer's falls are judged on the hammer's hand, not silently on the shipped wrench."""
-    from gsp_jax import model as model_lib
+    from gsp_jax.model import load as model_lib
     from gsp_jax.physics import envelope
 
     hammer = model_lib.load_model("hammer")

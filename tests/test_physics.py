@@ -18,9 +18,11 @@ import pytest  # noqa: E402
 from flax import struct  # noqa: E402
 from mujoco import mjx  # noqa: E402
 
-from gsp_jax import physics, policies, scenario  # noqa: E402
+from gsp_jax import physics  # noqa: E402
+from gsp_jax.planning import policies  # noqa: E402
+from gsp_jax.model import scenario  # noqa: E402
 from gsp_jax.physics import controller as ctl  # noqa: E402
-from gsp_jax.surrogate import Surrogate  # noqa: E402
+from gsp_jax.surrogate.step import Surrogate  # noqa: E402
 
 T = 5
 CONFIG = physics.PhysicsConfig().replace(hold=0.5)

@@ -13,7 +13,8 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from gsp_jax import hand as hand_lib, model as model_lib, physics  # noqa: E402
+from gsp_jax.model import hand as hand_lib, load as model_lib  # noqa: E402
+from gsp_jax import physics  # noqa: E402
 from gsp_jax.physics import config as config_lib  # noqa: E402
 
 

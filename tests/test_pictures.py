@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gsp_jax import hand as hand_lib, render
+from gsp_jax.model import hand as hand_lib
+from gsp_jax.physics import render
 
 
 def test_option_places_name_the_wrench_options_as_its_model_file_describes_them():
@@ -25,7 +26,8 @@ def test_option_places_name_the_wrench_options_as_its_model_file_describes_them(
 def test_option_places_cover_every_option_of_every_shipped_model():
     """One name per option (the grasp space's counts less "not in contact") for each shipped model, the physics
     scene (contacts by explicit pairs) naming the same places as the model file."""
-    from gsp_jax import model as model_lib, physics
+    from gsp_jax.model import load as model_lib
+    from gsp_jax import physics
 
     for scene in ("scene.xml", "hammer/scene.xml", "allegro/scene.xml"):
         model = hand_lib.load_mjmodel(hand_lib.MODELS_DIR / scene)
@@ -56,8 +58,9 @@ def test_demo_captions_name_the_time_and_the_grasp_being_executed():
     import types
 
     from experiments import demo
-    from gsp_jax import physics, scenario
-    from gsp_jax.surrogate import Surrogate
+    from gsp_jax import physics
+    from gsp_jax.model import scenario
+    from gsp_jax.surrogate.step import Surrogate
 
     sur = Surrogate()
     phys, space, T = physics.Physics(sur), sur.space, scenario.N_WAYPOINTS

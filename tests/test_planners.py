@@ -1,4 +1,4 @@
-"""Tests of the planner registry (`gsp_jax.planners`): every planner of the project is registered, builders are
+"""Tests of the planner registry (`gsp_jax.planners.registry`): every planner of the project is registered, builders are
 checked when they register and when they are made, and a planner written outside the package runs through the
 commands (`--plugin`): `planners`, `fig4b` and `envelope` in C MuJoCo."""
 from __future__ import annotations
@@ -14,7 +14,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from gsp_jax import evaluation, planners, scenario
+from gsp_jax.planning import evaluation
+from gsp_jax.planners import registry as planners
+from gsp_jax.model import scenario
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 PROJECT = ("dp-base", "rl", "L1", "L2", "dp-opt", "four-tips", "one-tip", "random", "L1-physics")
@@ -48,7 +50,7 @@ def test_a_builder_is_checked_when_it_registers():
         planners.register("bad-default")(lambda ctx, *, k: None)
     with pytest.raises(ValueError, match="needs one of"):
         planners.register("bad-needs", needs=("everything",))
-    with pytest.raises(ValueError, match="'four-tips' is taken by gsp_jax.planners"):
+    with pytest.raises(ValueError, match="'four-tips' is taken by gsp_jax.planners.registry"):
         planners.register("four-tips")(lambda ctx: None)
     with pytest.raises(ValueError, match="without spaces"):
         planners.register("my planner")
@@ -114,8 +116,8 @@ def test_a_plan_is_the_planners_episode_in_its_table(small_context):
     optimum, its actions the optimal sequence while the episode lasts); every plan's return is what `returns` (a
     while loop, not a scan) gives and what `dp.sequence_return` scores its actions at; keeping the grasp after the
     end, and `changes` lists only the non-null actions."""
-    from gsp_jax import dp
-    from gsp_jax.grasps import NULL
+    from gsp_jax.planning import dp
+    from gsp_jax.model.grasps import NULL
 
     ctx = small_context
     opt = planners.plan(ctx, "dp-opt")

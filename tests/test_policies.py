@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 import tolerances as tol
-from gsp_jax import dp, lookahead, policies, scenario
+from gsp_jax.planning import dp, lookahead, policies
+from gsp_jax.model import scenario
 
 
 @pytest.fixture(scope="module")
@@ -41,8 +42,8 @@ def test_dp_baseline_replays_a_sequence_and_never_beats_dp_optimal(sur, solved):
 def test_network_policy_acts_the_same_in_the_surrogate_and_the_table_env(sur, solved):
     """The PPO actor as a policy (NetworkPolicy, after BC on the DP data set): its return stepped through the
     surrogate itself equals its greedy return in the table-backed GraspEnv, and BC makes it DP-optimal here."""
-    from gsp_jax import pretrain
-    from gsp_jax.env import GraspEnv
+    from gsp_jax.learning import pretrain
+    from gsp_jax.learning.env import GraspEnv
     from gsp_jax.ppo import networks as nets
     from gsp_jax.ppo import train as ppo
 
@@ -79,7 +80,7 @@ def test_batched_rollout_runs_the_episode_that_stepping_runs(sur, solved, kind, 
     because its best logit leads the runner-up by more than twice what the joint angles' tolerance can move it); the
     closed-loop ones also with `ahead` = 3, each batch realising every state three decisions can reach (4 steps: a
     whole block, then a part of one)."""
-    from gsp_jax.env import observation, observation_size
+    from gsp_jax.learning.env import observation, observation_size
     from gsp_jax.ppo import networks as nets
 
     eps, tables, sols = solved

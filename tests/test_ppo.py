@@ -24,8 +24,10 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 from scipy import stats  # noqa: E402
 
-from gsp_jax import dp, files, scenario  # noqa: E402
-from gsp_jax.env import GraspEnv  # noqa: E402
+from gsp_jax.planning import dp  # noqa: E402
+from gsp_jax.core import files  # noqa: E402
+from gsp_jax.model import scenario  # noqa: E402
+from gsp_jax.learning.env import GraspEnv  # noqa: E402
 from gsp_jax.ppo import losses  # noqa: E402
 from gsp_jax.ppo import networks as nets  # noqa: E402
 from gsp_jax.ppo import train as ppo  # noqa: E402
@@ -508,7 +510,7 @@ import dataclasses, json
 import jax, jax.numpy as jnp, numpy as np
 from test_ppo import CONFIG, SMALL, T, _probe_tables
 from gsp_jax import scenario, surrogate
-from gsp_jax.env import GraspEnv
+from gsp_jax.learning.env import GraspEnv
 from gsp_jax.ppo import networks as nets
 from gsp_jax.ppo import train as ppo
 

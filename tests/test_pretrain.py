@@ -1,4 +1,4 @@
-"""Tests of gsp_jax.pretrain: reachability against a brute-force BFS, Q-values against the DP backup, the
+"""Tests of gsp_jax.learning.pretrain: reachability against a brute-force BFS, Q-values against the DP backup, the
 behaviour-cloning data set against the DP solution it is drawn from, and behaviour cloning itself.
 
 The nominal episode's full table (all 16 waypoints) is built once per module; the BFS also runs on synthetic
@@ -15,7 +15,9 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from gsp_jax import dp, pretrain, scenario  # noqa: E402
+from gsp_jax.planning import dp  # noqa: E402
+from gsp_jax.learning import pretrain  # noqa: E402
+from gsp_jax.model import scenario  # noqa: E402
 from gsp_jax.ppo import networks as nets  # noqa: E402
 
 

@@ -18,8 +18,10 @@ import pytest  # noqa: E402
 import tolerances as tol  # noqa: E402
 from experiments.physics import rescore  # noqa: E402
 from gsp_jax.physics import calibration  # noqa: E402
-from gsp_jax import dp, scenario, surrogate  # noqa: E402
-from gsp_jax.reward import RewardConfig  # noqa: E402
+from gsp_jax.planning import dp  # noqa: E402
+from gsp_jax.model import scenario  # noqa: E402
+from gsp_jax.surrogate import step as surrogate  # noqa: E402
+from gsp_jax.surrogate.reward import RewardConfig  # noqa: E402
 
 
 def test_rescored_returns_equal_the_tables_replay():

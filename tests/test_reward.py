@@ -1,4 +1,5 @@
-"""Tests of gsp_jax.reward: the calibration file (read, refused when missing or malformed, written and read back),
+"""Tests of gsp_jax.surrogate.reward: the calibration file (read, refused when missing or malformed, written and read
+back),
 the reward of a step's terms against a plain numpy reference, the previous grasp's part (the start support, the
 change term's fall check, the motor check), and the table's transitions against the step's function applied one
 transition at a time."""
@@ -16,8 +17,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from gsp_jax import reward  # noqa: E402
-from gsp_jax.reward import CalibrationError, RewardConfig, RewardTerms  # noqa: E402
+from gsp_jax.surrogate import reward  # noqa: E402
+from gsp_jax.surrogate.reward import CalibrationError, RewardConfig, RewardTerms  # noqa: E402
 
 CALIBRATED = dict(grip=4.0, grip_scales_with_mass=True, fall_unmet=0.3, w_wrench_change=5.0, change_falls=True)
 

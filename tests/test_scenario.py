@@ -1,4 +1,4 @@
-"""Episodes and episode sets (gsp_jax.scenario): members and values of the paper's sets, JSON round trip, and
+"""Episodes and episode sets (gsp_jax.model.scenario): members and values of the paper's sets, JSON round trip, and
 rejection of bad files with a message naming the field and the value."""
 import collections
 import json
@@ -8,8 +8,8 @@ import re
 import numpy as np
 import pytest
 
-from gsp_jax import model as model_lib
-from gsp_jax import scenario as sc
+from gsp_jax.model import load as model_lib
+from gsp_jax.model import scenario as sc
 
 M0 = 0.35
 Z0, Z1 = 0.014, 0.06

@@ -12,14 +12,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gsp_jax import cache, platform, scenario, surrogate
-from gsp_jax.reward import RewardConfig
+from gsp_jax.core import cache, platform
+from gsp_jax.model import scenario
+from gsp_jax.surrogate import step as surrogate
+from gsp_jax.surrogate.reward import RewardConfig
 
 PROBE = """
 import json, jax, jax.numpy as jnp
 import gsp_jax
+folder = gsp_jax.enable_cache()
 jax.block_until_ready(jax.jit(lambda x: jnp.sin(x) * 2.0)(jnp.arange(3.0)))  # compiles in well under 1 s
-print(json.dumps(dict(folder=jax.config.jax_compilation_cache_dir, package=gsp_jax.CACHE_DIR,
+print(json.dumps(dict(folder=jax.config.jax_compilation_cache_dir, package=folder,
                       min_s=jax.config.jax_persistent_cache_min_compile_time_secs)))
 """
 
@@ -31,8 +34,8 @@ def _probe(tmp_path, **env) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def test_the_package_turns_on_the_compilation_cache_and_keeps_small_programs(tmp_path):
-    """Importing gsp_jax turns the cache on in the user's cache folder (XDG_CACHE_HOME), one subfolder per CPU, and
+def test_enable_cache_turns_on_the_compilation_cache_and_keeps_small_programs(tmp_path):
+    """`gsp_jax.enable_cache()` turns the cache on in the user's cache folder (XDG_CACHE_HOME), one subfolder per CPU, and
     writes even a program that compiled in milliseconds (JAX keeps only those over 1 s by default)."""
     got = _probe(tmp_path)
     expected = tmp_path / "xdg" / "gsp_jax" / "xla" / cache.cpu_tag()

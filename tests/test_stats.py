@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from scipy import stats as sps
 
-from gsp_jax import stats
+from gsp_jax.core import stats
 
 # 4 subjects x 3 conditions. By hand: grand mean 5; condition means 3, 5, 7 -> SS_cond = 4 (4 + 0 + 4) = 32;
 # subject means 4, 5, 16/3, 17/3 -> SS_subj = 3 (1 + 0 + 1/9 + 4/9) = 14/3; SS_total = 42;

@@ -1,4 +1,4 @@
-"""Tests of gsp_jax.surrogate: the environment's reset/step semantics, the reward's composition, and physical
+"""Tests of gsp_jax.surrogate.step: the environment's reset/step semantics, the reward's composition, and physical
 sanity on the nominal episode.
 
 Compiling the surrogate on CPU takes seconds per function, so every jitted function is built once per module
@@ -18,8 +18,10 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import tolerances as tol  # noqa: E402
-from gsp_jax import grasps, scenario, surrogate, wrench  # noqa: E402
-from gsp_jax.reward import RewardConfig, RewardTerms  # noqa: E402
+from gsp_jax.model import grasps, scenario  # noqa: E402
+from gsp_jax.surrogate import step as surrogate  # noqa: E402
+from gsp_jax.solvers import wrench  # noqa: E402
+from gsp_jax.surrogate.reward import RewardConfig, RewardTerms  # noqa: E402
 
 T = scenario.N_WAYPOINTS
 BATCH = 17  # = the number of actions, so one vmapped compile serves every batched test

@@ -1,4 +1,4 @@
-"""Tests of gsp_jax.wrench: the friction-cone projection, the grasp matrix and the contact-force solve.
+"""Tests of gsp_jax.solvers.wrench: the friction-cone projection, the grasp matrix and the contact-force solve.
 
 References are independent of the code under test: geometric characterisations of the Euclidean projection
 (hypothesis), a direct numpy sum of forces and moments, and a conic reference for the solve built from
@@ -23,7 +23,7 @@ from hypothesis import strategies as st  # noqa: E402
 from scipy.optimize import nnls  # noqa: E402
 
 import tolerances as tol  # noqa: E402
-from gsp_jax import wrench  # noqa: E402
+from gsp_jax.solvers import wrench  # noqa: E402
 
 CFG = wrench.WrenchConfig()
 # both methods run to convergence: Newton at its default, projected gradient with 10x its old default iterations

@@ -13,8 +13,12 @@ import mujoco
 import numpy as np
 import pytest
 
-from gsp_jax import dp, evaluation, hand as hand_lib, ik, learned, model as model_lib, physics, policies, scenario
-from gsp_jax.surrogate import Surrogate
+from gsp_jax.planning import dp, evaluation, policies
+from gsp_jax.model import hand as hand_lib, load as model_lib, scenario
+from gsp_jax.solvers import ik
+from gsp_jax.surrogate import learned
+from gsp_jax import physics
+from gsp_jax.surrogate.step import Surrogate
 
 TOOL = """<mujoco model="screwdriver">
   <default><default class="t">
@@ -302,7 +306,7 @@ def test_round_primitives_distance_against_mujoco():
 
 
 def test_environments_and_references_of_a_users_model(user_model):
-    from gsp_jax import gym_env
+    from gsp_jax.learning import gym_env
 
     env = gym_env.make(episodes="nominal", backend="surrogate", model=user_model, progress=False)
     assert env.action_space.n == 13 and env.env.surrogate.model is user_model

@@ -11,7 +11,10 @@ import numpy as np
 
 from experiments import common
 from experiments.common import best_time, results_dir, table, timed
-from gsp_jax import dp, files, scenario, surrogate
+from gsp_jax.planning import dp
+from gsp_jax.core import files
+from gsp_jax.model import scenario
+from gsp_jax.surrogate import step as surrogate
 
 PAPER_DP_SECONDS = 151.79  # DP optimal per unseen episode, 32-core Xeon (paper Table 1)
 

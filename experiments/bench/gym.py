@@ -16,11 +16,12 @@ import numpy as np
 
 from experiments import common
 from experiments.common import table
-from gsp_jax import evaluation, scenario
-from gsp_jax.env import GraspEnv
-from gsp_jax.evaluation import dp_tables
-from gsp_jax.gym_env import GraspVectorEnv, GymGraspEnv
-from gsp_jax.surrogate import Surrogate
+from gsp_jax.planning import evaluation
+from gsp_jax.model import scenario
+from gsp_jax.learning.env import GraspEnv
+from gsp_jax.planning.evaluation import dp_tables
+from gsp_jax.learning.gym_env import GraspVectorEnv, GymGraspEnv
+from gsp_jax.surrogate.step import Surrogate
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

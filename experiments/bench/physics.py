@@ -22,7 +22,11 @@ import numpy as np
 
 from experiments import common
 from experiments.common import results_dir, table, timed
-from gsp_jax import evaluation, files, physics, policies, scenario, surrogate
+from gsp_jax.planning import evaluation, policies
+from gsp_jax.core import files
+from gsp_jax import physics
+from gsp_jax.model import scenario
+from gsp_jax.surrogate import step as surrogate
 from gsp_jax.physics import c_backend
 
 

@@ -18,12 +18,12 @@ import numpy as np
 
 from experiments import common
 from experiments.common import best_time, table
-from gsp_jax import evaluation
-from gsp_jax.env import GraspEnv
-from gsp_jax.gym_env import GymGraspEnv
-from gsp_jax.ppo import pipeline
+from gsp_jax.planning import evaluation
+from gsp_jax.learning.env import GraspEnv
+from gsp_jax.learning.gym_env import GymGraspEnv
+from gsp_jax.learning import pipeline
 from gsp_jax.ppo import train as ppo
-from gsp_jax.surrogate import Surrogate
+from gsp_jax.surrogate.step import Surrogate
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

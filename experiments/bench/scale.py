@@ -63,7 +63,7 @@ def _digest(*arrays) -> str:
 
 def _clocked(name: str, fn) -> float:
     """Seconds from a barrier before `fn()` to a barrier after it: the slowest process's time."""
-    from gsp_jax import distributed
+    from gsp_jax.core import distributed
 
     distributed.barrier(f"{name}-start")
     t0 = time.perf_counter()
@@ -78,7 +78,11 @@ def worker(args: argparse.Namespace) -> None:
     import jax.numpy as jnp
     import numpy as np
 
-    from gsp_jax import distributed, evaluation, physics, policies, scenario, surrogate
+    from gsp_jax.core import distributed
+    from gsp_jax.planning import evaluation, policies
+    from gsp_jax import physics
+    from gsp_jax.model import scenario
+    from gsp_jax.surrogate import step as surrogate
     from gsp_jax.physics import corpus
 
     phys = physics.Physics(surrogate.Surrogate(args.model, learned=args.learned))
@@ -141,8 +145,8 @@ def _ppo(args, sur, episodes, tables, T: int) -> tuple[float, int, int]:
     the environments split over every process's device."""
     import jax
 
-    from gsp_jax import distributed
-    from gsp_jax.env import GraspEnv
+    from gsp_jax.core import distributed
+    from gsp_jax.learning.env import GraspEnv
     from gsp_jax.ppo import networks as nets
     from gsp_jax.ppo import train as ppo
 

@@ -5,7 +5,7 @@ L1 over it (`gsp.Lookahead(policy, sur, depth=1)`) and takes one decision, `gsp.
 an unseen episode; then one decision on another episode, the warm decision (the fastest of three more on that
 episode's start) and one DP table (`jax.jit(dp.solve)`). The processes run one after another, side by side in one
 run: with the compilation cache off, with an empty cache folder, and with the cache that the previous process left
-on disk (`gsp_jax.cache`). Times are wall-clock seconds from the process's start (the interpreter's own start
+on disk (`gsp_jax.core.cache`). Times are wall-clock seconds from the process's start (the interpreter's own start
 excluded). Writes results/bench/startup_<platform>.json; prints the table last.
 """
 from __future__ import annotations
@@ -17,7 +17,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from gsp_jax import files
+from gsp_jax.core import files
 
 T0 = time.perf_counter()
 CHILD_FLAG = "--child"
@@ -35,7 +35,7 @@ def child(first: int, other: int) -> dict:
     import jax
 
     import gsp_jax as gsp
-    from gsp_jax import dp
+    from gsp_jax.planning import dp
 
     out = dict(import_s=time.perf_counter() - T0)
     sur = gsp.Surrogate()

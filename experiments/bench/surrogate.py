@@ -13,7 +13,9 @@ import numpy as np
 
 from experiments import common
 from experiments.common import best_time, results_dir, table, timed
-from gsp_jax import files, scenario, surrogate
+from gsp_jax.core import files
+from gsp_jax.model import scenario
+from gsp_jax.surrogate import step as surrogate
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -1,6 +1,6 @@
 """`python -m experiments check-model PATH_OR_NAME`: every problem a scene file has, in plain words, in one run.
 
-1. The conventions (`gsp_jax.model.check_model`: the tool, the table, the contact links and options, the hand's
+1. The conventions (`gsp_jax.model.load.check_model`: the tool, the table, the contact links and options, the hand's
    joints, motors, geoms and IK start).
 2. The joint dynamics against the controller's finger gains (`physics.preflight.joint_dynamics`).
 3. On a file that loads: the tool's clearance above the table, the start grasp's reach at waypoint 0 and (unless
@@ -10,7 +10,7 @@
    (results/check-model/reach-<model>.png).
 
 Exits 1 and lists the problems if there is any (docs/your-model.md says what each is); otherwise prints what the
-model is and exits 0. Every command's `--model` runs the conventions first (`gsp_jax.model.require`).
+model is and exits 0. Every command's `--model` runs the conventions first (`gsp_jax.model.load.require`).
 """
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ import pathlib
 
 import numpy as np
 
-from gsp_jax import model as model_lib
+from gsp_jax.model import load as model_lib
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -37,7 +37,7 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 
 
 def main(args: argparse.Namespace) -> None:
-    from gsp_jax import hand as hand_lib, scenario
+    from gsp_jax.model import hand as hand_lib, scenario
     from gsp_jax.physics import preflight
 
     try:
@@ -53,7 +53,7 @@ def main(args: argparse.Namespace) -> None:
     if m is not None and model_lib.hand_joints(m):
         problems += preflight.joint_dynamics(m)
     if not conventions:
-        from gsp_jax.surrogate import Surrogate
+        from gsp_jax.surrogate.step import Surrogate
 
         model = model_lib.load_model(path)
         sur = Surrogate(model)

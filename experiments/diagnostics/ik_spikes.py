@@ -17,7 +17,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments.common import results_dir, table
-from gsp_jax import files, ik, scenario, surrogate
+from gsp_jax.core import files
+from gsp_jax.solvers import ik
+from gsp_jax.model import scenario
+from gsp_jax.surrogate import step as surrogate
 
 SPIKE, NEIGHBOUR = 2e-3, 1e-3  # [m]
 

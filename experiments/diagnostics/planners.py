@@ -1,4 +1,5 @@
-"""`python -m experiments planners [--plugin MODULE]`: every registered planner (`gsp_jax.planners`), its group,
+"""`python -m experiments planners [--plugin MODULE]`: every registered planner (`gsp_jax.planners.registry`), its
+group,
 options with their defaults, what of the evaluation context it reads, and its first docstring line."""
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import argparse
 import textwrap
 
 from experiments.common import table
-from gsp_jax import planners
+from gsp_jax.planners import registry as planners
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

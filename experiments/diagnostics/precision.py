@@ -28,7 +28,7 @@ import subprocess
 import sys
 
 import numpy as np
-from gsp_jax import files
+from gsp_jax.core import files
 
 EPISODES = {"nominal": ("nominal", "nominal"), "evalB": ("evalB", "mass1.5m0_comy+2cm")}
 
@@ -46,7 +46,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _episode(name: str, x64: bool):
     import jax.numpy as jnp
 
-    from gsp_jax import scenario
+    from gsp_jax.model import scenario
 
     set_name, key = EPISODES[name]
     ep = scenario.episode_set(set_name)[key]
@@ -85,8 +85,8 @@ def _worker(args) -> None:
     import jax
     import jax.numpy as jnp
 
-    from gsp_jax import dp
-    from gsp_jax.surrogate import Surrogate
+    from gsp_jax.planning import dp
+    from gsp_jax.surrogate.step import Surrogate
 
     env = Surrogate()
     x64 = bool(jax.config.jax_enable_x64)

@@ -10,7 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments.common import table
-from gsp_jax import scenario, surrogate
+from gsp_jax.model import scenario
+from gsp_jax.surrogate import step as surrogate
 
 # (description, per-link options in model order: thumb_d, index_d, index_m, middle_d, middle_m, ring_d)
 GRASPS = [

@@ -13,7 +13,10 @@ import numpy as np
 from tqdm import tqdm
 
 from experiments.common import results_dir, table
-from gsp_jax import distributed, dp, files, scenario, surrogate
+from gsp_jax.core import distributed, files
+from gsp_jax.planning import dp
+from gsp_jax.model import scenario
+from gsp_jax.surrogate import step as surrogate
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

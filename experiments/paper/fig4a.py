@@ -20,7 +20,9 @@ import numpy as np
 
 from experiments import common
 from experiments.common import results_dir, table
-from gsp_jax import evaluation, files, planners, stats
+from gsp_jax.planning import evaluation
+from gsp_jax.core import files, stats
+from gsp_jax.planners import registry as planners
 
 COMPARED = ("dp-base", "rl", "L1", "L2")  # relative to dp-opt
 

@@ -25,7 +25,10 @@ import numpy as np
 from experiments import common
 from experiments.common import results_dir, table
 from gsp_jax.physics.report import result_rows
-from gsp_jax import distributed, evaluation, files, physics, planners, stats
+from gsp_jax.core import distributed, files, stats
+from gsp_jax.planning import evaluation
+from gsp_jax import physics
+from gsp_jax.planners import registry as planners
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

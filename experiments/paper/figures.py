@@ -27,7 +27,8 @@ import traceback
 import jax
 
 from experiments import cli, common
-from gsp_jax import model as model_lib, policies
+from gsp_jax.model import load as model_lib
+from gsp_jax.planning import policies
 
 _PAPER = ("experiments/paper/reproduce.py", "experiments/paper/fig4a.py", "experiments/paper/fig4b.py",
           "experiments/paper/table1")  # what `reproduce` runs (it trains only where no PPO policy is shipped)

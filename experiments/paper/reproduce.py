@@ -26,7 +26,9 @@ import numpy as np
 
 from experiments import cli, common
 from experiments.common import results_dir
-from gsp_jax import evaluation, files, planners, stats
+from gsp_jax.planning import evaluation
+from gsp_jax.core import files, stats
+from gsp_jax.planners import registry as planners
 
 PRESETS = {
     "quick": dict(fig4a_episodes=9, backend="table", batch=0, repeats=1, fig4b_episodes=2, train=False),

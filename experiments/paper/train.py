@@ -5,7 +5,8 @@ cycles them), validated on the validation set with the deterministic policy, ear
 Writes, per run, results/train/<pretrain>/seed<k>/: history.json (per iteration: stochastic training return,
 deterministic validation and training-set returns, losses, env steps, wall time), policy/ (the best validated
 policy, orbax), checkpoints/ (the run resumes from there when started again); and results/train/reference.json
-(the DP returns to compare with). Steps are exact table lookups of the surrogate (see gsp_jax/env.py). On a host
+(the DP returns to compare with). Steps are exact table lookups of the surrogate (see gsp_jax/learning/env.py). On a
+host
 with several GPUs the environments are split over all of them (`gsp_jax.ppo.train`: data-parallel).
 """
 from __future__ import annotations
@@ -16,9 +17,10 @@ import jax
 import numpy as np
 
 from experiments.common import RESULTS, results_dir, table
-from gsp_jax import distributed, evaluation, files
-from gsp_jax.ppo.pipeline import PRESETS, run_seed, setup
-from gsp_jax.surrogate import Surrogate
+from gsp_jax.core import distributed, files
+from gsp_jax.planning import evaluation
+from gsp_jax.learning.pipeline import PRESETS, run_seed, setup
+from gsp_jax.surrogate.step import Surrogate
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pretrain", default="dp", choices=["dp", "none"])

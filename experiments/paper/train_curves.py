@@ -10,7 +10,7 @@ import argparse
 import numpy as np
 
 from experiments.common import results_dir, table
-from gsp_jax import files as files_lib
+from gsp_jax.core import files as files_lib
 
 MODES = {"dp": "with DP pretraining", "none": "without pretraining"}
 

@@ -31,10 +31,13 @@ import numpy as np
 
 from experiments import cli, common
 from experiments.common import results_dir, table
-from gsp_jax import files, grasps, learned, physics, reward, scenario, stats
+from gsp_jax.core import files, stats
+from gsp_jax.model import grasps, scenario
+from gsp_jax.surrogate import learned, reward
+from gsp_jax import physics
 from gsp_jax.physics import calibration, corpus
 from gsp_jax.physics.calibration import candidate_tables, candidates, pool_key, score_candidates, sequence_pool
-from gsp_jax.stats import cluster_bootstrap_se
+from gsp_jax.core.stats import cluster_bootstrap_se
 
 CALIBRATION_JSON = reward.CALIBRATION_JSON  # where `--write` puts the chosen defaults
 
@@ -165,7 +168,8 @@ def write_calibration(res: dict, summary: dict) -> None:
 #
 # 1. The model's physics corpus (the `corpus` command: results/corpus[-<model>]/, or `--corpus`) extended to
 #    `--shards` shards; a corpus already there is reused (`--shards 0`: fit on what it holds).
-# 2. The hazard (`gsp_jax.learned.fit`) on the transitions a planner can meet (`learned.surrogate_alive`) that physics
+# 2. The hazard (`gsp_jax.surrogate.learned.fit`) on the transitions a planner can meet (`learned.surrogate_alive`)
+# that physics
 #    reached, split by episode into train / validation / test, early stopping on validation.
 # 3. Checks on the test episodes, never used in fitting: AUC of the run's predicted chance to hold, and of its
 #    return with and without the term (`learned.returns`), for hold against fall; the share of the sequences the

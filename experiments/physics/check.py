@@ -30,7 +30,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments.common import RESULTS, check_planners, results_dir, table
-from gsp_jax import distributed, evaluation, files, physics, planners, policies, scenario, surrogate
+from gsp_jax.core import distributed, files
+from gsp_jax.planning import evaluation, policies
+from gsp_jax import physics
+from gsp_jax.planners import registry as planners
+from gsp_jax.model import scenario
+from gsp_jax.surrogate import step as surrogate
 from gsp_jax.physics import report
 
 

@@ -15,7 +15,8 @@ import pathlib
 import time
 
 from experiments.common import results_dir, table
-from gsp_jax import physics, surrogate
+from gsp_jax import physics
+from gsp_jax.surrogate import step as surrogate
 from gsp_jax.physics import corpus
 
 

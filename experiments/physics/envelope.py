@@ -35,10 +35,13 @@ import numpy as np
 
 from experiments import common
 from experiments.common import results_dir, table
-from gsp_jax import distributed, dp, evaluation, files, physics, policies, scenario
+from gsp_jax.core import distributed, files
+from gsp_jax.planning import dp, evaluation, policies
+from gsp_jax import physics
+from gsp_jax.model import scenario
 from gsp_jax.physics import c_backend
 from gsp_jax.physics.envelope import PREDICTED_HOLD, classify, summarise
-from gsp_jax import planners as gsp_planners
+from gsp_jax.planners import registry as gsp_planners
 
 PLANNERS = ("four-tips", "dp-opt", "L1", "L2", "rl")
 CHUNK = 30  # episodes per lockstep by default: the stress set's 120 run as 4 chunks, each kept when it finishes

@@ -29,7 +29,9 @@ import numpy as np
 
 from experiments.common import ROOT, results_dir, table
 from gsp_jax.physics.envelope import summarise
-from gsp_jax import distributed, files, reward as reward_lib, scenario, stats, surrogate
+from gsp_jax.core import distributed, files, stats
+from gsp_jax.surrogate import reward as reward_lib, step as surrogate
+from gsp_jax.model import scenario
 
 DEFAULT_POOL = ROOT / "docs" / "history" / "2026-11-27" / "envelope" / "stress_reached_h100.json"
 

@@ -37,8 +37,8 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from gsp_jax.physics import native
-from gsp_jax.policies import SequencePolicy
-from gsp_jax.scenario import Episode
+from gsp_jax.planning.policies import SequencePolicy
+from gsp_jax.model.scenario import Episode
 
 CONTROLLERS = ("native", "jax")  # the controller's tick: compiled to native code, or the JAX program
 
@@ -498,7 +498,8 @@ def warm_up(phys):
     XLA releases Python's lock while it compiles, so the caller compiles its own programs meanwhile (a DP table,
     a lookahead) on the other cores. Returns a `concurrent.futures.Future`: `.result()` waits for it (and raises
     what the run raised)."""
-    from gsp_jax import evaluation, scenario
+    from gsp_jax.planning import evaluation
+    from gsp_jax.model import scenario
 
     def run():
         sur = phys.surrogate

@@ -22,9 +22,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gsp_jax import dp, evaluation, files, model as model_lib, policies, reward, scenario, surrogate
+from gsp_jax.planning import dp, evaluation, policies
+from gsp_jax.core import files
+from gsp_jax.model import load as model_lib, scenario
+from gsp_jax.surrogate import reward, step as surrogate
 from gsp_jax.physics.runner import Physics
-from gsp_jax.stats import sign_test, spearman
+from gsp_jax.core.stats import sign_test, spearman
 
 GRID = dict(  # the candidates: every combination (docs/calibration.md: what earlier sweeps measured)
     grip=((0.0, False), (2.0, False), (4.0, False), (2.0, True), (4.0, True), (6.0, True)),  # (grip [N], x m / m0)

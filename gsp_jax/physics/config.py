@@ -13,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from gsp_jax import scenario
+from gsp_jax.model import scenario
 
 
 def _number(value) -> bool:

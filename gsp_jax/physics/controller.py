@@ -46,11 +46,12 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from gsp_jax import grasps, kinematics, wrench
-from gsp_jax.hand import HandModel
+from gsp_jax.model import grasps, kinematics
+from gsp_jax.solvers import wrench
+from gsp_jax.model.hand import HandModel
 from gsp_jax.physics.config import PhysicsConfig
 from gsp_jax.physics.scene import Observation
-from gsp_jax.scenario import Episode
+from gsp_jax.model.scenario import Episode
 
 N_PATH = 5  # points of a moving link's path
 PATH_TIMES = np.array([0.0, 0.15, 0.4, 0.65, 1.0], np.float32)  # when (fraction of `move`) the path reaches each

@@ -26,8 +26,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gsp_jax import distributed, dp, evaluation, files, learned, policies, scenario
-from gsp_jax import surrogate as surrogate_lib
+from gsp_jax.core import distributed, files
+from gsp_jax.planning import dp, evaluation, policies
+from gsp_jax.surrogate import learned
+from gsp_jax.model import scenario
+from gsp_jax.surrogate import step as surrogate_lib
 
 VERSION = 1
 HELD_OUT = ("stress", "stress-cal", "eval", "val", "variations")  # sets whose episodes never enter a corpus
@@ -173,7 +176,7 @@ class Store:
 
     @classmethod
     def open(cls, folder, model, dist: Distribution | None = None) -> "Store":
-        """The corpus in `folder` (created empty where there is none) for `model` (a `gsp_jax.model.Model`).
+        """The corpus in `folder` (created empty where there is none) for `model` (a `gsp_jax.model.load.Model`).
         `CorpusError` naming both where it holds another model's corpus (name and digest), another distribution,
         or a manifest without a field it needs."""
         folder = pathlib.Path(folder)

@@ -11,8 +11,8 @@ from concurrent.futures import ProcessPoolExecutor
 import jax
 import numpy as np
 
-from gsp_jax import scenario
-from gsp_jax.stats import auc, spearman
+from gsp_jax.model import scenario
+from gsp_jax.core.stats import auc, spearman
 
 
 # ------------------------------------------------------------------------------------------- the summary
@@ -66,10 +66,10 @@ def _start_worker(model_path) -> None:
     """A process's oracle, of the model at `model_path` (the caller's: a spawned process starts with the default)."""
     global _ORACLE
     jax.config.update("jax_platforms", "cpu")
-    from gsp_jax import model as model_lib
+    from gsp_jax.model import load as model_lib
     from gsp_jax.physics.oracle import Oracle
     from gsp_jax.physics.scene import Scene
-    from gsp_jax.surrogate import Surrogate
+    from gsp_jax.surrogate.step import Surrogate
 
     sur = Surrogate(model_lib.load_model(model_path))
     _ORACLE = Oracle(sur, Scene(sur.hand))
@@ -97,7 +97,7 @@ def _classify(job) -> tuple:
 def classify(episodes: list, jobs: list, processes: int, model=None) -> list:
     """The oracle's class of each (episode index, grasps, reached configurations (T, nq), rows before the fall) in
     `jobs`, in `processes` processes (`_classify`), for `model` (a `Model`, name or path; None: the default)."""
-    from gsp_jax import model as model_lib
+    from gsp_jax.model import load as model_lib
 
     if not jobs:
         return []

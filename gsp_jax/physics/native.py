@@ -29,7 +29,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from llvmlite import binding as llvm
 
-from gsp_jax import scenario
+from gsp_jax.model import scenario
 from gsp_jax.physics.controller import PATH_TIMES, ControllerState
 
 F32 = np.float32

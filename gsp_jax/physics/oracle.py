@@ -30,11 +30,12 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from gsp_jax import kinematics, wrench
+from gsp_jax.model import kinematics
+from gsp_jax.solvers import wrench
 from gsp_jax.physics.controller import reference_motion
 from gsp_jax.physics.scene import Scene
-from gsp_jax.scenario import Episode
-from gsp_jax.surrogate import Surrogate
+from gsp_jax.model.scenario import Episode
+from gsp_jax.surrogate.step import Surrogate
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,6 +1,6 @@
 """Before the first plan: what a model will do in physics, checked in seconds and said in plain words.
 
-`check-model` runs these after the conventions (`gsp_jax.model.check_model`), on a model that loads:
+`check-model` runs these after the conventions (`gsp_jax.model.load.check_model`), on a model that loads:
 
 * `joint_dynamics`: the hand's joints against the controller's gains. The controller's finger impedance acts
   explicitly at every physics step; with light links, no armature and little damping its discrete-time loop grows
@@ -24,9 +24,9 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from gsp_jax import grasps, hand as hand_lib, scenario
+from gsp_jax.model import grasps, hand as hand_lib, scenario
 from gsp_jax.physics.config import PhysicsConfig
-from gsp_jax.surrogate import Surrogate
+from gsp_jax.surrogate.step import Surrogate
 
 THROWN = 0.005  # [m] the start grasp's tool leaving its path by more than this in the dry run is a problem
 CLEARANCE = 0.001  # [m] the least gap between the tool and the table at the start of a standard episode
@@ -38,14 +38,14 @@ FINGER_STEP = 0.5  # the most of the fingers' fastest mode one physics step of t
 def finger_step(m: mujoco.MjModel, config: PhysicsConfig = PhysicsConfig()) -> tuple[float, list[str]]:
     """(how much of the fingers' fastest mode one physics step takes off, the hand joints most in that mode).
 
-    The hand of scene `m` (`gsp_jax.model.hand_joints`) at its IK start (`gsp_ik_start`, else qpos0), every contact
+    The hand of scene `m` (`gsp_jax.model.load.hand_joints`) at its IK start (`gsp_ik_start`, else qpos0), every contact
     link tracked at the controller's full gains (its worst case; without contact sites, every fingertip body):
     stiffness K = finger_kp sum_l J_l^T J_l + free_stiffness I and damping D = finger_kd sum_l J_l^T J_l [joint
     space: N m/rad, N m s/rad], J_l the (3, J) Jacobian of link l's point. MuJoCo's step: the joints' own damping B
     implicit, the controller's torque explicit, mass matrix M (armature included), timestep h:
     v' = (M + h B)^-1 ((M - h D) v - h K q), q' = q + h v', the step matrix A. The figure: max |1 - eig(A)| (0: a
     step changes nothing; above 1 the fastest mode overshoots every step; above 2 it grows)."""
-    from gsp_jax import model as model_lib
+    from gsp_jax.model import load as model_lib
 
     f, joints = config.fingers, model_lib.hand_joints(m)
     d = mujoco.MjData(m)
@@ -194,7 +194,7 @@ class DryRun:
 
 def dry_run(sur: Surrogate, config: PhysicsConfig = PhysicsConfig()) -> DryRun:
     """`DryRun` of the model's start grasp (`Surrogate`'s model) on its nominal lift without the external torque."""
-    from gsp_jax import policies
+    from gsp_jax.planning import policies
     from gsp_jax.physics import c_backend
     from gsp_jax.physics.controller import reference_motion
     from gsp_jax.physics.runner import Physics

@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from gsp_jax import scenario, wrench
-from gsp_jax.stats import mean_ci
+from gsp_jax.model import scenario
+from gsp_jax.solvers import wrench
+from gsp_jax.core.stats import mean_ci
 
 
 def least_friction(sur, grasp: int, episode: scenario.Episode) -> tuple[float, float]:
@@ -77,7 +78,7 @@ def render_episode(phys, qpos: np.ndarray, stem, window=None, key: int = -1) -> 
     """Key frame (frame `key`) PNG and a GIF at `render.GIF_FPS` frames per simulated second (of the time
     `window`, default all); [] if no GL backend."""
     try:
-        from gsp_jax import render
+        from gsp_jax.physics import render
     except Exception as e:  # noqa: BLE001 - rendering is optional
         print(f"rendering skipped: {e}")
         return []

@@ -22,13 +22,13 @@ import numpy as np
 from flax import struct
 from mujoco import mjx
 
-from gsp_jax import scenario
+from gsp_jax.model import scenario
 from gsp_jax.physics.config import PhysicsConfig
 from gsp_jax.physics.controller import Controller, ControllerState, reference_motion
 from gsp_jax.physics.scene import Observation, Scene
-from gsp_jax.reward import RewardTerms
-from gsp_jax.scenario import Episode
-from gsp_jax.surrogate import State, Surrogate
+from gsp_jax.surrogate.reward import RewardTerms
+from gsp_jax.model.scenario import Episode
+from gsp_jax.surrogate.step import State, Surrogate
 
 BACKENDS = ("mjx", "c")
 FALLEN_ERROR = 180.0  # [deg] the angle error a fallen tool reports (`Result.angle_error`, `Result.max_angle`)

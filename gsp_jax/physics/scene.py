@@ -26,10 +26,10 @@ import numpy as np
 from flax import struct
 from mujoco import mjx
 
-from gsp_jax import hand as hand_lib
-from gsp_jax import kinematics, scenario
+from gsp_jax.model import hand as hand_lib
+from gsp_jax.model import kinematics, scenario
 from gsp_jax.physics.config import PhysicsConfig
-from gsp_jax.scenario import Episode
+from gsp_jax.model.scenario import Episode
 
 AWAY = -1.0  # [m] the start supports are moved this far down when they drop away
 SUPPORT = "gsp_support"  # the start supports' geom names: gsp_support1, gsp_support2, ...

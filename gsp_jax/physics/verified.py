@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from gsp_jax.policies import SequencePolicy
+from gsp_jax.planning.policies import SequencePolicy
 
 
 @struct.dataclass

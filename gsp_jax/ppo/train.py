@@ -37,7 +37,7 @@ from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from tqdm.auto import tqdm
 
-from gsp_jax import files
+from gsp_jax.core import files
 from gsp_jax.ppo import losses
 # load_policy and save_policy re-exported: tests/test_ppo.py calls them as `train.save_policy`/`train.load_policy`
 from gsp_jax.ppo.checkpoint import load_policy, save_policy, uncommitted  # noqa: F401

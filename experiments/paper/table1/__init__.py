@@ -43,7 +43,9 @@ import jax
 from experiments import common
 from experiments.common import results_dir
 from experiments.paper.table1 import decisions, episode
-from gsp_jax import evaluation, files, online, planners
+from gsp_jax.planning import evaluation
+from gsp_jax.core import files
+from gsp_jax.planners import online, registry as planners
 
 PAPER = episode.PAPER
 

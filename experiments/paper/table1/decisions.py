@@ -9,8 +9,9 @@ import numpy as np
 
 from experiments import common
 from experiments.common import table, timed
-from gsp_jax import dp, evaluation, planners, policies
-from gsp_jax.env import TableModel
+from gsp_jax.planning import dp, evaluation, policies
+from gsp_jax.planners import registry as planners
+from gsp_jax.learning.env import TableModel
 
 
 LOOKAHEADS = ("L1", "L2")  # the rows whose tree reads each episode's table when cached

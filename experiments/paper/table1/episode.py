@@ -13,7 +13,9 @@ import jax
 
 from experiments import common
 from experiments.common import table
-from gsp_jax import evaluation, files, online, planners
+from gsp_jax.planning import evaluation
+from gsp_jax.core import files
+from gsp_jax.planners import online, registry as planners
 
 GPU_IK_UNROLL = 3  # IK iterations per loop trip on a GPU (`IKConfig.unroll`): each trip of XLA's loop costs a sync on
 # the device, and more iterations a trip compile longer for little more; the same episodes at every unroll

@@ -1,7 +1,8 @@
 """Gymnasium views of `GraspEnv` for users of other RL libraries (Stable-Baselines3, CleanRL, ...).
 
-Registered on `import gsp_jax` as `gsp_jax/GraspSequence-v0`:
+Registered by `gsp_jax.register_gymnasium()` (and by importing this module) as `gsp_jax/GraspSequence-v0`:
 
+    gsp_jax.register_gymnasium()
     env = gymnasium.make("gsp_jax/GraspSequence-v0", episodes="train", backend="table", render_mode="rgb_array")
     obs, info = env.reset(seed=0)
     obs, reward, terminated, truncated, info = env.step(action)
@@ -20,7 +21,7 @@ waypoint or on a collision or fall; nothing truncates. `info`: `episode_index`, 
 collides with a name Gymnasium's or SB3's tools reserve (`episode`, `_episode`, `final_obs`, `final_info`,
 `TimeLimit.truncated`, `terminal_observation`). `render_mode="rgb_array"`: `render()` is the scene at the current
 state, (360, 480, 3) uint8, for `gymnasium.wrappers.RecordVideo` (needs `MUJOCO_GL=egl` or `osmesa` set before
-mujoco is imported; see gsp_jax.render).
+mujoco is imported; see gsp_jax.physics.render).
 
 `GraspVectorEnv`: N environments stepped by one jitted, vmapped call. Sub-environment i behaves exactly as a
 `GymGraspEnv` reset with seed `seed + i` (as `SyncVectorEnv` seeds them) and autoresets by Gymnasium's
@@ -42,9 +43,10 @@ import numpy as np
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from gsp_jax.env import GraspEnv
+import gsp_jax
+from gsp_jax.learning.env import GraspEnv
 
-ENV_ID = "gsp_jax/GraspSequence-v0"
+ENV_ID = gsp_jax.register_gymnasium()  # "gsp_jax/GraspSequence-v0", registered by this import too
 BACKENDS = ("table", "surrogate")
 _BUILT: collections.OrderedDict = collections.OrderedDict()  # (backend, episodes, surrogate digests) -> GraspEnv
 _BUILT_MAX = 8  # built environments kept (a table-backed training set holds ~5 MB of tables)
@@ -52,7 +54,7 @@ _BUILT_MAX = 8  # built environments kept (a table-backed training set holds ~5 
 
 def _named_episodes(episodes, model=None) -> dict:
     """The episodes argument of `make` as a dict name -> Episode (ValueError naming `episodes` otherwise)."""
-    from gsp_jax import scenario
+    from gsp_jax.model import scenario
 
     if isinstance(episodes, dict):
         named = {k: scenario.validate(v, str(k), model=model) for k, v in episodes.items()}
@@ -96,8 +98,9 @@ def make_grasp_env(episodes="train", backend: str = "table", surrogate=None, pro
     """The brax `GraspEnv` (no auto-reset) of an episode set; see the module docstring for the arguments.
     Memoised per (backend, the episodes' contents, the surrogate's hand and configurations; `None`: the default
     `Surrogate()`): `gymnasium.make` deep-copies the arguments of a spec, so an equal surrogate must hit too."""
-    from gsp_jax import dp, model as model_lib, scenario
-    from gsp_jax.surrogate import Surrogate
+    from gsp_jax.planning import dp
+    from gsp_jax.model import load as model_lib, scenario
+    from gsp_jax.surrogate.step import Surrogate
 
     if backend not in BACKENDS:
         raise ValueError(f"backend: {backend!r} is not one of {BACKENDS}")
@@ -129,12 +132,12 @@ def make_grasp_env(episodes="train", backend: str = "table", surrogate=None, pro
 
 class _Renderer:
     """The scene at a surrogate state (hand joint angles, tool pose) as an RGB frame (H, W, 3) uint8. Needs an
-    OpenGL backend (`MUJOCO_GL=egl`, set before mujoco is imported; see gsp_jax.render)."""
+    OpenGL backend (`MUJOCO_GL=egl`, set before mujoco is imported; see gsp_jax.physics.render)."""
 
     def __init__(self, hand, size=(360, 480), camera: str = "front"):
         import mujoco
 
-        from gsp_jax import hand as hand_lib
+        from gsp_jax.model import hand as hand_lib
 
         self.model = hand_lib.load_mjmodel(hand.source)  # the hand's own scene (ValueError if it has none)
         self.data = mujoco.MjData(self.model)

@@ -10,8 +10,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gsp_jax import platform
-from gsp_jax.hand import HandModel
+from gsp_jax.core import platform
+from gsp_jax.model.hand import HandModel
 
 
 def quat_to_mat(q: jax.Array) -> jax.Array:

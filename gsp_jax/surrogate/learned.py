@@ -9,8 +9,9 @@ AdamW), split by episode into train / validation / test, stopped early on the va
     p = learned.hazard(fitted, features)          # (..., T) probability of a fall in each segment
     learned.save(fitted, path); learned.load(path, model)   # refused for another model, by name
 
-`reliability` bins predicted against observed rates (a calibration picture); `gsp_jax.stats.auc` ranks them.
-The reward turns the hazard into its learned physics term (`gsp_jax.reward.with_risk`); the weights of a model sit
+`reliability` bins predicted against observed rates (a calibration picture); `gsp_jax.core.stats.auc` ranks them.
+The reward turns the hazard into its learned physics term (`gsp_jax.surrogate.reward.with_risk`); the weights of a
+model sit
 beside its scene file (`path_of`: models/scene.learned.npz for the shipped wrench).
 """
 from __future__ import annotations
@@ -28,7 +29,7 @@ import numpy as np
 import optax
 from flax import struct
 
-from gsp_jax import files
+from gsp_jax.core import files
 
 
 EPISODE_FEATURES = ("mass", "friction", "force_x", "force_y", "force_z", "torque_x", "torque_y", "torque_z", "com_x",
@@ -122,7 +123,7 @@ class Fitted:
     std: jax.Array  # (F,)
     hidden: tuple = struct.field(pytree_node=False)
     features: tuple = struct.field(pytree_node=False)  # the feature names, in order
-    digest: str = struct.field(pytree_node=False)  # the model's digest (`gsp_jax.model.Model.digest`)
+    digest: str = struct.field(pytree_node=False)  # the model's digest (`gsp_jax.model.load.Model.digest`)
     history: tuple = struct.field(pytree_node=False, default=())  # (epoch, train loss, validation loss) per epoch
     split: dict = struct.field(pytree_node=False, default_factory=dict)  # {"train"|"val"|"test": episode ids}
 
@@ -283,13 +284,13 @@ def resolve(learned, model) -> "Fitted | None":
 
 
 def _names(model) -> tuple[str, ...]:
-    from gsp_jax import grasps  # a model's grasp space
+    from gsp_jax.model import grasps  # a model's grasp space
 
     return input_names(grasps.space_of(model.hand))
 
 
 def path_of(model) -> pathlib.Path:
-    """Where a model's weights live: beside its scene file, `<scene stem>.learned.npz` (a `gsp_jax.model.Model`)."""
+    """Where a model's weights live: beside its scene file, `<scene stem>.learned.npz` (a `gsp_jax.Model`)."""
     return model.path.with_name(model.path.stem + ".learned.npz")
 
 
@@ -314,7 +315,7 @@ def save(fitted: Fitted, path) -> pathlib.Path:
 
 
 def load(path, model, names: Sequence[str] | None = None) -> Fitted:
-    """Weights saved by `save`, for `model` (a `gsp_jax.model.Model`): `LearnedTermError` naming the model where
+    """Weights saved by `save`, for `model` (a `gsp_jax.Model`): `LearnedTermError` naming the model where
     they were fitted for another model (its digest), other features than `names`, or lack a field."""
     path = pathlib.Path(path)
     try:

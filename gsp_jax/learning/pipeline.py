@@ -1,6 +1,6 @@
 """The paper's training pipeline: PPO on the training episodes (the environment cycles them), validated on the
 validation set with the deterministic policy and early-stopped there, optionally starting from behaviour cloning of
-the training episodes' DP solutions. Steps are exact table lookups of the surrogate (`gsp_jax.env`).
+the training episodes' DP solutions. Steps are exact table lookups of the surrogate (`gsp_jax.learning.env`).
 
     s = setup("quick")                                    # environments over tables, networks, configs, DP references
     result = run_seed(s, seed=0, mode="dp", out_dir=path)  # BC + PPO, resumable from path/checkpoints
@@ -12,12 +12,15 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from gsp_jax import dp, files, policies, pretrain, scenario
-from gsp_jax.env import GraspEnv
-from gsp_jax.evaluation import dp_tables
+from gsp_jax.planning import dp, policies
+from gsp_jax.core import files
+from gsp_jax.learning import pretrain
+from gsp_jax.model import scenario
+from gsp_jax.learning.env import GraspEnv
+from gsp_jax.planning.evaluation import dp_tables
 from gsp_jax.ppo import networks as nets
 from gsp_jax.ppo import train as ppo
-from gsp_jax.surrogate import Surrogate
+from gsp_jax.surrogate.step import Surrogate
 
 PRESETS = {  # quick: sized for a CPU; full: the GPU run behind the README's numbers
     "quick": dict(n_envs=256, hidden=(256, 256, 256), iterations=100, bc_epochs=300, minibatches=4),

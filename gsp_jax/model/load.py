@@ -20,7 +20,7 @@ import pathlib
 import mujoco
 import numpy as np
 
-from gsp_jax import grasps, hand as hand_lib
+from gsp_jax.model import grasps, hand as hand_lib
 
 SHIPPED = {"wrench": hand_lib.MODELS_DIR / "scene.xml",  # the paper's tool and our four-fingered hand
            "hammer": hand_lib.MODELS_DIR / "hammer" / "scene.xml",  # round handle, heavy head: CoM far off the grip

@@ -59,7 +59,7 @@ def option_places(model: mujoco.MjModel) -> dict[str, tuple[str, ...]]:
     axis reversed, by its largest tool-frame component: "+y side", "underside", "-x end", ...) and the site's
     coordinate along the tool's longest axis [mm], e.g. "handle -y side, x -20 mm". Tool frame, as in the model;
     the tool's colliding geoms (by contact bits or by contact pairs)."""
-    from gsp_jax import hand as hand_lib
+    from gsp_jax.model import hand as hand_lib
 
     tool = hand_lib.tool_body(model)
     paired = {int(g) for g in (*model.pair_geom1, *model.pair_geom2) if model.geom_bodyid[g] == tool}
@@ -116,8 +116,8 @@ def caption(images: np.ndarray, texts: list[str], size: int = 14) -> np.ndarray:
 
 
 def _fingers(model: mujoco.MjModel) -> tuple[int, list[int]]:
-    """(the hand's root body, its children: one per finger), from the model's conventions (`gsp_jax.hand`)."""
-    from gsp_jax import hand as hand_lib
+    """(the hand's root body, its children: one per finger), from the model's conventions (`gsp_jax.model.hand`)."""
+    from gsp_jax.model import hand as hand_lib
 
     palm = hand_lib.hand_root(model)
     return palm, [b for b in range(model.nbody) if model.body_parentid[b] == palm and b != palm]
@@ -126,7 +126,7 @@ def _fingers(model: mujoco.MjModel) -> tuple[int, list[int]]:
 def finger_colours(model: mujoco.MjModel | None = None) -> dict[str, tuple[float, float, float]]:
     """{finger: (r, g, b) in [0, 1]}, the colours the frames give each finger (for a legend), named by the finger's
     first body's name up to "_" (default model: the shipped wrench's scene)."""
-    from gsp_jax import hand as hand_lib
+    from gsp_jax.model import hand as hand_lib
 
     model = hand_lib.load_mjmodel() if model is None else model
     _, fingers = _fingers(model)
@@ -135,7 +135,7 @@ def finger_colours(model: mujoco.MjModel | None = None) -> dict[str, tuple[float
 
 def styled(model: mujoco.MjModel, size: tuple[int, int] = (0, 0)) -> mujoco.MjModel:
     """A copy of `model` restyled for pictures (colours, lights, an offscreen buffer of at least `size` (H, W))."""
-    from gsp_jax import hand as hand_lib
+    from gsp_jax.model import hand as hand_lib
     from gsp_jax.physics.scene import SUPPORT
 
     m = copy.deepcopy(model)

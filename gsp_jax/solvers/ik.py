@@ -43,8 +43,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from gsp_jax import kinematics, platform
-from gsp_jax.hand import HandModel
+from gsp_jax.model import kinematics
+from gsp_jax.core import platform
+from gsp_jax.model.hand import HandModel
 
 
 @dataclasses.dataclass(frozen=True)

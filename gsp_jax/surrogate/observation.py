@@ -5,8 +5,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from gsp_jax.grasps import GraspSpace
-from gsp_jax.surrogate import State
+from gsp_jax.model.grasps import GraspSpace
+from gsp_jax.surrogate.step import State
 
 
 def observation_size(space: GraspSpace, n_steps: int, n_joints: int) -> int:

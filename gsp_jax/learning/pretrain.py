@@ -17,12 +17,13 @@ import optax
 from flax import struct
 from tqdm.auto import tqdm
 
-from gsp_jax import dp, reward as reward_lib
-from gsp_jax.dp import table_state
-from gsp_jax.observation import observation
+from gsp_jax.planning import dp
+from gsp_jax.surrogate import reward as reward_lib
+from gsp_jax.planning.dp import table_state
+from gsp_jax.surrogate.observation import observation
 from gsp_jax.ppo import networks as nets
-from gsp_jax.scenario import Episode
-from gsp_jax.surrogate import Surrogate
+from gsp_jax.model.scenario import Episode
+from gsp_jax.surrogate.step import Surrogate
 
 
 @struct.dataclass

@@ -1,5 +1,6 @@
 """What the planners of a batch of unseen episodes are built from (`Context`: the episodes, their DP tables, the PPO
-policy, the DP baseline), and the library's planners, registered by name in `gsp_jax.planners`: the paper's five
+policy, the DP baseline), and the library's planners, registered by name in `gsp_jax.planners.registry`: the paper's
+five
 (DP baseline, RL, L1, L2, DP optimal), the physics check's references (fixed grasp sequences, random feasible ones)
 and L1-physics, built the same way for Fig. 4a, Fig. 4b, `envelope` and Table 1.
 
@@ -21,8 +22,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gsp_jax import distributed, dp, files, grasps, model as model_lib, policies, scenario
-from gsp_jax.surrogate import Surrogate
+from gsp_jax.core import distributed, files
+from gsp_jax.planning import dp, policies
+from gsp_jax.model import grasps, load as model_lib, scenario
+from gsp_jax.surrogate.step import Surrogate
 
 L1_PHYSICS = dict(k=2, bases=("four-tips", "dp-opt"))  # its defaults: L1's 2 best and each base's own action,
 # under the constant four-tip grasp and DP optimal (never worse than either); their falls and regret against other

@@ -11,7 +11,7 @@ with the MuJoCo compiler and exposes, as plain numpy arrays (compile-time consta
   pose, start supports and start grasp; the waypoints' reach box, and gravity.
 
 A new hand or tool is a new model file that follows the conventions of `docs/your-model.md` (written also at the
-top of `models/hand.xml` and `models/wrench.xml`); `gsp_jax.model.check_model` lists every convention a file breaks,
+top of `models/hand.xml` and `models/wrench.xml`); `gsp_jax.check_model` lists every convention a file breaks,
 and `load` runs it first. Nothing here names a finger, a body or a geom.
 """
 from __future__ import annotations
@@ -24,7 +24,7 @@ import pathlib
 import mujoco
 import numpy as np
 
-_PACKAGE = pathlib.Path(__file__).resolve().parent
+_PACKAGE = pathlib.Path(__file__).resolve().parents[1]  # gsp_jax/
 # The model files: `models/` of the source tree, which an installed wheel carries as package data gsp_jax/models/.
 MODELS_DIR = _PACKAGE / "models" if (_PACKAGE / "models" / "scene.xml").is_file() else _PACKAGE.parent / "models"
 SCENE_XML = MODELS_DIR / "scene.xml"
@@ -485,7 +485,7 @@ def _is_below(model: mujoco.MjModel, b: int, ancestor: int) -> bool:
 
 def from_mjmodel(model: mujoco.MjModel) -> HandModel:
     """Extract a `HandModel` from a compiled scene (hand + one free body, the tool); raise ValueError naming the
-    first convention it breaks (`gsp_jax.model.check_model` lists them all)."""
+    first convention it breaks (`gsp_jax.check_model` lists them all)."""
     tool = tool_body(model)
     palm = hand_root(model)
     tree = _tree(model, palm)

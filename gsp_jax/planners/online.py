@@ -12,8 +12,9 @@ from __future__ import annotations
 
 import jax
 
-from gsp_jax import dp, lookahead as lookahead_lib, planners, policies
-from gsp_jax.env import TableModel
+from gsp_jax.planning import dp, lookahead as lookahead_lib, policies
+from gsp_jax.planners import registry as planners
+from gsp_jax.learning.env import TableModel
 
 GPU_AHEAD = 4  # RL's decisions per batch of realised states on a GPU (`policies.rollout_batched`'s `ahead`): a batch
 # realises, for each of the next k decisions j < k, the grasps within j link changes (196 states at k = 4); the

@@ -26,11 +26,11 @@ import jax.numpy as jnp
 import numpy as np
 from brax.envs import base as brax_base
 
-from gsp_jax import dp
-from gsp_jax.dp import TableModel, table_state, table_step  # noqa: F401  (the table backend; re-exported)
-from gsp_jax.observation import observation, observation_size  # noqa: F401  (the policy's view; re-exported)
-from gsp_jax.scenario import Episode
-from gsp_jax.surrogate import State, Surrogate
+from gsp_jax.planning import dp
+from gsp_jax.planning.dp import TableModel, table_state, table_step  # noqa: F401  (the table backend; re-exported)
+from gsp_jax.surrogate.observation import observation, observation_size  # noqa: F401  (the policy's view; re-exported)
+from gsp_jax.model.scenario import Episode
+from gsp_jax.surrogate.step import State, Surrogate
 
 
 class GraspEnv(brax_base.Env):

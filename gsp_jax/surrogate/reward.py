@@ -26,7 +26,8 @@ the last step the forces the hand's motors can give leave more than `motor_fall_
 (`RewardTerms.motor_unmet`); `r_min` ends the episode.
 
 The learned physics term (`Surrogate(learned=...)`, off by default: the paper's surrogate): a network fitted on a
-physics corpus of the model (`gsp_jax.learned`) gives each transition its probability p of a fall in the segment
+physics corpus of the model (`gsp_jax.surrogate.learned`) gives each transition its probability p of a fall in the
+segment
 (`RewardTerms.fall_risk`), a chance node after the decision (the paper's lookahead is expectimax). A transition
 with p above `risk_falls` is a fall; below it, the step's reward is its expectation, (1 - p) times the analytic
 reward plus p times `r_min`, and what follows it counts only if the segment held: every planner backs values up as
@@ -48,9 +49,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from gsp_jax import files
-from gsp_jax.hand import MODELS_DIR
-from gsp_jax.scenario import M0
+from gsp_jax.core import files
+from gsp_jax.model.hand import MODELS_DIR
+from gsp_jax.model.scenario import M0
 
 CALIBRATION_JSON = MODELS_DIR / "reward_calibration.json"
 # The fields of `RewardConfig` whose defaults the calibration chooses, and their types.
@@ -357,7 +358,8 @@ def write_calibration(path: str | pathlib.Path, values: dict, measured: dict, wr
             isinstance(v, (str, int, float, bool)) or v is None for v in measured.values()):
         raise CalibrationError(f"write_calibration: measured: expected a flat object of numbers and strings, got "
                                f"{measured!r}")
-    doc = {"about": "The reward's calibrated defaults (gsp_jax.reward.RewardConfig) and what the calibration measured "
+    doc = {"about": "The reward's calibrated defaults (gsp_jax.surrogate.reward.RewardConfig) and what the "
+                    "calibration measured "
                     "for them. Written by `python -m experiments calibrate --write`; rerun it rather than editing by "
                     "hand.",
            "written": written or datetime.date.today().isoformat(),

@@ -7,7 +7,8 @@ A step at waypoint t applies the action to the grasp g (action 0, the null actio
 sets one contact link to one option), realises the new grasp g' by IK at the current tool pose and at the next
 desired pose (waypoint t+1), and, when the grasp changes, the shared grasp (g without the link that moves) at the
 current pose; it solves the wrench problems of those contacts and scores them with the shaped reward of
-`gsp_jax.reward` (its terms (a)-(f), `RewardConfig`). A step that collides or drops the tool gets `r_min` and ends
+`gsp_jax.surrogate.reward` (its terms (a)-(f), `RewardConfig`). A step that collides or drops the tool gets `r_min`
+and ends
 the episode. Every IK starts from the model's fixed start configuration, so the next joint state is the IK result at
 the next desired pose (the paper's transition). Rotational inertia is not modelled here (the paper's trajectories
 are pure translations): the contacts must supply m (a - g) and zero torque about the CoM while moving; the MJX
@@ -23,10 +24,13 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from gsp_jax import grasps, ik, ik_lanes, kinematics, platform, wrench
-from gsp_jax import hand as hand_lib, learned as learned_lib, model as model_lib, reward as reward_lib
-from gsp_jax.reward import RewardConfig, RewardTerms
-from gsp_jax.scenario import Episode, unstack, validate
+from gsp_jax.model import grasps, kinematics
+from gsp_jax.solvers import ik, ik_lanes, wrench
+from gsp_jax.core import platform
+from gsp_jax.model import hand as hand_lib, load as model_lib
+from gsp_jax.surrogate import learned as learned_lib, reward as reward_lib
+from gsp_jax.surrogate.reward import RewardConfig, RewardTerms
+from gsp_jax.model.scenario import Episode, unstack, validate
 
 
 MOTOR_GPU_UNROLL = 10  # the motor check's solve: iterations per loop trip on a GPU (`WrenchConfig.unroll`; the same
@@ -85,9 +89,9 @@ class Surrogate:
         wrench_config: wrench.WrenchConfig = wrench.WrenchConfig(),
         learned=None,
     ):
-        """`hand`: the model, as a shipped name, a scene path, a `gsp_jax.model.Model` or a loaded `HandModel`
-        (None: the shipped wrench, `gsp_jax.model.DEFAULT`). `learned`: the learned physics term
-        (`gsp_jax.reward.with_risk`): False off (the paper's surrogate), True the model's own weights
+        """`hand`: the model, as a shipped name, a scene path, a `gsp_jax.model.load.Model` or a loaded `HandModel`
+        (None: the shipped wrench, `gsp_jax.model.load.DEFAULT`). `learned`: the learned physics term
+        (`gsp_jax.surrogate.reward.with_risk`): False off (the paper's surrogate), True the model's own weights
         (`learned.path_of`), a `learned.Fitted` or a weights file; None: off. Weights of another model are refused."""
         self.hand = hand if isinstance(hand, hand_lib.HandModel) else model_lib.load_model(hand).hand
         self.space = grasps.space_of(self.hand)
@@ -200,7 +204,8 @@ class Surrogate:
         during: Contacts | None = None, changed=False,
     ) -> RewardTerms:
         """Reward terms of moving, with new grasp contacts `now` (at the current pose) and `nxt` (at waypoint
-        t+1), from waypoint t: the wrench problems solved here, the terms assembled by `gsp_jax.reward`. The previous
+        t+1), from waypoint t: the wrench problems solved here, the terms assembled by `gsp_jax.surrogate.reward`. The
+        previous
         grasp enters through `redundant`, `changed` (the grasp changes) and `during` (the shared grasp's contacts at
         the current pose; None: no change term). The motor check counts at the last step only (`reward.arrival`):
         under a `cond` (`_only_where`), so a step of one t solves it only there and a batch of steps only where one

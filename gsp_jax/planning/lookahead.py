@@ -38,8 +38,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from gsp_jax.grasps import GraspSpace
-from gsp_jax.surrogate import State
+from gsp_jax.model.grasps import GraspSpace
+from gsp_jax.surrogate.step import State
 
 Value = Callable[[State], jax.Array]  # optional value estimate of a state, in reward units
 

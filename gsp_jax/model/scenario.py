@@ -13,7 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from gsp_jax import files, hand as hand_lib
+from gsp_jax.core import files
+from gsp_jax.model import hand as hand_lib
 
 N_WAYPOINTS = 16  # T: waypoints = decision steps of an episode
 DT = 0.25  # nominal time between waypoints [s]
@@ -86,7 +87,7 @@ def make_episode(
     inertia=None,
     com=None,
 ) -> Episode:
-    """The nominal lift of `model`'s tool (a name, path or `gsp_jax.model.Model`; None: the shipped wrench) with the
+    """The nominal lift of `model`'s tool (a name, path or `gsp_jax.Model`; None: the shipped wrench) with the
     paper's variations: start and end heights shifted, torque (None: the model's, `HandModel.torque`), mass, CoM
     y-offset; and beyond them (the stress set):
     a CoM x-offset, a lateral end point (dx, dy) [mm] reached on the same minimum-jerk profile as the height, the
@@ -97,7 +98,7 @@ def make_episode(
     [kg], `inertia` (3,) [kg m^2] and `com` (3,) [m, tool frame] set them absolutely instead. The start grasp is the
     model's default (`HandModel.start_options`), or `start` (a {link: option} dict or one option per link), or the
     grasp index `start_grasp`."""
-    from gsp_jax import model as model_lib  # local: the model reads the files
+    from gsp_jax.model import load as model_lib  # local: the model reads the files
 
     model = model_lib.load_model(model)
     hand, space = model.hand, model.space
@@ -180,7 +181,7 @@ def _fmt_mm(mm: float) -> str:
 
 def _torque(model) -> float:
     """The final torque magnitude of a model's episodes [N m] (`HandModel.torque`; the wrench's: TORQUE0)."""
-    from gsp_jax import model as model_lib
+    from gsp_jax.model import load as model_lib
 
     return model_lib.load_model(model).hand.torque
 
@@ -354,7 +355,7 @@ def validate(ep: Episode, name: str = "episode", n_grasps: int | None = None, ha
     """Check one episode against its model (`model`: a name, path or `Model`, or its `hand`; default: the shipped
     wrench): raise `EpisodeError` naming the field and value on the first problem found. `n_grasps` defaults to
     the model's grasp count; `max_waypoints` is the reward's (`RewardConfig.max_waypoints`)."""
-    from gsp_jax import grasps, model as model_lib  # local: both read the model file
+    from gsp_jax.model import grasps, load as model_lib  # local: both read the model file
 
     hand = hand or model_lib.load_model(model).hand
     n_grasps = grasps.space_of(hand).n_grasps if n_grasps is None else n_grasps
@@ -453,7 +454,7 @@ def _is_numeric(x) -> bool:
 def save(path: str | pathlib.Path, episodes: dict[str, Episode], model=None) -> None:
     """Write named episodes to a human-readable JSON file, with the model they are for (name and digest; None:
     the shipped wrench), which `load` checks."""
-    from gsp_jax import model as model_lib
+    from gsp_jax.model import load as model_lib
 
     m = model_lib.load_model(model)
     doc = {"format": "gsp_jax.episodes/1", "model": {"name": m.name, "digest": m.digest},
@@ -464,7 +465,7 @@ def save(path: str | pathlib.Path, episodes: dict[str, Episode], model=None) -> 
 def load(path: str | pathlib.Path, model=None) -> dict[str, Episode]:
     """Read and validate named episodes from a JSON file written by `save` (or by hand) for `model` (None: the
     shipped wrench). A file that names another model (its digest) is refused with an error naming both."""
-    from gsp_jax import model as model_lib
+    from gsp_jax.model import load as model_lib
 
     m = model_lib.load_model(model)
     try:

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gsp_jax import hand as hand_lib
+from gsp_jax.model import hand as hand_lib
 
 LINK_ABBREV = {"thumb": "T", "index": "I", "middle": "M", "ring": "R"}
 NULL = 0  # the null action: keep the current grasp

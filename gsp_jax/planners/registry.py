@@ -26,8 +26,9 @@ from typing import Any, Callable
 import jax
 import jax.numpy as jnp
 
-from gsp_jax import dp, evaluation, platform, policies
-from gsp_jax.grasps import NULL
+from gsp_jax.planning import dp, evaluation, policies
+from gsp_jax.core import platform
+from gsp_jax.model.grasps import NULL
 
 NEEDS = ("tables", "solutions", "rl", "nominal", "base")
 GROUPS = ("paper", "reference", "verified", "user")
@@ -150,8 +151,8 @@ def returns(ctx, name: str, backend: str = "table", **options):
     DP table (`backend="table"`: exact for the discrete states the surrogate visits) or in the surrogate itself
     (`"surrogate"`, a lookahead's tree included). `options` go to `make` as shared options (to the planner only
     where it takes them, e.g. `cached=True`)."""
-    from gsp_jax import lookahead
-    from gsp_jax.env import TableModel
+    from gsp_jax.planning import lookahead
+    from gsp_jax.learning.env import TableModel
 
     if backend not in ("table", "surrogate"):
         raise ValueError(f"returns: backend must be 'table' or 'surrogate', got {backend!r}")
@@ -189,7 +190,7 @@ def plan(ctx, name: str, backend: str = "table", **options) -> Plan:
     """Planner `name`'s episode for every episode of `ctx` (`evaluation.context`), stepped from its reset in its DP
     table (`backend="table"`) or in the surrogate (`"surrogate"`), as `returns` steps it; with the decisions and
     rewards kept. `options` as `returns` takes them."""
-    from gsp_jax.env import TableModel
+    from gsp_jax.learning.env import TableModel
 
     if backend not in ("table", "surrogate"):
         raise ValueError(f"plan: backend must be 'table' or 'surrogate', got {backend!r}")
@@ -321,7 +322,8 @@ def _l1_physics(ctx: evaluation.Context, *, k: int = evaluation.L1_PHYSICS["k"],
         raise ValueError(f"bases: one or more registered planners other than L1-physics, got {bases!r}")
     root_model = model
     if model is None and platform.current() == "cpu":  # online, the root's few dozen IK problems in the batch-last
-        # form (`IKConfig.lanes`; its cost and gain: docs/performance.md), its compile kept on disk (`gsp_jax.cache`)
+        # form (`IKConfig.lanes`; its cost and gain: docs/performance.md), its compile kept on disk
+        # (`gsp_jax.core.cache`)
         sur = ctx.surrogate
         root_model = sur.replace(ik_config=dataclasses.replace(sur.ik_config, lanes=True))
     root, axis = _lookahead(ctx, 1, root_model, cached)

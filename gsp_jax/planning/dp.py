@@ -11,7 +11,7 @@ new grasp g' and t. So the table
 costs G x T distinct IK solves (4,608: each grasp at each waypoint, shared by the step that arrives there, the
 step that leaves and the changes it holds the tool through), G x T x 3 wrench solves, and no per-(g, a) physics
 at all -- against the paper's G x A x T = 78,336 environment steps (`Surrogate.step`). The reward is
-`gsp_jax.reward`'s, as in the step: the arrival terms of each (g', t) (`grasp_terms`), then each transition's
+`gsp_jax.surrogate.reward`'s, as in the step: the arrival terms of each (g', t) (`grasp_terms`), then each transition's
 (`reward.of_transitions`). Every action is applicable in every grasp (the null action keeps it, the others set one
 link), so no transition is unreachable; a transition that collides or drops the tool gets R_MIN and ends the
 episode (`terminal`), as do all transitions of the last step.
@@ -24,11 +24,11 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from gsp_jax import reward as reward_lib
-from gsp_jax.grasps import NULL, GraspSpace
-from gsp_jax.reward import RewardTerms
-from gsp_jax.scenario import Episode
-from gsp_jax.surrogate import Contacts, State, Surrogate
+from gsp_jax.surrogate import reward as reward_lib
+from gsp_jax.model.grasps import NULL, GraspSpace
+from gsp_jax.surrogate.reward import RewardTerms
+from gsp_jax.model.scenario import Episode
+from gsp_jax.surrogate.step import Contacts, State, Surrogate
 
 
 @struct.dataclass

@@ -7,7 +7,7 @@ policy the same way. A policy may read any field of the state except `terms` (th
     DP baseline   SequencePolicy(solution of the nominal training episode .actions)   open loop
     DP optimal    TablePolicy(solution of the episode itself .policy)                  closed loop, (grasp, t)
     RL            NetworkPolicy(params, networks, space)                               deterministic PPO actor
-    Ll (L1, L2)   Lookahead(base=any of these, model=surrogate, depth=l)               `gsp_jax.lookahead`
+    Ll (L1, L2)   Lookahead(base=any of these, model=surrogate, depth=l)               `gsp_jax.planning.lookahead`
 
 A policy's episode in the surrogate `sur`: `lookahead.rollout(sur, policy, sur.reset(episode))` (the one rollout);
 `rollout_batched` runs the same episode with its transitions in one batch.
@@ -21,15 +21,17 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from gsp_jax import files, hand as hand_lib, model as model_lib, reward as reward_lib, scenario as scenario_lib
-from gsp_jax.observation import observation, observation_size
-from gsp_jax.grasps import GraspSpace
-from gsp_jax.lookahead import Lookahead  # re-exported: the Ll policies
+from gsp_jax.core import files
+from gsp_jax.model import hand as hand_lib, load as model_lib, scenario as scenario_lib
+from gsp_jax.surrogate import reward as reward_lib
+from gsp_jax.surrogate.observation import observation, observation_size
+from gsp_jax.model.grasps import GraspSpace
+from gsp_jax.planning.lookahead import Lookahead  # re-exported: the Ll policies
 from gsp_jax.ppo import networks as nets
 from gsp_jax.ppo.checkpoint import load_policy, save_policy
 from gsp_jax.ppo.config import PPOConfig
-from gsp_jax.scenario import Episode
-from gsp_jax.surrogate import State, Surrogate
+from gsp_jax.model.scenario import Episode
+from gsp_jax.surrogate.step import State, Surrogate
 
 __all__ = ["Lookahead", "NetworkPolicy", "SequencePolicy", "TablePolicy", "rollout_batched"]
 

@@ -39,8 +39,9 @@ import numpy as np
 
 from flax import struct
 
-from gsp_jax import ik, kinematics
-from gsp_jax.hand import HandModel
+from gsp_jax.solvers import ik
+from gsp_jax.model import kinematics
+from gsp_jax.model.hand import HandModel
 
 
 Vec = tuple  # three (n, N) arrays (or constants (n, 1)): the x, y and z components of n points over the batch N

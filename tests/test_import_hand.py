@@ -1,4 +1,4 @@
-"""`gsp_jax.hand_import` (`python -m experiments import-hand`): a published-style MJCF hand (box and mesh collision
+"""`gsp_jax.importer` (`python -m experiments import-hand`): a published-style MJCF hand (box and mesh collision
 geoms, a visual mesh, position servos, a tendon-coupled joint pair, damping 0.03 without armature) -> a hand file
 that follows the conventions. The tests build their own small hand; MuJoCo and numpy only (no JAX compile)."""
 from __future__ import annotations
@@ -10,9 +10,9 @@ import mujoco
 import numpy as np
 import pytest
 
-from gsp_jax import hand as hand_lib
-from gsp_jax import hand_import
-from gsp_jax import model as model_lib
+from gsp_jax import importer
+from gsp_jax.model import hand as hand_lib
+from gsp_jax.model import load as model_lib
 
 TIP_OBJ = """# a stretched diamond (convex), 6 vertices, 8 faces [m]
 v 0.007 0 0.008
@@ -161,7 +161,7 @@ def imported(tmp_path_factory):
     """The small hand imported (torque limit 0.5 N m for its one servo without force range) and written."""
     folder = tmp_path_factory.mktemp("toy")
     src = write_hand(folder / "src")
-    result = hand_import.import_hand(src, torque_limit=TORQUE_LIMIT)
+    result = importer.import_hand(src, torque_limit=TORQUE_LIMIT)
     return src, result, result.write(folder / "out")
 
 
@@ -328,7 +328,7 @@ def test_the_written_file_compiles_from_its_folder_with_its_meshes(imported):
 
 def test_visual_geoms_go_with_drop_visual(tmp_path):
     src = write_hand(tmp_path / "src")
-    result = hand_import.import_hand(src, torque_limit=TORQUE_LIMIT, drop_visual=True)
+    result = importer.import_hand(src, torque_limit=TORQUE_LIMIT, drop_visual=True)
     out = result.write(tmp_path / "out")
     m = _compiled(out)
     assert all(hand_lib.collides(m, g) for g in range(m.ngeom)) and m.nmesh == 0
@@ -339,23 +339,23 @@ def test_a_missing_visual_mesh_names_its_file_and_suggests_drop_visual(tmp_path)
     src = write_hand(tmp_path / "src")
     (tmp_path / "src" / "meshes" / "shell.obj").unlink()
     with pytest.raises(ValueError, match="shell.obj") as err:
-        hand_import.import_hand(src, torque_limit=TORQUE_LIMIT)
+        importer.import_hand(src, torque_limit=TORQUE_LIMIT)
     assert "--drop-visual" in str(err.value)
-    result = hand_import.import_hand(src, torque_limit=TORQUE_LIMIT, drop_visual=True)
+    result = importer.import_hand(src, torque_limit=TORQUE_LIMIT, drop_visual=True)
     assert _compiled(result.write(tmp_path / "out")).nmesh == 0
 
 
 def test_a_missing_collision_mesh_is_an_error_naming_it(tmp_path):
     src = write_hand(tmp_path / "src")
     (tmp_path / "src" / "meshes" / "tip.obj").unlink()
-    with pytest.raises(hand_import.HandImportError, match="tip.obj.*index_tip"):
-        hand_import.import_hand(src, torque_limit=TORQUE_LIMIT, drop_visual=True)
+    with pytest.raises(importer.HandImportError, match="tip.obj.*index_tip"):
+        importer.import_hand(src, torque_limit=TORQUE_LIMIT, drop_visual=True)
 
 
 def test_a_servo_without_force_range_needs_the_torque_limit(tmp_path):
     src = write_hand(tmp_path / "src")
     with pytest.raises(ValueError) as err:
-        hand_import.import_hand(src)
+        importer.import_hand(src)
     message = str(err.value)
     assert "thumb_j2" in message and "--torque-limit" in message and "position servo" in message
     assert "index_j1" not in message  # its servo has a force range
@@ -363,7 +363,7 @@ def test_a_servo_without_force_range_needs_the_torque_limit(tmp_path):
 
 def test_per_geom_fits_one_capsule_per_geom(tmp_path):
     src = write_hand(tmp_path / "src")
-    result = hand_import.import_hand(src, torque_limit=TORQUE_LIMIT, per_geom=True)
+    result = importer.import_hand(src, torque_limit=TORQUE_LIMIT, per_geom=True)
     m = _compiled(result.write(tmp_path / "out"))
     body = m.body("middle_prox").id
     assert len([g for g in range(m.ngeom) if m.geom_bodyid[g] == body and hand_lib.collides(m, g)]) == 2
@@ -374,7 +374,7 @@ def test_a_palm_deeper_in_the_tree_becomes_the_worlds_child_at_its_pose(tmp_path
     """--palm: the palm takes its world pose at the file's zero configuration; the arm, the wrist joint and its
     servo are dropped (and said so); the keyframe keeps the hand's joint angles."""
     src = write_hand(tmp_path / "src", arm=True)
-    result = hand_import.import_hand(src, torque_limit=TORQUE_LIMIT, palm="palm")
+    result = importer.import_hand(src, torque_limit=TORQUE_LIMIT, palm="palm")
     out = result.write(tmp_path / "out")
     m0, m1 = _compiled(src), _compiled(out)
     d0, d1 = _posed(m0, {}), _posed(m1, {})
@@ -391,18 +391,18 @@ def test_a_palm_deeper_in_the_tree_becomes_the_worlds_child_at_its_pose(tmp_path
 def test_palm_pose_is_set_when_given(tmp_path):
     src = write_hand(tmp_path / "src")
     quat = np.array([0.0, 1.0, 0.0, 0.0])
-    result = hand_import.import_hand(src, torque_limit=TORQUE_LIMIT, palm_pos=(0.01, 0.02, 0.15), palm_quat=quat)
+    result = importer.import_hand(src, torque_limit=TORQUE_LIMIT, palm_pos=(0.01, 0.02, 0.15), palm_quat=quat)
     m = _compiled(result.write(tmp_path / "out"))
     np.testing.assert_allclose(m.body_pos[m.body("palm").id], [0.01, 0.02, 0.15])
     np.testing.assert_allclose(np.abs(m.body_quat[m.body("palm").id]), quat)
     assert any("position set" in c for c in result.changes) and any("orientation set" in c for c in result.changes)
     with pytest.raises(ValueError, match="palm_quat"):
-        hand_import.import_hand(src, torque_limit=TORQUE_LIMIT, palm_quat=(0, 0, 0))
+        importer.import_hand(src, torque_limit=TORQUE_LIMIT, palm_quat=(0, 0, 0))
 
 
 def test_a_common_prefix_that_makes_the_fingers_collide_is_stripped(tmp_path):
     src = write_hand(tmp_path / "src", prefix="lh_")
-    result = hand_import.import_hand(src, torque_limit=TORQUE_LIMIT)
+    result = importer.import_hand(src, torque_limit=TORQUE_LIMIT)
     m = _compiled(result.write(tmp_path / "out"))
     assert result.palm == "palm" and "palm" in [m.body(b).name for b in range(m.nbody)]
     assert sorted(m.joint(j).name for j in range(m.njnt)) == sorted(JOINTS)
@@ -414,7 +414,7 @@ def test_a_common_prefix_that_makes_the_fingers_collide_is_stripped(tmp_path):
 
 def test_importing_an_imported_hand_changes_nothing(imported, tmp_path):
     _, _, out = imported
-    again = hand_import.import_hand(out)
+    again = importer.import_hand(out)
     assert not again.replacements
     assert [c for c in again.changes if not c.startswith(("palm ", "NOTE", "kept: equality", "keyframe 'home' kept"))] \
         == []
@@ -447,15 +447,15 @@ def test_with_a_tool_and_a_table_the_hand_follows_the_conventions(imported):
 def test_fit_round_covers_its_points_and_prefers_the_smaller_geom():
     rng = np.random.default_rng(3)
     rod = rng.normal(size=(200, 3)) * [0.02, 0.003, 0.004]
-    fit = hand_import.fit_round(rod)
-    assert fit.kind == "capsule" and hand_import.segment_distance(rod, fit.ends).max() <= fit.radius
+    fit = importer.fit_round(rod)
+    assert fit.kind == "capsule" and importer.segment_distance(rod, fit.ends).max() <= fit.radius
     assert abs(np.diff(fit.ends, axis=0)[0] @ [1, 0, 0]) > 0.9 * fit.length  # along the long axis
     ball = rng.normal(size=(200, 3))
     ball = 0.01 * ball / np.linalg.norm(ball, axis=1, keepdims=True)  # points on a sphere of 1 cm
-    fit = hand_import.fit_round(ball)
+    fit = importer.fit_round(ball)
     assert fit.kind == "sphere" and fit.radius == pytest.approx(0.01, rel=1e-3)
     corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * [0.005, 0.006, 0.03]
-    box = hand_import.fit_round(corners)
+    box = importer.fit_round(corners)
     assert box.radius == pytest.approx(np.hypot(0.005, 0.006), rel=1e-6)  # the smallest radius across the box
     np.testing.assert_allclose(sorted(np.abs(box.ends[:, 2])), [0.03, 0.03], atol=1e-9)
 
@@ -464,7 +464,7 @@ def test_min_circle_is_the_smallest_enclosing_circle():
     rng = np.random.default_rng(0)
     for _ in range(20):
         p = rng.normal(size=(rng.integers(3, 40), 2))
-        c, r = hand_import.min_circle(p)
+        c, r = importer.min_circle(p)
         assert np.linalg.norm(p - c, axis=1).max() <= r * (1 + 1e-9)
         pairs = max(np.linalg.norm(a - b) / 2 for a in p for b in p)
         assert r >= pairs - 1e-12  # no circle is smaller than half the widest pair
@@ -477,8 +477,8 @@ def test_contact_links_and_the_ik_start_are_written_with_their_sites(tmp_path):
     of its geom (the end farther from the body's joint), with the geom's radius; a link above it a capsule along its
     geom. `start` writes gsp_ik_start; angles outside the joint ranges and unknown bodies are refused by name."""
     src = write_hand(tmp_path / "src")
-    res = hand_import.import_hand(src, torque_limit=TORQUE_LIMIT, contact_links=["index_prox", "index_dist"],
-                                  start=[0.1] * len(JOINTS))
+    res = importer.import_hand(src, torque_limit=TORQUE_LIMIT, contact_links=["index_prox", "index_dist"],
+                               start=[0.1] * len(JOINTS))
     m = _compiled(res.write(tmp_path / "out"))
     assert hand_lib._text(m, "gsp_contact_links") == "index_prox index_dist"
     np.testing.assert_allclose(hand_lib._numeric(m, "gsp_ik_start"), [0.1] * len(JOINTS))
@@ -493,10 +493,10 @@ def test_contact_links_and_the_ik_start_are_written_with_their_sites(tmp_path):
             ends = [m.geom_pos[g] + s_ * m.geom_size[g, 1] * axis for s_ in (-1, 1)]
             far = max(ends, key=np.linalg.norm)
             np.testing.assert_allclose(m.site_pos[s], far, atol=1e-6)
-    with pytest.raises(hand_import.HandImportError, match=r"ik_start: outside the joint ranges: index_j1 5"):
-        hand_import.import_hand(src, torque_limit=TORQUE_LIMIT, start=[5.0] + [0.1] * (len(JOINTS) - 1))
-    with pytest.raises(hand_import.HandImportError, match=r"contact_links: 'pinky' is not a body of the hand"):
-        hand_import.import_hand(src, torque_limit=TORQUE_LIMIT, contact_links=["pinky"])
+    with pytest.raises(importer.HandImportError, match=r"ik_start: outside the joint ranges: index_j1 5"):
+        importer.import_hand(src, torque_limit=TORQUE_LIMIT, start=[5.0] + [0.1] * (len(JOINTS) - 1))
+    with pytest.raises(importer.HandImportError, match=r"contact_links: 'pinky' is not a body of the hand"):
+        importer.import_hand(src, torque_limit=TORQUE_LIMIT, contact_links=["pinky"])
 
 
 def test_bodies_whose_mass_was_in_dropped_visual_geoms_take_it_from_their_collision_geoms(tmp_path):
@@ -511,7 +511,7 @@ def test_bodies_whose_mass_was_in_dropped_visual_geoms_take_it_from_their_collis
     body.add_geom(name="skin", type=mujoco.mjtGeom.mjGEOM_MESH, meshname="shell", contype=0, conaffinity=0)
     (tmp_path / "src" / "heavy_skin.xml").write_text(spec.to_xml())
     (tmp_path / "src" / "meshes" / "shell.obj").unlink()  # its visual meshes not at hand (as Menagerie's STLs here)
-    res = hand_import.import_hand(tmp_path / "src" / "heavy_skin.xml", torque_limit=TORQUE_LIMIT, drop_visual=True)
+    res = importer.import_hand(tmp_path / "src" / "heavy_skin.xml", torque_limit=TORQUE_LIMIT, drop_visual=True)
     line = next(c for c in res.changes if c.startswith("body 'middle_prox': no mass left"))
     density = float(re.search(r"density ([0-9.]+) kg/m\^3", line).group(1))
     volume = sum(8 * np.prod(g.size) for g in body.geoms if g.type == mujoco.mjtGeom.mjGEOM_BOX)

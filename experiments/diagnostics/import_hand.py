@@ -2,7 +2,7 @@
 
 Reads SRC (e.g. MuJoCo Menagerie's ``leap_hand/right_hand.xml``: box and mesh collision geoms, position servos),
 writes OUT_DIR/hand.xml and copies the meshes it still uses to OUT_DIR/assets/. Every change is printed and written
-into the file's header comment (`gsp_jax.hand_import`): the palm made the world's child (``--palm`` for one deeper
+into the file's header comment (`gsp_jax.importer`): the palm made the world's child (``--palm`` for one deeper
 in the tree, its forearm and wrist dropped), non-round collision geoms replaced by fitted capsules or spheres (their
 over-cover reported), servos replaced by torque motors (``--torque-limit`` where the file gives no force range),
 the joints' damping, armature and friction loss set to the values the physics controller is tuned for. Then come
@@ -15,7 +15,7 @@ import pathlib
 
 import mujoco
 
-from gsp_jax import hand_import
+from gsp_jax import importer
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -45,12 +45,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> None:
     try:
-        imported = hand_import.import_hand(args.src, torque_limit=args.torque_limit, palm=args.palm,
-                                           palm_pos=args.palm_pos, palm_quat=args.palm_quat,
-                                           drop_visual=args.drop_visual, per_geom=args.per_geom,
-                                           contact_links=args.contact_links, start=args.ik_start)
+        imported = importer.import_hand(args.src, torque_limit=args.torque_limit, palm=args.palm,
+                                        palm_pos=args.palm_pos, palm_quat=args.palm_quat,
+                                        drop_visual=args.drop_visual, per_geom=args.per_geom,
+                                        contact_links=args.contact_links, start=args.ik_start)
         path = imported.write(args.out_dir)
-    except hand_import.HandImportError as e:
+    except importer.HandImportError as e:
         raise SystemExit(f"import-hand: {e}") from None
     print(f"{args.src}: {len(imported.changes)} change(s)")
     for line in imported.changes:

@@ -356,7 +356,7 @@ def test_staleness_sees_a_change_to_the_code_a_record_measures(tmp_path):
             f.write(b"\n")
         assert any("models/scene.learned.npz" in why for why in figures.stale(row))
         subprocess.run(["git", "reset", "-q", "--hard"], cwd=clone, check=True)
-        with open(clone / "gsp_jax" / "reward.py", "a") as f:
+        with open(clone / "gsp_jax" / "surrogate" / "reward.py", "a") as f:
             f.write("\n# changed\n")
         assert any("gsp_jax/surrogate/reward.py" in why for why in figures.stale(row))
     finally:
@@ -390,7 +390,7 @@ def test_a_figures_run_records_the_commit_it_started_from(tmp_path, monkeypatch)
     assert [r["commit"] for r in rows[-len(cpu):]] == [head] * len(cpu)
     assert [r["command"] for r in rows[-len(cpu):]] == ["python -m experiments --record " + " ".join(f.command)
                                                         for f in cpu]
-    with open(clone / "gsp_jax" / "reward.py", "a") as f:
+    with open(clone / "gsp_jax" / "surrogate" / "reward.py", "a") as f:
         f.write("\n# changed\n")
     figures.main(argparse.Namespace(list=False, stale=False, machine="cpu", only=[cpu[0].name]))
     last = json.loads((clone / f"docs/data/{tracked[0]}_cpu.json").read_text())

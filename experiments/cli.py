@@ -1,11 +1,16 @@
 """The commands' registry and their entry point: `python -m experiments <command> [options]` (`main`), and
-`run_command`, one command run by another in this process. `python -m experiments --help` lists them."""
+`run_command`, one command run by another in this process, within its run. `python -m experiments --help` lists
+them."""
 from __future__ import annotations
 
 import argparse
 import importlib
 import os
 import sys
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from experiments import common
 
 COMMANDS = {  # command -> (module, one-line help)
     "demo": ("experiments.demo", "the main job on one unseen episode: DP optimal and L1 plans, executed in C MuJoCo"),
@@ -104,7 +109,10 @@ def processes_asked(words: list[str]) -> tuple[int | None, list[str]]:
     return None, list(words)
 
 
-def main(argv: list[str] | None = None) -> None:
+def main(argv: list[str] | None = None, outer: common.Run | None = None) -> None:
+    """`python -m experiments [--processes N] [--record] <command> [options]`: the command's module imported, its
+    options parsed, its `Run` made (`make_run`; within `outer`, the run of the command that runs this one:
+    `run_command`) and handed to its `main(args, run)`."""
     words = sys.argv[1:] if argv is None else argv
     n_processes, words = processes_asked(words)
     chosen = next((w for w in words if w in COMMANDS), None)  # only its module is imported (the others: help only)
@@ -150,50 +158,55 @@ def main(argv: list[str] | None = None) -> None:
                             help="plan with the learned physics term (the model's weights, `calibrate --learn`); "
                                  "results and records are named -learned")
     args = parser.parse_args(argv)
-    from experiments import common
-    from gsp_jax.model import load as model_lib
-
-    common.RECORD = common.RECORD or args.record  # a command run by another (`run_command`) keeps it
-    common.COMMAND = common.COMMAND or list(words)  # the command a record names: the outermost one
     for plugin in args.plugin:
         load_plugin(plugin)
-    was_model = common.MODEL  # a command another runs (`run_command`) inherits the run's model; restored after
-    if "model" in args:  # every command but check-model: `args.model` becomes the `Model` it passes down
-        given = args.model is not None
-        try:
-            args.model = model_lib.load_model(args.model if given else common.MODEL)
-        except model_lib.ModelError as e:
-            raise SystemExit(f"--model: {e}") from None
-        if given:
-            print(f"model: {args.model.name} ({args.model.path})", flush=True)
-        common.MODEL = args.model
-    from gsp_jax.surrogate import learned
-
-    was_learned = common.LEARNED  # a command another runs (`run_command`) inherits it; restored after
-    args.learned = bool(getattr(args, "learned", False) or common.LEARNED)  # passed down: `Surrogate(learned=)`
-    if args.learned and "model" in args:  # the model's weights exist (checked before any work)
-        try:
-            learned.resolve(True, args.model)
-        except learned.LearnedTermError as e:
-            raise SystemExit(f"--learned: {e}") from None
-        if not was_learned:
-            print(f"learned physics term: {learned.path_of(args.model)}", flush=True)
-    common.LEARNED = args.learned
+    run = make_run(args, words, outer)
     from gsp_jax.core import files
     from gsp_jax.model import scenario
 
     try:
         for parts in getattr(module, "results_folders", lambda _: [])(args):  # its results folders, locked before
-            common.results_dir(*parts)  # any set-up: a busy one stops it here (its own results_dir calls: no-ops)
-        module.main(args)
+            run.results_dir(*parts)  # any set-up: a busy one stops it here (its own results_dir calls: no-ops)
+        module.main(args, run)
     except (files.FolderInUse, scenario.EpisodeError) as e:  # a user's input or a busy folder: the message, no trace
         raise SystemExit(f"{args.command}: {e}") from None
-    finally:
-        common.LEARNED = was_learned
-        common.MODEL = was_model
 
 
-def run_command(words: list[str]) -> None:
-    """Run another command in this process, as `python -m experiments <words>` would (the same --record, --model
-    and plugins): how a pipeline such as `reproduce` composes commands, reading their results from their files."""
-    main(list(words))
+def make_run(args: argparse.Namespace, words: list[str], outer: common.Run | None = None) -> common.Run:
+    """The `Run` of a parsed command line: its `--model` loaded and checked (the outer run's model where it gives
+    none; the default model for the outermost), `--learned` (or the outer run's) with the model's weights checked,
+    `--record` (or the outer run's), and the words its records name (the outer run's: the outermost command).
+    `--model` and `--learned` leave `args`: a command reads them from its run."""
+    from experiments import common
+    from gsp_jax.model import load as model_lib
+    from gsp_jax.surrogate import learned
+
+    outer = outer or common.Run()
+    model = outer.model  # check-model takes no --model: the outer run's (None: the default model)
+    if "model" in args:
+        given = args.model is not None
+        try:
+            model = model_lib.load_model(args.model if given else outer.model)
+        except model_lib.ModelError as e:
+            raise SystemExit(f"--model: {e}") from None
+        if given:
+            print(f"model: {model.name} ({model.path})", flush=True)
+    use_learned = bool(getattr(args, "learned", False) or outer.learned)  # `Surrogate(run.model, learned=)`
+    if use_learned and "model" in args:  # the model's weights exist (checked before any work)
+        try:
+            learned.resolve(True, model)
+        except learned.LearnedTermError as e:
+            raise SystemExit(f"--learned: {e}") from None
+        if not outer.learned:
+            print(f"learned physics term: {learned.path_of(model)}", flush=True)
+    for name in ("model", "learned"):
+        vars(args).pop(name, None)
+    return common.Run(model=model, learned=use_learned, record=outer.record or args.record,
+                      command=outer.command or tuple(words))
+
+
+def run_command(words: list[str], run: common.Run) -> None:
+    """Run another command in this process, as `python -m experiments <words>` would, within `run` (the running
+    command's: its model, learned term and --record, where the words give none; its records name `run.command`): how
+    a pipeline such as `reproduce` composes commands, reading their results from their files."""
+    main(list(words), run)

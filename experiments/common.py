@@ -1,7 +1,8 @@
-"""Small helpers shared by the experiments: the results folder, plain-text tables, timing, the paper's numbers,
-the fingerprint of a saved evaluation result."""
+"""Small helpers shared by the experiments: the run a command is given (`Run`: its model, learned term, --record),
+the results folder, plain-text tables, timing, the paper's numbers, the fingerprint of a saved evaluation result."""
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import hashlib
 import json
@@ -10,6 +11,7 @@ import pathlib
 import subprocess
 import sys
 import time
+from typing import TYPE_CHECKING
 
 import jax
 import numpy as np
@@ -17,31 +19,29 @@ import numpy as np
 from gsp_jax.core import distributed, files
 from gsp_jax.model import hand
 
+if TYPE_CHECKING:
+    from gsp_jax.model.load import Model
+
 RESULTS = pathlib.Path("results")
 
 
-def results_dir(*parts: str) -> pathlib.Path:
+def results_dir(*parts: str, model=None, learned: bool = False) -> pathlib.Path:
     """results/<parts> (created, and locked for this process); a command run for another model than the wrench
-    (`--model`) writes to results/<first part>-<model>/... (results/<model> for no parts) instead, and one with the
-    learned physics term (`--learned`) to results/<first part>-learned/...: no model's or surrogate's results
-    overwrite another's."""
+    (`model`, a `Model` or a name; None: the default) writes to results/<first part>-<model>/... (results/<model>
+    for no parts) instead, and one with the learned physics term (`learned`) to results/<first part>-learned/...:
+    no model's or surrogate's results overwrite another's. A command calls its run's (`Run.results_dir`)."""
     from gsp_jax.model import load as model_lib
 
-    name = model_lib.load_model(MODEL).name
+    name = model_lib.load_model(model).name
     if name != model_lib.DEFAULT:
         parts = (f"{parts[0]}-{name}", *parts[1:]) if parts else (name,)
-    if learned_on():
+    if learned:
         parts = (f"{parts[0]}-learned", *parts[1:]) if parts else ("learned",)
     path = RESULTS.joinpath(*parts)
     path.mkdir(parents=True, exist_ok=True)
     if distributed.is_main():  # the processes of one run (`--processes`) share process 0's lock
         files.hold(path)  # one command at a time writes a results folder (`files.FolderInUse` for a second)
     return path
-
-
-def learned_on() -> bool:
-    """Whether the run plans with the learned physics term (`--learned`: `LEARNED`)."""
-    return LEARNED
 
 
 def table(headers: list[str], rows: list[list], floatfmt: str = ".3f") -> str:
@@ -89,10 +89,6 @@ def fingerprint(ctx) -> str:
 
 
 DATA = ROOT / "docs" / "data"  # the current result of each benchmark and figure, and their histories
-MODEL = None  # the run's `Model` (`--model`, set by `cli.main` for the command it runs; None: the default model)
-RECORD = False  # `python -m experiments --record <command>`: `record` writes to DATA (off: runs leave docs alone)
-COMMAND: list[str] | None = None  # the words of the command a record names (set by the outermost `main`)
-LEARNED = False  # the run's `--learned` (set by `cli.main`; a command run by another inherits it): `args.learned`
 
 
 def device_slug() -> str:
@@ -101,33 +97,49 @@ def device_slug() -> str:
     return next((g for g in ("h100", "h200", "a100", "l4") if g in kind), jax.default_backend())
 
 
-def record(name: str, figures: dict, data: pathlib.Path | None = None) -> dict | None:
-    """With `--record` (`RECORD`): `figures` (a small JSON-able dict, the benchmark's printed table) become the
-    current `docs/data/<name>_<device>.json` (`device_slug`: one current result per figure and machine) and a new
-    line of `docs/data/history/<name>_<device>.jsonl`, one schema for all: {name, date, commit, device, command,
-    figures}."""
-    if not RECORD or not distributed.is_main():  # several processes: process 0 records
-        return None
-    data = DATA if data is None else pathlib.Path(data)
-    name = f"{name}{'_learned' * learned_on()}_{device_slug()}"  # the learned physics term's figures beside the paper's
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=ROOT, capture_output=True, text=True,
-                                check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
-                               text=True).stdout.strip()
-        commit += "+dirty" if dirty else ""
-    except (OSError, subprocess.CalledProcessError):  # a copy without git's history (a cluster's, a GPU host's)
-        commit = os.environ.get("GSP_JAX_COMMIT", "unknown")  # the commit the copy was made from, where one says so
-    row = dict(name=name, date=datetime.datetime.now().isoformat(timespec="minutes"), commit=commit,
-               device=f"{jax.local_devices()[0].device_kind} ({jax.default_backend()}, {os.cpu_count()} cores)",
-               command="python -m experiments " + " ".join(COMMAND or sys.argv[1:]), figures=figures)
-    text = json.dumps(row, default=float)
-    (data / "history").mkdir(parents=True, exist_ok=True)
-    files.write_json(data / f"{name}.json", json.loads(text))
-    with open(data / "history" / f"{name}.jsonl", "a") as f:
-        f.write(text + "\n")
-    print(f"recorded {name}: {data / (name + '.json')}", flush=True)
-    return row
+@dataclasses.dataclass(frozen=True)
+class Run:
+    """One run of a command: what `python -m experiments` makes of its options (`cli.main`) and hands to the command
+    (`main(args, run)`), and what a pipeline hands the commands it runs (`cli.run_command(words, run)`: the same
+    model, learned term and --record, and the record naming the outermost command). Nothing of it is kept in the
+    process: a command knows its run only through this object."""
+
+    model: Model | None = None  # the scene (`--model`; None: the default model, where the command takes no --model)
+    learned: bool = False  # `--learned`: plan with the model's learned physics term (`Surrogate(learned=)`)
+    record: bool = False  # `--record`: `record_figures` writes to DATA (off: runs leave docs alone)
+    command: tuple[str, ...] = ()  # the words of the command its records name (the outermost one's; (): sys.argv)
+
+    def results_dir(self, *parts: str) -> pathlib.Path:
+        """`results_dir` for this run's model and learned term: results/<parts>[-<model>][-learned]."""
+        return results_dir(*parts, model=self.model, learned=self.learned)
+
+    def record_figures(self, name: str, figures: dict, data: pathlib.Path | None = None) -> dict | None:
+        """With `--record` (`record`): `figures` (a small JSON-able dict, the benchmark's printed table) become the
+        current `docs/data/<name>_<device>.json` (`device_slug`: one current result per figure and machine) and a
+        new line of `docs/data/history/<name>_<device>.jsonl`, one schema for all: {name, date, commit, device,
+        command, figures}."""
+        if not self.record or not distributed.is_main():  # several processes: process 0 records
+            return None
+        data = DATA if data is None else pathlib.Path(data)
+        name = f"{name}{'_learned' * self.learned}_{device_slug()}"  # the learned term's figures beside the paper's
+        try:
+            commit = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=ROOT, capture_output=True,
+                                    text=True, check=True).stdout.strip()
+            dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT,
+                                   capture_output=True, text=True).stdout.strip()
+            commit += "+dirty" if dirty else ""
+        except (OSError, subprocess.CalledProcessError):  # a copy without git's history (a cluster's, a GPU host's)
+            commit = os.environ.get("GSP_JAX_COMMIT", "unknown")  # the commit it was made from, where one says so
+        row = dict(name=name, date=datetime.datetime.now().isoformat(timespec="minutes"), commit=commit,
+                   device=f"{jax.local_devices()[0].device_kind} ({jax.default_backend()}, {os.cpu_count()} cores)",
+                   command="python -m experiments " + " ".join(self.command or sys.argv[1:]), figures=figures)
+        text = json.dumps(row, default=float)
+        (data / "history").mkdir(parents=True, exist_ok=True)
+        files.write_json(data / f"{name}.json", json.loads(text))
+        with open(data / "history" / f"{name}.jsonl", "a") as f:
+            f.write(text + "\n")
+        print(f"recorded {name}: {data / (name + '.json')}", flush=True)
+        return row
 
 
 def add_lookahead_argument(p, root_in_table: bool = False) -> None:

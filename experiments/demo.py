@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.common import RESULTS, results_dir, table
+from experiments.common import RESULTS, Run, table
 from gsp_jax.planning import dp, evaluation
 from gsp_jax.core import files
 from gsp_jax import physics
@@ -248,16 +248,16 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
     return [] if args.gif_from else [("demo",)]  # the GIF child renders for its parent
 
 
-def main(args: argparse.Namespace) -> None:
+def main(args: argparse.Namespace, run: Run) -> None:
     if args.gif_from:
-        _render_gif(physics.Physics(Surrogate(args.model, learned=args.learned)), args.gif_from)
+        _render_gif(physics.Physics(Surrogate(run.model, learned=run.learned)), args.gif_from)
         return
-    model = args.model
-    out = results_dir("demo")  # results/demo-<model> for another model
+    model = run.model
+    out = run.results_dir("demo")  # results/demo-<model> for another model
     print(f"demo on JAX {jax.default_backend()}: one unseen episode of model {model.name!r}, planned by DP optimal and "
           "L1, executed in C MuJoCo", flush=True)
     t0 = time.perf_counter()
-    sur = Surrogate(model, learned=args.learned)
+    sur = Surrogate(model, learned=run.learned)
     phys = physics.Physics(sur)
     native_code = c_backend.warm_up(phys)  # numba compiles C MuJoCo's native tick while XLA compiles the table
     ctx = _context(args.episode, sur)

@@ -3,6 +3,7 @@ and a level the user set in XLA_FLAGS wins."""
 from __future__ import annotations
 
 import os
+import pathlib
 
 import pytest
 
@@ -85,40 +86,90 @@ def test_every_command_lives_in_its_group():
 
 
 def test_a_commands_model_is_handed_down_and_left_behind_nowhere(monkeypatch, capsys):
-    """`--model` becomes the `Model` the command is given (`args.model`), and a command run by another inherits
-    it; nothing of it stays in the process after the command (no process-wide model)."""
+    """`--model` becomes the `Model` of the command's run (`run.model`), and a command run by another
+    (`cli.run_command(words, run)`) inherits it; nothing of it stays in the process after the command (no
+    process-wide model), and the command's `args` no longer hold the option."""
     from experiments import common
     from gsp_jax.model import load as model_lib
 
     seen = []
-    monkeypatch.setattr("experiments.diagnostics.planners.main", lambda args: seen.append(args.model)
-                        or (len(seen) == 1 and cli.run_command(["planners"])))
+
+    def main(args, run):
+        seen.append(run.model)
+        assert "model" not in args and "learned" not in args  # the run holds them, not `args`
+        if len(seen) == 1:
+            cli.run_command(["planners"], run)
+
+    monkeypatch.setattr("experiments.diagnostics.planners.main", main)
     cli.main(["planners", "--model", "hammer"])
     assert "model: hammer" in capsys.readouterr().out
     assert [m.name for m in seen] == ["hammer", "hammer"]  # the command, and the one it ran
-    assert common.MODEL is None and model_lib.load_model().name == model_lib.DEFAULT
+    assert not any(isinstance(v, model_lib.Model) for v in vars(common).values())  # no model kept in the module
+    assert model_lib.load_model().name == model_lib.DEFAULT
     cli.main(["planners"])
     assert seen[-1].name == model_lib.DEFAULT
 
 
-def test_learned_is_handed_down_and_left_behind_nowhere(monkeypatch, capsys):
-    """`--learned` becomes `args.learned`, which a command run by another inherits; no surrogate built outside
+def test_learned_is_handed_down_and_left_behind_nowhere(monkeypatch, capsys, tmp_path):
+    """`--learned` becomes `run.learned`, which a command run by another inherits; no surrogate built outside
     the command has the learned term, during or after (no process-wide default)."""
-    from experiments import common
     from gsp_jax.surrogate.step import Surrogate
 
     seen = []
 
-    def main(args):
-        seen.append((args.learned, common.learned_on(), Surrogate(args.model).learned is None))
+    def main(args, run):
+        seen.append((run.learned, run.results_dir().name, Surrogate(run.model).learned is None))
         if len(seen) == 1:
-            cli.run_command(["planners"])
+            cli.run_command(["planners"], run)
 
     monkeypatch.setattr("experiments.diagnostics.planners.main", main)
+    monkeypatch.setattr("experiments.common.RESULTS", tmp_path / "results")
     cli.main(["planners", "--learned"])
     assert "learned physics term:" in capsys.readouterr().out
-    assert seen == [(True, True, True), (True, True, True)]  # the command, the one it ran; Surrogate() stays off
-    assert common.LEARNED is False and not common.learned_on()
-    cli.main(["planners"])
-    assert seen[-1] == (False, False, True)
+    assert seen == [(True, "learned", True), (True, "learned", True)]  # the command, the one it ran; Surrogate()
+    cli.main(["planners"])  # stays off
+    assert seen[-1] == (False, "results", True)
     assert Surrogate(learned=True).learned is not None  # the shipped wrench's weights, asked for by name
+
+
+def test_record_and_its_command_are_handed_down_and_left_behind_nowhere(monkeypatch, tmp_path):
+    """`--record` and the words a record names ride on the run: a command run by another records too, naming the
+    outermost command (or the one its pipeline names, as `figures` does); the next command of the process, without
+    --record, records nothing (no process-wide switch)."""
+    import dataclasses
+
+    from experiments import common
+
+    rows = []
+
+    def main(args, run):
+        rows.append(run.record_figures("bench_x", {"n": len(rows)}, data=tmp_path))
+        if len(rows) == 1:
+            cli.run_command(["planners"], run)
+            cli.run_command(["planners"], dataclasses.replace(run, command=("--record", "planners", "--plugin", "x")))
+
+    monkeypatch.setattr("experiments.diagnostics.planners.main", main)
+    monkeypatch.setattr(common, "device_slug", lambda: "cpu")
+    cli.main(["--record", "planners"])
+    assert [r["command"] for r in rows] == ["python -m experiments --record planners"] * 2 + [
+        "python -m experiments --record planners --plugin x"]
+    assert [r["figures"] for r in rows] == [{"n": 0}, {"n": 1}, {"n": 2}]
+    history = (tmp_path / "history" / "bench_x_cpu.jsonl").read_text().splitlines()
+    assert len(history) == 3
+    cli.main(["planners"])
+    assert rows[-1] is None and len((tmp_path / "history" / "bench_x_cpu.jsonl").read_text().splitlines()) == 3
+    assert common.Run().record_figures("bench_x", {}, data=tmp_path) is None  # a run without --record
+
+
+def test_no_module_of_the_commands_keeps_state():
+    """No module of experiments/ declares a `global` or keeps the run in module-level names (`Run` is handed
+    down instead)."""
+    import ast
+
+    root = pathlib.Path(cli.__file__).parent
+    for path in sorted(root.rglob("*.py")):
+        tree = ast.parse(path.read_text())
+        assert not any(isinstance(node, (ast.Global, ast.Nonlocal)) for node in ast.walk(tree)), path
+        names = {t.id for node in tree.body if isinstance(node, (ast.Assign, ast.AnnAssign))
+                 for t in (node.targets if isinstance(node, ast.Assign) else [node.target]) if isinstance(t, ast.Name)}
+        assert not names & {"MODEL", "RECORD", "COMMAND", "LEARNED"}, (path, names)

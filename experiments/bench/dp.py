@@ -9,8 +9,7 @@ import time
 import jax
 import numpy as np
 
-from experiments import common
-from experiments.common import best_time, results_dir, table, timed
+from experiments.common import Run, best_time, table, timed
 from gsp_jax.planning import dp
 from gsp_jax.core import files
 from gsp_jax.model import scenario
@@ -31,8 +30,8 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
     return [] if args.out else [()]  # results/ itself
 
 
-def main(args: argparse.Namespace) -> None:
-    env = surrogate.Surrogate(args.model, learned=args.learned)
+def main(args: argparse.Namespace, run: Run) -> None:
+    env = surrogate.Surrogate(run.model, learned=run.learned)
     evals = list(scenario.episode_set("eval", env.model).values())[: args.episodes]
     device = jax.local_devices()[0]
     print(f"device: {device.platform} ({device.device_kind}); jax {jax.__version__}", flush=True)
@@ -72,10 +71,10 @@ def main(args: argparse.Namespace) -> None:
         loop_step_s=per_step, loop_table_s_extrapolated=t_loop, speedup_one=t_loop / t_one,
         speedup_batched=t_loop / (t_many / len(evals)), paper_s=PAPER_DP_SECONDS,
     )
-    out = args.out or str(results_dir() / "bench_dp.json")
+    out = args.out or str(run.results_dir() / "bench_dp.json")
     files.write_json(out, result)
     print(f"wrote {out}\n")
-    common.record("bench_dp", result)
+    run.record_figures("bench_dp", result)
     print(table(
         ["DP solve (table + backup)", "wall [s]", "per episode [s]", "vs step-at-a-time"],
         [

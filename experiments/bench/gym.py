@@ -15,7 +15,7 @@ import gymnasium as gym
 import numpy as np
 
 from experiments import common
-from experiments.common import table
+from experiments.common import Run, table
 from gsp_jax.planning import evaluation
 from gsp_jax.model import scenario
 from gsp_jax.learning.env import GraspEnv
@@ -42,8 +42,8 @@ def rate(envs, n: int, seconds: float) -> float:
     return steps / (time.perf_counter() - t0)
 
 
-def main(args) -> None:
-    sur = Surrogate(args.model, learned=args.learned)
+def main(args, run: Run) -> None:
+    sur = Surrogate(run.model, learned=run.learned)
     eps = scenario.training_set(sur.model)
     tables = dp_tables(sur, "train", eps, cache=common.RESULTS / evaluation.TABLES)
     env = GraspEnv(sur, scenario.stack(list(eps.values())), tables, auto_reset=False)
@@ -55,6 +55,6 @@ def main(args) -> None:
             sync = rate(gym.vector.SyncVectorEnv([lambda: GymGraspEnv(env) for _ in range(n)]), n, args.seconds)
         rows.append([n, f"{native:,.0f}", f"{sync:,.0f}" if sync else "-", f"{native / sync:.1f}x" if sync else "-"])
         print(f"  N = {n}: native {native:,.0f} steps/s" + (f", SyncVectorEnv {sync:,.0f}" if sync else ""), flush=True)
-    common.record("bench_gym", dict(rows=rows))
+    run.record_figures("bench_gym", dict(rows=rows))
     print("\nGymnasium vector envs, table backend, 9 training episodes (env steps/s, warm)\n")
     print(table(["N envs", "GraspVectorEnv (vmapped)", "SyncVectorEnv", "speed-up"], rows))

@@ -20,8 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments import common
-from experiments.common import results_dir, table, timed
+from experiments.common import Run, table, timed
 from gsp_jax.planning import evaluation, policies
 from gsp_jax.core import files
 from gsp_jax import physics
@@ -64,8 +63,8 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
     return [] if args.out else [("bench",)]
 
 
-def main(args: argparse.Namespace) -> None:
-    env = surrogate.Surrogate(args.model, learned=args.learned)
+def main(args: argparse.Namespace, run: Run) -> None:
+    env = surrogate.Surrogate(run.model, learned=run.learned)
     device = jax.local_devices()[0]
     if args.copies < 1:
         raise SystemExit(f"bench-physics: --copies must be >= 1, got {args.copies}")
@@ -110,10 +109,10 @@ def main(args: argparse.Namespace) -> None:
                steps=steps, engine_steps_per_s_one_core=engine["default"],
                engine_steps_per_s_one_core_by_variant=engine, engine_one_core_s=steps / engine["default"],
                rows=[dict(zip(keys, r)) for r in rows])
-    path = args.out or results_dir("bench") / f"physics_{device.platform}.json"
+    path = args.out or run.results_dir("bench") / f"physics_{device.platform}.json"
     files.write_json(path, out)
     print(f"wrote {path}\n")
     print(f"engine alone (mj_step, one core, the same states): {engine['default']:,.0f} steps/s, "
           f"{steps / engine['default']:.2f} s for the batch's {steps:,} steps")
-    common.record("bench_physics", dict(head=head, rows=rows))
+    run.record_figures("bench_physics", dict(head=head, rows=rows))
     print(table(head, rows, ".2f"))

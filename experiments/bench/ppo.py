@@ -17,7 +17,7 @@ import jax
 import numpy as np
 
 from experiments import common
-from experiments.common import best_time, table
+from experiments.common import Run, best_time, table
 from gsp_jax.planning import evaluation
 from gsp_jax.learning.env import GraspEnv
 from gsp_jax.learning.gym_env import GymGraspEnv
@@ -85,11 +85,11 @@ def time_to_baseline(s, mode: str, seed: int, max_iterations: int | None) -> dic
     }
 
 
-def main(args: argparse.Namespace) -> None:
+def main(args: argparse.Namespace, run: Run) -> None:
     gpu = jax.default_backend() == "gpu"
     preset = args.preset or ("full" if gpu else "quick")
     s = pipeline.setup(preset, table_cache=common.RESULTS / evaluation.TABLES,
-                       surrogate=Surrogate(args.model, learned=args.learned))
+                       surrogate=Surrogate(run.model, learned=run.learned))
     n_envs = s.ppo_config.n_envs
     sur_envs = args.surrogate_envs or (1024 if gpu else 16)
     print(f"device: {jax.local_devices()[0].device_kind} ({jax.default_backend()}); preset {preset}")
@@ -112,8 +112,8 @@ def main(args: argparse.Namespace) -> None:
         [[r["mode"], r["reached"], str(r["iteration"]), r["wall_s"], r["pretrain_s"], r["first_iteration_s"],
           r["final_train_greedy_return"]] for r in runs],
     ))
-    common.record("bench_ppo", dict(preset=preset, steps_per_s={r[0]: dict(envs=r[1], steps_per_s=r[2], compile_s=r[3])
-                                                              for r in rows}, time_to_baseline=runs))
+    steps_per_s = {r[0]: dict(envs=r[1], steps_per_s=r[2], compile_s=r[3]) for r in rows}
+    run.record_figures("bench_ppo", dict(preset=preset, steps_per_s=steps_per_s, time_to_baseline=runs))
     print(f"\ntable backend: {table_rate / loop_rate:,.0f}x the one-env loop; "
           f"{table_rate / sur_rate:,.0f}x the surrogate backend\n")
     print(table(["env steps/s", "envs", "steps/s", "compile s"], rows, floatfmt=",.1f"))

@@ -26,8 +26,7 @@ import os
 import pathlib
 import time
 
-from experiments import common
-from experiments.common import results_dir, table
+from experiments.common import Run, table
 
 PHYSICS_KINDS = ("four-tips", "one-tip")
 
@@ -72,7 +71,7 @@ def _clocked(name: str, fn) -> float:
     return time.perf_counter() - t0
 
 
-def worker(args: argparse.Namespace) -> None:
+def worker(args: argparse.Namespace, run: Run) -> None:
     """One process of a run: the three workloads, each warmed then clocked; process 0 writes the result."""
     import jax
     import jax.numpy as jnp
@@ -85,7 +84,7 @@ def worker(args: argparse.Namespace) -> None:
     from gsp_jax.surrogate import step as surrogate
     from gsp_jax.physics import corpus
 
-    phys = physics.Physics(surrogate.Surrogate(args.model, learned=args.learned))
+    phys = physics.Physics(surrogate.Surrogate(run.model, learned=run.learned))
     sur = phys.surrogate
     P = distributed.count()
     cut = (lambda eps: {k: e.head(args.steps) for k, e in eps.items()}) if args.steps else (lambda eps: eps)
@@ -179,9 +178,9 @@ def counts_of(args: argparse.Namespace) -> list[int]:
     return [n for n in (1, 2, 4, 8, 16) if n <= max(most, 1)]
 
 
-def main(args: argparse.Namespace) -> None:
+def main(args: argparse.Namespace, run: Run) -> None:
     if args.worker:
-        return worker(args)
+        return worker(args, run)
     from experiments import processes
 
     counts = counts_of(args)
@@ -193,12 +192,12 @@ def main(args: argparse.Namespace) -> None:
     for name in ("episodes", "chunk", "tables", "batch", "envs", "iterations"):
         if getattr(args, name) < 1:
             raise SystemExit(f"bench-scale: --{name} must be >= 1, got {getattr(args, name)}")
-    out = results_dir("bench-scale")
+    out = run.results_dir("bench-scale")
     print(f"bench-scale: {counts} processes, {each} cores each; physics {args.episodes} episodes x "
           f"{len(PHYSICS_KINDS)} sequences, {args.tables} DP tables, PPO {args.envs} envs per process", flush=True)
     words = ["bench-scale", *(f"--{k}={getattr(args, k)}" for k in ("episodes", "chunk", "tables", "batch", "envs",
                                                                     "iterations", "seed")),
-             *([f"--steps={args.steps}"] if args.steps else []), f"--model={args.model.path}"]
+             *([f"--steps={args.steps}"] if args.steps else []), f"--model={run.model.path}"]
     runs = {}
     for n in counts:
         path = out / f"processes{n}.json"
@@ -219,7 +218,7 @@ def main(args: argparse.Namespace) -> None:
         rows.append(row + ["yes" if same else "NO"])
         figures[str(n)] = dict(physics_episodes_per_s=rate(r, "physics"), tables_per_s=rate(r, "tables"),
                                ppo_env_steps_per_s=rate(r, "ppo"), outcomes_equal=same)
-    common.record("bench_scale", dict(cores_each=each, device=one["device"], episodes=args.episodes,
+    run.record_figures("bench_scale", dict(cores_each=each, device=one["device"], episodes=args.episodes,
                                       tables=args.tables, envs_per_process=args.envs, runs=figures))
     print(f"\n{one['device']}, {each} cores per process")
     print(table(["processes", "physics ep/s", "x", "eff.", "DP tables/s", "x", "eff.", "PPO steps/s", "x", "eff.",

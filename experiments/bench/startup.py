@@ -17,7 +17,12 @@ import subprocess
 import sys
 import tempfile
 import time
+from typing import TYPE_CHECKING
+
 from gsp_jax.core import files
+
+if TYPE_CHECKING:
+    from experiments.common import Run
 
 T0 = time.perf_counter()
 CHILD_FLAG = "--child"
@@ -79,7 +84,7 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
     return [] if args.out else [("bench",)]
 
 
-def main(args: argparse.Namespace) -> None:
+def main(args: argparse.Namespace, run: Run) -> None:
     from experiments import common
 
     rows = {}
@@ -91,10 +96,10 @@ def main(args: argparse.Namespace) -> None:
             print(f"  {rows[name]}", flush=True)
     first = next(iter(rows.values()))
     result = dict(platform=first["platform"], device=first["device"], rows=rows)
-    out = args.out or str(common.results_dir("bench") / f"startup_{first['platform']}.json")
+    out = args.out or str(run.results_dir("bench") / f"startup_{first['platform']}.json")
     files.write_json(out, result)
     print(f"wrote {out}\n")
-    common.record("bench_startup", result)
+    run.record_figures("bench_startup", result)
     print(f"the Quickstart from a fresh process, {first['device']} ({first['platform']}), seconds")
     print(common.table(
         ["process", "import", "first L1 decision", "next decision (another episode)", "warm decision",

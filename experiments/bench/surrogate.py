@@ -11,8 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments import common
-from experiments.common import best_time, results_dir, table, timed
+from experiments.common import Run, best_time, table, timed
 from gsp_jax.core import files
 from gsp_jax.model import scenario
 from gsp_jax.surrogate import step as surrogate
@@ -31,9 +30,9 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
     return [] if args.out else [()]  # results/ itself
 
 
-def main(args: argparse.Namespace) -> None:
-    ep = scenario.make_episode(model=args.model)
-    env = surrogate.Surrogate(args.model, learned=args.learned)
+def main(args: argparse.Namespace, run: Run) -> None:
+    ep = scenario.make_episode(model=run.model)
+    env = surrogate.Surrogate(run.model, learned=run.learned)
     n_g, n_a = env.space.n_grasps, env.space.n_actions
     if not 0 <= args.waypoint < ep.n_steps:
         raise SystemExit(f"--waypoint: {args.waypoint} is out of range 0..{ep.n_steps - 1}")
@@ -75,10 +74,10 @@ def main(args: argparse.Namespace) -> None:
         speedup=rate_b / rate_l, full_table_loop_s_extrapolated=n_pairs * ep.n_steps / rate_l,
         full_table_batched_s=t_b * ep.n_steps, max_reward_diff=agree,
     )
-    out = args.out or str(results_dir() / "bench_surrogate.json")
+    out = args.out or str(run.results_dir() / "bench_surrogate.json")
     files.write_json(out, result)
     print(f"wrote {out}")
-    common.record("bench_surrogate", result)
+    run.record_figures("bench_surrogate", result)
     print()
     print(table(
         ["mode", "steps", "wall [s]", "steps/s", f"{n_g}x{n_a}x{ep.n_steps} table by steps [s]"],

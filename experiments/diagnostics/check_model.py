@@ -16,10 +16,14 @@ from __future__ import annotations
 
 import argparse
 import pathlib
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from gsp_jax.model import load as model_lib
+
+if TYPE_CHECKING:
+    from experiments.common import Run
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -36,7 +40,7 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
     return [("check-model",)] if getattr(args, "reach", False) else []
 
 
-def main(args: argparse.Namespace) -> None:
+def main(args: argparse.Namespace, run: Run) -> None:
     from gsp_jax.model import hand as hand_lib, scenario
     from gsp_jax.physics import preflight
 
@@ -69,7 +73,7 @@ def main(args: argparse.Namespace) -> None:
             print("every link on every option at the lift's first and last waypoint (IK) ...", flush=True)
             reach = preflight.reach(sur)
             print(reach.table())
-            out = _picture(model, reach)
+            out = _picture(model, reach, run.results_dir("check-model"))
             problems += [f"no link reaches option {k} of {link!r} at the lift's first or last waypoint (IK error "
                          f"{np.nanmin(reach.error[reach.links.index(link), k]) * 1e3:.1f} mm)"
                          for link, k in reach.unreachable()]
@@ -82,14 +86,13 @@ def main(args: argparse.Namespace) -> None:
     print("follows every convention" + ("" if getattr(args, "quick", False) else "; the start holds in C MuJoCo"))
 
 
-def _picture(model, reach) -> pathlib.Path:
-    """The tool from above with each option: green reached at both waypoints, orange at one, red at neither."""
+def _picture(model, reach, folder: pathlib.Path) -> pathlib.Path:
+    """The tool from above with each option: green reached at both waypoints, orange at one, red at neither;
+    written to `folder`."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from experiments import common
 
     hand = model.hand
     hull = hand.tool_hull().reshape(-1, 8, 3)
@@ -108,7 +111,7 @@ def _picture(model, reach) -> pathlib.Path:
            title=f"{model.name}: options reached by the IK at the lift's first and last waypoint\n"
                  "green both, orange one, red neither")
     ax.autoscale_view()
-    out = common.results_dir("check-model") / f"reach-{model.name}.png"
+    out = folder / f"reach-{model.name}.png"
     fig.savefig(out, dpi=120, bbox_inches="tight")
     plt.close(fig)
     return out

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.common import results_dir, table
+from experiments.common import Run, table
 from gsp_jax.core import files
 from gsp_jax.solvers import ik
 from gsp_jax.model import scenario
@@ -59,8 +59,8 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
     return [("ik",)]
 
 
-def main(args: argparse.Namespace) -> None:
-    episodes = scenario.episode_set(args.set, args.model)
+def main(args: argparse.Namespace, run: Run) -> None:
+    episodes = scenario.episode_set(args.set, run.model)
     batch = scenario.stack(list(episodes.values()))
     default = ik.IKConfig()
     variants = {"start alone": dataclasses.replace(default, extra_starts=()), "IKConfig()": default}
@@ -68,7 +68,7 @@ def main(args: argparse.Namespace) -> None:
         variants[f"starts {spec}"] = dataclasses.replace(default, extra_starts=_parse(spec))
     rows, out = [], {}
     for name, cfg in variants.items():
-        env = surrogate.Surrogate(args.model, ik_config=cfg, learned=args.learned)
+        env = surrogate.Surrogate(run.model, ik_config=cfg, learned=run.learned)
         t0 = time.perf_counter()
         err, col = ik_table(env, batch)
         wall = time.perf_counter() - t0
@@ -80,7 +80,7 @@ def main(args: argparse.Namespace) -> None:
         rows.append([name, o["starts"], o["spikes"], o["below_1mm_collision_free"], o["collisions"],
                      o["median_error_mm"], err.size, wall])
         print(f"{name}: {o['spikes']} spikes over {len(episodes)} episodes", flush=True)
-    path = results_dir("ik") / f"{args.set}_spikes.json"
+    path = run.results_dir("ik") / f"{args.set}_spikes.json"
     files.write_json(path, dict(set=args.set, episodes=list(episodes), device=jax.local_devices()[0].device_kind,
                                     variants=out))
     print(f"wrote {path}\n")

@@ -12,10 +12,14 @@ from __future__ import annotations
 
 import argparse
 import pathlib
+from typing import TYPE_CHECKING
 
 import mujoco
 
 from gsp_jax import importer
+
+if TYPE_CHECKING:
+    from experiments.common import Run
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -43,7 +47,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="one fitted capsule per replaced geom (default: one per body, over all its geoms)")
 
 
-def main(args: argparse.Namespace) -> None:
+def main(args: argparse.Namespace, run: Run) -> None:
     try:
         imported = importer.import_hand(args.src, torque_limit=args.torque_limit, palm=args.palm,
                                         palm_pos=args.palm_pos, palm_quat=args.palm_quat,

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import textwrap
 
-from experiments.common import table
+from experiments.common import Run, table
 from gsp_jax.planners import registry as planners
 
 
@@ -14,7 +14,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     pass
 
 
-def main(args: argparse.Namespace) -> None:
+def main(args: argparse.Namespace, run: Run) -> None:
     rows = []
     for row in planners.describe():
         options = ", ".join(f"{k}={v!r}" for k, v in row["options"].items()) or "-"

@@ -26,9 +26,13 @@ import argparse
 import os
 import subprocess
 import sys
+from typing import TYPE_CHECKING
 
 import numpy as np
 from gsp_jax.core import files
+
+if TYPE_CHECKING:
+    from experiments.common import Run
 
 EPISODES = {"nominal": ("nominal", "nominal"), "evalB": ("evalB", "mass1.5m0_comy+2cm")}
 
@@ -155,12 +159,12 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
     return [] if args.worker else [("precision",), ("precision", "raw")]  # a worker writes for its parent
 
 
-def main(args) -> None:
+def main(args: argparse.Namespace, run: Run) -> None:
     if args.worker:
         return _worker(args)
-    from experiments.common import results_dir, table
+    from experiments.common import table
 
-    raw = results_dir("precision", "raw")
+    raw = run.results_dir("precision", "raw")
     print(f"precision of the surrogate's float32 rewards: every (grasp, waypoint) of {', '.join(args.episodes)}",
           flush=True)
     runs = {"native": ("native float32 (reference)", {})}
@@ -177,7 +181,7 @@ def main(args) -> None:
             data[key] = {k: d[k] for k in d.files}
     ref = data.pop("native")
     result = {runs[k][0]: _compare(ref, other, args.episodes) for k, other in data.items()}
-    out = results_dir("precision") / "precision.json"
+    out = run.results_dir("precision") / "precision.json"
     files.write_json(out, dict(episodes=args.episodes, vs_native_float32=result))
     rows = [[label, f"{c['reward_median']:.1e}", f"{c['reward_p99']:.1e}", f"{100 * c['reward_above_1e3']:.2f}%",
              f"{c['reward_max']:.2e}", f"{c['wrench_p99']:.1e}", f"{c['ik_p99_um']:.2f}", f"{c['ik_max_um']:.0f}",

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.common import table
+from experiments.common import Run, table
 from gsp_jax.model import scenario
 from gsp_jax.surrogate import step as surrogate
 
@@ -29,13 +29,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--waypoints", default="0,5,10,15", help="comma-separated waypoint indices")
 
 
-def main(args: argparse.Namespace) -> None:
-    ep = scenario.find(args.episode, args.model)
+def main(args: argparse.Namespace, run: Run) -> None:
+    ep = scenario.find(args.episode, run.model)
     ts = [int(t) for t in args.waypoints.split(",")]
     bad = [t for t in ts if not 0 <= t < ep.n_steps]
     if bad:
         raise SystemExit(f"--waypoints: {bad[0]} is out of range 0..{ep.n_steps - 1}")
-    env = surrogate.Surrogate(args.model, learned=args.learned)
+    env = surrogate.Surrogate(run.model, learned=run.learned)
     space = env.space
     gs = jnp.asarray([int(space.encode(o)) for _, o in GRASPS], jnp.int32)
 

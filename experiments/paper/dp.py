@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from experiments.common import results_dir, table
+from experiments.common import Run, table
 from gsp_jax.core import distributed, files
 from gsp_jax.planning import dp
 from gsp_jax.model import scenario
@@ -75,8 +75,8 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
     return [()]  # results/ itself
 
 
-def main(args: argparse.Namespace) -> None:
-    env = surrogate.Surrogate(args.model, learned=args.learned)
+def main(args: argparse.Namespace, run: Run) -> None:
+    env = surrogate.Surrogate(run.model, learned=run.learned)
     episodes = scenario.episode_set(args.set, env.model)
     if args.plot is not None and args.plot not in episodes:
         raise SystemExit(f"--plot: episode {args.plot!r} is not in set {args.set!r}: {', '.join(episodes)}")
@@ -113,7 +113,7 @@ def main(args: argparse.Namespace) -> None:
             longest = dp.longest_surviving(tab, episodes[name].start_grasp, env.reward_config.r_min)
             out[i]["infeasible"] = env.explain(episodes[name], np.asarray(longest.actions))
             print(f"  no grasp sequence holds {name} in the surrogate: {out[i]['infeasible']}")
-    folder = results_dir()
+    folder = run.results_dir()
     path = folder / f"dp_{args.set}.json"
     files.write_json(path, dict(set=args.set, seconds=elapsed, mean_grasp_changes=float(n_changes.mean()),
                                     episodes=out))

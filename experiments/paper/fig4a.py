@@ -19,7 +19,7 @@ import jax
 import numpy as np
 
 from experiments import common
-from experiments.common import results_dir, table
+from experiments.common import Run, table
 from gsp_jax.planning import evaluation
 from gsp_jax.core import files, stats
 from gsp_jax.planners import registry as planners
@@ -77,14 +77,14 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
     return [("fig4a",)]
 
 
-def main(args: argparse.Namespace) -> None:
+def main(args: argparse.Namespace, run: Run) -> None:
     backend = args.backend or ("surrogate" if jax.default_backend() == "gpu" else "table")
-    ctx = evaluation.context(args.set, args.episodes, args.policy_dir, model=args.model, results=common.RESULTS,
-                             learned=args.learned)
+    ctx = evaluation.context(args.set, args.episodes, args.policy_dir, model=run.model, results=common.RESULTS,
+                             learned=run.learned)
     print(f"Fig. 4a: {len(ctx.names)} episodes of '{args.set}', backend {backend}, RL policy {ctx.rl_source}",
           flush=True)
-    out = results_dir("fig4a")
+    out = run.results_dir("fig4a")
     result = run(ctx, backend, out, cached=args.lookahead == "cached")
     print(f"wrote {out / 'returns.json'}, {out / 'fig4a.png'}")
-    common.record("fig4a", figures(result))
+    run.record_figures("fig4a", figures(result))
     print_result(result)

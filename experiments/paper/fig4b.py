@@ -23,7 +23,7 @@ import jax
 import numpy as np
 
 from experiments import common
-from experiments.common import results_dir, table
+from experiments.common import Run, table
 from gsp_jax.physics.report import result_rows
 from gsp_jax.core import distributed, files, stats
 from gsp_jax.planning import evaluation
@@ -157,24 +157,24 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
     return [("fig4b",)]
 
 
-def main(args: argparse.Namespace) -> None:
+def main(args: argparse.Namespace, run: Run) -> None:
     common.check_planners(args.policies, "--policies", args.backend)
     common.check_planners(args.bases, "--bases")
     if args.backend != "c" and distributed.count() > 1:
         raise SystemExit(f"fig4b: --backend {args.backend} runs as one process (an XLA batch per policy); "
                          f"only C MuJoCo's chunks are shared by --processes")
-    ctx = evaluation.context(args.set, args.episodes, args.policy_dir, model=args.model, results=common.RESULTS,
-                             learned=args.learned,
+    ctx = evaluation.context(args.set, args.episodes, args.policy_dir, model=run.model, results=common.RESULTS,
+                             learned=run.learned,
                              # only what the policies read
                              **planners.context_flags([*args.policies,
                                                        *(args.bases if 'L1-physics' in args.policies else ())]))
     print(f"Fig. 4b: {len(ctx.names)} episodes of '{args.set}' in {args.backend} (JAX on {jax.default_backend()}), "
           f"RL policy {ctx.rl_source}", flush=True)
-    out = results_dir("fig4b")
+    out = run.results_dir("fig4b")
     results = run(ctx, args.policies, out, args.fresh, args.backend, cached=args.lookahead == "cached", jobs=args.jobs,
                   warm=args.warm, k=args.k, bases=args.bases, chunk=args.chunk)
     if not distributed.is_main():
         return
     print(f"wrote {out}/<policy>.json, {out / 'fig4b.png'}")
-    common.record("fig4b", figures(results))
+    run.record_figures("fig4b", figures(results))
     print_result(results)

@@ -27,6 +27,7 @@ import traceback
 import jax
 
 from experiments import cli, common
+from experiments.common import Run
 from gsp_jax.model import load as model_lib
 from gsp_jax.planning import policies
 
@@ -156,7 +157,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--list", action="store_true", help="only list the figures and their commands")
 
 
-def main(args: argparse.Namespace) -> None:
+def main(args: argparse.Namespace, run: Run) -> None:
     if args.list:
         print(common.table(["figure", "machine", "minutes", "records", "command"],
                            [[f.name, f.machine, f.minutes, " ".join(f.records), "python -m experiments --record "
@@ -175,7 +176,7 @@ def main(args: argparse.Namespace) -> None:
         print("\n".join(reasons) + "\n" if reasons else "", end="")
         print(common.table(["record", "commit", "state"], rows))
         return
-    if not common.RECORD:
+    if not run.record:
         print("figures: without --record the runs write no records (python -m experiments --record figures)",
               flush=True)
     where = args.machine or machine()
@@ -183,14 +184,14 @@ def main(args: argparse.Namespace) -> None:
     print(f"figures: {len(chosen)} to run on this {where} host, about {sum(f.minutes for f in chosen):.0f} min: "
           f"{', '.join(f.name for f in chosen)}", flush=True)
     # every record of the run names the commit it started from: the records and the report the run writes itself
-    # (tracked files) would otherwise make the later ones `+dirty` (`common.record` reads GSP_JAX_COMMIT where git
-    # cannot answer)
+    # (tracked files) would otherwise make the later ones `+dirty` (`Run.record_figures` reads GSP_JAX_COMMIT where
+    # git cannot answer)
     saved = {k: os.environ.get(k) for k in ("GSP_JAX_COMMIT", "GIT_DIR")}
     commit = start_commit()
     if commit is not None:
         os.environ.update(GSP_JAX_COMMIT=commit, GIT_DIR=os.devnull)
     try:
-        rows, failed = _run(chosen)
+        rows, failed = _run(chosen, run)
     finally:
         for k, v in saved.items():
             if v is None:
@@ -203,24 +204,21 @@ def main(args: argparse.Namespace) -> None:
         raise SystemExit(f"figures: {len(failed)} of {len(chosen)} failed: {', '.join(failed)}")
 
 
-def _run(chosen: list[Figure]) -> tuple[list[list], list[str]]:
-    """Run each figure's command in this process (its records naming its own command): the table's rows and the
-    names of the figures that failed."""
+def _run(chosen: list[Figure], run: Run) -> tuple[list[list], list[str]]:
+    """Run each figure's command in this process within `run` (its records naming its own command): the table's
+    rows and the names of the figures that failed."""
     rows, failed = [], []
     for i, fig in enumerate(chosen):
-        words = (["--record"] if common.RECORD else []) + list(fig.command)
+        words = (["--record"] if run.record else []) + list(fig.command)
         print(f"\n[{i + 1}/{len(chosen)}] {fig.name}: python -m experiments {' '.join(words)}", flush=True)
-        t0, outer = time.perf_counter(), common.COMMAND
-        common.COMMAND = words  # its records name its own command
+        t0 = time.perf_counter()
         try:
-            cli.run_command(list(fig.command))
+            cli.run_command(list(fig.command), dataclasses.replace(run, command=tuple(words)))  # its records name it
             outcome = "done"
         except (Exception, SystemExit) as e:  # one figure's failure does not stop the others
             cause = f"{type(e).__name__}: {e}".splitlines()[0]
             print(f"figures: {fig.name} failed: {cause}", file=sys.stderr, flush=True)
             traceback.print_exc()
             outcome, failed = f"FAILED ({cause[:60]})", failed + [fig.name]
-        finally:
-            common.COMMAND = outer
         rows.append([fig.name, " ".join(fig.records), (time.perf_counter() - t0) / 60, outcome])
     return rows, failed

@@ -25,7 +25,7 @@ import jax
 import numpy as np
 
 from experiments import cli, common
-from experiments.common import results_dir
+from experiments.common import Run
 from gsp_jax.planning import evaluation
 from gsp_jax.core import files, stats
 from gsp_jax.planners import registry as planners
@@ -70,7 +70,7 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
     return train + [(stage,) for stage in ("fig4a", "table1", "fig4b") if stage not in args.skip]
 
 
-def main(args: argparse.Namespace) -> None:
+def main(args: argparse.Namespace, run: Run) -> None:
     preset = args.preset or "quick"
     p = PRESETS[preset]
     out = pathlib.Path(args.out)
@@ -83,7 +83,7 @@ def main(args: argparse.Namespace) -> None:
           f"report -> {out / 'REPORT.md'}", flush=True)
     if _trains(args, p):
         print("[0/3] training the PPO policy (DP pretraining, full preset, seed 0)", flush=True)
-        cli.run_command(["train", "--pretrain", "dp", "--seeds", "1", "--preset", "full"])
+        cli.run_command(["train", "--pretrain", "dp", "--seeds", "1", "--preset", "full"], run)
     command = (f"python -m experiments reproduce --{preset}"
                + (f" --policy-dir {args.policy_dir}" if args.policy_dir else ""))
     command += f" --backend {args.backend}" if getattr(args, "backend", "mjx") != "mjx" else ""
@@ -106,21 +106,22 @@ def main(args: argparse.Namespace) -> None:
     if "fig4a" not in args.skip:
         backend_4a = getattr(args, "fig4a_backend", None) or p["backend"]
         print(f"[1/3] Fig. 4a ({backend_4a} backend)", flush=True)
-        cli.run_command(["fig4a", "--backend", backend_4a, *only(p["fig4a_episodes"]), *policy])
-        sections["fig4a"] = files.read_json(results_dir("fig4a") / "returns.json")
-        shutil.copy(results_dir("fig4a") / "fig4a.png", out / "fig4a.png")
+        cli.run_command(["fig4a", "--backend", backend_4a, *only(p["fig4a_episodes"]), *policy], run)
+        sections["fig4a"] = files.read_json(run.results_dir("fig4a") / "returns.json")
+        shutil.copy(run.results_dir("fig4a") / "fig4a.png", out / "fig4a.png")
     if "table1" not in args.skip:
         print("[2/3] Table 1", flush=True)
-        cli.run_command(["table1", "--batch", str(p["batch"]), "--repeats", str(p["repeats"]), *policy])
-        sections["table1"] = files.read_json(results_dir("table1") / f"{device.platform}.json")
+        cli.run_command(["table1", "--batch", str(p["batch"]), "--repeats", str(p["repeats"]), *policy], run)
+        sections["table1"] = files.read_json(run.results_dir("table1") / f"{device.platform}.json")
     if "fig4b" not in args.skip:
         backend = getattr(args, "backend", "mjx")
         print(f"[3/3] Fig. 4b ({backend})", flush=True)
         # beyond the paper, in C MuJoCo: L1 verified in physics (its defaults, `evaluation.L1_PHYSICS`)
         names = planners.names("paper") + (planners.names("verified") if backend == "c" else ())
-        cli.run_command(["fig4b", "--backend", backend, "--policies", *names, *only(p["fig4b_episodes"]), *policy])
-        sections["fig4b"] = {n: files.read_json(results_dir("fig4b") / f"{n}.json") for n in names}
-        shutil.copy(results_dir("fig4b") / "fig4b.png", out / "fig4b.png")
+        cli.run_command(["fig4b", "--backend", backend, "--policies", *names, *only(p["fig4b_episodes"]), *policy],
+                        run)
+        sections["fig4b"] = {n: files.read_json(run.results_dir("fig4b") / f"{n}.json") for n in names}
+        shutil.copy(run.results_dir("fig4b") / "fig4b.png", out / "fig4b.png")
     files.write_json(out / "report.json", sections, default=str)
     files.write_text(out / "REPORT.md", report(sections))
     print(f"wrote {out / 'REPORT.md'} ({(time.perf_counter() - t_start) / 60:.1f} min)")

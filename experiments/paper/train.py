@@ -16,7 +16,7 @@ import argparse
 import jax
 import numpy as np
 
-from experiments.common import RESULTS, results_dir, table
+from experiments.common import RESULTS, Run, table
 from gsp_jax.core import distributed, files
 from gsp_jax.planning import evaluation
 from gsp_jax.learning.pipeline import PRESETS, run_seed, setup
@@ -38,14 +38,14 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
     return [(args.out,)]
 
 
-def main(args: argparse.Namespace) -> None:
+def main(args: argparse.Namespace, run: Run) -> None:
     if distributed.count() > 1:
         raise SystemExit("train: runs as one process (one writer of its checkpoints and policies); one process "
                          "already splits the environments over every GPU of its host (docs/scale.md)")
     preset = args.preset or ("full" if jax.default_backend() == "gpu" else "quick")
     s = setup(preset, args.iterations, args.envs, args.patience, table_cache=RESULTS / evaluation.TABLES,
-              surrogate=Surrogate(args.model, learned=args.learned))
-    root = results_dir(args.out)  # results/train-<model> for another model: where evaluation.load_rl looks
+              surrogate=Surrogate(run.model, learned=run.learned))
+    root = run.results_dir(args.out)  # results/train-<model> for another model: where evaluation.load_rl looks
     files.write_json(root / "reference.json", {**s.reference, "preset": preset})
     print(
         f"preset {preset}: {s.ppo_config.n_envs} envs x {s.ppo_config.unroll} steps per iteration, "

@@ -9,7 +9,7 @@ import argparse
 
 import numpy as np
 
-from experiments.common import results_dir, table
+from experiments.common import Run, table
 from gsp_jax.core import files as files_lib
 
 MODES = {"dp": "with DP pretraining", "none": "without pretraining"}
@@ -113,8 +113,8 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
     return [(args.out,)]
 
 
-def main(args: argparse.Namespace) -> None:
-    root = results_dir(args.out)
+def main(args: argparse.Namespace, run: Run) -> None:
+    root = run.results_dir(args.out)
     runs = load_runs(root)
     if not runs:
         raise SystemExit(f"train-curves: no runs under {root}/{{dp,none}}/seed*/history.json; "

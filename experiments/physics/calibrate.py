@@ -29,8 +29,8 @@ import time
 import jax
 import numpy as np
 
-from experiments import cli, common
-from experiments.common import results_dir, table
+from experiments import cli
+from experiments.common import Run, table
 from gsp_jax.core import files, stats
 from gsp_jax.model import grasps, scenario
 from gsp_jax.surrogate import learned, reward
@@ -65,15 +65,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --learn: networks in the hazard's ensemble")
 
 
-def _from_sweep(path: str, write: bool) -> None:
-    """`--from-sweep`: choose (and with `write`, write) from a saved sweep."""
+def _from_sweep(path: str, write: bool, folder: pathlib.Path) -> None:
+    """`--from-sweep`: choose (and with `write`, write) from a saved sweep (its physics cache read from `folder`,
+    results/calibrate)."""
     summary = files.read_json(path)
     if "rows" not in summary:
         summary["rows"] = [[r["label"], r["spearman"], r["feasible"], r["feasible_held"], r["dp_opt_falls"],
                             r["dp_opt_angle"], r["dp_opt_changes"]] for r in summary["sweep"]]
     summary.setdefault("best_spearman_label", max(summary["sweep"], key=lambda r: np.nan_to_num(
         r["spearman"], nan=-1.0))["label"])
-    cache_path = results_dir("calibrate") / f"physics_{summary['backend']}.json"
+    cache_path = folder / f"physics_{summary['backend']}.json"
     if cache_path.exists():  # sweeps written before the per-episode falls were kept: read them off the cache
         cache = files.reuse_json(cache_path, lambda c: isinstance(c, dict)) or {}
         names = summary["episodes"]
@@ -91,27 +92,27 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
     return [("learn",), *([] if args.corpus else [("corpus",)])] if args.learn else [("calibrate",)]
 
 
-def main(args: argparse.Namespace) -> None:
+def main(args: argparse.Namespace, run: Run) -> None:
     if getattr(args, "learn", False):
-        return learn(args)
+        return learn(args, run)
     if args.from_sweep:
-        return _from_sweep(args.from_sweep, args.write)
+        return _from_sweep(args.from_sweep, args.write, run.results_dir("calibrate"))
     sets = [s.strip() for s in args.sets.split(",") if s.strip()]
     if any(s.startswith("eval") or s == "all" for s in sets):
         raise SystemExit(f"--sets: calibration never uses the evaluation episodes, got {args.sets!r}")
     episodes = {}
     for s in sets:
-        episodes.update(scenario.episode_set(s, args.model))
+        episodes.update(scenario.episode_set(s, run.model))
     names, batch = list(episodes), scenario.stack(list(episodes.values()))
     configs = candidates()
     t0 = time.perf_counter()
     print(f"calibrate: {len(configs)} candidate rewards x {len(names)} episodes ({'+'.join(sets)}) ...", flush=True)
-    tables = candidate_tables(configs, batch, args.model)
-    nominal_tables = candidate_tables(configs, scenario.stack([scenario.make_episode(model=args.model)]), args.model)
+    tables = candidate_tables(configs, batch, run.model)
+    nominal_tables = candidate_tables(configs, scenario.stack([scenario.make_episode(model=run.model)]), run.model)
     print(f"  tables: {time.perf_counter() - t0:.0f} s", flush=True)
-    pool = sequence_pool(configs, tables, nominal_tables, batch, args.random, args.seed, args.model)
+    pool = sequence_pool(configs, tables, nominal_tables, batch, args.random, args.seed, run.model)
     cache = calibration.simulate_pool(pool, episodes, args.backend, args.chunk,
-                                      results_dir("calibrate") / f"physics_{args.backend}.json", t0, args.model)
+                                      run.results_dir("calibrate") / f"physics_{args.backend}.json", t0, run.model)
     flat = [(e, kind, seq) for e in range(len(names)) for kind, seq in pool[e]]
     angle = np.array([cache[pool_key(names, e, seq)][0] for e, _, seq in flat])
     fell = np.array([cache[pool_key(names, e, seq)][1] for e, _, seq in flat])
@@ -129,7 +130,7 @@ def main(args: argparse.Namespace) -> None:
     print(f"\n{len(flat)} sequences on {len(names)} episodes ({'+'.join(sets)}), {int(fell.sum())} fell in physics "
           f"({args.backend}); {time.perf_counter() - t0:.0f} s")
     choose_and_write(summary, args.write)  # sets summary["chosen"]
-    files.write_json(results_dir("calibrate") / "sweep.json", summary)
+    files.write_json(run.results_dir("calibrate") / "sweep.json", summary)
 
 
 def choose_and_write(summary: dict, write: bool) -> dict:
@@ -210,14 +211,14 @@ def _checks(data: dict, fitted: learned.Fitted, cfg: reward.RewardConfig) -> dic
     return out
 
 
-def learn(args: argparse.Namespace) -> None:
+def learn(args: argparse.Namespace, run: Run) -> None:
     """`--learn`: the model's learned physics term, corpus to weights (see the section's comment)."""
-    model = args.model
+    model = run.model
     t0 = time.perf_counter()
-    folders = [pathlib.Path(f) for f in args.corpus] if args.corpus else [results_dir("corpus")]
+    folders = [pathlib.Path(f) for f in args.corpus] if args.corpus else [run.results_dir("corpus")]
     if args.shards:  # the corpus command extends it (it prints its progress and counts)
         cli.run_command(["corpus", "--folder", str(folders[0]), "--shards", str(args.shards), "--episodes",
-                            str(args.episodes)])
+                         str(args.episodes)], run)
     if args.corpus is None:  # the learned planners' sequences, where `corpus --learned` made them
         on_policy = folders[0].with_name(folders[0].name + "-learned")
         folders += [on_policy] if (on_policy / "manifest.json").exists() else []
@@ -242,8 +243,8 @@ def learn(args: argparse.Namespace) -> None:
                   shards=sum(len(s.manifest["shards"]) for s in stores), runs=int(len(data["fell"])),
                   epochs=len(fitted.history),
                   corpus_s=t_corpus, fit_s=t_fit, risk_falls=cfg.risk_falls, **checks)
-    files.write_json(results_dir("learn") / "report.json", report)
-    print(f"learn: weights in {out}; report in {results_dir('learn') / 'report.json'}", flush=True)
+    files.write_json(run.results_dir("learn") / "report.json", report)
+    print(f"learn: weights in {out}; report in {run.results_dir('learn') / 'report.json'}", flush=True)
     print(table(["reliability bin", "transitions", "predicted", "observed"],
                 [[f"{b['low']:.1f}-{b['high']:.1f}", b["n"], b["predicted"], b["observed"]]
                  for b in checks["reliability"] if b["n"]]))
@@ -261,7 +262,7 @@ def learn(args: argparse.Namespace) -> None:
              f"{checks['pool_regret_analytic']} of {checks['pool_holdable']}"],
             ["the same: return with the term", f"{checks['pool_regret_learned']} of {checks['pool_holdable']}"],
             ["corpus, fit [s]", f"{t_corpus:.0f}, {t_fit:.0f}"]]
-    common.record("learned_term", {k: v for k, v in report.items() if k not in ("reliability",)})
+    run.record_figures("learned_term", {k: v for k, v in report.items() if k not in ("reliability",)})
     print(table([f"learned physics term, {model.name}", "test split"], rows))
 
 

@@ -23,13 +23,14 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import pathlib
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.common import RESULTS, check_planners, results_dir, table
+from experiments.common import RESULTS, Run, check_planners, table
 from gsp_jax.core import distributed, files
 from gsp_jax.planning import evaluation, policies
 from gsp_jax import physics
@@ -65,20 +66,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "NAME` with --backend mjx and with --backend c): held/fell agreement and hold angles")
 
 
-def make_policy(kind: str, set_name: str, episodes: dict, args=None):
-    """(policy, policy_axis) of registered planner `kind` for a batch of named `episodes`, from a context with only
-    what it reads (`planners.context_flags`)."""
+def make_policy(kind: str, set_name: str, episodes: dict, args: argparse.Namespace, run: Run):
+    """(policy, policy_axis) of registered planner `kind` for a batch of named `episodes` of `run`'s model, from a
+    context with only what it reads (`planners.context_flags`)."""
     ctx = evaluation.context(set_name, episodes=episodes, policy_dir=getattr(args, "policy_dir", None), results=RESULTS,
-                             model=getattr(args, "model", None), learned=getattr(args, "learned", False),
-                             **planners.context_flags([kind]))
+                             model=run.model, learned=run.learned, **planners.context_flags([kind]))
     return planners.make(ctx, kind, dict(seed=getattr(args, "seed", 0)))
 
 
-def compare(set_name: str, names) -> None:
-    """MJX against C MuJoCo, the same controller on the same sequences: from results/physics/<set>_<policy>.json
+def compare(out: pathlib.Path, set_name: str, names) -> None:
+    """MJX against C MuJoCo, the same controller on the same sequences: from `out` (results/physics)/<set>_<policy>.json
     (MJX) and <set>_<policy>_c.json (C), per policy and over all, how often the two engines agree on held/fell and
-    how far apart their hold angles are [deg] where both hold; writes results/physics/<set>_agreement.json."""
-    out = results_dir("physics")
+    how far apart their hold angles are [deg] where both hold; writes `out`/<set>_agreement.json."""
     rows, fell_a, fell_b, diffs = [], [], [], []
     for policy in names:
         missing = [p.name for p in (out / f"{set_name}_{policy}.json", out / f"{set_name}_{policy}_c.json")
@@ -113,15 +112,14 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
     return [("physics",)]  # --compare reads it
 
 
-def main(args: argparse.Namespace) -> None:
+def main(args: argparse.Namespace, run: Run) -> None:
     if args.compare:
-        return compare(args.set, args.compare)
+        return compare(run.results_dir("physics"), args.set, args.compare)
     if args.episodes is not None and args.episodes < 1:
         raise SystemExit(f"--episodes: {args.episodes} (must be >= 1)")
     if args.policy != "scripted":
         check_planners([args.policy], "--policy", args.backend)
-    env = surrogate.Surrogate(getattr(args, "model", None), learned=getattr(args, "learned", False))  # the CLI's
-    # `Model` and --learned; called directly without them: the default model, no learned term
+    env = surrogate.Surrogate(run.model, learned=run.learned)
     episodes = scenario.episode_set(args.set, env.model)
     if args.episodes:
         episodes = dict(list(episodes.items())[: args.episodes])
@@ -147,7 +145,7 @@ def main(args: argparse.Namespace) -> None:
 
         def made(idx):
             sub = {names[i]: episodes[names[i]] for i in idx}
-            return *make_policy(args.policy, args.set, sub, args), scenario.stack(list(sub.values()))
+            return *make_policy(args.policy, args.set, sub, args, run), scenario.stack(list(sub.values()))
     try:
         chunk = distributed.chunk_size(len(labels), args.chunk)
     except ValueError as e:
@@ -166,7 +164,7 @@ def main(args: argparse.Namespace) -> None:
     if not distributed.is_main():
         return
     rows = report.result_rows(labels, res)
-    out = results_dir("physics")
+    out = run.results_dir("physics")
     stem = out / (f"{args.set}_{args.policy}" + ("" if args.backend == "mjx" else f"_{args.backend}"))
     summary = dict(set=args.set, policy=args.policy, backend=args.backend, device=jax.local_devices()[0].device_kind,
                    **report.summary(labels, res), wall_s_incl_compile=wall, chunk=chunk, processes=distributed.count(),

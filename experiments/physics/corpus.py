@@ -14,7 +14,7 @@ import argparse
 import pathlib
 import time
 
-from experiments.common import results_dir, table
+from experiments.common import Run, table
 from gsp_jax import physics
 from gsp_jax.surrogate import step as surrogate
 from gsp_jax.physics import corpus
@@ -31,8 +31,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cores", type=int, default=None, help="C MuJoCo processes (default: every core)")
 
 
-def folder_of(args: argparse.Namespace) -> pathlib.Path:
-    return pathlib.Path(args.folder) if args.folder else results_dir("corpus")
+def folder_of(args: argparse.Namespace, run: Run) -> pathlib.Path:
+    return pathlib.Path(args.folder) if args.folder else run.results_dir("corpus")
 
 
 def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
@@ -51,11 +51,11 @@ def check(args: argparse.Namespace) -> None:
         raise SystemExit(f"corpus: --steps must be >= 2, got {args.steps}")
 
 
-def build(args: argparse.Namespace) -> corpus.Store:
-    """The corpus of `args` extended to its shards; returns its store."""
+def build(args: argparse.Namespace, run: Run) -> corpus.Store:
+    """The corpus of `args` (of `run`'s model) extended to its shards; returns its store."""
     check(args)
-    phys = physics.Physics(surrogate.Surrogate(args.model, learned=args.learned))
-    folder = folder_of(args)
+    phys = physics.Physics(surrogate.Surrogate(run.model, learned=run.learned))
+    folder = folder_of(args, run)
     try:
         store = corpus.Store.open(folder, phys.surrogate.model)
     except corpus.CorpusError as e:
@@ -81,6 +81,6 @@ def summary(store: corpus.Store) -> list[list]:
             ["fall share", f"{falls / max(runs, 1):.2f}"]]
 
 
-def main(args: argparse.Namespace) -> None:
-    store = build(args)
+def main(args: argparse.Namespace, run: Run) -> None:
+    store = build(args, run)
     print(table(["corpus", str(store.folder)], summary(store)))

@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from experiments import common
-from experiments.common import results_dir, table
+from experiments.common import Run, table
 from gsp_jax.core import distributed, files
 from gsp_jax.planning import dp, evaluation, policies
 from gsp_jax import physics
@@ -130,7 +130,7 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 
 
 # ---------------------------------------------------------------------------------------------------- main
-def main(args: argparse.Namespace) -> None:
+def main(args: argparse.Namespace, run: Run) -> None:
     common.check_planners(args.policies, "--policies", "c")
     common.check_planners(args.bases, "--bases")
     if args.random < 0:
@@ -141,8 +141,8 @@ def main(args: argparse.Namespace) -> None:
         raise SystemExit(f"envelope: --chunk must be >= 1, got {args.chunk}")
     reads = gsp_planners.context_flags([*args.policies,
                                         *(["L1-physics", *args.bases] if args.physics_lookahead else [])])
-    ctx = evaluation.context(args.set, args.episodes, args.policy_dir, model=args.model, results=common.RESULTS,
-                             learned=args.learned,
+    ctx = evaluation.context(args.set, args.episodes, args.policy_dir, model=run.model, results=common.RESULTS,
+                             learned=run.learned,
                              # the tables always: every sequence is scored
                              **(reads | dict(tables=True, nominal=reads["nominal"] or reads["rl"])))
     sur, N, T = ctx.surrogate, len(ctx.names), ctx.batch.n_steps
@@ -156,7 +156,7 @@ def main(args: argparse.Namespace) -> None:
     phys = physics.Physics(sur)
     n_seg, tick = phys.n_segment, phys.timestep
     pieces = distributed.chunks(N, args.chunk)
-    folder = results_dir("envelope") / f"{args.set}.parts"
+    folder = run.results_dir("envelope") / f"{args.set}.parts"
     key = parts_key(ctx, args, kinds)
     mine = distributed.share(len(pieces))  # this process's chunks (all of them for one)
     done = {c: part for c in mine
@@ -230,7 +230,7 @@ def main(args: argparse.Namespace) -> None:
     path = folder.parent / f"{args.set}.json"
     files.write_json(path, out)
     print(f"wrote {path}\n")
-    common.record(f"envelope_{args.set}", dict(episodes=N, random=args.random, summary=summary))
+    run.record_figures(f"envelope_{args.set}", dict(episodes=N, random=args.random, summary=summary))
     p = summary["pool"]
     print(f"pool: {p['sequences']} sequences, {p['surrogate_feasible']} surrogate-feasible, of those "
           f"{100 * p['feasible_hold_share']:.1f}% hold; AUC(return: hold vs fall) pooled {p['auc_pooled']:.2f}, "

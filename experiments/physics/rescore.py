@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.common import ROOT, results_dir, table
+from experiments.common import ROOT, Run, table
 from gsp_jax.physics.envelope import summarise
 from gsp_jax.core import distributed, files, stats
 from gsp_jax.surrogate import reward as reward_lib, step as surrogate
@@ -164,12 +164,12 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
     return [("rescore",)]
 
 
-def main(args: argparse.Namespace) -> None:
+def main(args: argparse.Namespace, run: Run) -> None:
     if args.batch < 1:
         raise SystemExit(f"--batch must be >= 1, got {args.batch}")
     base = reward_lib.RewardConfig()
     rewards = [("calibrated", base)] + [(text, parse_reward(text, base)) for text in args.reward]
-    sur = surrogate.Surrogate(args.model, learned=args.learned)
+    sur = surrogate.Surrogate(run.model, learned=run.learned)
     set_name, names, batch, kinds, grasps, fell, angle = load_pool(args.pool, args.episodes, sur.model)
     t0 = time.perf_counter()
     keys, index, changed = step_states(sur, np.asarray(batch.start_grasp), grasps)
@@ -187,14 +187,15 @@ def main(args: argparse.Namespace) -> None:
         pool |= dict(spearman_within_mean=float(np.mean(within)) if within else float("nan"),
                      spearman_within_episodes=len(within))
         if not out and distributed.is_main():
-            scatter_png(returns, angle, kinds, results_dir("rescore") / f"{set_name}.png", f"{set_name}, {label}", pool)
+            scatter_png(returns, angle, kinds, run.results_dir("rescore") / f"{set_name}.png", f"{set_name}, {label}",
+                        pool)
         out.append(dict(reward=label, config=dataclasses.asdict(reward), **pool))
         rows.append([label, pool["surrogate_feasible"], pool["feasible_hold_share"], pool["auc_pooled"],
                      pool["auc_within_mean"], pool["spearman_pooled"], pool["spearman_within_mean"]])
         print(f"  {label}: {time.perf_counter() - t1:.0f} s", flush=True)
     if not distributed.is_main():
         return  # process 0 writes
-    path = results_dir("rescore") / f"{set_name}.json"
+    path = run.results_dir("rescore") / f"{set_name}.json"
     files.write_json(path, dict(pool=str(args.pool), set=set_name, episodes=names, sequences=int(fell.size),
                                     physics_falls=int(fell.sum()), rewards=out))
     print(f"wrote {path}\n")

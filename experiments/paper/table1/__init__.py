@@ -41,7 +41,7 @@ import argparse
 import jax
 
 from experiments import common
-from experiments.common import results_dir
+from experiments.common import Run
 from experiments.paper.table1 import decisions, episode
 from gsp_jax.planning import evaluation
 from gsp_jax.core import files
@@ -92,7 +92,7 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
     return [("bench_latency",)] if args.per_decision else [("table1",)]
 
 
-def main(args: argparse.Namespace) -> None:
+def main(args: argparse.Namespace, run: Run) -> None:
     names = args.policies or list(PAPER)
     if args.per_decision:
         common.check_planners(names, "--policies", "c" if set(names) & set(planners.names("verified")) else None)
@@ -104,30 +104,31 @@ def main(args: argparse.Namespace) -> None:
         raise SystemExit(f"table1: --policies {' '.join(wrong)}: "
                          f"{'--per-decision' if args.per_decision else 'per episode'} "
                          f"times {', '.join(allowed)}" + ("" if args.per_decision else " (L1-physics: --per-decision)"))
-    return per_decision(args, names) if args.per_decision else per_episode(args, names)
+    return per_decision(args, run, names) if args.per_decision else per_episode(args, run, names)
 
 
-def per_episode(args: argparse.Namespace, names: list[str]) -> None:
+def per_episode(args: argparse.Namespace, run: Run, names: list[str]) -> None:
     repeats = args.repeats or (3 if jax.default_backend() == "gpu" else 1)
     ctx = episode.with_ik_unroll(evaluation.context(args.set, 1 if not args.batch else args.batch, args.policy_dir,
-                                                    model=args.model, results=common.RESULTS,
-                                                    learned=args.learned), args.ik_unroll)
+                                                    model=run.model, results=common.RESULTS,
+                                                    learned=run.learned), args.ik_unroll)
     print(f"Table 1 on {jax.local_devices()[0].device_kind}: episode {ctx.names[0]} ...", flush=True)
-    result = episode.run(ctx, args.batch, repeats, results_dir("table1"), lookahead=args.lookahead,
+    result = episode.run(ctx, args.batch, repeats, run.results_dir("table1"), lookahead=args.lookahead,
                          names=tuple(n for n in PAPER if n in names), ahead=args.ahead, compare_before=args.before)
-    common.record("table1", episode.figures(result))
+    run.record_figures("table1", episode.figures(result))
     episode.print_result(result)
 
 
-def per_decision(args: argparse.Namespace, names: list[str]) -> None:
-    ctx = evaluation.context("eval", args.episodes, args.policy_dir, model=args.model, results=common.RESULTS,
-                             learned=args.learned)
+def per_decision(args: argparse.Namespace, run: Run, names: list[str]) -> None:
+    ctx = evaluation.context("eval", args.episodes, args.policy_dir, model=run.model, results=common.RESULTS,
+                             learned=run.learned)
     print(f"table1 --per-decision on {jax.local_devices()[0].device_kind}: {len(ctx.names)} episodes ...", flush=True)
     # a decision starts from the surrogate's continuous state: the root is never in the table ("table" = "cached")
     result = decisions.run(ctx, names, cached=args.lookahead != "continuous", ks=args.k, bases=args.bases)
-    out = results_dir("bench_latency") / f"{result['platform']}.json"
+    out = run.results_dir("bench_latency") / f"{result['platform']}.json"
     files.write_json(out, result)
     print(f"wrote {out}\n")
-    common.record("bench_latency", dict(episodes=len(result["episodes"]), lookahead=result["lookahead"], policies={
-        n: {k: v for k, v in r.items() if k != "returns"} for n, r in result["policies"].items()}))
+    run.record_figures("bench_latency", dict(episodes=len(result["episodes"]), lookahead=result["lookahead"],
+                                             policies={n: {k: v for k, v in r.items() if k != "returns"}
+                                                       for n, r in result["policies"].items()}))
     decisions.print_result(result)

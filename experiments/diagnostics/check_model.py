@@ -51,11 +51,11 @@ def main(args: argparse.Namespace, run: Run) -> None:
     conventions = model_lib.check_model(path)
     problems = list(conventions)
     try:
-        m = hand_lib.load_mjmodel(path)
+        mj_model = hand_lib.load_mjmodel(path)
     except Exception:  # noqa: BLE001 -- the conventions' check reported MuJoCo's message
-        m = None
-    if m is not None and model_lib.hand_joints(m):
-        problems += preflight.joint_dynamics(m)
+        mj_model = None
+    if mj_model is not None and model_lib.hand_joints(mj_model):
+        problems += preflight.joint_dynamics(mj_model)
     if not conventions:
         from gsp_jax.surrogate.step import Surrogate
 

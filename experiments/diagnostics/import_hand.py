@@ -67,10 +67,11 @@ def main(args: argparse.Namespace, run: Run) -> None:
               f"{worst.over_cover * 1e3:.2f} mm (body {worst.body!r}: the largest distance from a point of the new "
               "geom's surface to the geoms it replaced)")
     try:
-        m = mujoco.MjModel.from_xml_path(str(path))
+        mj_model = mujoco.MjModel.from_xml_path(str(path))
     except Exception as e:  # noqa: BLE001 -- MuJoCo's own message
         raise SystemExit(f"import-hand: the written {path} does not compile: {e}") from None
-    print(f"wrote {path} ({m.nbody - 1} bodies, {m.njnt} joints, {m.nu} motors, {m.ngeom} geoms; MuJoCo compiles it)")
+    print(f"wrote {path} ({mj_model.nbody - 1} bodies, {mj_model.njnt} joints, {mj_model.nu} motors, {mj_model.ngeom} "
+          "geoms; MuJoCo compiles it)")
     print("next steps (docs/your-model.md):")
     for step in imported.next_steps():
         print(f"  - {step}")

@@ -1,6 +1,5 @@
 """The commands' registry and their entry point: `python -m experiments <command> [options]` (`main`), and
-`run_command`, one command run by another in this process, within its run. `python -m experiments --help` lists
-them."""
+`run_command`, one command run by another in this process. `python -m experiments --help` lists them."""
 from __future__ import annotations
 
 import argparse

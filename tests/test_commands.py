@@ -57,8 +57,8 @@ QUICKEST = {
                    ["results/calibrate/sweep.json"])],
     "corpus": [(["corpus", "--shards", "1", "--episodes", "3", "--random", "1", "--perturbed", "1", "--steps", "2"],
                 ["results/corpus/manifest.json", "results/corpus/shard-000000.npz"]),
-               (["calibrate", "--learn", "--shards", "0", "--epochs", "2", "--out", "w.npz"],
-                ["w.npz", "results/learn/report.json"]),
+               (["calibrate", "--learn", "--shards", "1", "--episodes", "3", "--epochs", "2", "--out", "w.npz"],
+                ["w.npz", "results/learn/report.json"]),  # its corpus run nested (`cli.run_command`): shard 0 held
                (["envelope", "--set", "eval", "--episodes", "1", "--random", "0", "--physics-lookahead", "0",
                  "--learned"],
                 ["results/envelope-learned/eval.json"])],

@@ -42,6 +42,76 @@ def test_defaults_are_the_shipped_calibration_file():
     assert set(reward.CALIBRATED_FIELDS) < {f.name for f in dataclasses.fields(RewardConfig)}
 
 
+def test_the_calibration_is_read_when_a_config_is_built_not_at_import(monkeypatch):
+    """Importing the module reads no file: the calibrated defaults are read when the first `RewardConfig` is built (or
+    `CALIBRATED` / `MEASURED` read), once (`calibration`, cached); a field given is not replaced."""
+    reads = []
+
+    def read(path=reward.CALIBRATION_JSON):
+        reads.append(path)
+        return dict(CALIBRATED, grip=7.5), {"sequences": 3}
+
+    monkeypatch.setattr(reward, "read_calibration", read)
+    reward.calibration.cache_clear()
+    try:
+        assert reads == []
+        assert RewardConfig().grip == 7.5 and RewardConfig(grip=1.0).grip == 1.0
+        assert reward.MEASURED == {"sequences": 3} and reward.CALIBRATED["grip"] == 7.5
+        assert len(reads) == 1
+        defaults = {f.name: f.default for f in dataclasses.fields(RewardConfig)}
+        assert all(defaults[name] is reward.CALIBRATED_DEFAULT for name in reward.CALIBRATED_FIELDS)
+    finally:
+        reward.calibration.cache_clear()  # the real file again for the tests after this one
+    with pytest.raises(AttributeError, match="no attribute 'CALIBRATE'"):
+        reward.CALIBRATE  # noqa: B018
+
+
+def test_the_order_of_the_terms_is_a_tuple_of_every_with_function():
+    """`ORDER` names the order a step's terms are built in: `arrival`, then every `with_*` function of the module
+    (a new one must take its place in it), `with_invalid` last; and it matters: `with_previous` sets the fall flag
+    afresh, so applied after `with_risk` it would drop the learned term's fall."""
+    assert reward.ORDER[0] is reward.arrival and reward.ORDER[-1] is reward.with_invalid
+    withs = {name for name in vars(reward) if name.startswith("with_") and callable(getattr(reward, name))}
+    assert {f.__name__ for f in reward.ORDER[1:]} == withs and len(reward.ORDER) == len(withs) + 1
+    cfg = RewardConfig()
+    terms = _random_terms(np.random.default_rng(3), (50,)).replace(  # nothing unmet: no analytic fall
+        fall=jnp.zeros(50, bool), collision=jnp.zeros(50, bool), unmet=jnp.zeros((50, 4)), motor_unmet=jnp.zeros(50))
+    risky = reward.with_risk(cfg, terms, jnp.full(50, 0.99, jnp.float32))  # above risk_falls: falls
+    assert bool(jnp.all(risky.fall))
+    args = (False, False, 0.0, 0.0, 1)
+    in_order = reward.with_risk(cfg, reward.with_previous(cfg, terms, *args), jnp.full(50, 0.99, jnp.float32))
+    reordered = reward.with_previous(cfg, risky, *args)
+    assert bool(jnp.all(in_order.fall)) and not bool(jnp.any(reordered.fall))
+
+
+def test_the_chance_node_rule_is_one_set_of_functions():
+    """`chance_to_hold`, `expected_reward`, `accumulated`, `backed_up`, `expected_return` (with or without the
+    walked reach) and `held_through` agree with each other, numpy or JAX, and are the plain sums without the term."""
+    rng = np.random.default_rng(5)
+    rewards = jnp.asarray(rng.uniform(-10, 0, (20, 6)), jnp.float32)
+    risk = jnp.asarray(rng.uniform(0, 0.5, (20, 6)), jnp.float32)
+    alive = jnp.asarray(np.arange(6)[None, :] < rng.integers(1, 7, (20, 1)))
+    assert reward.chance_to_hold(None) == 1.0
+    np.testing.assert_array_equal(reward.chance_to_hold(np.asarray([0.25])), [0.75])
+    np.testing.assert_allclose(reward.expected_reward(np.float64(-4.0), np.float64(0.25), -200.0), -53.0)
+    ret, reach, walked = jnp.zeros(20), jnp.ones(20), []
+    for t in range(6):
+        walked.append(reach)
+        r, p = jnp.where(alive[:, t], rewards[:, t], 0.0), jnp.where(alive[:, t], risk[:, t], 0.0)
+        ret, reach = reward.accumulated(ret, reach, r, p)
+    value = jnp.zeros(20)
+    for t in reversed(range(6)):
+        value = jnp.where(alive[:, t], reward.backed_up(rewards[:, t], risk[:, t], t == 5, value), 0.0)
+    expect = reward.expected_return(rewards, risk, alive)
+    np.testing.assert_allclose(ret, expect, rtol=1e-5)
+    np.testing.assert_allclose(value, expect, rtol=1e-5)
+    np.testing.assert_allclose(reward.expected_return(rewards, None, alive, jnp.stack(walked, -1)), expect, rtol=1e-5)
+    np.testing.assert_allclose(reward.held_through(jnp.where(alive, risk, 0.0), alive), reach, rtol=1e-5)
+    np.testing.assert_array_equal(reward.backed_up(rewards, None, None, rewards), rewards + rewards)
+    np.testing.assert_array_equal(reward.expected_return(rewards, None, alive),
+                                  jnp.sum(jnp.where(alive, rewards, 0.0), -1))
+
+
 def test_settings_not_adopted_are_gone():
     """The knobs measured and not adopted are no fields of the reward (docs/calibration.md keeps the measurements)."""
     names = {f.name for f in dataclasses.fields(RewardConfig)}

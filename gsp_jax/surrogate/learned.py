@@ -30,6 +30,7 @@ import optax
 from flax import struct
 
 from gsp_jax.core import files
+from gsp_jax.surrogate import reward as reward_lib
 
 
 EPISODE_FEATURES = ("mass", "friction", "force_x", "force_y", "force_z", "torque_x", "torque_y", "torque_z", "com_x",
@@ -243,8 +244,9 @@ def returns(features: np.ndarray, fall_risk: np.ndarray | None, cfg) -> tuple[np
         ends = ends | (np.asarray(fall_risk) > cfg.risk_falls)
         p = np.where(ends, 0.0, np.asarray(fall_risk, np.float64))
     before = np.cumsum(ends, 1) - ends == 0  # no earlier step ended the run
-    step = np.where(ends, cfg.r_min, (1 - p) * reward + p * cfg.r_min)
-    reach = np.cumprod(np.concatenate([np.ones_like(p[:, :1]), 1 - p[:, :-1]], 1), 1)
+    step = np.where(ends, cfg.r_min, reward_lib.expected_reward(reward, p, cfg.r_min))
+    hold = reward_lib.chance_to_hold(p)
+    reach = np.cumprod(np.concatenate([np.ones_like(p[:, :1]), hold[:, :-1]], 1), 1)
     return np.sum(np.where(before, reach * step, 0.0), 1), ~np.any(ends, 1)
 
 

@@ -20,10 +20,11 @@ to one option). Its terms:
                     stay for the first segment).
 
 (a)-(d) depend on the new grasp g' and the waypoint only (`arrival`); (e) and (f) are the previous grasp's part
-(`with_previous`). The reward is -(weighted sum), capped at `max_step_cost`, or `r_min` when either IK collides, any
-wrench term leaves more than `fall_unmet` of its wrench unmet (the tool falls; (f) counts when `change_falls`), or at
-the last step the forces the hand's motors can give leave more than `motor_fall_unmet` of (d) unmet
-(`RewardTerms.motor_unmet`); `r_min` ends the episode.
+(`with_previous`). A step's terms are built by these functions in the order `ORDER` names (each reads or
+overwrites what the ones before it set). The reward is -(weighted sum), capped at `max_step_cost`, or `r_min` when
+either IK collides, any wrench term leaves more than `fall_unmet` of its wrench unmet (the tool falls; (f) counts
+when `change_falls`), or at the last step the forces the hand's motors can give leave more than `motor_fall_unmet`
+of (d) unmet (`RewardTerms.motor_unmet`); `r_min` ends the episode.
 
 The learned physics term (`Surrogate(learned=...)`, off by default: the paper's surrogate): a network fitted on a
 physics corpus of the model (`gsp_jax.surrogate.learned`) gives each transition its probability p of a fall in the
@@ -33,15 +34,20 @@ with p above `risk_falls` is a fall; below it, the step's reward is its expectat
 reward plus p times `r_min`, and what follows it counts only if the segment held: every planner backs values up as
 reward + (1 - p) * value of the next state (`backed_up`, `expected_return`), so a sequence's value is its expected
 return with a fall ending it at `r_min`. Without the term p = 0 and both are the plain sums. The analytic terms
-stay: the network reads them (`learned.FEATURES`) and corrects them.
+stay: the network reads them (`learned.FEATURES`) and corrects them. The rule is written here only: a step's chance
+to hold (`chance_to_hold`), its expected reward (`expected_reward`), the backup (`backed_up`), the return walked
+forwards step by step (`accumulated`) or summed over a sequence (`expected_return`, `held_through`); every planner,
+the environment and the offline returns call these.
 
 The calibrated defaults (`CALIBRATED_FIELDS`) are read from the data file `models/reward_calibration.json`
-(`CALIBRATION_JSON`), which `python -m experiments calibrate --write` writes through `write_calibration`.
+(`CALIBRATION_JSON`), which `python -m experiments calibrate --write` writes through `write_calibration`: when the
+first `RewardConfig` is built (`calibration`, cached), not when this module is imported.
 """
 from __future__ import annotations
 
 import dataclasses
 import datetime
+import functools
 import pathlib
 
 import jax
@@ -108,29 +114,51 @@ def read_calibration(path: str | pathlib.Path = CALIBRATION_JSON) -> tuple[dict,
     return _checked(data["calibrated"], f"{path}: calibrated"), measured
 
 
-CALIBRATED, MEASURED = read_calibration()
+@functools.cache
+def calibration() -> tuple[dict, dict]:
+    """(calibrated, measured) of `CALIBRATION_JSON` (`read_calibration`), read once, when first asked for: the
+    first `RewardConfig` built, or `CALIBRATED` / `MEASURED` read. `write_calibration` to that file reads it again."""
+    return read_calibration()
+
+
+def __getattr__(name: str):
+    """`CALIBRATED` and `MEASURED`: the calibration file's two parts (`calibration`), read on first use."""
+    if name in ("CALIBRATED", "MEASURED"):
+        return calibration()[name == "MEASURED"]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+class _Calibrated:
+    """The default of a calibrated field of `RewardConfig`: the calibration file's value, read when the config is
+    built (`calibration`)."""
+
+    def __repr__(self) -> str:
+        return "<calibrated>"
+
+
+CALIBRATED_DEFAULT = _Calibrated()
 
 
 @dataclasses.dataclass(frozen=True)
 class RewardConfig:
-    """Weights and thresholds of the shaped reward (one place for each). Defaults marked calibrated are read from
-    `CALIBRATION_JSON`."""
+    """Weights and thresholds of the shaped reward (one place for each). Defaults marked calibrated
+    (`CALIBRATED_DEFAULT`) are read from `CALIBRATION_JSON` when a config is built (`calibration`)."""
 
     w_wrench_move: float = 1.0  # (a), >= 0
     w_ik: float = 1.0  # (b) per `ik_scale` of IK error, >= 0
     w_wrench_hold: float = 1.0  # (c), >= 0
     w_wrench_ext: float = 1.0  # (d), >= 0
     w_redundant: float = 0.05  # (e), >= 0
-    w_wrench_change: float = CALIBRATED["w_wrench_change"]  # (f), >= 0; calibrated
-    change_falls: bool = CALIBRATED["change_falls"]  # (f) leaving more than fall_unmet unmet is a fall; calibrated
+    w_wrench_change: float = CALIBRATED_DEFAULT  # (f), >= 0; calibrated
+    change_falls: bool = CALIBRATED_DEFAULT  # (f) leaving more than fall_unmet unmet is a fall; calibrated
     supported_steps: int = 1  # int >= 0: (f) is 0 for decisions at waypoints t < this (the tool on its start support)
-    grip: float = CALIBRATED["grip"]  # [N] >= 0: every realised contact presses with at least this; calibrated
-    grip_scales_with_mass: bool = CALIBRATED["grip_scales_with_mass"]  # grip times m / m0 (the problem then stays
+    grip: float = CALIBRATED_DEFAULT  # [N] >= 0: every realised contact presses with at least this; calibrated
+    grip_scales_with_mass: bool = CALIBRATED_DEFAULT  # grip times m / m0 (the problem then stays
     # positively homogeneous in the tool's mass); calibrated
     ik_scale: float = 0.01  # [m] > 0: an IK error of ik_scale costs w_ik
     wrench_scale: float = (M0 * 9.81) ** 2  # [N^2] > 0: wrench errors are divided by this, (m0 g)^2
     contact_tol: float = 0.005  # [m] > 0: a link within this of its contact point carries force
-    fall_unmet: float = CALIBRATED["fall_unmet"]  # > 0, a fraction: unmet share of a required wrench above which the
+    fall_unmet: float = CALIBRATED_DEFAULT  # > 0, a fraction: unmet share of a required wrench above which the
     # tool falls; calibrated
     motor_fall_unmet: float = 0.3  # > 0, a fraction (inf: no motor check): unmet share of the final wrench (d) under
     # the hand's motors' torque limits (`RewardTerms.motor_unmet`) above which the tool falls
@@ -142,6 +170,9 @@ class RewardConfig:
     # docs/learned-physics.md)
 
     def __post_init__(self):
+        for name in CALIBRATED_FIELDS:
+            if getattr(self, name) is CALIBRATED_DEFAULT:
+                object.__setattr__(self, name, calibration()[0][name])
         for name in ("w_wrench_move", "w_ik", "w_wrench_hold", "w_wrench_ext", "w_redundant", "w_wrench_change"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"RewardConfig.{name}: a weight must be >= 0, got {getattr(self, name)}")
@@ -236,7 +267,8 @@ def with_previous(cfg: RewardConfig, terms: RewardTerms, redundant, changed, cha
                   ) -> RewardTerms:
     """`terms` with the previous grasp's part set -- the redundant flag (e), and when `changed` at a waypoint `t` >=
     `supported_steps` the change term (f) (`change_error` normalised, `change_unmet` a fraction: the shared grasp's
-    moving-wrench term) -- and the fall flag and the reward recomputed. Broadcasts (the terms' leading shape)."""
+    moving-wrench term) -- and the fall flag and the reward recomputed (the fall flag afresh: before `with_motor`,
+    `with_risk` and `with_invalid`, `ORDER`). Broadcasts (the terms' leading shape)."""
     changed = jnp.asarray(changed, bool) & (jnp.asarray(t) >= cfg.supported_steps)
     shape = terms.wrench_move.shape
     change_error = jnp.broadcast_to(jnp.where(changed, change_error, 0.0), shape)
@@ -255,7 +287,7 @@ def with_previous(cfg: RewardConfig, terms: RewardTerms, redundant, changed, cha
 def with_motor(cfg: RewardConfig, terms: RewardTerms, motor_unmet) -> RewardTerms:
     """`terms` of steps scored without the motor check (`motor_unmet` 0: `Surrogate.score_deferred`) with it:
     `motor_unmet` (broadcasting with the terms; 0 where the step is not the last) set, the fall flag and the reward
-    recomputed. Before the learned term (`with_risk`, which reads it) and `with_invalid`. Broadcasts."""
+    recomputed (after `with_previous`, before `with_risk`: `ORDER`). Broadcasts."""
     motor_unmet = jnp.broadcast_to(jnp.asarray(motor_unmet, jnp.float32), terms.wrench_move.shape)
     terms = terms.replace(motor_unmet=motor_unmet, fall=terms.fall | (motor_unmet > cfg.motor_fall_unmet))
     return terms.replace(reward=total(cfg, terms))
@@ -277,7 +309,8 @@ def of_transitions(cfg: RewardConfig, arrived: RewardTerms, next_grasp, redundan
 
 def with_risk(cfg: RewardConfig, terms: RewardTerms, fall_risk: jax.Array) -> RewardTerms:
     """`terms` with the learned physics term: `fall_risk` (same shape) the predicted probability of a fall in the
-    segment; above `risk_falls` the step is a fall, and the reward is recomputed (`total`). Broadcasts."""
+    segment; above `risk_falls` the step is a fall, and the reward is recomputed (`total`; after `with_motor`, before
+    `with_invalid`: `ORDER`). Broadcasts."""
     fall_risk = jnp.asarray(fall_risk, jnp.float32)
     terms = terms.replace(fall_risk=fall_risk, fall=terms.fall | (fall_risk > cfg.risk_falls))
     return terms.replace(reward=total(cfg, terms))
@@ -295,33 +328,73 @@ def total(cfg: RewardConfig, terms: RewardTerms) -> jax.Array:
         + cfg.w_redundant * terms.redundant
         + cfg.w_wrench_change * terms.wrench_change
     )
-    p = terms.fall_risk
     held = -jnp.minimum(cost, cfg.max_step_cost)
-    return jnp.where(terms.collision | terms.fall, cfg.r_min, (1.0 - p) * held + p * cfg.r_min)
+    return jnp.where(terms.collision | terms.fall, cfg.r_min, expected_reward(held, terms.fall_risk, cfg.r_min))
+
+
+# ------------------------------------------------------------------ the learned term's chance node, written once
+def chance_to_hold(fall_risk):
+    """A step's chance that its segment held: 1 - `fall_risk` (the learned physics term's chance node); 1.0 for
+    None (no term). What follows a step counts with this. Any array type (numpy too); broadcasts."""
+    return 1.0 if fall_risk is None else 1.0 - fall_risk
+
+
+def expected_reward(held, fall_risk, r_min):
+    """A step's expected reward over its chance node: the reward `held` if the segment held, `r_min` with chance
+    `fall_risk` (a fall ends the run). Any array type (numpy too); broadcasts."""
+    return chance_to_hold(fall_risk) * held + fall_risk * r_min
 
 
 def backed_up(reward, fall_risk, terminal, value_next) -> jax.Array:
-    """A transition's value: its (expected) `reward` plus, unless `terminal`, the next state's value where the
-    segment held (1 - `fall_risk`; 1 without the learned term): the expectimax backup every planner uses (DP,
-    lookahead, PPO's advantages). `fall_risk` None: 0. Broadcasts."""
-    hold = 1.0 if fall_risk is None else 1.0 - fall_risk
+    """A transition's value: its (expected) `reward` plus, unless `terminal` (None: never), the next state's value
+    where the segment held (`chance_to_hold`): the expectimax backup every planner uses (DP, lookahead, PPO's
+    advantages). `fall_risk` None: 0. Broadcasts."""
+    hold = chance_to_hold(fall_risk)
+    if terminal is None:
+        return reward + hold * value_next
     return reward + jnp.where(terminal, 0.0, hold * value_next)
 
 
-def expected_return(rewards, fall_risk, alive) -> jax.Array:
+def accumulated(ret, reach, reward, fall_risk) -> tuple[jax.Array, jax.Array]:
+    """One step of an expected return walked forwards: (`ret` + `reach` * `reward`, `reach` * the step's chance to
+    hold), where `reach` is the chance that every earlier segment held (1 at the start): the running return of a
+    rollout (`planning.rollout`) and of the environment (`learning.env`). Broadcasts."""
+    return ret + reach * reward, reach * chance_to_hold(fall_risk)
+
+
+def expected_return(rewards, fall_risk, alive, reach=None) -> jax.Array:
     """The expected return of steps along the last axis: sum over t of alive_t * rewards_t * prod_{s<t} (1 -
-    fall_risk_s) (`backed_up` unrolled; `fall_risk` None: the plain sum of the alive steps' rewards)."""
+    fall_risk_s) (`backed_up` unrolled; `fall_risk` None: the plain sum of the alive steps' rewards). `reach`: the
+    products prod_{s<t} already walked (a rollout's `Trajectory.reach`; `fall_risk` then unread)."""
     rewards = jnp.where(alive, rewards, 0.0)
+    if reach is not None:
+        return jnp.sum(reach * rewards, -1)
     if fall_risk is None:
         return jnp.sum(rewards, -1)
-    hold = 1.0 - jnp.where(alive, fall_risk, 0.0)
+    hold = chance_to_hold(jnp.where(alive, fall_risk, 0.0))
     reach = jnp.cumprod(jnp.concatenate([jnp.ones_like(hold[..., :1]), hold[..., :-1]], -1), -1)
     return jnp.sum(reach * rewards, -1)
 
 
+def held_through(fall_risk, alive) -> jax.Array:
+    """The chance that every segment of the `alive` steps along the last axis held: the product of their chances
+    to hold (1 where no step has a fall risk)."""
+    return jnp.prod(jnp.where(alive, chance_to_hold(fall_risk), 1.0), -1)
+
+
 def with_invalid(cfg: RewardConfig, terms: RewardTerms, invalid) -> RewardTerms:
-    """`terms` of a step whose episode inputs are `invalid` (() bool): flagged, and its reward `r_min`."""
+    """`terms` of a step whose episode inputs are `invalid` (() bool): flagged, and its reward `r_min`. The last
+    of `ORDER`."""
     return terms.replace(invalid=invalid, reward=jnp.where(invalid, cfg.r_min, terms.reward))
+
+
+ORDER = (arrival, with_previous, with_motor, with_risk, with_invalid)
+"""The order in which a step's terms are built; a step may skip one (`with_motor` before the last step, `with_risk`
+without the learned term) but never reorder them: `with_previous` sets the fall flag afresh from the unmet fractions
+and the motor check, so the flags that `with_motor` and `with_risk` add come after it; the learned term reads the
+analytic terms, the motor check's included (`learned.transition_features`), so `with_risk` comes after
+`with_motor`; `with_invalid` overrides the reward that the others recompute (`total`), so it comes last. Every
+`with_*` function of this module is in it (tests/test_reward.py)."""
 
 
 def explain_failure(cfg: RewardConfig, terms: RewardTerms, t: int, grasp: str) -> str | None:
@@ -364,4 +437,7 @@ def write_calibration(path: str | pathlib.Path, values: dict, measured: dict, wr
                     "hand.",
            "written": written or datetime.date.today().isoformat(),
            "calibrated": values, "measured": dict(measured)}
-    return files.write_json(path, doc)
+    written_to = files.write_json(path, doc)
+    if pathlib.Path(path).resolve() == CALIBRATION_JSON.resolve():
+        calibration.cache_clear()  # the next RewardConfig built reads the new defaults
+    return written_to

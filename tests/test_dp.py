@@ -353,6 +353,28 @@ def test_table_costs_g_times_t_ik_solves(sur, episodes, solved):
     assert table.reward.shape == (n_g, sur.n_actions, T) and table.next_grasp.shape == (n_g, sur.n_actions)
 
 
+def test_the_surrogate_and_a_table_are_step_models(solved, episodes, sur):
+    """`Surrogate` and `TableModel` are `protocols.StepModel`s (the table's `step_every` its steps vmapped), the
+    policies `Policy`s; what is neither is refused by name."""
+    from gsp_jax.planning import policies
+    from gsp_jax.surrogate import protocols
+
+    table, _ = solved["evalB"]
+    model = dp.TableModel(jax.tree.map(jnp.asarray, table), sur.space)
+    policy = policies.TablePolicy(jnp.zeros((sur.space.n_grasps, T), jnp.int32))
+    assert isinstance(sur, protocols.StepModel) and isinstance(model, protocols.StepModel)
+    assert isinstance(policy, protocols.Policy) and not isinstance(policy, protocols.StepModel)
+    state = dp.table_state(episodes["evalB"], model.table, 17, 1)
+    every, rewards, done = model.step_every(state)
+    for a in (0, 3, 16):
+        one, r, d = model.step(state, jnp.int32(a))
+        assert int(every.grasp[a]) == int(one.grasp) and float(rewards[a]) == float(r) and bool(done[a]) == bool(d)
+    with pytest.raises(TypeError, match=r"model: a step model needs reset, step, step_every .*got TablePolicy"):
+        protocols.checked(policy)
+    with pytest.raises(TypeError, match=r"policy: a policy needs `act\(state\)`.*got TableModel"):
+        protocols.checked(model, model)
+
+
 # ------------------------------------------------------------------------------------------ 7. sequence_return
 def test_sequence_return(solved, episodes, fns):
     """`sequence_return` of the optimal actions in their own table is the optimum; in general it equals the

@@ -11,10 +11,11 @@ new grasp g' and t. So the table
 costs G x T distinct IK solves (4,608: each grasp at each waypoint, shared by the step that arrives there, the
 step that leaves and the changes it holds the tool through), G x T x 3 wrench solves, and no per-(g, a) physics
 at all -- against the paper's G x A x T = 78,336 environment steps (`Surrogate.step`). The reward is
-`gsp_jax.surrogate.reward`'s, as in the step: the arrival terms of each (g', t) (`grasp_terms`), then each transition's
-(`reward.of_transitions`). Every action is applicable in every grasp (the null action keeps it, the others set one
-link), so no transition is unreachable; a transition that collides or drops the tool gets R_MIN and ends the
-episode (`terminal`), as do all transitions of the last step.
+`gsp_jax.surrogate.reward`'s, as in the step, and the surrogate gives every term: the arrival terms of each (g', t)
+(`Surrogate.arrival_terms`), then each transition's (`Surrogate.every_transition`); this module only tabulates
+them. Every action is applicable in every grasp (the null action keeps it, the others set one link), so no
+transition is unreachable; a transition that collides or drops the tool gets R_MIN and ends the episode
+(`terminal`), as do all transitions of the last step.
 
 All functions take one episode; `jax.vmap` them over a batch (`scenario.stack`), episodes leading.
 """
@@ -24,7 +25,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from gsp_jax.surrogate import reward as reward_lib
+from gsp_jax.surrogate import protocols, reward as reward_lib
 from gsp_jax.model.grasps import NULL, GraspSpace
 from gsp_jax.surrogate.reward import RewardTerms
 from gsp_jax.model.scenario import Episode
@@ -41,7 +42,7 @@ class Table:
     ik_error: jax.Array  # (G, T) IK error of each grasp realised at each waypoint [m] (for inspection)
     q: jax.Array  # (G, T, J) joint angles of each grasp realised at each waypoint (the discrete states' q)
     fall_risk: jax.Array | None = None  # (G, A, T) the learned physics term's fall probability of each transition
-    # (`reward.RewardTerms.fall_risk`: what follows counts with 1 - fall_risk); None without the term
+    # (`reward.RewardTerms.fall_risk`: what follows counts with `reward.chance_to_hold`); None without the term
 
 
 @struct.dataclass
@@ -59,52 +60,33 @@ class Solution:
 
 
 def build_table(sur: Surrogate, episode: Episode) -> Table:
-    """The reward/transition table of one episode from G x T IK solves (see the module docstring). A concrete
-    episode is checked first (`Surrogate.check`)."""
+    """The reward/transition table of one episode from G x T IK solves (see the module docstring): the surrogate's
+    terms of every transition (`Surrogate.realise_every`, `arrival_terms`, `every_transition`), tabulated. A
+    concrete episode is checked first (`Surrogate.check`)."""
     episode = sur.check(episode)
-    contacts = realise_all(sur, episode)
-    return table_from_terms(sur, episode, grasp_terms(sur, episode, contacts), contacts)
+    contacts = sur.realise_every(episode)
+    return table_from_terms(sur, episode, sur.arrival_terms(episode, contacts), contacts)
 
 
 def realise_all(sur: Surrogate, episode: Episode) -> Contacts:
-    """Every grasp realised by IK at every waypoint: leaves (G, T, ...). All G x T solves as one batch: on a CPU
-    in the batch-last form (`ik_lanes`, where `sur.ik_config.lanes` allows), elsewhere `sur.realise` vmapped
-    (`Surrogate.realise_many`)."""
-    shape = (sur.space.n_grasps, episode.n_steps)
-    grasps = jnp.broadcast_to(jnp.arange(sur.space.n_grasps, dtype=jnp.int32)[:, None], shape)
-    return sur.realise_many(grasps, jnp.broadcast_to(episode.waypoints, shape + (3,)),
-                            jnp.broadcast_to(episode.quats, shape + (4,)))
+    """`sur.realise_every(episode)`: every grasp realised at every waypoint, leaves (G, T, ...) (kept for
+    `physics.calibration`, which builds candidates' tables from one set of contacts)."""
+    return sur.realise_every(episode)
 
 
 def grasp_terms(sur: Surrogate, episode: Episode, contacts: Contacts) -> RewardTerms:
-    """The reward terms (G', T) of arriving in grasp g' by a step from waypoint t, without the previous grasp's
-    part (not redundant, no change): the null action's terms from (g', t) (`Surrogate.score`). The motor check,
-    which counts at the last step only, is solved for the last waypoint's G' arrivals alone
-    (`Surrogate.score_deferred`, `Surrogate.with_last_motor`)."""
-    n_t = episode.n_steps
-    ts = jnp.arange(n_t, dtype=jnp.int32)
-    nxt = jax.tree.map(lambda x: x[:, jnp.minimum(ts + 1, n_t - 1)], contacts)
-
-    def score(now, nx, t):
-        return sur.score_deferred(episode, t, episode.waypoints[t], episode.quats[t], now, nx, False)
-
-    terms, problem = jax.vmap(jax.vmap(score, (0, 0, 0)), (0, 0, None))(contacts, nxt, ts)
-    return jax.vmap(lambda tm, pb: sur.with_last_motor(episode, tm, pb))(terms, problem)  # each grasp's T steps
+    """`sur.arrival_terms(episode, contacts)`: the terms (G', T) of arriving in each grasp from each waypoint (kept
+    for `physics.calibration`)."""
+    return sur.arrival_terms(episode, contacts)
 
 
 def table_from_terms(sur: Surrogate, episode: Episode, plain: RewardTerms, contacts: Contacts) -> Table:
-    """The table from `grasp_terms`: the transitions (G, A) of the grasp space, each rewarded by
-    `reward.of_transitions` (its new grasp's terms, its redundant flag, its change term from the shared grasp)."""
-    n_g, n_t = sur.space.n_grasps, episode.n_steps
-    grasps = jnp.arange(n_g, dtype=jnp.int32)
-    ts = jnp.arange(n_t, dtype=jnp.int32)
-    actions = jnp.arange(sur.space.n_actions, dtype=jnp.int32)
-    next_grasp, is_redundant = sur.space.apply(grasps[:, None], actions[None, :])  # (G, A)
-    changed = next_grasp != grasps[:, None]  # (G, A)
-    shared = sur.space.shared(grasps[:, None], actions[None, :])  # (G, A)
-    terms = reward_lib.of_transitions(sur.reward_config, plain, next_grasp, is_redundant, changed, shared, ts)
-    terms = sur.with_learned(episode, ts, next_grasp[..., None], changed[..., None], terms)  # (G, A, T)
-    terminal = terms.collision | terms.fall | (ts == n_t - 1)[None, None, :]
+    """The table from the arrival terms of every grasp (`Surrogate.arrival_terms`) and the contacts they were
+    scored from: each transition's terms from the surrogate (`Surrogate.every_transition`), the step that ends the
+    episode (a collision, a fall, the last waypoint) marked terminal."""
+    n_t = episode.n_steps
+    next_grasp, terms = sur.every_transition(episode, plain)  # (G, A), (G, A, T)
+    terminal = terms.collision | terms.fall | (jnp.arange(n_t, dtype=jnp.int32) == n_t - 1)[None, None, :]
     return Table(reward=terms.reward, next_grasp=next_grasp, terminal=terminal, ik_error=contacts.ik.error,
                  q=contacts.ik.q, fall_risk=None if sur.learned is None else terms.fall_risk)
 
@@ -186,8 +168,7 @@ def sequence_scores(table: Table, start_grasp: jax.Array, actions: jax.Array):
     once in a table from `start_grasp`: `sequence_rewards`, `sequence_return`, and the product over the steps it
     reached of (1 - fall risk), 1 without the learned term (meaningful for a sequence no step of which ends it)."""
     _, _, rewards, risk, alive = _replay(table, jnp.asarray(start_grasp, jnp.int32), lambda g, t: actions[t])
-    hold = jnp.prod(jnp.where(alive, 1.0 - risk, 1.0))
-    return rewards, reward_lib.expected_return(rewards, risk, alive), hold
+    return rewards, reward_lib.expected_return(rewards, risk, alive), reward_lib.held_through(risk, alive)
 
 
 def sequence_rewards(table: Table, start_grasp: jax.Array, actions: jax.Array) -> jax.Array:
@@ -253,15 +234,19 @@ def table_step(table: Table, state: State, action: jax.Array) -> tuple[State, ja
 
 @struct.dataclass
 class TableModel:
-    """One episode's DP table as a step model (`step(state, action)`, like `Surrogate.step`): exact for the
-    discrete states the surrogate visits from `reset`, with lookups instead of IK and wrench solves. For
-    lookahead over an episode whose table is already built (evaluation); online, a new episode has none."""
+    """One episode's DP table as a step model (`protocols.StepModel`, like the `Surrogate`): exact for the discrete
+    states the surrogate visits from `reset`, with lookups instead of IK and wrench solves. For lookahead over an
+    episode whose table is already built (evaluation), or built when the episode is revealed (`planners.online`)."""
 
     table: Table  # one episode's table (no leading batch axis)
     space: GraspSpace = struct.field(pytree_node=False)
 
     def step(self, state: State, action: jax.Array) -> tuple[State, jax.Array, jax.Array]:
         return table_step(self.table, state, self.space.checked(action))
+
+    def step_every(self, state: State) -> tuple[State, jax.Array, jax.Array]:
+        """`step` of every action at once (leading axis A): the lookups vmapped (`protocols.step_each`)."""
+        return protocols.step_each(self, state)
 
     def reset(self, episode: Episode) -> State:
         return table_state(episode, self.table, episode.start_grasp, 0)

@@ -84,17 +84,19 @@ class Surrogate:
     def __init__(
         self,
         hand=None,
-        reward: RewardConfig = RewardConfig(),
+        reward: RewardConfig | None = None,
         ik_config: ik.IKConfig = ik.IKConfig(),
         wrench_config: wrench.WrenchConfig = wrench.WrenchConfig(),
         learned=None,
     ):
         """`hand`: the model, as a shipped name, a scene path, a `gsp_jax.model.load.Model` or a loaded `HandModel`
-        (None: the shipped wrench, `gsp_jax.model.load.DEFAULT`). `learned`: the learned physics term
+        (None: the shipped wrench, `gsp_jax.model.load.DEFAULT`). `reward`: None, `RewardConfig()` (its calibrated
+        defaults read when it is built). `learned`: the learned physics term
         (`gsp_jax.surrogate.reward.with_risk`): False off (the paper's surrogate), True the model's own weights
         (`learned.path_of`), a `learned.Fitted` or a weights file; None: off. Weights of another model are refused."""
         self.hand = hand if isinstance(hand, hand_lib.HandModel) else model_lib.load_model(hand).hand
         self.space = grasps.space_of(self.hand)
+        reward = RewardConfig() if reward is None else reward
         self.reward_config, self.ik_config, self.wrench_config = reward, ik_config, wrench_config
         self.learned = learned_lib.resolve(learned, self.model)
         self.learned_tag = "" if self.learned is None else learned_lib.tag(self.learned)
@@ -210,7 +212,7 @@ class Surrogate:
         the current pose; None: no change term). The motor check counts at the last step only (`reward.arrival`):
         under a `cond` (`_only_where`), so a step of one t solves it only there and a batch of steps only where one
         of its rows is a last step; a batch over t solves it for its last step's rows alone through `score_deferred`
-        and `motor_check` (`dp.grasp_terms`, `transitions`)."""
+        and `motor_check` (`arrival_terms`, `transitions`)."""
         terms, problem = self.score_deferred(episode, t, tool_pos, tool_quat, now, nxt, redundant, during, changed)
         if problem is None:
             return terms
@@ -257,12 +259,54 @@ class Surrogate:
     def with_last_motor(self, episode: Episode, terms: RewardTerms, problem: MotorProblem | None) -> RewardTerms:
         """The terms of an episode's T steps (leaves with a leading axis T, from `score_deferred`) with the motor
         check solved for the last step alone, 0 before it (`reward.with_motor`); unchanged without the check
-        (`problem` None). `vmap` it over further leading axes (`dp.grasp_terms`: the table's G' grasps)."""
+        (`problem` None). `vmap` it over further leading axes (`arrival_terms`: the table's G' grasps)."""
         if problem is None:
             return terms
         motor = self.motor_check(episode, jax.tree.map(lambda x: x[-1], problem))
         n_t = terms.wrench_move.shape[0]
         return reward_lib.with_motor(self.reward_config, terms, jnp.zeros(n_t, motor.dtype).at[-1].set(motor))
+
+    # ------------------------------------------------ every transition of an episode at once (the DP table's terms)
+    def realise_every(self, episode: Episode) -> Contacts:
+        """Every grasp realised by IK at every waypoint of `episode`: leaves (G, T, ...). All G x T solves as one
+        batch: on a CPU in the batch-last form (`ik_lanes`, where `ik_config.lanes` allows), elsewhere `realise`
+        vmapped (`realise_many`)."""
+        shape = (self.space.n_grasps, episode.n_steps)
+        grasps_in = jnp.broadcast_to(jnp.arange(self.space.n_grasps, dtype=jnp.int32)[:, None], shape)
+        return self.realise_many(grasps_in, jnp.broadcast_to(episode.waypoints, shape + (3,)),
+                                 jnp.broadcast_to(episode.quats, shape + (4,)))
+
+    def arrival_terms(self, episode: Episode, contacts: Contacts | None = None) -> RewardTerms:
+        """The reward terms (G', T) of arriving in grasp g' by a step from waypoint t, without the previous grasp's
+        part (not redundant, no change): the null action's terms from (g', t) (`score`). `contacts`: every grasp
+        realised at every waypoint (`realise_every`; None: realised here). The motor check, which counts at the last
+        step only, is solved for the last waypoint's G' arrivals alone (`score_deferred`, `with_last_motor`)."""
+        contacts = self.realise_every(episode) if contacts is None else contacts
+        n_t = episode.n_steps
+        ts = jnp.arange(n_t, dtype=jnp.int32)
+        nxt = jax.tree.map(lambda x: x[:, jnp.minimum(ts + 1, n_t - 1)], contacts)
+
+        def score(now, nx, t):
+            return self.score_deferred(episode, t, episode.waypoints[t], episode.quats[t], now, nx, False)
+
+        terms, problem = jax.vmap(jax.vmap(score, (0, 0, 0)), (0, 0, None))(contacts, nxt, ts)
+        return jax.vmap(lambda tm, pb: self.with_last_motor(episode, tm, pb))(terms, problem)  # each grasp's T steps
+
+    def every_transition(self, episode: Episode, arrived: RewardTerms) -> tuple[jax.Array, RewardTerms]:
+        """(next grasp (G, A) int32, terms (G, A, T)) of every action a from every grasp g at every waypoint t, from
+        the arrival terms of every grasp (`arrival_terms`): each transition reads its new grasp's terms, adds its
+        redundant flag and its change term (the shared grasp's moving-wrench term: `reward.of_transitions`), then the
+        learned term where the surrogate has one (`with_learned`): the terms `step` gives each (discrete) transition,
+        with G x T IK solves in all."""
+        n_g, n_t = self.space.n_grasps, episode.n_steps
+        grasps_in = jnp.arange(n_g, dtype=jnp.int32)
+        ts = jnp.arange(n_t, dtype=jnp.int32)
+        actions = jnp.arange(self.space.n_actions, dtype=jnp.int32)
+        next_grasp, is_redundant = self.space.apply(grasps_in[:, None], actions[None, :])  # (G, A)
+        changed = next_grasp != grasps_in[:, None]  # (G, A)
+        shared = self.space.shared(grasps_in[:, None], actions[None, :])  # (G, A)
+        terms = reward_lib.of_transitions(self.reward_config, arrived, next_grasp, is_redundant, changed, shared, ts)
+        return next_grasp, self.with_learned(episode, ts, next_grasp[..., None], changed[..., None], terms)
 
     def motor_check(self, episode: Episode, problem: MotorProblem) -> jax.Array:
         """() the motor check of a `MotorProblem` (`motor_unmet`); leaves with leading axes: `vmap` it."""

@@ -15,6 +15,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import tolerances as tol  # noqa: E402
+from experiments import common  # noqa: E402
 from experiments.physics import calibrate  # noqa: E402
 from gsp_jax.physics import calibration  # noqa: E402
 from gsp_jax.planning import dp  # noqa: E402
@@ -83,7 +84,7 @@ def test_incumbent_stays_unless_the_challenger_falls_significantly_less(capsys):
 def test_evaluation_episodes_are_refused():
     args = argparse.Namespace(from_sweep=None, sets="train,eval", random=1, backend="c", seed=0, chunk=8, write=False)
     with pytest.raises(SystemExit, match="never uses the evaluation episodes"):
-        calibrate.main(args)
+        calibrate.main(args, common.Run())
 
 
 def test_write_targets_the_librarys_calibration_file(tmp_path, monkeypatch):

@@ -260,15 +260,14 @@ def test_the_report_is_the_run_docs_data_holds():
 
 
 def test_record_writes_the_current_result_and_appends_its_history(tmp_path, monkeypatch):
-    """`python -m experiments --record <command>`: `common.record` writes the schema's row, named for its figure and
-    machine, and appends it to the history; without --record it writes nothing."""
+    """`python -m experiments --record <command>`: `Run.record_figures` writes the schema's row, named for its figure
+    and machine, and appends it to the history; without --record it writes nothing."""
     from experiments import common
 
-    monkeypatch.setattr(common, "RECORD", False)
-    assert common.record("bench_x", {"a": 1.0}, data=tmp_path) is None and not any(tmp_path.iterdir())
-    monkeypatch.setattr(common, "RECORD", True)
-    first = common.record("bench_x", {"a": 1.0}, data=tmp_path)
-    second = common.record("bench_x", {"a": 2.0}, data=tmp_path)
+    assert common.Run().record_figures("bench_x", {"a": 1.0}, data=tmp_path) is None and not any(tmp_path.iterdir())
+    run = common.Run(record=True)
+    first = run.record_figures("bench_x", {"a": 1.0}, data=tmp_path)
+    second = run.record_figures("bench_x", {"a": 2.0}, data=tmp_path)
     assert set(first) == SCHEMA and first["figures"] == {"a": 1.0}
     slug = common.device_slug()
     assert first["name"] == f"bench_x_{slug}"
@@ -377,21 +376,21 @@ def test_a_figures_run_records_the_commit_it_started_from(tmp_path, monkeypatch)
     tracked = [p.stem.rsplit("_", 1)[0] for p in sorted((clone / "docs/data").glob("*_cpu.json"))]
     assert len(cpu) >= 2 and tracked
 
-    def run_command(words):  # each figure records one tracked record: the tree differs from HEAD after the first
-        common.record(tracked[0], {"words": len(words)})
+    def run_command(words, run):  # each figure records one tracked record: the tree differs from HEAD after the first
+        run.record_figures(tracked[0], {"words": len(words)})
 
-    for k, v in dict(ROOT=clone, DATA=clone / "docs/data", RECORD=True, COMMAND=None).items():
+    for k, v in dict(ROOT=clone, DATA=clone / "docs/data").items():
         monkeypatch.setattr(common, k, v)
     monkeypatch.setattr(cli, "run_command", run_command)
     monkeypatch.setattr(common, "device_slug", lambda: "cpu")
     args = argparse.Namespace(list=False, stale=False, machine="cpu", only=None)
-    figures.main(args)
+    figures.main(args, common.Run(record=True))
     rows = [json.loads(line) for line in (clone / f"docs/data/history/{tracked[0]}_cpu.jsonl").read_text().splitlines()]
     assert [r["commit"] for r in rows[-len(cpu):]] == [head] * len(cpu)
     assert [r["command"] for r in rows[-len(cpu):]] == ["python -m experiments --record " + " ".join(f.command)
                                                         for f in cpu]
     with open(clone / "gsp_jax" / "surrogate" / "reward.py", "a") as f:
         f.write("\n# changed\n")
-    figures.main(argparse.Namespace(list=False, stale=False, machine="cpu", only=[cpu[0].name]))
+    figures.main(argparse.Namespace(list=False, stale=False, machine="cpu", only=[cpu[0].name]), common.Run(record=True))
     last = json.loads((clone / f"docs/data/{tracked[0]}_cpu.json").read_text())
     assert last["commit"] == head + "+dirty"

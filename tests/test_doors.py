@@ -95,12 +95,13 @@ def test_gym_env_checks_the_episodes_it_is_given():
     (["--render-episode", "bogus", "--policy", "four-tips"], r"--render-episode: 'bogus' is not one of"),
 ])
 def test_the_physics_command_refuses_bad_options_before_any_work(argv, message):
+    from experiments import common
     from experiments.physics import check
 
     parser = argparse.ArgumentParser()
     check.add_arguments(parser)
     with pytest.raises(SystemExit, match=message):
-        check.main(parser.parse_args(["--set", "nominal", *argv]))
+        check.main(parser.parse_args(["--set", "nominal", *argv]), common.Run())
 
 
 @pytest.mark.parametrize("field, value", [("waypoints", NOMINAL.waypoints.at[3, 0].set(jnp.nan)), ("dt", 0.0),

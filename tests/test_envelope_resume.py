@@ -14,7 +14,6 @@ import pytest
 
 import launch
 
-from experiments import common
 from experiments.cli import main
 from experiments.physics import envelope
 from gsp_jax.planning import evaluation
@@ -48,7 +47,6 @@ def run(monkeypatch, folder: pathlib.Path, fail_at: int | None = None) -> int:
     episode_set = scenario.episode_set  # the set's episodes to their first WAYPOINTS (a quick table and physics)
     monkeypatch.setattr(scenario, "episode_set", lambda name, model=None: {
         k: e.head(WAYPOINTS) for k, e in episode_set(name, model).items()})
-    monkeypatch.setattr(common, "COMMAND", None)  # main sets it: not left to the other tests
     monkeypatch.setattr(physics.Physics, "simulate_many", counted)
     try:
         main(LINE)

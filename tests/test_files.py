@@ -153,7 +153,7 @@ time.sleep(120)
 def test_a_command_takes_its_folders_before_its_set_up(tmp_path, monkeypatch):
     """A second command on a busy results folder is refused before its set-up (`results_folders`, locked by
     `python -m experiments`), not after minutes of DP tables: `train --out X` and `envelope`."""
-    from experiments import cli, common
+    from experiments import cli
     from experiments.physics import envelope
 
     env = {**os.environ, "PYTHONPATH": str(pathlib.Path(__file__).resolve().parents[1]), "JAX_PLATFORMS": "cpu"}
@@ -175,7 +175,6 @@ def test_a_command_takes_its_folders_before_its_set_up(tmp_path, monkeypatch):
             raise AssertionError("envelope set up on a busy folder")
 
         monkeypatch.chdir(tmp_path)
-        monkeypatch.setattr(common, "COMMAND", None)  # main sets it: not left to the other tests
         monkeypatch.setattr(envelope.evaluation, "context", set_up)
         with pytest.raises(SystemExit) as stop:
             cli.main(["envelope", "--set", "eval", "--episodes", "1", "--random", "0"])

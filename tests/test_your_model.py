@@ -230,11 +230,12 @@ def test_check_model_names_the_hands_problems(tmp_path):
 
 
 def test_check_model_command_exits_nonzero(tmp_path, capsys):
+    from experiments.common import Run
     from experiments.diagnostics import check_model
 
     scene = _write(tmp_path, TOOL.replace("<freejoint/>", ""))
     with pytest.raises(SystemExit) as e:
-        check_model.main(type("Args", (), {"scene": str(scene)}))
+        check_model.main(type("Args", (), {"scene": str(scene)}), Run())
     assert e.value.code == 1 and "one free body" in capsys.readouterr().out
 
 
@@ -335,6 +336,7 @@ def _hand_spec() -> mujoco.MjSpec:
 def test_check_model_reports_every_problem_of_a_file_at_once(tmp_path, capsys):
     """A file with problems of five kinds -- a position servo, a tendon-driven joint pair, a box below the palm, no IK
     start, a tool without one link's option -- names all of them in one run, each with its fix."""
+    from experiments.common import Run
     from experiments.diagnostics import check_model
 
     spec = _hand_spec()
@@ -360,7 +362,7 @@ def test_check_model_reports_every_problem_of_a_file_at_once(tmp_path, capsys):
     for text in expected:
         assert any(text in p for p in problems), (text, problems)
     with pytest.raises(SystemExit) as e:
-        check_model.main(type("Args", (), {"scene": str(scene), "quick": True, "reach": False}))
+        check_model.main(type("Args", (), {"scene": str(scene), "quick": True, "reach": False}), Run())
     out = capsys.readouterr().out
     assert e.value.code == 1 and all(text in out for text in expected), out
 

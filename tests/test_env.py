@@ -247,14 +247,13 @@ def test_out_of_range_actions_raise_at_every_python_entry_point(sur, episodes, t
     """A concrete action outside [0, 17) raises a ValueError naming the value: the brax env, the table model, the
     surrogate step and transition, the DP policies given the model's space. Inside jit it is clipped (documented in
     gsp_jax.model.grasps)."""
-    from gsp_jax.learning import env as env_lib
-    from gsp_jax.planning import policies
+    from gsp_jax.planning import dp, policies
 
     state = table_env.reset_to(0)
     msg = rf"action: {bad} is not in \[0, 17\)"
     with pytest.raises(ValueError, match=msg):
         table_env.step(state, bad)
-    model = env_lib.TableModel(jax.tree.map(lambda x: x[0], tables), sur.space)
+    model = dp.TableModel(jax.tree.map(lambda x: x[0], tables), sur.space)
     with pytest.raises(ValueError, match=msg):
         model.step(state.pipeline_state, np.int32(bad))
     with pytest.raises(ValueError, match=msg):

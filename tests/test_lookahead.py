@@ -11,7 +11,8 @@ import tolerances as tol
 from gsp_jax.planning import lookahead, policies
 from gsp_jax.planners import registry as planners
 from gsp_jax.model import scenario
-from gsp_jax.learning.env import TableModel, observation_size, table_state
+from gsp_jax.planning.dp import TableModel, table_state
+from gsp_jax.surrogate.observation import observation_size
 from gsp_jax.ppo import networks as nets
 
 
@@ -307,6 +308,38 @@ def test_lookahead_from_a_finished_state_and_bad_arguments(sur, solved):
         lookahead.search(model, done, policies.SequencePolicy(sols.actions[0]), depth=0)
     with pytest.raises(ValueError, match="horizon"):
         lookahead.search(model, done, policies.SequencePolicy(sols.actions[0]), depth=1, horizon=-1)
+    # the model is a step model (`protocols.StepModel`), the base a policy: dispatched by the protocol, checked
+    with pytest.raises(TypeError, match="model: a step model needs .*got SequencePolicy"):
+        lookahead.search(policies.SequencePolicy(sols.actions[0]), done, policies.SequencePolicy(sols.actions[0]))
+    with pytest.raises(TypeError, match="policy: a policy needs .*got TableModel"):
+        lookahead.search(model, done, model)
+
+
+def test_a_rollout_is_one_trajectory(sur, solved):
+    """`rollout.rollout` (the one walker): DP optimal's policy in its table walks the DP's optimal sequence -- its
+    actions, grasps, rewards and alive steps, and its return, the optimum; cut after 2 steps it keeps the first two
+    and fills the rest (null action, reward 0, not alive), the final state at waypoint 2."""
+    from gsp_jax.model.grasps import NULL
+    from gsp_jax.planning import rollout
+
+    eps, tables, sols = solved
+    ep, sol = _pick(eps, 0), _pick(sols, 0)
+    model = TableModel(_pick(tables, 0), sur.space)
+    walk = jax.jit(lambda s, n: rollout.rollout(model, policies.TablePolicy(sol.policy), s, n), static_argnums=1)
+    traj = walk(model.reset(ep), None)
+    alive = np.asarray(sol.alive)
+    np.testing.assert_array_equal(np.asarray(traj.alive), alive)
+    np.testing.assert_array_equal(np.asarray(traj.actions)[alive], np.asarray(sol.actions)[alive])
+    np.testing.assert_array_equal(np.asarray(traj.grasps)[alive], np.asarray(sol.grasps)[1:][alive])
+    np.testing.assert_allclose(np.asarray(traj.rewards), np.asarray(sol.rewards), atol=tol.REWARD_ATOL)
+    np.testing.assert_allclose(float(traj.ret), float(sol.ret), atol=tol.REWARD_ATOL * 6)
+    assert bool(traj.final.done) and float(traj.hold) == 1.0 and np.all(np.asarray(traj.reach) == 1.0)
+    cut = walk(model.reset(ep), 2)
+    assert cut.actions.shape == (2,) and int(cut.final.t) == 2 and bool(np.all(cut.alive))
+    np.testing.assert_allclose(float(cut.ret), float(np.sum(np.asarray(sol.rewards)[:2])), atol=tol.REWARD_ATOL * 2)
+    if not alive.all():  # the steps after the end keep the fill
+        n = int(alive.sum())
+        assert np.all(np.asarray(traj.actions)[n:] == NULL) and np.all(np.asarray(traj.rewards)[n:] == 0.0)
 
 
 def test_shared_rollouts_cover_every_leaf(sur):

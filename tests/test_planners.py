@@ -23,7 +23,8 @@ PROJECT = ("dp-base", "rl", "L1", "L2", "dp-opt", "four-tips", "one-tip", "rando
 
 PLUGIN = '''
 import jax.numpy as jnp
-from gsp_jax import planners, policies
+from gsp_jax.planners import registry as planners
+from gsp_jax.planning import policies
 
 
 @planners.register("keep-start")

@@ -80,7 +80,7 @@ def test_batched_rollout_runs_the_episode_that_stepping_runs(sur, solved, kind, 
     because its best logit leads the runner-up by more than twice what the joint angles' tolerance can move it); the
     closed-loop ones also with `ahead` = 3, each batch realising every state three decisions can reach (4 steps: a
     whole block, then a part of one)."""
-    from gsp_jax.learning.env import observation, observation_size
+    from gsp_jax.surrogate.observation import observation, observation_size
     from gsp_jax.ppo import networks as nets
 
     eps, tables, sols = solved

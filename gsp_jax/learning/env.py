@@ -16,8 +16,9 @@ backend for training on a fixed set, the surrogate backend (no tables) for conti
 With tables, `pipeline_state.terms` carries the reward and the fall risk only (the other terms are not tabulated).
 
 With the learned physics term a step's reward is its expectation over the term's chance node and `info["hold"]` the
-chance its segment held (1 - `terms.fall_risk`): PPO weights what follows by it (`ppo.losses.gae`), as the DP and
-the lookahead do (`reward.backed_up`); the running return is the expected one. Without the term it is 1.
+chance its segment held (`reward.chance_to_hold` of `terms.fall_risk`): PPO weights what follows by it
+(`ppo.losses.gae`), as the DP and the lookahead do (`reward.backed_up`); the running return is the expected one
+(`reward.accumulated`). Without the term it is 1.
 """
 from __future__ import annotations
 
@@ -27,8 +28,10 @@ import numpy as np
 from brax.envs import base as brax_base
 
 from gsp_jax.planning import dp
-from gsp_jax.planning.dp import TableModel, table_state, table_step  # noqa: F401  (the table backend; re-exported)
-from gsp_jax.surrogate.observation import observation, observation_size  # noqa: F401  (the policy's view; re-exported)
+from gsp_jax.planning.dp import TableModel  # noqa: F401  (its home is `planning.dp`: kept here only while
+# experiments/paper/table1/decisions.py and the walkthrough notebook import it from this module)
+from gsp_jax.surrogate import reward as reward_lib
+from gsp_jax.surrogate.observation import observation, observation_size
 from gsp_jax.model.scenario import Episode
 from gsp_jax.surrogate.step import State, Surrogate
 
@@ -44,7 +47,7 @@ class GraspEnv(brax_base.Env):
 
     `state.info`: `episode_index` (index into the set; not `episode`, which Gymnasium tools reserve for episode
     statistics), `return` (running (expected) return of the current episode), `hold` (the chance the last step's
-    segment held: 1 - its learned fall risk, 1 without the term), `reach` (the chance every segment so far held).
+    segment held: `reward.chance_to_hold`, 1 without the term), `reach` (the chance every segment so far held).
     `state.metrics`: `episode_return` (the return of the episode that ended at this step; read it where `done`).
     """
 
@@ -103,12 +106,11 @@ class GraspEnv(brax_base.Env):
         idx = state.info["episode_index"]
         action = self.space.checked(action)
         if self.tables is not None:
-            sim, reward, done = table_step(_TableView(self.tables, idx), state.pipeline_state, action)
+            sim, reward, done = dp.table_step(_TableView(self.tables, idx), state.pipeline_state, action)
         else:
             sim, reward, done = self.surrogate.step(state.pipeline_state, action)
-        hold = 1.0 - sim.terms.fall_risk
-        ret = state.info["return"] + state.info["reach"] * reward
-        reach = state.info["reach"] * hold
+        hold = reward_lib.chance_to_hold(sim.terms.fall_risk)
+        ret, reach = reward_lib.accumulated(state.info["return"], state.info["reach"], reward, sim.terms.fall_risk)
         if self.auto_reset:
             idx_next = jnp.where(done, (idx + 1) % self.n_episodes, idx)
             fresh = self._start(idx_next)
@@ -132,7 +134,7 @@ class GraspEnv(brax_base.Env):
     def _start(self, idx: jax.Array) -> State:
         ep = self.episode(idx)
         if self.tables is not None:
-            return table_state(ep, _TableView(self.tables, idx), ep.start_grasp, 0)
+            return dp.table_state(ep, _TableView(self.tables, idx), ep.start_grasp, 0)
         return self.surrogate.reset(ep)
 
 

@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import jax
 
-from gsp_jax.planning import dp, lookahead as lookahead_lib, policies
+from gsp_jax.planning import dp, lookahead as lookahead_lib, policies, rollout as rollout_lib
 from gsp_jax.planners import registry as planners
-from gsp_jax.learning.env import TableModel
+from gsp_jax.planning.dp import TableModel
 
 GPU_AHEAD = 4  # RL's decisions per batch of realised states on a GPU (`policies.rollout_batched`'s `ahead`): a batch
 # realises, for each of the next k decisions j < k, the grasps within j link changes (196 states at k = 4); the
@@ -58,7 +58,7 @@ def plan(ctx, name: str, lookahead: str = "table", batched: bool | None = None, 
         def episode(ep):
             table, sol = dp.solve(sur, ep)
             model = TableModel(table, sur.space)  # from its start the surrogate only visits the table's states
-            return lookahead_lib.rollout(model, policies.TablePolicy(sol.policy), model.reset(ep))[0]
+            return rollout_lib.rollout(model, policies.TablePolicy(sol.policy), model.reset(ep)).ret
         return episode
     policy, _ = planners.make(ctx, name, dict(cached=False))
     if isinstance(policy, policies.Lookahead):  # each decision's search has stepped every action: the episode moves on
@@ -73,6 +73,6 @@ def plan(ctx, name: str, lookahead: str = "table", batched: bool | None = None, 
     if batched and name in BATCHED:
         ahead = default_ahead() if ahead is None else ahead
         return lambda ep: policies.rollout_batched(sur, policy, ep, ahead)[0]
-    return lambda ep: lookahead_lib.rollout(sur, policy, sur.reset(ep))[0]
+    return lambda ep: rollout_lib.rollout(sur, policy, sur.reset(ep)).ret
 
 

@@ -26,7 +26,8 @@ from typing import Any, Callable
 import jax
 import jax.numpy as jnp
 
-from gsp_jax.planning import dp, evaluation, policies
+from gsp_jax.planning import dp, evaluation, policies, rollout as rollout_lib
+from gsp_jax.surrogate import reward as reward_lib
 from gsp_jax.core import platform
 from gsp_jax.model.grasps import NULL
 
@@ -151,21 +152,23 @@ def returns(ctx, name: str, backend: str = "table", **options):
     DP table (`backend="table"`: exact for the discrete states the surrogate visits) or in the surrogate itself
     (`"surrogate"`, a lookahead's tree included). `options` go to `make` as shared options (to the planner only
     where it takes them, e.g. `cached=True`)."""
-    from gsp_jax.planning import lookahead
-    from gsp_jax.learning.env import TableModel
-
     if backend not in ("table", "surrogate"):
         raise ValueError(f"returns: backend must be 'table' or 'surrogate', got {backend!r}")
     policy, axis = make(ctx, name, options)
-    space = ctx.surrogate.space
 
     def one(ep, table, pol):
-        model = TableModel(table, space) if backend == "table" else ctx.surrogate
-        if isinstance(pol, policies.Lookahead):
-            pol = pol.replace(model=model)
-        return lookahead.rollout(model, pol, model.reset(ep))[0]
+        return _walk(ctx, backend, ep, table, pol, None).ret
 
     return jax.jit(jax.vmap(one, (0, 0, axis)))(ctx.batch, ctx.tables, policy)
+
+
+def _walk(ctx, backend: str, ep, table, pol, steps: int | None) -> rollout_lib.Trajectory:
+    """Policy `pol`'s walk of episode `ep` from its reset, in its DP table or in the surrogate (a lookahead's root
+    stepped in the same model): `planning.rollout`."""
+    model = dp.TableModel(table, ctx.surrogate.space) if backend == "table" else ctx.surrogate
+    if isinstance(pol, policies.Lookahead):
+        pol = pol.replace(model=model)
+    return rollout_lib.rollout(model, pol, model.reset(ep), steps)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -190,34 +193,20 @@ def plan(ctx, name: str, backend: str = "table", **options) -> Plan:
     """Planner `name`'s episode for every episode of `ctx` (`evaluation.context`), stepped from its reset in its DP
     table (`backend="table"`) or in the surrogate (`"surrogate"`), as `returns` steps it; with the decisions and
     rewards kept. `options` as `returns` takes them."""
-    from gsp_jax.learning.env import TableModel
-
     if backend not in ("table", "surrogate"):
         raise ValueError(f"plan: backend must be 'table' or 'surrogate', got {backend!r}")
     if backend == "table" and ctx.tables is None:
         raise ValueError("plan: backend 'table' needs the context's DP tables (`evaluation.context(tables=True)`)")
     policy, axis = make(ctx, name, options)
-    space, n_steps = ctx.surrogate.space, int(ctx.batch.waypoints.shape[-2])
+    n_steps = int(ctx.batch.waypoints.shape[-2])
 
     def one(ep, table, pol):
-        model = TableModel(table, space) if backend == "table" else ctx.surrogate
-        if isinstance(pol, policies.Lookahead):
-            pol = pol.replace(model=model)
-
-        def step(carry, _):
-            s, reach = carry
-            a = jnp.where(s.done, NULL, pol.act(s)).astype(jnp.int32)
-            nxt, r = model.step(s, a)[:2]
-            nxt = jax.tree.map(lambda new, old: jnp.where(s.done, old, new), nxt, s)  # an ended episode stays
-            r = jnp.where(s.done, 0.0, r)
-            return (nxt, jnp.where(s.done, reach, reach * (1.0 - nxt.terms.fall_risk))), (a, r, reach * r)
-
-        start = model.reset(ep)
-        _, (acts, rewards, weighted) = jax.lax.scan(step, (start, jnp.ones((), jnp.float32)), None, n_steps)
-        return acts, rewards, jnp.sum(weighted)
+        traj = _walk(ctx, backend, ep, table, pol, n_steps)  # the return as a sum of the weighted rewards, as
+        # `Plan.ret` has always been summed (`traj.ret`, summed in walking order, can differ in float32's last bits)
+        return traj.actions, traj.rewards, reward_lib.expected_return(traj.rewards, None, traj.alive, traj.reach)
 
     acts, rewards, ret = jax.jit(jax.vmap(one, (0, 0, axis)))(ctx.batch, ctx.tables, policy)
-    return Plan(name, list(ctx.names), acts, rewards, ret, space)
+    return Plan(name, list(ctx.names), acts, rewards, ret, ctx.surrogate.space)
 
 
 def check(ctx, names_: "str | list[str]", backend: str = "c", physics=None, **kwargs) -> dict:

@@ -9,14 +9,15 @@ From `state` the search expands the complete tree of depth l over the A actions:
 (a_1 .. a_l) is scored by the sum of its l rewards plus its leaf's rollout value, the return of the base policy
 run from the leaf for m further steps (to the episode's end by default, m = None), plus, optionally, a value
 estimate (the PPO critic) of the state where the rollout was cut off. With the learned physics term each step is a
-chance node (expectimax): what follows a step counts with its chance to hold, 1 - `terms.fall_risk`
-(`reward.backed_up`; 1 without the term, where the sums are plain). The search returns the first action of the
-best path, and q[a] = the best score under first action a (Q-values, for inspection). A finished state is
-absorbing (reward 0), so paths that end the episode early are scored by what they earned.
+chance node (expectimax): what follows a step counts with its chance to hold (`reward.chance_to_hold` of
+`terms.fall_risk`, `reward.backed_up`; 1 without the term, where the sums are plain). The search returns the
+first action of the best path, and q[a] = the best score under first action a (Q-values, for inspection). A
+finished state is absorbing (reward 0), so paths that end the episode early are scored by what they earned.
 
-`model` is anything with `step(state, action) -> (state, reward, done)`: the `Surrogate` (IK + wrench solves;
-from any continuous state, e.g. the simulated one in the physics check) or `dp.TableModel` (one episode's DP
-table: exact, and cheap, for the discrete states the surrogate visits). `base` is any policy (`act(state)`):
+`model` is any step model (`protocols.StepModel`: `reset`, `step`, and `step_every`, which the root expands): the
+`Surrogate` (IK + wrench solves; from any continuous state, e.g. the simulated one in the physics check) or
+`dp.TableModel` (one episode's DP table: exact, and cheap, for the discrete states the surrogate visits). `base`
+is any policy (`protocols.Policy`, `act(state)`):
 DP, PPO's deterministic actor, or another lookahead. `depth` and `horizon` are static; everything else is
 traced, so `jax.vmap` runs one search per (state, episode, policy parameters) in one XLA kernel.
 
@@ -39,6 +40,9 @@ import numpy as np
 from flax import struct
 
 from gsp_jax.model.grasps import GraspSpace
+from gsp_jax.planning import rollout as rollout_lib
+from gsp_jax.surrogate import protocols, reward as reward_lib
+from gsp_jax.surrogate.protocols import Policy, StepModel
 from gsp_jax.surrogate.step import State
 
 Value = Callable[[State], jax.Array]  # optional value estimate of a state, in reward units
@@ -56,14 +60,16 @@ class Plan:
     reward: jax.Array  # () that step's reward
 
 
-def rollout(model, policy, state: State, horizon: int | None = None, value: Value | None = None):
+def rollout(model: StepModel, policy: Policy, state: State, horizon: int | None = None,
+            value: Value | None = None):
     """Run `policy` from `state` for `horizon` steps (None: until the episode ends) in `model`; return
-    (the (expected) sum of rewards [+ value(final) if the episode has not ended], final state). A
-    `lax.while_loop`: under `vmap` it stops when every rollout of the batch has ended."""
-    ret, final, reach = _run(lambda s: model.step(s, policy.act(s))[:2], state, horizon)
+    (the (expected) sum of rewards [+ value(final) if the episode has not ended], final state): the walk of
+    `planning.rollout.rollout` (under `vmap` it stops when every rollout of the batch has ended)."""
+    traj = rollout_lib.rollout(model, policy, state, horizon)
+    ret = traj.ret
     if value is not None:
-        ret = ret + jnp.where(final.done, 0.0, reach * value(final))
-    return ret, final
+        ret = ret + jnp.where(traj.final.done, 0.0, traj.hold * value(traj.final))
+    return ret, traj.final
 
 
 def rollout_planned(policy: "Lookahead", state: State, horizon: int | None = None):
@@ -71,33 +77,19 @@ def rollout_planned(policy: "Lookahead", state: State, horizon: int | None = Non
     search has already computed `model.step(state, action)` for every action at its root, so the episode moves on
     to the plan's `child` and earns its `reward`. The same transitions (the child comes from the root's vmapped
     step, so in float32 its last bits can differ from a single step's); one model step per decision fewer.
-    Returns (the (expected) sum of rewards, final state)."""
+    Returns (the (expected) sum of rewards, final state); `planned` gives the whole `Trajectory`."""
+    traj = planned(policy, state, horizon)
+    return traj.ret, traj.final
+
+
+def planned(policy: "Lookahead", state: State, horizon: int | None = None) -> rollout_lib.Trajectory:
+    """The `Trajectory` of `rollout_planned`: `planning.rollout.walk` moving on to each search's root child."""
 
     def transition(s):
         plan = policy.plan(s)
-        return plan.child, plan.reward
+        return plan.action, plan.child, plan.reward
 
-    return _run(transition, state, horizon)[:2]
-
-
-def _run(transition, state: State, horizon: int | None):
-    """(expected sum of rewards, final state, chance to reach it) of `transition(s) -> (next state, reward)` from
-    `state` for `horizon` steps (None: the episode's length) or until the episode ends: each reward counts with the
-    chance that every earlier segment held (the product of 1 - `terms.fall_risk`; 1 without the learned term)."""
-    steps = state.episode.waypoints.shape[-2] if horizon is None else horizon
-
-    def cond(carry):
-        i, s, _, _ = carry
-        return (i < steps) & ~s.done
-
-    def body(carry):
-        i, s, ret, reach = carry
-        s, reward = transition(s)
-        return i + 1, s, ret + reach * reward, reach * (1.0 - s.terms.fall_risk)
-
-    one = jnp.ones((), jnp.float32)
-    _, final, ret, reach = jax.lax.while_loop(cond, body, (jnp.int32(0), state, 0.0 * one, one))
-    return ret, final, reach
+    return rollout_lib.walk(transition, state, state.episode.waypoints.shape[-2] if horizon is None else horizon)
 
 
 def search(model, state: State, base, depth: int = 1, horizon: int | None = None, value: Value | None = None,
@@ -110,9 +102,11 @@ def search(model, state: State, base, depth: int = 1, horizon: int | None = None
         raise ValueError(f"depth: the lookahead depth l must be >= 1, got {depth}")
     if horizon is not None and horizon < 0:
         raise ValueError(f"horizon: the rollout length m must be >= 0 or None (to the episode's end), got {horizon}")
+    inner = model if inner is None else inner
+    protocols.checked(model, base)
+    protocols.checked(inner, where="inner")
     space: GraspSpace = model.space
     n_a = space.n_actions
-    inner = model if inner is None else inner
     # children (A, ...), their rewards (A,); leaves (A^l, ...), path rewards and chances to hold (A^l,)
     (children, child_reward), (leaves, path_reward, path_hold) = _expand(model, state, depth, n_a, inner)
 
@@ -140,16 +134,14 @@ def _expand(model, state: State, depth: int, n_a: int, inner):
     states (A^depth leading), path rewards (A^depth,), the paths' chances to hold (A^depth,)): a path's reward is
     its first step's plus, where that segment held, the rest's (`reward.backed_up`). The first step in `model`, the
     deeper ones in `inner`."""
-    if hasattr(model, "step_every"):  # the model steps every action at once (`Surrogate.step_every`)
-        children, rewards, _ = model.step_every(state)
-    else:
-        children, rewards, _ = jax.vmap(model.step, (None, 0))(state, jnp.arange(n_a, dtype=jnp.int32))
-    hold = 1.0 - children.terms.fall_risk  # (A,)
+    children, rewards, _ = model.step_every(state)  # every action at once (`StepModel.step_every`)
+    risk = children.terms.fall_risk  # (A,)
+    hold = reward_lib.chance_to_hold(risk)
     if depth == 1:
         return (children, rewards), (children, rewards, hold)
     _, (leaves, sub, sub_hold) = jax.vmap(lambda s: _expand(inner, s, depth - 1, n_a, inner))(children)
     flat = jax.tree.map(lambda x: x.reshape(-1, *x.shape[2:]), leaves)  # (A * A^(d-1), ...)
-    return (children, rewards), (flat, (rewards[:, None] + hold[:, None] * sub).reshape(-1),
+    return (children, rewards), (flat, reward_lib.backed_up(rewards[:, None], risk[:, None], None, sub).reshape(-1),
                                  (hold[:, None] * sub_hold).reshape(-1))
 
 

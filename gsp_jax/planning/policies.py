@@ -1,4 +1,4 @@
-"""One policy interface for every planner: a policy is a pytree with `act(state) -> action`.
+"""One policy interface for every planner: a policy is a pytree with `act(state) -> action` (`protocols.Policy`).
 
 `act` takes one surrogate `State` (continuous state plus episode input) and returns an int32 action; it is
 pure, so `jax.jit` and `jax.vmap` apply, and the surrogate evaluation, lookahead and the physics check call every
@@ -9,8 +9,9 @@ policy the same way. A policy may read any field of the state except `terms` (th
     RL            NetworkPolicy(params, networks, space)                               deterministic PPO actor
     Ll (L1, L2)   Lookahead(base=any of these, model=surrogate, depth=l)               `gsp_jax.planning.lookahead`
 
-A policy's episode in the surrogate `sur`: `lookahead.rollout(sur, policy, sur.reset(episode))` (the one rollout);
-`rollout_batched` runs the same episode with its transitions in one batch.
+A policy's episode in the surrogate `sur`: `rollout.rollout(sur, policy, sur.reset(episode))` (the one walker, a
+`Trajectory`; `lookahead.rollout` its return and final state); `rollout_batched` runs the same episode with its
+transitions in one batch.
 """
 from __future__ import annotations
 
@@ -182,7 +183,7 @@ def _check_concrete(actions, field: str, space: GraspSpace | None) -> None:
 
 
 def rollout_batched(sur: Surrogate, policy, episode: Episode, ahead: int = 1) -> tuple[jax.Array, State]:
-    """`lookahead.rollout(sur, policy, sur.reset(episode))` with the transitions off the chain of decisions. From its
+    """`rollout.rollout(sur, policy, sur.reset(episode))` with the transitions off the chain of decisions. From its
     start an episode visits only discrete states (grasp, t), and a step's next grasp follows from its action alone
     (`GraspSpace.apply`), so the grasps a policy visits are known before any reward is: all T transitions (their IK
     and wrench solves) then run as one vmapped batch (`Surrogate.transition`), and the return sums the rewards up to

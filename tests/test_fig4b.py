@@ -1,4 +1,4 @@
-"""Fig. 4b's runner (`experiments.paper.fig4b.run`): in C MuJoCo every policy runs in one lockstep, and each gives
+"""Fig. 4b's runner (`experiments.paper.fig4b.evaluate`): in C MuJoCo every policy runs in one lockstep, and each gives
 what it gives alone (the controller program of another batch size: float reassociation only)."""
 from __future__ import annotations
 
@@ -38,13 +38,13 @@ def test_policies_in_one_lockstep_give_what_they_give_alone(sur, tmp_path):
     names = ["dp-base", "rl"]
     out = tmp_path / "lockstep"
     out.mkdir()
-    both = fig4b.run(ctx, names, out, fresh=True, backend="c")
+    both = fig4b.evaluate(ctx, names, out, fresh=True, backend="c")
     assert sorted(p.name for p in out.glob("*.json")) == ["dp-base.json", "rl.json"]  # each policy saved
     runs = {1: {}}
     for name in names:
         alone = tmp_path / name
         alone.mkdir()
-        runs[1][name] = one = fig4b.run(ctx, [name], alone, fresh=True, backend="c")[name]
+        runs[1][name] = one = fig4b.evaluate(ctx, [name], alone, fresh=True, backend="c")[name]
         assert one["falls"] == both[name]["falls"], name
         for a, b in zip(one["per_episode"], both[name]["per_episode"]):
             assert a["grasps"] == b["grasps"] and a["fell"] == b["fell"], name

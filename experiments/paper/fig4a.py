@@ -37,7 +37,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     common.add_lookahead_argument(p)
 
 
-def run(ctx: evaluation.Context, backend: str, out, cached: bool = True) -> dict:
+def evaluate(ctx: evaluation.Context, backend: str, out, cached: bool = True) -> dict:
     rets, wall = {}, {}
     for name in planners.names("paper"):
         t0 = time.perf_counter()
@@ -84,7 +84,7 @@ def main(args: argparse.Namespace, run: Run) -> None:
     print(f"Fig. 4a: {len(ctx.names)} episodes of '{args.set}', backend {backend}, RL policy {ctx.rl_source}",
           flush=True)
     out = run.results_dir("fig4a")
-    result = run(ctx, backend, out, cached=args.lookahead == "cached")
+    result = evaluate(ctx, backend, out, cached=args.lookahead == "cached")
     print(f"wrote {out / 'returns.json'}, {out / 'fig4a.png'}")
     run.record_figures("fig4a", figures(result))
     print_result(result)

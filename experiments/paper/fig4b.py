@@ -52,7 +52,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     common.add_lookahead_argument(p)
 
 
-def run(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str = "c", cached: bool = True,
+def evaluate(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str = "c", cached: bool = True,
         jobs: int | None = None, warm: bool = False, k: int = evaluation.L1_PHYSICS["k"],
         bases=evaluation.L1_PHYSICS["bases"], chunk: int | None = None) -> dict:
     """Fig. 4b's result per policy (saved results reused); `jobs` policies at a time (default as `--jobs`); in C
@@ -171,8 +171,8 @@ def main(args: argparse.Namespace, run: Run) -> None:
     print(f"Fig. 4b: {len(ctx.names)} episodes of '{args.set}' in {args.backend} (JAX on {jax.default_backend()}), "
           f"RL policy {ctx.rl_source}", flush=True)
     out = run.results_dir("fig4b")
-    results = run(ctx, args.policies, out, args.fresh, args.backend, cached=args.lookahead == "cached", jobs=args.jobs,
-                  warm=args.warm, k=args.k, bases=args.bases, chunk=args.chunk)
+    results = evaluate(ctx, args.policies, out, args.fresh, args.backend, cached=args.lookahead == "cached",
+                       jobs=args.jobs, warm=args.warm, k=args.k, bases=args.bases, chunk=args.chunk)
     if not distributed.is_main():
         return
     print(f"wrote {out}/<policy>.json, {out / 'fig4b.png'}")

@@ -11,7 +11,7 @@ import sys
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 WAYPOINTS = 3
 SHORT_PLUGIN = '''"""Every episode set cut to its first {w} waypoints, as the in-process tests cut them."""
-from gsp_jax import scenario
+from gsp_jax.model import scenario
 
 _episode_set = scenario.episode_set
 scenario.episode_set = lambda name, model=None: {{k: e.head({w}) for k, e in _episode_set(name, model).items()}}

@@ -93,7 +93,10 @@ def test_map_chunks_joins_each_chunks_result_in_order():
 DEVICES = '''
 import sys
 import jax, numpy as np
-from gsp_jax import evaluation, ik, scenario, surrogate
+from gsp_jax.planning import evaluation
+from gsp_jax.solvers import ik
+from gsp_jax.model import scenario
+from gsp_jax.surrogate import step as surrogate
 
 sur = surrogate.Surrogate(ik_config=ik.IKConfig(lanes=False))
 episodes = {k: e.head(2) for k, e in list(scenario.episode_set("eval").items())[:3]}

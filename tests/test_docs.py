@@ -391,6 +391,7 @@ def test_a_figures_run_records_the_commit_it_started_from(tmp_path, monkeypatch)
                                                         for f in cpu]
     with open(clone / "gsp_jax" / "surrogate" / "reward.py", "a") as f:
         f.write("\n# changed\n")
-    figures.main(argparse.Namespace(list=False, stale=False, machine="cpu", only=[cpu[0].name]), common.Run(record=True))
+    figures.main(argparse.Namespace(list=False, stale=False, machine="cpu", only=[cpu[0].name]),
+                 common.Run(record=True))
     last = json.loads((clone / f"docs/data/{tracked[0]}_cpu.json").read_text())
     assert last["commit"] == head + "+dirty"

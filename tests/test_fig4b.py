@@ -61,7 +61,8 @@ def test_policies_in_one_lockstep_give_what_they_give_alone(sur, tmp_path):
 NET_PLUGIN = '''"""A planner that decides in JAX at every waypoint of the physics: a random-weight actor network."""
 import jax
 
-from gsp_jax import planners, policies
+from gsp_jax import planners
+from gsp_jax.planning import policies
 from gsp_jax.learning.env import observation_size
 from gsp_jax.ppo import networks as nets
 

@@ -563,7 +563,8 @@ def test_float32_problem_stays_float32_with_x64_enabled():
     code = textwrap.dedent(
         """
         import jax, jax.numpy as jnp
-        from gsp_jax import ik, kinematics, model, scenario
+        from gsp_jax.solvers import ik
+        from gsp_jax.model import kinematics, load as model, scenario
         hand = model.load_hand()
         p, m = jnp.zeros(3, jnp.float32), jnp.eye(3, dtype=jnp.float32)
         q = jnp.asarray(hand.q_start, jnp.float32)

@@ -20,7 +20,9 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 STEP_ONCE = """
 import json, pathlib, jax, jax.numpy as jnp
 import gsp_jax
-from gsp_jax import evaluation, hand, scenario, surrogate
+from gsp_jax.planning import evaluation
+from gsp_jax.model import hand, scenario
+from gsp_jax.surrogate import step as surrogate
 env = surrogate.Surrogate()
 state = jax.jit(env.reset)(scenario.make_episode())
 state, reward, done = jax.jit(env.step)(state, jnp.int32(3))

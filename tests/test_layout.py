@@ -228,3 +228,21 @@ def test_every_folder_of_code_is_a_declared_package():
     declared = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
     folders = {_module(p) for top in ("gsp_jax", "experiments") for p in (ROOT / top).rglob("__init__.py")}
     assert folders - declared == set(), f"folders of code not in pyproject's packages: {sorted(folders - declared)}"
+
+
+def test_an_old_module_path_warns_and_gives_the_module_in_its_folder():
+    """`from gsp_jax import dp` (the paths before the layer folders) lives one release: a DeprecationWarning naming
+    the new place, and the module itself; every old name maps to a module that exists."""
+    import importlib
+    import warnings
+
+    import gsp_jax
+    from gsp_jax.planning import dp
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert gsp_jax.dp is dp
+    assert any(issubclass(w.category, DeprecationWarning) and "gsp_jax.planning.dp" in str(w.message) for w in caught)
+    for old, new in gsp_jax._MOVED.items():
+        assert importlib.util.find_spec(new) is not None, (old, new)
+        assert not (ROOT / "gsp_jax" / f"{old}.py").exists(), old

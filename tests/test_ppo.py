@@ -509,7 +509,8 @@ TWO_DEVICES = '''
 import dataclasses, json
 import jax, jax.numpy as jnp, numpy as np
 from test_ppo import CONFIG, SMALL, T, _probe_tables
-from gsp_jax import scenario, surrogate
+from gsp_jax.model import scenario
+from gsp_jax.surrogate import step as surrogate
 from gsp_jax.learning.env import GraspEnv
 from gsp_jax.ppo import networks as nets
 from gsp_jax.ppo import train as ppo

@@ -35,8 +35,8 @@ def _probe(tmp_path, **env) -> dict:
 
 
 def test_enable_cache_turns_on_the_compilation_cache_and_keeps_small_programs(tmp_path):
-    """`gsp_jax.enable_cache()` turns the cache on in the user's cache folder (XDG_CACHE_HOME), one subfolder per CPU, and
-    writes even a program that compiled in milliseconds (JAX keeps only those over 1 s by default)."""
+    """`gsp_jax.enable_cache()` turns the cache on in the user's cache folder (XDG_CACHE_HOME), one subfolder per CPU,
+    and writes even a program that compiled in milliseconds (JAX keeps only those over 1 s by default)."""
     got = _probe(tmp_path)
     expected = tmp_path / "xdg" / "gsp_jax" / "xla" / cache.cpu_tag()
     assert got["folder"] == got["package"] == str(expected) and got["min_s"] == 0.0

@@ -82,7 +82,8 @@ def test_native_tick_is_the_jax_tick_on_recorded_states(phys, episodes):
             tick(j, rows, cs_native, eng.obs, run.ep_native, out_native)
             cs, out = run.pr.tick(run.cs, eng.obs, run.ep_flat, j)
             run.cs, out = np.array(cs), np.asarray(out)
-            changing += int(np.sum(run.cs[:, tick.constants.cs_changed:tick.constants.cs_changed + phys.hand.n_links]))
+            changed = tick.constants.state.changed
+            changing += int(np.sum(run.cs[:, changed:changed + phys.hand.n_links]))
             worst["ctrl"] = max(worst["ctrl"], np.abs(out_native[:, :nu] - out[:, :nu]).max())
             worst["ext"] = max(worst["ext"], np.abs(out_native[:, nu:nu + 6] - out[:, nu:nu + 6]).max())
             worst["cs"] = max(worst["cs"], np.abs(cs_native - run.cs).max())
@@ -135,12 +136,12 @@ def test_native_chain_and_links_are_kinematics(phys, rng):
         _, (x_w, jac_w) = ref(jnp.asarray(q), jnp.asarray(near))
         pos, mat = np.zeros((n_b, 3)), np.zeros((n_b, 3, 3))
         axes, anchors = np.zeros((n_j, 3)), np.zeros((n_j, 3))
-        native._chain(K, q.astype(np.float64), pos, mat, axes, anchors, np.zeros((3, 3)), np.zeros((3, 3)))
+        native._chain(K.hand, q.astype(np.float64), pos, mat, axes, anchors, np.zeros((3, 3)), np.zeros((3, 3)))
         for name, got, want in (("pos", pos, pos_w), ("mat", mat, mat_w), ("axes", axes, axes_w),
                                 ("anchors", anchors, anchors_w)):
             np.testing.assert_allclose(got, np.asarray(want), atol=1e-6, err_msg=name)
         x, jac = np.zeros((n_l, 3)), np.zeros((n_l, 3, n_j))
-        native._links(K, q.astype(np.float64), near.astype(np.float64), x, jac, pos, mat, axes, anchors, S)
+        native._links(K.hand, q.astype(np.float64), near.astype(np.float64), x, jac, pos, mat, axes, anchors, S)
         np.testing.assert_allclose(x, np.asarray(x_w), atol=1e-6, err_msg="closest points")
         np.testing.assert_allclose(jac, np.asarray(jac_w), atol=1e-6, err_msg="Jacobians")
 
@@ -155,7 +156,7 @@ def test_native_force_solve_is_the_wrench_solve(phys, rng):
     S = native.scratch(K)
     ctl = phys.controller
     n_l = phys.hand.n_links
-    grip = K.grip_force
+    grip = K.controller.grip_force
 
     @jax.jit
     def reference(points, normals, active, mu, required, center, init):
@@ -179,7 +180,8 @@ def test_native_force_solve_is_the_wrench_solve(phys, rng):
         want = np.asarray(reference(points, normals, active, mu, required, center, init))
         got = np.zeros((n_l, 3))
         f64 = lambda x: np.asarray(x, np.float64)  # noqa: E731
-        native._solve(K, f64(points), f64(normals), active, float(mu), f64(required), f64(center), f64(init), got, S)
+        native._solve(K.controller, f64(points), f64(normals), active, float(mu), f64(required), f64(center),
+                      f64(init), got, S)
         assert np.all(got[~active] == 0)
         worst = max(worst, np.abs(got - want).max())
     assert worst < 2e-4, worst

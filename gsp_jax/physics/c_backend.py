@@ -216,9 +216,9 @@ class Engine:
             self.keys = [Pool.key(one(e)) for e in range(n)]
             self.models, self.datas = map(list, zip(*[pool.take(scene, k, lambda e=e: one(e))
                                                       for e, k in enumerate(self.keys)]))
-        self.addresses = native.addresses(self.models, self.datas, scene.tool_body)
-        self.pedestals = np.ascontiguousarray(fields.pedestal_pos, np.float64)  # (n, P, 3) at drop 0
-        self.geoms = np.asarray(scene.pedestal_geoms, np.int64)
+        self.native = native.Models(addresses=native.addresses(self.models, self.datas, scene.tool_body),
+                                    pedestals=np.ascontiguousarray(fields.pedestal_pos, np.float64),  # at drop 0
+                                    geoms=np.asarray(scene.pedestal_geoms, np.int64))
         self._spec = mujoco.mjtState.mjSTATE_INTEGRATION
         self.nstate = mujoco.mj_stateSize(scene.model, self._spec)
 
@@ -250,9 +250,8 @@ class Engine:
         and the tool's external wrench, with the pedestals `drop` (<= 0) metres below their start; the others
         stay as they are. `buf`: float64 scratch of at least max(nq, nv, nu, 6) (one a thread)."""
         if self.log is not None:  # (episodes, their mjSTATE_INTEGRATION rows, pedestal positions) before the step
-            self.log.append((ids.copy(), self.state(ids), self.pedestals[ids] + np.array([0.0, 0.0, drop])))
-        native.step_rows(constants, self.addresses, np.asarray(ids, np.int64), out, self.pedestals, self.geoms,
-                         float(drop), self.obs, buf)
+            self.log.append((ids.copy(), self.state(ids), self.native.pedestals[ids] + np.array([0.0, 0.0, drop])))
+        native.step_rows(constants, self.native, np.asarray(ids, np.int64), out, float(drop), self.obs, buf)
 
 
 class _Lockstep:
@@ -415,9 +414,9 @@ class _Lockstep:
         j0 = k * n
         drops = np.asarray(self.pedestal_drop(np.arange(j0, j0 + n) * self.tick, xp=np), np.float64)
         if self.controller == "native" and eng.log is None:  # the whole segment in one native call
+            trace = native.Trace(self.fell, self.fall_tick, self.angle, self.perr, self.qpos_trace)
             self.steps[w] += native.segment(self.native.constants, j0, drops, ids, self.cs, eng.obs, self.ep_native,
-                                            eng.addresses, eng.pedestals, eng.geoms, self.fell, self.fall_tick,
-                                            self.angle, self.perr, self.qpos_trace, self.out, self._scratch[w])
+                                            eng.native, trace, self.out, self._scratch[w])
             return
         nu, rows = self.nu, slice(ids[0], ids[-1] + 1)
         alive = ids[~self.fell[ids]]

@@ -12,6 +12,12 @@ controller's float32 differs from it in the last bits); the timeline (time, phas
 spline's interval) runs in float32 exactly as the JAX tick does, so both switch phase at the same tick. The small
 helpers below (`_reference`, `_rotation_error`, `_solve3`, `_status`) are checked through the tick.
 
+A tick (`_control`) is a few steps, each a function of its own (`_read_state`, `_phase`, `_targets`, `_on_tool`,
+`_loads`, `_tracking`, `_tool_wrench`, `_contacts`, `_torques`, `_write`), passed only the groups of `Constants` and
+the views of `Scratch` it reads: a call passes its arguments word by word, so a step passed every constant and
+working array would cost the tick ~10% (measured); passed its own, nothing measurable, and it compiles no slower than
+one long function did.
+
     ctl = native.Tick(phys)                          # the constants of one `Physics`
     ctl(j, rows, cs, obs, episodes, out)             # tick j of the episodes `rows`: cs updated in place
 """
@@ -61,10 +67,10 @@ def addresses(models, datas, tool_body: int) -> np.ndarray:
                      for m, d in zip(models, datas)], np.uint64)
 
 
-class Constants(NamedTuple):
-    """Everything a tick reads besides its episodes and states (numpy arrays and numbers)."""
+class Hand(NamedTuple):
+    """The hand's kinematic tree and contact links (`HandModel`): B bodies, J joints, L contact links, K options a
+    link."""
 
-    # the hand's kinematic tree (`HandModel`): B bodies, J joints, L contact links, K options a link
     body_parent: np.ndarray  # (B,) int64
     body_pos: np.ndarray  # (B, 3)
     body_mat: np.ndarray  # (B, 3, 3)
@@ -82,7 +88,11 @@ class Constants(NamedTuple):
     n_fingers: int
     targets: np.ndarray  # (L, K, 3) the links' centre-line targets per option, tool frame
     normals: np.ndarray  # (L, K, 3) inward normals per option, tool frame
-    # the scene
+
+
+class Scene(NamedTuple):
+    """The MuJoCo scene's indices and ranges (`Scene`)."""
+
     hand_qpos: np.ndarray  # (J,) int64
     hand_dof: np.ndarray  # (J,) int64
     hand_act: np.ndarray  # (J,) int64
@@ -95,7 +105,11 @@ class Constants(NamedTuple):
     ctrl_low: np.ndarray  # (J,)
     ctrl_high: np.ndarray  # (J,)
     gravity: np.ndarray  # (3,)
-    # the timeline, float32 as in the JAX tick
+
+
+class Timeline(NamedTuple):
+    """The timeline (`PhysicsConfig.timeline`), float32 as in the JAX tick."""
+
     timestep: np.float32
     unload: np.float32
     move: np.float32
@@ -106,7 +120,11 @@ class Constants(NamedTuple):
     reach_tol: float
     ramp: np.float32
     n_segment: int
-    # the controller
+
+
+class Gains(NamedTuple):
+    """The controller's tool feedback and force solve (`PhysicsConfig.controller`, the wrench solve's config)."""
+
     kp: float
     kd: float
     feedback_limit: float
@@ -118,34 +136,60 @@ class Constants(NamedTuple):
     iterations: int
     rho: float
     torque_length: float
-    # the fingers
+
+
+class Fingers(NamedTuple):
+    """The fingers' tracking gains (`PhysicsConfig.fingers`)."""
+
     finger_kp: float
     finger_kd: float
     held_ratio: float
     free_stiffness: float
     free_damping: float
     posture_kp: float
-    # the outcome
+
+
+class Outcome(NamedTuple):
+    """When a tool has fallen (`PhysicsConfig.outcome`)."""
+
     fall_angle: float
     fall_distance: float
     fall_height: float
-    # offsets of the controller state's fields in its flat row (`c_backend._Flat`)
-    cs_options: int
-    cs_previous: int
-    cs_changed: int
-    cs_start: int
-    cs_path: int
-    cs_park: int
-    cs_anchor: int
-    cs_anchored: int
-    cs_load: int
-    cs_f_with: int
-    cs_f_without: int
-    cs_q_rest: int
+
+
+class Offsets(NamedTuple):
+    """Where each field of the controller state starts in its flat row (`c_backend._Flat`, `state_offsets`)."""
+
+    options: int
+    previous: int
+    changed: int
+    start: int
+    path: int
+    park: int
+    anchor: int
+    anchored: int
+    load: int
+    f_with: int
+    f_without: int
+    q_rest: int
+
+
+class Constants(NamedTuple):
+    """Everything a tick reads besides its episodes and states (numpy arrays and numbers), in groups: a step of the
+    tick is passed the groups it reads."""
+
+    hand: Hand
+    scene: Scene
+    timeline: Timeline
+    controller: Gains
+    fingers: Fingers
+    outcome: Outcome
+    state: Offsets
 
 
 class Episodes(NamedTuple):
-    """The fields of E episodes a tick reads (numpy; `Tick.episodes` makes them from an `Episode` batch)."""
+    """The fields of E episodes a tick reads (numpy; `Tick.episodes` makes them from an `Episode` batch); inside
+    native code, also one episode's (`_row`: its rows, dt, mass, friction and hold_time numbers)."""
 
     waypoints: np.ndarray  # (E, T, 3) float32
     quats: np.ndarray  # (E, T, 4) float32
@@ -158,23 +202,41 @@ class Episodes(NamedTuple):
     hold_time: np.ndarray  # (E,) float32: when the hold starts [s]
 
 
-N_VEC3 = 25  # Scratch.v3's leading 3-vectors (named in `_control`; `_status` uses rows 0..6 as `_control` does)
-N_BLOCKS = 15  # Scratch.v3's (L, 3) blocks after them (named in `_control`)
+N_VEC3 = 25  # Scratch.v3's 3-vectors (named where used; `_status` uses rows 0..6 as `_control` does)
+# Links.blocks: the links' (L, 3) 3-vectors of a tick
+ANCHOR, PARK, F_WITH, F_WITHOUT, TARGET, X_REF, V_REF, NORMAL, NORMAL_T, X, V, F_TRACK, POINTS, F_A, F_B = range(15)
+N_BLOCKS = 15
+# Links.flags: the links' (L,) flags of a tick
+CHANGED, ANCHORED, UNLOADING, TRAVELLING, MOVING, TRACKED, HELD, ACTIVE, ACTIVE_B = range(9)
+N_FLAGS = 9
+OPTIONS, PREVIOUS, CURRENT = range(3)  # Links.options: the links' (L,) options
+
+
+class Links(NamedTuple):
+    """One thread's working arrays of the links for a tick, named by the constants above."""
+
+    blocks: np.ndarray  # (N_BLOCKS, L, 3) float64: ANCHOR ... F_B
+    flags: np.ndarray  # (N_FLAGS, L) bool: CHANGED ... ACTIVE_B
+    options: np.ndarray  # (3, L) int64: OPTIONS, PREVIOUS, CURRENT
+    load: np.ndarray  # (L,) float32: the load fractions
+    busy: np.ndarray  # (n_fingers,) bool: a finger with a link on an option or changing
 
 
 class Scratch(NamedTuple):
     """One thread's working arrays for a tick and a step, so that neither allocates: made once a thread by
-    `scratch`, float64 unless named. `_control` names its views of v3, m3, f, i and b; the helpers it calls have
-    fields of their own (a tick runs `_status`, then `_control`: they share v3's first rows, m3[0] and q4)."""
+    `scratch`, float64 unless named. The tick's steps (`_control`) name their views of v3, m3, f and `links`; the
+    helpers they call have fields of their own (a tick runs `_status`, then `_control`: they share v3's first rows,
+    m3[0] and q4)."""
 
-    v3: np.ndarray  # (N_VEC3 + N_BLOCKS L + 2 J + B, 3): 3-vectors, then (L, 3), (J, 3) and (B, 3) blocks
-    m3: np.ndarray  # (3 + B, 3, 3): 3x3 matrices, then the bodies' rotations
+    v3: np.ndarray  # (N_VEC3, 3): 3-vectors
+    m3: np.ndarray  # (3, 3, 3): 3x3 matrices
     f: np.ndarray  # (4 J + 12,): J- and 6-vectors
     q4: np.ndarray  # (2, 4): the tool's quaternion and the reference's
+    links: Links
     jac: np.ndarray  # (L, 3, J)
-    i: np.ndarray  # (3 L,) int64
-    b: np.ndarray  # (9 L + n_fingers,) bool
-    load: np.ndarray  # (L,) float32
+    joints: np.ndarray  # (2, J, 3): the joints' world axes and anchors (`_chain`)
+    body_pos: np.ndarray  # (B, 3): the bodies' positions (`_chain`)
+    body_mat: np.ndarray  # (B, 3, 3): the bodies' rotations (`_chain`)
     kin_v: np.ndarray  # (4, 3): `_links`' centre, axis and two temporaries
     kin_m: np.ndarray  # (2, 3, 3): `_chain`'s rotations
     adj: np.ndarray  # (3, 3): `_solve3`'s cofactor rows
@@ -186,12 +248,15 @@ class Scratch(NamedTuple):
 
 def scratch(K: Constants) -> Scratch:
     """A `Scratch` for the hand and scene of `K` (one a thread: a tick writes all of it)."""
-    J, L, B = K.hand_qpos.shape[0], K.link_body.shape[0], K.body_parent.shape[0]
-    return Scratch(v3=np.zeros((N_VEC3 + N_BLOCKS * L + 2 * J + B, 3)), m3=np.zeros((3 + B, 3, 3)),
-                   f=np.zeros(4 * J + 12), q4=np.zeros((2, 4)), jac=np.zeros((L, 3, J)), i=np.zeros(3 * L, np.int64),
-                   b=np.zeros(9 * L + K.n_fingers, np.bool_), load=np.zeros(L, F32), kin_v=np.zeros((4, 3)),
-                   kin_m=np.zeros((2, 3, 3)), adj=np.zeros((3, 3)), gg=np.zeros((6, 6)), lever=np.zeros((2, L, 3)),
-                   apg=np.zeros((3, 3 * L)), buf=np.zeros(max(K.nq, K.nv, K.nu, 6)))
+    H, sc = K.hand, K.scene
+    J, L, B = sc.hand_qpos.shape[0], H.link_body.shape[0], H.body_parent.shape[0]
+    links = Links(blocks=np.zeros((N_BLOCKS, L, 3)), flags=np.zeros((N_FLAGS, L), np.bool_),
+                  options=np.zeros((3, L), np.int64), load=np.zeros(L, F32), busy=np.zeros(H.n_fingers, np.bool_))
+    return Scratch(v3=np.zeros((N_VEC3, 3)), m3=np.zeros((3, 3, 3)), f=np.zeros(4 * J + 12), q4=np.zeros((2, 4)),
+                   links=links, jac=np.zeros((L, 3, J)), joints=np.zeros((2, J, 3)), body_pos=np.zeros((B, 3)),
+                   body_mat=np.zeros((B, 3, 3)), kin_v=np.zeros((4, 3)), kin_m=np.zeros((2, 3, 3)),
+                   adj=np.zeros((3, 3)), gg=np.zeros((6, 6)), lever=np.zeros((2, L, 3)), apg=np.zeros((3, 3 * L)),
+                   buf=np.zeros(max(sc.nq, sc.nv, sc.nu, 6)))
 
 
 def state_offsets(one_state: ControllerState) -> dict[str, int]:
@@ -219,30 +284,37 @@ class Tick:
         f64 = lambda x: np.ascontiguousarray(x, np.float64)  # noqa: E731
         i64 = lambda x: np.ascontiguousarray(x, np.int64)  # noqa: E731
         self.constants = Constants(
-            body_parent=i64(hand.body_parent), body_pos=f64(hand.body_pos), body_mat=f64(hand.body_mat),
-            body_joint=i64(hand.body_joint), joint_pos=f64(hand.joint_pos), joint_axis=f64(hand.joint_axis),
-            joint_moves_body=f64(hand.joint_moves_body), link_body=i64(hand.link_body), link_site=f64(hand.link_site),
-            link_axis=f64(hand.link_axis), link_half=f64(hand.link_half), link_radius=f64(hand.link_radius),
-            link_finger=i64(hand.link_finger), link_is_tip=np.ascontiguousarray(hand.link_is_tip, np.bool_),
-            n_fingers=len(hand.finger_names), targets=f64(ctl.targets_tool), normals=f64(hand.option_normal),
-            hand_qpos=i64(scene.hand_qpos), hand_dof=i64(scene.hand_dof), hand_act=i64(scene.hand_act),
-            tool_qpos=scene.tool_qpos, tool_dof=scene.tool_dof, nq=phys.model.nq, nv=phys.model.nv, nu=phys.model.nu,
-            tool_corners=f64(scene.tool_corners), ctrl_low=f64(scene.ctrl_range[0]), ctrl_high=f64(scene.ctrl_range[1]),
-            gravity=f64(np.asarray(hand.gravity, np.float32)),
-            timestep=F32(phys.timestep), unload=F32(tl.unload), move=F32(tl.move),
-            load_step=F32(phys.timestep / tl.load), unload_step=F32(phys.timestep / tl.unload),
-            path_times=np.ascontiguousarray(PATH_TIMES, np.float32), touch_tol=float(F32(tl.touch_tol)),
-            reach_tol=float(F32(tl.reach_tol)), ramp=F32(tl.ramp), n_segment=phys.n_segment,
-            kp=float(F32(kp)), kd=float(F32(kd)), feedback_limit=float(c.feedback_limit),
-            feedback_floor=float(c.feedback_floor), tool_radius=float(c.tool_radius),
-            rotation_step=float(c.rotation_step), grip_force=float(c.grip_force),
-            friction_margin=float(c.friction_margin), iterations=int(c.force_iterations),
-            rho=float(ctl.wrench_config.force_penalty), torque_length=float(ctl.wrench_config.torque_length),
-            finger_kp=float(fi.finger_kp), finger_kd=float(fi.finger_kd), held_ratio=float(fi.held_stiffness_ratio),
-            free_stiffness=float(fi.free_stiffness), free_damping=float(fi.free_damping),
-            posture_kp=float(fi.posture_kp), fall_angle=float(out.fall_angle), fall_distance=float(out.fall_distance),
-            fall_height=float(out.fall_height),
-            **{f"cs_{n}": offsets[n] for n in ControllerState.__dataclass_fields__})
+            hand=Hand(
+                body_parent=i64(hand.body_parent), body_pos=f64(hand.body_pos), body_mat=f64(hand.body_mat),
+                body_joint=i64(hand.body_joint), joint_pos=f64(hand.joint_pos), joint_axis=f64(hand.joint_axis),
+                joint_moves_body=f64(hand.joint_moves_body), link_body=i64(hand.link_body),
+                link_site=f64(hand.link_site), link_axis=f64(hand.link_axis), link_half=f64(hand.link_half),
+                link_radius=f64(hand.link_radius), link_finger=i64(hand.link_finger),
+                link_is_tip=np.ascontiguousarray(hand.link_is_tip, np.bool_), n_fingers=len(hand.finger_names),
+                targets=f64(ctl.targets_tool), normals=f64(hand.option_normal)),
+            scene=Scene(
+                hand_qpos=i64(scene.hand_qpos), hand_dof=i64(scene.hand_dof), hand_act=i64(scene.hand_act),
+                tool_qpos=scene.tool_qpos, tool_dof=scene.tool_dof, nq=m.nq, nv=m.nv, nu=m.nu,
+                tool_corners=f64(scene.tool_corners), ctrl_low=f64(scene.ctrl_range[0]),
+                ctrl_high=f64(scene.ctrl_range[1]), gravity=f64(np.asarray(hand.gravity, np.float32))),
+            timeline=Timeline(
+                timestep=F32(phys.timestep), unload=F32(tl.unload), move=F32(tl.move),
+                load_step=F32(phys.timestep / tl.load), unload_step=F32(phys.timestep / tl.unload),
+                path_times=np.ascontiguousarray(PATH_TIMES, np.float32), touch_tol=float(F32(tl.touch_tol)),
+                reach_tol=float(F32(tl.reach_tol)), ramp=F32(tl.ramp), n_segment=phys.n_segment),
+            controller=Gains(
+                kp=float(F32(kp)), kd=float(F32(kd)), feedback_limit=float(c.feedback_limit),
+                feedback_floor=float(c.feedback_floor), tool_radius=float(c.tool_radius),
+                rotation_step=float(c.rotation_step), grip_force=float(c.grip_force),
+                friction_margin=float(c.friction_margin), iterations=int(c.force_iterations),
+                rho=float(ctl.wrench_config.force_penalty), torque_length=float(ctl.wrench_config.torque_length)),
+            fingers=Fingers(
+                finger_kp=float(fi.finger_kp), finger_kd=float(fi.finger_kd),
+                held_ratio=float(fi.held_stiffness_ratio), free_stiffness=float(fi.free_stiffness),
+                free_damping=float(fi.free_damping), posture_kp=float(fi.posture_kp)),
+            outcome=Outcome(fall_angle=float(out.fall_angle), fall_distance=float(out.fall_distance),
+                            fall_height=float(out.fall_height)),
+            state=Offsets(**offsets))
         self.phys = phys
 
     def episodes(self, episodes) -> Episodes:
@@ -349,32 +421,32 @@ def _reference(wp, quats, dt, time, pos, vel, acc, quat):
 
 # ------------------------------------------------------------------------------------------ kinematics
 @_jit
-def _chain(K, q, pos, mat, axes, anchors, r, rot):
+def _chain(H, q, pos, mat, axes, anchors, r, rot):
     """Body poses pos (B, 3), mat (B, 3, 3) and the joints' world axes, anchors (J, 3) at joint angles q.
     r, rot: (3, 3) scratch. Must equal `kinematics.chain` (its reference); checked by
     `tests/test_native.py::test_native_chain_and_links_are_kinematics`."""
-    B = K.body_parent.shape[0]
+    B = H.body_parent.shape[0]
     for b in range(B):
-        pa = K.body_parent[b]
+        pa = H.body_parent[b]
         if pa < 0:
             for i in range(3):
-                pos[b, i] = K.body_pos[b, i]
+                pos[b, i] = H.body_pos[b, i]
                 for k in range(3):
-                    r[i, k] = K.body_mat[b, i, k]
+                    r[i, k] = H.body_mat[b, i, k]
         else:
             for i in range(3):
-                pos[b, i] = pos[pa, i] + mat[pa, i, 0] * K.body_pos[b, 0] + mat[pa, i, 1] * K.body_pos[b, 1] \
-                    + mat[pa, i, 2] * K.body_pos[b, 2]
+                pos[b, i] = pos[pa, i] + mat[pa, i, 0] * H.body_pos[b, 0] + mat[pa, i, 1] * H.body_pos[b, 1] \
+                    + mat[pa, i, 2] * H.body_pos[b, 2]
                 for k in range(3):
-                    r[i, k] = mat[pa, i, 0] * K.body_mat[b, 0, k] + mat[pa, i, 1] * K.body_mat[b, 1, k] \
-                        + mat[pa, i, 2] * K.body_mat[b, 2, k]
-        j = K.body_joint[b]
+                    r[i, k] = mat[pa, i, 0] * H.body_mat[b, 0, k] + mat[pa, i, 1] * H.body_mat[b, 1, k] \
+                        + mat[pa, i, 2] * H.body_mat[b, 2, k]
+        j = H.body_joint[b]
         if j < 0:
             for i in range(3):
                 for k in range(3):
                     mat[b, i, k] = r[i, k]
             continue
-        ax, an = K.joint_axis[j], K.joint_pos[j]
+        ax, an = H.joint_axis[j], H.joint_pos[j]
         for i in range(3):
             anchors[j, i] = pos[b, i] + r[i, 0] * an[0] + r[i, 1] * an[1] + r[i, 2] * an[2]
             axes[j, i] = r[i, 0] * ax[0] + r[i, 1] * ax[1] + r[i, 2] * ax[2]
@@ -393,29 +465,29 @@ def _chain(K, q, pos, mat, axes, anchors, r, rot):
 
 
 @_jit
-def _links(K, q, near, x, jac, pos, mat, axes, anchors, S):
+def _links(H, q, near, x, jac, pos, mat, axes, anchors, S):
     """The links' centre-line points x (L, 3) nearest the world points `near` (L, 3), and their Jacobians
     jac (L, 3, J). S: `Scratch` (its kin_v, kin_m). Must equal `kinematics.closest_on_links_and_jacobians` (its
     reference); checked by `tests/test_native.py::test_native_chain_and_links_are_kinematics`."""
-    _chain(K, q, pos, mat, axes, anchors, S.kin_m[0], S.kin_m[1])
-    L, J = K.link_body.shape[0], q.shape[0]
+    _chain(H, q, pos, mat, axes, anchors, S.kin_m[0], S.kin_m[1])
+    L, J = H.link_body.shape[0], q.shape[0]
     centre, axis, d, c = S.kin_v[0], S.kin_v[1], S.kin_v[2], S.kin_v[3]
     for lk in range(L):
-        b = K.link_body[lk]
+        b = H.link_body[lk]
         for i in range(3):
-            centre[i] = pos[b, i] + mat[b, i, 0] * K.link_site[lk, 0] + mat[b, i, 1] * K.link_site[lk, 1] \
-                + mat[b, i, 2] * K.link_site[lk, 2]
-            axis[i] = mat[b, i, 0] * K.link_axis[lk, 0] + mat[b, i, 1] * K.link_axis[lk, 1] \
-                + mat[b, i, 2] * K.link_axis[lk, 2]
+            centre[i] = pos[b, i] + mat[b, i, 0] * H.link_site[lk, 0] + mat[b, i, 1] * H.link_site[lk, 1] \
+                + mat[b, i, 2] * H.link_site[lk, 2]
+            axis[i] = mat[b, i, 0] * H.link_axis[lk, 0] + mat[b, i, 1] * H.link_axis[lk, 1] \
+                + mat[b, i, 2] * H.link_axis[lk, 2]
         s = 0.0
         for i in range(3):
             s += (near[lk, i] - centre[i]) * axis[i]
-        half = K.link_half[lk]
+        half = H.link_half[lk]
         s = min(max(s, -half), half)
         for i in range(3):
             x[lk, i] = centre[i] + s * axis[i]
         for jj in range(J):
-            if K.joint_moves_body[b, jj] == 0.0:
+            if H.joint_moves_body[b, jj] == 0.0:
                 for i in range(3):
                     jac[lk, i, jj] = 0.0
                 continue
@@ -423,7 +495,7 @@ def _links(K, q, near, x, jac, pos, mat, axes, anchors, S):
                 d[i] = x[lk, i] - anchors[jj, i]
             _cross(axes[jj], d, c)
             for i in range(3):
-                jac[lk, i, jj] = c[i] * K.joint_moves_body[b, jj]
+                jac[lk, i, jj] = c[i] * H.joint_moves_body[b, jj]
 
 
 # ------------------------------------------------------------------------------------------ force solve
@@ -452,7 +524,7 @@ def _project(x, normals, mu, mask):
 
 
 @_jit
-def _solve(K, points, normals, active, mu, wrench, center, init, forces, S, lip=-1.0):
+def _solve(C, points, normals, active, mu, wrench, center, init, forces, S, lip=-1.0):
     """`wrench.solve` ("apg", `Controller._forces`): cone forces (L, 3) on the `active` links supplying `wrench`
     (6,) about `center`, pulled towards `grip_force` along each normal, from `init` (L, 3); written to forces.
     Must equal `wrench.solve` (its reference); checked by
@@ -464,59 +536,79 @@ def _solve(K, points, normals, active, mu, wrench, center, init, forces, S, lip=
     constant, if known (it depends on the active contacts' positions only); the one used is returned. S: `Scratch`
     (its gg, lever and apg)."""
     L = points.shape[0]
-    s = 1.0 / K.torque_length
+    s = 1.0 / C.torque_length
     r, target = S.lever[0], S.lever[1]  # the scaled levers of the active contacts, the preferred forces
-    x, x_prev, y = S.apg[0], S.apg[1], S.apg[2]
+    x, x_prev = S.apg[0], S.apg[1]
     r[:] = 0.0
     for k in range(L):
         if active[k]:
             for i in range(3):
                 r[k, i] = (points[k, i] - center[i]) * s
-    b0, b1, b2 = wrench[0], wrench[1], wrench[2]
-    b3, b4, b5 = wrench[3] * s, wrench[4] * s, wrench[5] * s
-    rho = K.rho
-    if lip <= 0.0:  # the largest eigenvalue of G G^T = sum_k [[I, R_k^T], [R_k, R_k R_k^T]], R_k = [r_k]x
-        gg = S.gg
-        gg[:] = 0.0
-        for k in range(L):
-            if not active[k]:
-                continue
-            r0, r1, r2 = r[k, 0], r[k, 1], r[k, 2]
-            n2 = r0 * r0 + r1 * r1 + r2 * r2
-            gg[0, 0] += 1.0
-            gg[1, 1] += 1.0
-            gg[2, 2] += 1.0
-            # R^T = -R: the force-torque block
-            gg[0, 4] += r2
-            gg[0, 5] -= r1
-            gg[1, 3] -= r2
-            gg[1, 5] += r0
-            gg[2, 3] += r1
-            gg[2, 4] -= r0
-            # R R^T = |r|^2 I - r r^T
-            gg[3, 3] += n2 - r0 * r0
-            gg[4, 4] += n2 - r1 * r1
-            gg[5, 5] += n2 - r2 * r2
-            gg[3, 4] -= r0 * r1
-            gg[3, 5] -= r0 * r2
-            gg[4, 5] -= r1 * r2
-        for i in range(6):
-            for j in range(i):
-                gg[i, j] = gg[j, i]
-        lip = np.linalg.eigvalsh(gg)[-1] + rho
-    ks = math.sqrt(lip / rho)
-    beta = (ks - 1.0) / (ks + 1.0)
+    if lip <= 0.0:
+        lip = _lipschitz(r, active, S.gg) + C.rho
     target[:] = 0.0
     x[:] = 0.0
     for k in range(L):
         if active[k]:
             for i in range(3):
-                target[k, i] = K.grip_force * normals[k, i]
+                target[k, i] = C.grip_force * normals[k, i]
                 x[3 * k + i] = init[k, i]
     _project(x, normals, mu, active)
     x_prev[:] = x
+    _iterate(C, normals, active, mu, wrench, s, lip, S)
+    for k in range(L):
+        for i in range(3):
+            forces[k, i] = x[3 * k + i]
+    return lip
+
+
+@_jit
+def _lipschitz(r, active, gg):
+    """The largest eigenvalue of G G^T = sum_k [[I, R_k^T], [R_k, R_k R_k^T]], R_k = [r_k]x, over the `active`
+    contacts' scaled levers r (L, 3). gg: (6, 6) scratch."""
+    gg[:] = 0.0
+    for k in range(r.shape[0]):
+        if not active[k]:
+            continue
+        r0, r1, r2 = r[k, 0], r[k, 1], r[k, 2]
+        n2 = r0 * r0 + r1 * r1 + r2 * r2
+        gg[0, 0] += 1.0
+        gg[1, 1] += 1.0
+        gg[2, 2] += 1.0
+        # R^T = -R: the force-torque block
+        gg[0, 4] += r2
+        gg[0, 5] -= r1
+        gg[1, 3] -= r2
+        gg[1, 5] += r0
+        gg[2, 3] += r1
+        gg[2, 4] -= r0
+        # R R^T = |r|^2 I - r r^T
+        gg[3, 3] += n2 - r0 * r0
+        gg[4, 4] += n2 - r1 * r1
+        gg[5, 5] += n2 - r2 * r2
+        gg[3, 4] -= r0 * r1
+        gg[3, 5] -= r0 * r2
+        gg[4, 5] -= r1 * r2
+    for i in range(6):
+        for j in range(i):
+            gg[i, j] = gg[j, i]
+    return np.linalg.eigvalsh(gg)[-1]
+
+
+@_jit
+def _iterate(C, normals, active, mu, wrench, s, lip, S):
+    """`_solve`'s accelerated projected gradient steps (C.iterations) from S.apg's iterate x (= the one before,
+    x_prev), with the levers and preferred forces of S.lever and the torque rows scaled by s; x updated."""
+    L = normals.shape[0]
+    r, target = S.lever[0], S.lever[1]
+    x, x_prev, y = S.apg[0], S.apg[1], S.apg[2]
+    b0, b1, b2 = wrench[0], wrench[1], wrench[2]
+    b3, b4, b5 = wrench[3] * s, wrench[4] * s, wrench[5] * s
+    rho = C.rho
+    ks = math.sqrt(lip / rho)
+    beta = (ks - 1.0) / (ks + 1.0)
     y[:] = 0.0
-    for _ in range(K.iterations):
+    for _ in range(C.iterations):
         e0, e1, e2, e3, e4, e5 = -b0, -b1, -b2, -b3, -b4, -b5  # G y - b
         for k in range(L):
             if not active[k]:
@@ -544,19 +636,23 @@ def _solve(K, points, normals, active, mu, wrench, center, init, forces, S, lip=
             x[3 * k + 1] = y[3 * k + 1] - g1 / lip
             x[3 * k + 2] = y[3 * k + 2] - g2 / lip
         _project(x, normals, mu, active)
-    for k in range(L):
-        for i in range(3):
-            forces[k, i] = x[3 * k + i]
-    return lip
 
 
 # ------------------------------------------------------------------------------------------ one tick
 @_jit
-def _tool(K, obs, p, quat, vel, w_body, mat):
-    """The tool's pose and velocity in an observation row (`Scene.observe`): p, quat (normalised), vel, w_body
-    (tool frame), mat written; whether the state is finite (`Scene.status`)."""
-    nq = K.nq
-    a0, v0 = K.tool_qpos, nq + K.tool_dof
+def _row(episodes, r):
+    """Episode r of `episodes` as `Episodes` of one episode (its rows; dt, mass, friction, hold_time numbers)."""
+    return Episodes(waypoints=episodes.waypoints[r], quats=episodes.quats[r], dt=episodes.dt[r],
+                    w_ext=episodes.w_ext[r], mass=episodes.mass[r], inertia=episodes.inertia[r], com=episodes.com[r],
+                    friction=episodes.friction[r], hold_time=episodes.hold_time[r])
+
+
+@_jit
+def _tool(sc, obs, p, quat, vel, w_body, mat):
+    """The tool's pose and velocity in an observation row (`Scene.observe`; sc: `Scene`): p, quat (normalised),
+    vel, w_body (tool frame), mat written; whether the state is finite (`Scene.status`)."""
+    nq = sc.nq
+    a0, v0 = sc.tool_qpos, nq + sc.tool_dof
     qn = 0.0
     for i in range(4):
         quat[i] = obs[a0 + 3 + i]
@@ -568,7 +664,7 @@ def _tool(K, obs, p, quat, vel, w_body, mat):
         p[i], vel[i], w_body[i] = obs[a0 + i], obs[v0 + i], obs[v0 + 3 + i]
     _quat_to_mat(quat, mat)
     finite = True
-    for i in range(nq + K.nv):
+    for i in range(nq + sc.nv):
         if not math.isfinite(obs[i]):
             finite = False
     for i in range(4):
@@ -578,79 +674,121 @@ def _tool(K, obs, p, quat, vel, w_body, mat):
 
 
 @_jit
-def _status(K, j, obs, wp, quats, dt, out, S):
-    """`Physics.check` after tick j: out[0:3] = angle error [deg], position error [m], fell (0/1). S: `Scratch`."""
+def _status(K, j, obs, ep, out, S):
+    """`Physics.check` after tick j of one episode (`_row`): out[0:3] = angle error [deg], position error [m],
+    fell (0/1). S: `Scratch` (v3's rows 0..6, m3[0], q4, as `_control`)."""
+    sc, tl, oc = K.scene, K.timeline, K.outcome
     v3 = S.v3
     p, quat, vel, w_body, mat = v3[0], S.q4[0], v3[1], v3[2], S.m3[0]
-    finite = _tool(K, obs, p, quat, vel, w_body, mat)
+    finite = _tool(sc, obs, p, quat, vel, w_body, mat)
     ref_pos, ref_vel, ref_acc, ref_quat = v3[4], v3[5], v3[6], S.q4[1]
-    _reference(wp, quats, dt, F32(j + 1) * K.timestep, ref_pos, ref_vel, ref_acc, ref_quat)
+    _reference(ep.waypoints, ep.quats, ep.dt, F32(j + 1) * tl.timestep, ref_pos, ref_vel, ref_acc, ref_quat)
     dot = abs(quat[0] * ref_quat[0] + quat[1] * ref_quat[1] + quat[2] * ref_quat[2] + quat[3] * ref_quat[3])
     angle = math.degrees(2 * math.acos(min(max(dot, 0.0), 1.0)))
     perr = math.sqrt((p[0] - ref_pos[0]) ** 2 + (p[1] - ref_pos[1]) ** 2 + (p[2] - ref_pos[2]) ** 2)
     lowest = np.inf
-    for c in range(K.tool_corners.shape[0]):
-        z = mat[2, 0] * K.tool_corners[c, 0] + mat[2, 1] * K.tool_corners[c, 1] + mat[2, 2] * K.tool_corners[c, 2]
+    for c in range(sc.tool_corners.shape[0]):
+        z = mat[2, 0] * sc.tool_corners[c, 0] + mat[2, 1] * sc.tool_corners[c, 1] + mat[2, 2] * sc.tool_corners[c, 2]
         lowest = min(lowest, z)
     lowest += p[2]
-    fell = (not finite) or (j >= K.n_segment and lowest < K.fall_height) or perr > K.fall_distance \
-        or angle > K.fall_angle
+    fell = (not finite) or (j >= tl.n_segment and lowest < oc.fall_height) or perr > oc.fall_distance \
+        or angle > oc.fall_angle
     out[0] = angle if finite else 0.0
     out[1] = perr if finite else 0.0
     out[2] = 1.0 if fell else 0.0
 
 
 @_jit
-def _control(K, j, cs, obs, wp, quats, dt, w_ext, mass, inertia_d, com_t, friction, hold_time, out, S):
-    """`Physics.tick` j of one episode: out[:nu] motor commands, out[nu:nu + 6] the tool's external wrench; its
-    controller state cs (flat, float32) updated in place. S: `Scratch` (every array below is one of its views)."""
-    nq, nv, nu = K.nq, K.nv, K.nu
-    J, L, B = K.hand_qpos.shape[0], K.link_body.shape[0], K.body_parent.shape[0]
-    v3, m3, f, ints, bools = S.v3, S.m3, S.f, S.i, S.b
-    blocks = v3[N_VEC3:N_VEC3 + N_BLOCKS * L]
-    q, dq, bias, tau = f[0:J], f[J:2 * J], f[2 * J:3 * J], f[3 * J:4 * J]
+def _control(K, j, cs, obs, ep, out, S):
+    """`Physics.tick` j of one episode (`_row`): out[:nu] motor commands, out[nu:nu + 6] the tool's external
+    wrench; its controller state cs (flat, float32) updated in place. S: `Scratch`; the steps below are passed the
+    groups of K they read and S's views (the tool's pose and the reference: v3's rows 0..6, m3[0], q4; the links':
+    S.links, by name)."""
+    sc, tl, C, W = K.scene, K.timeline, K.controller, S.links
+    nq, nv, J = sc.nq, sc.nv, sc.hand_qpos.shape[0]
+    v3, f = S.v3, S.f
+    q, dq, bias = f[0:J], f[J:2 * J], f[2 * J:3 * J]
     for i in range(J):
-        q[i], dq[i], bias[i] = obs[K.hand_qpos[i]], obs[nq + K.hand_dof[i]], obs[nq + nv + K.hand_dof[i]]
-    p, quat, vel, w_body, mat = v3[0], S.q4[0], v3[1], v3[2], m3[0]
-    _tool(K, obs, p, quat, vel, w_body, mat)
+        q[i], dq[i], bias[i] = obs[sc.hand_qpos[i]], obs[nq + sc.hand_dof[i]], obs[nq + nv + sc.hand_dof[i]]
+    p, quat, vel, w_body, mat = v3[0], S.q4[0], v3[1], v3[2], S.m3[0]
+    _tool(sc, obs, p, quat, vel, w_body, mat)
     omega = v3[3]
     for i in range(3):
         omega[i] = mat[i, 0] * w_body[0] + mat[i, 1] * w_body[1] + mat[i, 2] * w_body[2]
-    ref_pos, ref_vel, ref_acc, ref_quat = v3[4], v3[5], v3[6], S.q4[1]
-    ts = K.timestep
 
     # ---- Physics.tick: the external wrench and the reference at this tick
+    ts = tl.timestep
     time = F32(j) * ts
-    held = (F32(j + 1) * ts - hold_time) / K.ramp
+    held = (F32(j + 1) * ts - ep.hold_time) / tl.ramp
     ramp = float(min(max(held, F32(0.0)), F32(1.0)))
     ext = f[4 * J:4 * J + 6]
     for i in range(6):
-        ext[i] = float(F32(ramp) * w_ext[i])
-    _reference(wp, quats, dt, time, ref_pos, ref_vel, ref_acc, ref_quat)
+        ext[i] = float(F32(ramp) * ep.w_ext[i])
+    _reference(ep.waypoints, ep.quats, ep.dt, time, v3[4], v3[5], v3[6], S.q4[1])
 
-    # ---- the controller state
-    o = K.cs_options
-    options, previous = ints[0:L], ints[L:2 * L]
-    changed, anchored = bools[0:L], bools[L:2 * L]
-    load = S.load
-    anchor, park, f_with, f_without = blocks[0:L], blocks[L:2 * L], blocks[2 * L:3 * L], blocks[3 * L:4 * L]
-    for lk in range(L):
-        options[lk] = int(round(cs[o + lk]))
-        previous[lk] = int(round(cs[K.cs_previous + lk]))
-        changed[lk] = cs[K.cs_changed + lk] > 0.5
-        anchored[lk] = cs[K.cs_anchored + lk] > 0.5
-        load[lk] = cs[K.cs_load + lk]
+    # ---- the controller (`Controller.control`)
+    _read_state(K.state, cs, W)
+    before_move, in_move = _phase(K.state, tl, cs, time, v3[7])
+    _targets(K.hand, before_move, in_move, v3[7], W)
+    _on_tool(K.hand, p, mat, vel, omega, W, v3)
+    x, jac = W.blocks[X], S.jac
+    _links(K.hand, q, W.blocks[X_REF], x, jac, S.body_pos, S.body_mat, S.joints[0], S.joints[1], S)
+    v = W.blocks[V]
+    for lk in range(x.shape[0]):
         for i in range(3):
-            anchor[lk, i] = cs[K.cs_anchor + 3 * lk + i]
-            park[lk, i] = cs[K.cs_park + 3 * lk + i]
-            f_with[lk, i] = cs[K.cs_f_with + 3 * lk + i]
-            f_without[lk, i] = cs[K.cs_f_without + 3 * lk + i]
-    start = cs[K.cs_start]
+            acc = 0.0
+            for jj in range(J):
+                acc += jac[lk, i, jj] * dq[jj]
+            v[lk, i] = acc
+    _loads(K.hand, tl, p, mat, W, v3[10])
+    _tracking(K.fingers, jac, W, v3, S.m3[2], S.adj)
+    required = f[4 * J + 6:4 * J + 12]
+    _tool_wrench(C, sc.gravity, ts, ep, ext, v3, S.m3, S.q4, required)
 
-    # ---- _phase (float32)
-    tau_s = time - start
-    u = min(max((tau_s - K.unload) / K.move, F32(0.0)), F32(1.0))
-    times = K.path_times
+    # ---- the force solves on the observed tool, blended over the changed link's load
+    mu, share = _contacts(K.hand, C, ep.friction, p, mat, v3, W)
+    pts, nrm, com_w, flags = W.blocks[POINTS], W.blocks[NORMAL], v3[24], W.flags
+    f_with, f_without, f_a, f_b = W.blocks[F_WITH], W.blocks[F_WITHOUT], W.blocks[F_A], W.blocks[F_B]
+    lip = _solve(C, pts, nrm, flags[ACTIVE], mu, required, com_w, f_with, f_a, S)
+    same = True  # no link changing: both solves have one grasp matrix
+    for lk in range(x.shape[0]):
+        same = same and flags[ACTIVE, lk] == flags[ACTIVE_B, lk]
+    if same and _same_bits(f_with, f_without):  # one problem from one start: the first solve's forces, bit for bit
+        for lk in range(x.shape[0]):
+            for i in range(3):
+                f_b[lk, i] = f_a[lk, i]
+    else:
+        _solve(C, pts, nrm, flags[ACTIVE_B], mu, required, com_w, f_without, f_b, S, lip if same else -1.0)
+    _torques(K.fingers, K.state, sc, cs, f, share, jac, W)
+    _write(K.state, sc, cs, f, W, out)
+
+
+@_jit
+def _read_state(off, cs, W):
+    """The controller state's fields the tick reads, from its flat row cs (offsets off) into the links' views W."""
+    options, previous = W.options[OPTIONS], W.options[PREVIOUS]
+    changed, anchored, load = W.flags[CHANGED], W.flags[ANCHORED], W.load
+    anchor, park, f_with, f_without = W.blocks[ANCHOR], W.blocks[PARK], W.blocks[F_WITH], W.blocks[F_WITHOUT]
+    for lk in range(load.shape[0]):
+        options[lk] = int(round(cs[off.options + lk]))
+        previous[lk] = int(round(cs[off.previous + lk]))
+        changed[lk] = cs[off.changed + lk] > 0.5
+        anchored[lk] = cs[off.anchored + lk] > 0.5
+        load[lk] = cs[off.load + lk]
+        for i in range(3):
+            anchor[lk, i] = cs[off.anchor + 3 * lk + i]
+            park[lk, i] = cs[off.park + 3 * lk + i]
+            f_with[lk, i] = cs[off.f_with + 3 * lk + i]
+            f_without[lk, i] = cs[off.f_without + 3 * lk + i]
+
+
+@_jit
+def _phase(off, tl, cs, time, on_path):
+    """`Controller._phase` (float32) at float32 `time`: the changing link's point on its path (tool frame) written
+    to on_path (3,); (before the move, in the move)."""
+    tau_s = time - cs[off.start]
+    u = min(max((tau_s - tl.unload) / tl.move, F32(0.0)), F32(1.0))
+    times = tl.path_times
     npath = times.shape[0]
     seg = 0
     for i in range(npath):
@@ -660,215 +798,241 @@ def _control(K, j, cs, obs, wp, quats, dt, w_ext, mass, inertia_d, com_t, fricti
     w = min(max((u - times[seg]) / (times[seg + 1] - times[seg]), F32(0.0)), F32(1.0))
     w = w * w * (F32(3) - F32(2) * w)
     wd = float(w)
-    on_path = v3[7]
     for i in range(3):
-        on_path[i] = (1 - wd) * cs[K.cs_path + 3 * seg + i] + wd * cs[K.cs_path + 3 * (seg + 1) + i]
-    before_move = tau_s < K.unload
-    in_move = u < F32(1.0)
+        on_path[i] = (1 - wd) * cs[off.path + 3 * seg + i] + wd * cs[off.path + 3 * (seg + 1) + i]
+    return tau_s < tl.unload, u < F32(1.0)
 
-    # ---- targets (tool frame), tracked links
-    current = ints[2 * L:3 * L]
-    unloading, travelling, moving = bools[2 * L:3 * L], bools[3 * L:4 * L], bools[4 * L:5 * L]
-    tgt = blocks[4 * L:5 * L]
-    busy = bools[9 * L:9 * L + K.n_fingers]
+
+@_jit
+def _targets(H, before_move, in_move, on_path, W):
+    """Each link's option now, its phase flags, its target (tool frame) and whether it is tracked."""
+    options, previous, current = W.options[OPTIONS], W.options[PREVIOUS], W.options[CURRENT]
+    fl, anchor, park, tgt, busy = W.flags, W.blocks[ANCHOR], W.blocks[PARK], W.blocks[TARGET], W.busy
     busy[:] = False
-    for lk in range(L):
-        unloading[lk] = changed[lk] and before_move
-        travelling[lk] = changed[lk] and in_move
-        moving[lk] = changed[lk] and (not before_move) and in_move
-        current[lk] = previous[lk] if unloading[lk] else options[lk]
-        anchored[lk] = anchored[lk] and not moving[lk]
+    for lk in range(current.shape[0]):
+        changed = fl[CHANGED, lk]
+        fl[UNLOADING, lk] = changed and before_move
+        fl[TRAVELLING, lk] = changed and in_move
+        fl[MOVING, lk] = changed and (not before_move) and in_move
+        current[lk] = previous[lk] if fl[UNLOADING, lk] else options[lk]
+        fl[ANCHORED, lk] = fl[ANCHORED, lk] and not fl[MOVING, lk]
         for i in range(3):
-            if anchored[lk]:
+            if fl[ANCHORED, lk]:
                 tgt[lk, i] = anchor[lk, i]
-            elif changed[lk]:
+            elif changed:
                 tgt[lk, i] = on_path[i]
             elif current[lk] > 0:
-                tgt[lk, i] = K.targets[lk, current[lk], i]
+                tgt[lk, i] = H.targets[lk, current[lk], i]
             else:
                 tgt[lk, i] = park[lk, i]
-        if current[lk] > 0 or changed[lk]:
-            busy[K.link_finger[lk]] = True
-    tracked = bools[5 * L:6 * L]
-    for lk in range(L):
-        tracked[lk] = current[lk] > 0 or changed[lk] or ((not busy[K.link_finger[lk]]) and K.link_is_tip[lk])
+        if current[lk] > 0 or changed:
+            busy[H.link_finger[lk]] = True
+    for lk in range(current.shape[0]):
+        fl[TRACKED, lk] = current[lk] > 0 or fl[CHANGED, lk] or ((not busy[H.link_finger[lk]]) and H.link_is_tip[lk])
 
-    # ---- targets fixed to the observed tool, the links there
-    x_ref, v_ref, nrm, nrm_t = blocks[5 * L:6 * L], blocks[6 * L:7 * L], blocks[7 * L:8 * L], blocks[8 * L:9 * L]
+
+@_jit
+def _on_tool(H, p, mat, vel, omega, W, v3):
+    """The targets fixed to the observed tool (pose p, mat; velocity vel, omega): their points, velocities and
+    normals (world and tool frame). v3's rows 8, 9: scratch."""
+    current, tgt = W.options[CURRENT], W.blocks[TARGET]
+    x_ref, v_ref, nrm, nrm_t = W.blocks[X_REF], W.blocks[V_REF], W.blocks[NORMAL], W.blocks[NORMAL_T]
     d, c = v3[8], v3[9]
-    for lk in range(L):
+    for lk in range(current.shape[0]):
         for i in range(3):
             x_ref[lk, i] = p[i] + mat[i, 0] * tgt[lk, 0] + mat[i, 1] * tgt[lk, 1] + mat[i, 2] * tgt[lk, 2]
-            nrm_t[lk, i] = K.normals[lk, current[lk], i]
+            nrm_t[lk, i] = H.normals[lk, current[lk], i]
         for i in range(3):
             nrm[lk, i] = mat[i, 0] * nrm_t[lk, 0] + mat[i, 1] * nrm_t[lk, 1] + mat[i, 2] * nrm_t[lk, 2]
             d[i] = x_ref[lk, i] - p[i]
         _cross(omega, d, c)
         for i in range(3):
             v_ref[lk, i] = vel[i] + c[i]
-    x, jac = blocks[9 * L:10 * L], S.jac
-    at = N_VEC3 + N_BLOCKS * L  # the (J, 3) and (B, 3) blocks
-    _links(K, q, x_ref, x, jac, v3[at + 2 * J:at + 2 * J + B], m3[3:3 + B], v3[at:at + J], v3[at + J:at + 2 * J], S)
-    v = blocks[10 * L:11 * L]
-    for lk in range(L):
-        for i in range(3):
-            acc = 0.0
-            for jj in range(J):
-                acc += jac[lk, i, jj] * dq[jj]
-            v[lk, i] = acc
 
-    # ---- load fractions: down when a link is to let go, up once an arriving link touches
-    held = bools[6 * L:7 * L]
-    here = v3[10]
-    for lk in range(L):
+
+@_jit
+def _loads(H, tl, p, mat, W, here):
+    """The load fractions: down when a link is to let go, up once an arriving link touches (where it touches:
+    its anchor); which links hold the tool. here (3,): scratch."""
+    current, load, fl = W.options[CURRENT], W.load, W.flags
+    x_ref, x, nrm, nrm_t = W.blocks[X_REF], W.blocks[X], W.blocks[NORMAL], W.blocks[NORMAL_T]
+    anchor = W.blocks[ANCHOR]
+    for lk in range(current.shape[0]):
         cur = current[lk]
-        want = cur > 0 and not unloading[lk] and not travelling[lk]
+        want = cur > 0 and not fl[UNLOADING, lk] and not fl[TRAVELLING, lk]
         gap = 0.0
         for i in range(3):
             gap += (x_ref[lk, i] - x[lk, i]) * nrm[lk, i]
         across = 0.0
         for i in range(3):
             across += (x_ref[lk, i] - x[lk, i] - gap * nrm[lk, i]) ** 2
-        touching = gap < K.touch_tol and math.sqrt(across) < K.reach_tol
-        arrive = cur > 0 and not anchored[lk] and not travelling[lk] and touching
+        touching = gap < tl.touch_tol and math.sqrt(across) < tl.reach_tol
+        arrive = cur > 0 and not fl[ANCHORED, lk] and not fl[TRAVELLING, lk] and touching
         if arrive:  # where it touches: its point now (tool frame) moved onto the option's contact level
             for i in range(3):
                 here[i] = mat[0, i] * (x[lk, 0] - p[0]) + mat[1, i] * (x[lk, 1] - p[1]) + mat[2, i] * (x[lk, 2] - p[2])
             lev = 0.0
             for i in range(3):
-                lev += (here[i] - K.targets[lk, cur, i]) * nrm_t[lk, i]
+                lev += (here[i] - H.targets[lk, cur, i]) * nrm_t[lk, i]
             for i in range(3):
                 anchor[lk, i] = here[i] - lev * nrm_t[lk, i]
-        anchored[lk] = anchored[lk] or arrive
-        up = min(load[lk] + K.load_step, F32(1.0)) if anchored[lk] else load[lk]
-        load[lk] = up if want else max(load[lk] - K.unload_step, F32(0.0))
-        held[lk] = anchored[lk] and cur > 0
+        fl[ANCHORED, lk] = fl[ANCHORED, lk] or arrive
+        up = min(load[lk] + tl.load_step, F32(1.0)) if fl[ANCHORED, lk] else load[lk]
+        load[lk] = up if want else max(load[lk] - tl.unload_step, F32(0.0))
+        fl[HELD, lk] = fl[ANCHORED, lk] and cur > 0
 
-    # ---- tracking forces (`Controller._tracking`)
-    f_track = blocks[11 * L:12 * L]
+
+@_jit
+def _tracking(Fi, jac, W, v3, jjt, adj):
+    """The tracked links' tracking forces (`Controller._tracking`; Fi: `Fingers`): an impedance on a held link
+    (stiffer along its normal), damped least squares on a free one. v3's rows 8, 11, 12, jjt (3, 3), adj (3, 3):
+    scratch."""
+    x_ref, v_ref, x, v, nrm = W.blocks[X_REF], W.blocks[V_REF], W.blocks[X], W.blocks[V], W.blocks[NORMAL]
+    fl, f_track = W.flags, W.blocks[F_TRACK]
     f_track[:] = 0.0
-    err, derr, jjt = v3[11], v3[12], m3[2]
-    ratio = K.held_ratio
-    for lk in range(L):
-        if not tracked[lk]:
+    err, derr, d = v3[11], v3[12], v3[8]
+    ratio = Fi.held_ratio
+    for lk in range(x.shape[0]):
+        if not fl[TRACKED, lk]:
             continue
         en, dn = 0.0, 0.0
         for i in range(3):
             err[i], derr[i] = x_ref[lk, i] - x[lk, i], v_ref[lk, i] - v[lk, i]
             en += err[i] * nrm[lk, i]
             dn += derr[i] * nrm[lk, i]
-        if held[lk]:
+        if fl[HELD, lk]:
             for i in range(3):
                 e_n, d_n = en * nrm[lk, i], dn * nrm[lk, i]
-                f_track[lk, i] = K.finger_kp * (e_n + ratio * (err[i] - e_n)) \
-                    + K.finger_kd * (d_n + ratio * (derr[i] - d_n))
+                f_track[lk, i] = Fi.finger_kp * (e_n + ratio * (err[i] - e_n)) \
+                    + Fi.finger_kd * (d_n + ratio * (derr[i] - d_n))
         else:
             for i in range(3):
                 for k in range(3):
                     acc = 0.0
-                    for jj in range(J):
+                    for jj in range(jac.shape[2]):
                         acc += jac[lk, i, jj] * jac[lk, k, jj]
-                    jjt[i, k] = acc + (K.free_damping**2 if i == k else 0.0)
-            _solve3(jjt, err, d, S.adj[0], S.adj[1], S.adj[2])
+                    jjt[i, k] = acc + (Fi.free_damping**2 if i == k else 0.0)
+            _solve3(jjt, err, d, adj[0], adj[1], adj[2])
             for i in range(3):
-                f_track[lk, i] = K.free_stiffness * d[i] + K.finger_kd * derr[i]
+                f_track[lk, i] = Fi.free_stiffness * d[i] + Fi.finger_kd * derr[i]
 
-    # ---- the tool's wrench (`Controller.tool_wrench`)
-    m = float(mass)
+
+@_jit
+def _tool_wrench(C, g, ts, ep, ext, v3, m3, q4, required):
+    """The wrench the contacts are to put on the tool (`Controller.tool_wrench`; C: `Gains`, g: gravity, ts: the
+    timestep): the reference's motion and pose feedback (capped) less the external wrench ext (6,), written to
+    required (6,); the CoM's offset (world frame) to v3[13]. The tool's pose and the reference as in `_control`;
+    v3's rows 9, 13..22, m3[1]: scratch."""
+    p, quat, vel, omega, mat = v3[0], q4[0], v3[1], v3[3], m3[0]
+    ref_pos, ref_vel, ref_acc, ref_quat = v3[4], v3[5], v3[6], q4[1]
+    com_t, inertia_d, c = ep.com, ep.inertia, v3[9]
+    m = float(ep.mass)
     r_com = v3[13]
     for i in range(3):
         r_com[i] = mat[i, 0] * com_t[0] + mat[i, 1] * com_t[1] + mat[i, 2] * com_t[2]
     mat_ref = m3[1]
     _quat_to_mat(ref_quat, mat_ref)
     _cross(omega, r_com, c)
-    g = K.gravity
     weight = m * _norm3(g)
     feedback = v3[14]
     for i in range(3):
         com_ref = ref_pos[i] + mat_ref[i, 0] * com_t[0] + mat_ref[i, 1] * com_t[1] + mat_ref[i, 2] * com_t[2]
-        feedback[i] = m * (K.kp * (com_ref - (p[i] + r_com[i])) + K.kd * (ref_vel[i] - (vel[i] + c[i])))
+        feedback[i] = m * (C.kp * (com_ref - (p[i] + r_com[i])) + C.kd * (ref_vel[i] - (vel[i] + c[i])))
     stiff, damp = v3[15], v3[16]
     for i in range(3):
-        stiff[i] = float(inertia_d[i]) + m * K.tool_radius**2
-        damp[i] = min(stiff[i], K.rotation_step / (float(ts) * K.kd) * float(inertia_d[i]))
+        stiff[i] = float(inertia_d[i]) + m * C.tool_radius**2
+        damp[i] = min(stiff[i], C.rotation_step / (float(ts) * C.kd) * float(inertia_d[i]))
     err_r = v3[17]
     _rotation_error(ref_quat, quat, err_r)
     # world-frame products: (mat diag(s) mat^T) v
     turn, inertia_w = v3[18], v3[19]
     lo_s, lo_d, lo_i = v3[20], v3[21], v3[22]  # in the tool frame
     for k in range(3):
-        lo_s[k] = K.kp * (mat[0, k] * err_r[0] + mat[1, k] * err_r[1] + mat[2, k] * err_r[2])
+        lo_s[k] = C.kp * (mat[0, k] * err_r[0] + mat[1, k] * err_r[1] + mat[2, k] * err_r[2])
         lo_i[k] = mat[0, k] * omega[0] + mat[1, k] * omega[1] + mat[2, k] * omega[2]
-        lo_d[k] = K.kd * lo_i[k]
+        lo_d[k] = C.kd * lo_i[k]
     for i in range(3):
         turn[i] = 0.0
         inertia_w[i] = 0.0
         for k in range(3):
             turn[i] += mat[i, k] * (stiff[k] * lo_s[k] - damp[k] * lo_d[k])
             inertia_w[i] += mat[i, k] * (float(inertia_d[k]) * lo_i[k])
-    cap = max(K.feedback_limit * weight, K.feedback_floor)
+    cap = max(C.feedback_limit * weight, C.feedback_floor)
     _clip_norm(feedback, cap)
-    _clip_norm(turn, cap * K.tool_radius)
+    _clip_norm(turn, cap * C.tool_radius)
     _cross(omega, inertia_w, c)
-    required = f[4 * J + 6:4 * J + 12]
     for i in range(3):
         required[i] = m * (ref_acc[i] - g[i]) + feedback[i] - ext[i]
         required[3 + i] = turn[i] + c[i] - ext[3 + i]
 
-    # ---- the force solves on the observed tool, blended over the changed link's load
-    pts = blocks[12 * L:13 * L]
-    surface = v3[23]
-    for lk in range(L):
+
+@_jit
+def _contacts(H, C, friction, p, mat, v3, W):
+    """The force solves' problem on the observed tool: the contact points, the CoM (world, v3[24]; its offset
+    v3[13] from `_tool_wrench`), the links active with and without the changed one; (the friction coefficient,
+    the changed link's load). v3[23]: scratch."""
+    current, load, fl = W.options[CURRENT], W.load, W.flags
+    anchor, nrm_t, pts = W.blocks[ANCHOR], W.blocks[NORMAL_T], W.blocks[POINTS]
+    surface, r_com = v3[23], v3[13]
+    for lk in range(current.shape[0]):
         cur = current[lk]
         for i in range(3):
-            surface[i] = (anchor[lk, i] if anchored[lk] else K.targets[lk, cur, i]) + K.link_radius[lk] * nrm_t[lk, i]
+            surface[i] = (anchor[lk, i] if fl[ANCHORED, lk] else H.targets[lk, cur, i]) \
+                + H.link_radius[lk] * nrm_t[lk, i]
         for i in range(3):
             pts[lk, i] = p[i] + mat[i, 0] * surface[0] + mat[i, 1] * surface[1] + mat[i, 2] * surface[2]
-    mu = K.friction_margin * float(friction)
+    mu = C.friction_margin * float(friction)
     com_w = v3[24]
     for i in range(3):
         com_w[i] = p[i] + r_com[i]
-    active, active_b = bools[7 * L:8 * L], bools[8 * L:9 * L]
     share = F32(0.0)
-    for lk in range(L):
-        active[lk] = current[lk] > 0 and load[lk] > 0
-        active_b[lk] = active[lk] and not changed[lk]
-        if changed[lk]:
+    for lk in range(current.shape[0]):
+        fl[ACTIVE, lk] = current[lk] > 0 and load[lk] > 0
+        fl[ACTIVE_B, lk] = fl[ACTIVE, lk] and not fl[CHANGED, lk]
+        if fl[CHANGED, lk]:
             share += load[lk]
-    f_a, f_b = blocks[13 * L:14 * L], blocks[14 * L:15 * L]
-    lip = _solve(K, pts, nrm, active, mu, required, com_w, f_with, f_a, S)
-    same = True  # no link changing: both solves have one grasp matrix
-    for lk in range(L):
-        same = same and active[lk] == active_b[lk]
-    if same and _same_bits(f_with, f_without):  # one problem from one start: the first solve's forces, bit for bit
-        for lk in range(L):
-            for i in range(3):
-                f_b[lk, i] = f_a[lk, i]
-    else:
-        _solve(K, pts, nrm, active_b, mu, required, com_w, f_without, f_b, S, lip if same else -1.0)
+    return mu, share
+
+
+@_jit
+def _torques(Fi, off, sc, cs, f, share, jac, W):
+    """The motor torques (f's (J,) tau): the two solves' forces blended over the changed link's load `share`, and
+    the tracking forces, through the Jacobians; the posture term (rest: cs at off.q_rest), the joints' bias; clipped
+    to the motors' range."""
+    J = jac.shape[2]
+    q, bias, tau = f[0:J], f[2 * J:3 * J], f[3 * J:4 * J]
+    f_a, f_b, f_track = W.blocks[F_A], W.blocks[F_B], W.blocks[F_TRACK]
     sh = float(share)
     for jj in range(J):
         acc = 0.0
-        for lk in range(L):
+        for lk in range(jac.shape[0]):
             for i in range(3):
                 acc += jac[lk, i, jj] * (sh * f_a[lk, i] + (1 - sh) * f_b[lk, i] + f_track[lk, i])
-        tau[jj] = min(max(acc + K.posture_kp * (cs[K.cs_q_rest + jj] - q[jj]) + bias[jj], K.ctrl_low[jj]),
-                      K.ctrl_high[jj])
+        tau[jj] = min(max(acc + Fi.posture_kp * (cs[off.q_rest + jj] - q[jj]) + bias[jj], sc.ctrl_low[jj]),
+                      sc.ctrl_high[jj])
 
-    # ---- outputs and the next state
+
+@_jit
+def _write(off, sc, cs, f, W, out):
+    """The tick's outputs (motor commands, the external wrench: f's tau and ext) to out, the next controller state
+    to cs."""
+    J, nu = sc.hand_qpos.shape[0], sc.nu
+    tau, ext = f[3 * J:4 * J], f[4 * J:4 * J + 6]
+    load, anchored = W.load, W.flags[ANCHORED]
+    anchor, f_a, f_b = W.blocks[ANCHOR], W.blocks[F_A], W.blocks[F_B]
     for i in range(nu):
         out[i] = 0.0
     for jj in range(J):
-        out[K.hand_act[jj]] = tau[jj]
+        out[sc.hand_act[jj]] = tau[jj]
     for i in range(6):
         out[nu + i] = ext[i]
-    for lk in range(L):
-        cs[K.cs_load + lk] = load[lk]
-        cs[K.cs_anchored + lk] = 1.0 if anchored[lk] else 0.0
+    for lk in range(load.shape[0]):
+        cs[off.load + lk] = load[lk]
+        cs[off.anchored + lk] = 1.0 if anchored[lk] else 0.0
         for i in range(3):
-            cs[K.cs_anchor + 3 * lk + i] = anchor[lk, i]
-            cs[K.cs_f_with + 3 * lk + i] = f_a[lk, i]
-            cs[K.cs_f_without + 3 * lk + i] = f_b[lk, i]
+            cs[off.anchor + 3 * lk + i] = anchor[lk, i]
+            cs[off.f_with + 3 * lk + i] = f_a[lk, i]
+            cs[off.f_without + 3 * lk + i] = f_b[lk, i]
 
 
 @_jit
@@ -894,34 +1058,47 @@ def _solve3(m, v, x, c0, c1, c2):
 
 
 @_jit
-def _control_row(K, j, r, cs, obs, episodes, out, S):
-    _control(K, j, cs[r], obs[r], episodes.waypoints[r], episodes.quats[r], episodes.dt[r], episodes.w_ext[r],
-             episodes.mass[r], episodes.inertia[r], episodes.com[r], episodes.friction[r], episodes.hold_time[r],
-             out, S)
-
-
-@_jit
 def tick_rows(j, rows, cs, obs, episodes, K, out, S):
     """`Tick.__call__`: the JAX tick's work for the episodes `rows` (the status of tick j - 1, then tick j)."""
-    nu = K.nu
+    nu = K.scene.nu
     for r in rows:
-        _status(K, j - 1, obs[r], episodes.waypoints[r], episodes.quats[r], episodes.dt[r], out[r, nu + 6:], S)
-        _control_row(K, j, r, cs, obs, episodes, out[r], S)
+        ep = _row(episodes, r)
+        _status(K, j - 1, obs[r], ep, out[r, nu + 6:], S)
+        _control(K, j, cs[r], obs[r], ep, out[r], S)
 
 
 @_jit
 def status_rows(j, rows, obs, episodes, K, out, S):
     """`Physics.check` after tick j of the episodes `rows`: out (E, 3) [angle, position error, fell]."""
     for r in rows:
-        _status(K, j, obs[r], episodes.waypoints[r], episodes.quats[r], episodes.dt[r], out[r], S)
+        _status(K, j, obs[r], _row(episodes, r), out[r], S)
 
 
 # ------------------------------------------------------------------------------------------ the engine
+class Models(NamedTuple):
+    """The C models of E episodes as native code steps them (`Engine`)."""
+
+    addresses: np.ndarray  # (E, 8) uint64: `addresses`
+    pedestals: np.ndarray  # (E, P, 3) float64: the pedestals' positions at drop 0
+    geoms: np.ndarray  # (P,) int64: the pedestals' geoms
+
+
+class Trace(NamedTuple):
+    """What a run records of its E episodes, K control ticks (`segment` writes it)."""
+
+    fell: np.ndarray  # (E,) bool
+    fall_tick: np.ndarray  # (E,) int32: the tick of the first fall, -1 if none
+    angle: np.ndarray  # (E, K) float32 [deg] after each tick
+    perr: np.ndarray  # (E, K) float32 [m]
+    qpos: np.ndarray  # (E, K, nq) float32
+
+
 @_jit
-def _step_row(K, addr, r, out, pedestals, geoms, drop, obs, buf):
+def _step_row(K, models, r, out, drop, obs, buf):
     """Episode r's pedestals `drop` metres down, motor commands out[:nu] and external wrench out[nu:nu + 6] in,
     one `mj_step`, its observation row obs[r] (qpos, qvel, qfrc_bias; float32) read back. buf: float64 scratch."""
-    nq, nv, nu = K.nq, K.nv, K.nu
+    nq, nv, nu = K.scene.nq, K.scene.nv, K.scene.nu
+    addr, pedestals, geoms = models.addresses, models.pedestals, models.geoms
     place = buf.ctypes.data
     for g in range(geoms.shape[0]):
         buf[0], buf[1], buf[2] = pedestals[r, g, 0], pedestals[r, g, 1], pedestals[r, g, 2] + drop
@@ -945,37 +1122,38 @@ def _step_row(K, addr, r, out, pedestals, geoms, drop, obs, buf):
 
 
 @_jit
-def step_rows(K, addr, rows, out, pedestals, geoms, drop, obs, buf):
+def step_rows(K, models, rows, out, drop, obs, buf):
     """Episodes `rows` one physics step each under their rows of out (E, nu + 6 + ...) (`_step_row`)."""
     for r in rows:
-        _step_row(K, addr, r, out[r], pedestals, geoms, drop, obs, buf)
+        _step_row(K, models, r, out[r], drop, obs, buf)
 
 
 @_jit
-def segment(K, j0, drops, rows, cs, obs, episodes, addr, pedestals, geoms, fell, fall_tick, angle, perr, qpos,
-            out, S):
+def segment(K, j0, drops, rows, cs, obs, episodes, models, trace, out, S):
     """Control ticks j0 .. j0 + len(drops) - 1 of the episodes `rows`, each tick: the status of the tick before
-    recorded (angle, perr (E, K), qpos (E, K, nq) at tick j - 1; fell (E,), fall_tick (E,) at the first fall),
-    then, for an episode that has not fallen, the controller's tick j and one physics step with the pedestals
-    drops[j - j0] metres down. The C backend's segment between two decisions, in one call without Python.
-    S: the thread's `Scratch`. Returns the physics steps taken."""
-    nq, nu = K.nq, K.nu
+    recorded in `trace` (`Trace`: angle, perr, qpos at tick j - 1; fell, fall_tick at the first fall), then, for
+    an episode that has not fallen, the controller's tick j and one physics step of its model (`Models`) with the
+    pedestals drops[j - j0] metres down. The C backend's segment between two decisions, in one call without
+    Python. S: the thread's `Scratch`. Returns the physics steps taken."""
+    nq, nu = K.scene.nq, K.scene.nu
+    fell, fall_tick = trace.fell, trace.fall_tick
     steps = 0
     for r in rows:  # a row's ticks one after another (its model and data stay in the cache): rows are independent
+        ep = _row(episodes, r)
         for i in range(drops.shape[0]):
             j = j0 + i
             if j > 0:
                 st = out[r, nu + 6:]
-                _status(K, j - 1, obs[r], episodes.waypoints[r], episodes.quats[r], episodes.dt[r], st, S)
+                _status(K, j - 1, obs[r], ep, st, S)
                 if st[2] > 0.5 and not fell[r]:
                     fell[r], fall_tick[r] = True, j - 1
-                angle[r, j - 1], perr[r, j - 1] = st[0], st[1]
+                trace.angle[r, j - 1], trace.perr[r, j - 1] = st[0], st[1]
                 for c in range(nq):
-                    qpos[r, j - 1, c] = obs[r, c]
+                    trace.qpos[r, j - 1, c] = obs[r, c]
             if fell[r]:
                 continue
-            _control_row(K, j, r, cs, obs, episodes, out[r], S)
-            _step_row(K, addr, r, out[r], pedestals, geoms, drops[i], obs, S.buf)
+            _control(K, j, cs[r], obs[r], ep, out[r], S)
+            _step_row(K, models, r, out[r], drops[i], obs, S.buf)
             steps += 1
     return steps
 
@@ -987,7 +1165,7 @@ def keep_grasp(K: Constants, rows, cs: np.ndarray, start: np.float32) -> None:
     current ones, nothing changed, the segment's start). cs (E, C) float32 flat controller states, updated in
     place. Must equal `Controller.begin_segment` there (its reference), bit for bit; checked by
     `tests/test_physics.py::test_c_lockstep_decides_table_policies_in_numpy_as_jax_does`."""
-    L = K.link_body.shape[0]
-    cs[rows, K.cs_previous:K.cs_previous + L] = cs[rows, K.cs_options:K.cs_options + L]
-    cs[rows, K.cs_changed:K.cs_changed + L] = 0.0
-    cs[rows, K.cs_start] = start
+    L, off = K.hand.link_body.shape[0], K.state
+    cs[rows, off.previous:off.previous + L] = cs[rows, off.options:off.options + L]
+    cs[rows, off.changed:off.changed + L] = 0.0
+    cs[rows, off.start] = start

@@ -55,7 +55,7 @@ def stepped(sur, solved, network):
     def run(depth):
         if depth not in cache:
             policy = lookahead.Lookahead(network, sur, depth=depth, inner=TableModel(_pick(tables, 0), sur.space))
-            plan, step = jax.jit(policy.plan), jax.jit(sur.step)
+            plan, step = jax.jit(policy.search), jax.jit(sur.step)
             s, ret, decisions = sur.reset(ep), 0.0, []
             while len(decisions) < ep.n_steps and not bool(s.done):
                 p = plan(s)
@@ -157,8 +157,8 @@ def test_experiments_cached_lookahead_is_one_policy_per_episode_table(sur, solve
     policy, axis = planners.make(ctx, "L1")
     assert hash(axis) == hash(policies.Lookahead(None, None, depth=1, inner=0))
     states = jax.jit(jax.vmap(lambda e, g: sur.discrete_state(e, g, 2)))(eps, sols.grasps[:, 2])
-    plans = jax.jit(jax.vmap(lambda pol, s: pol.plan(s), in_axes=(axis, 0)))(policy, states)
-    own_plan = jax.jit(lambda m, s: policies.Lookahead(network, sur, depth=1, inner=m).plan(s))  # one compile
+    plans = jax.jit(jax.vmap(lambda pol, s: pol.search(s), in_axes=(axis, 0)))(policy, states)
+    own_plan = jax.jit(lambda m, s: policies.Lookahead(network, sur, depth=1, inner=m).search(s))  # one compile
     clear = 0
     for i in range(4):
         ref = own_plan(TableModel(_pick(tables, i), sur.space), _pick(states, i))
@@ -369,7 +369,8 @@ def test_per_decision_latency_times_the_planners_own_decisions(sur, solved, netw
 
 
 def test_table1_dp_optimal_earns_its_dp_optimum_by_replaying_its_own_table(sur, solved, network):
-    """`online.plan`'s DP optimal (Table 1's) solves the unseen episode inside the timed call and runs its policy in
+    """`online.episode_planner`'s DP optimal (Table 1's) solves the unseen episode inside the timed call and runs its
+    policy in
     that table (from its start the surrogate visits only the table's states: `test_env` checks the two step for step):
     the episode earns exactly the DP optimum of the episode."""
     from gsp_jax.planning import evaluation
@@ -378,12 +379,13 @@ def test_table1_dp_optimal_earns_its_dp_optimum_by_replaying_its_own_table(sur, 
     eps, tables, sols = solved
     one = jax.tree.map(lambda x: x[:1], (eps, tables, sols))
     ctx = evaluation.Context(sur, "test", ["e0"], *one, sols.actions[0], network, "x")
-    ret = jax.jit(online.plan(ctx, "dp-opt"))(_pick(eps, 0))
+    ret = jax.jit(online.episode_planner(ctx, "dp-opt"))(_pick(eps, 0))
     np.testing.assert_allclose(float(ret), float(sols.ret[0]), atol=tol.REWARD_ATOL * 6)
 
 
 def test_table1_lookahead_in_the_table_runs_the_cached_episode(sur, solved, network, stepped):
-    """`online.plan`'s L1 (Table 1's) searching in the unseen episode's table, root included (`lookahead="table"`, the
+    """`online.episode_planner`'s L1 (Table 1's) searching in the unseen episode's table, root included
+    (`lookahead="table"`, the
     default), runs the episode that the cached L1 runs with the root's actions stepped in the surrogate (from its
     start the surrogate visits only the table's states): the same return, to the tolerance of a few rewards."""
     from gsp_jax.planning import evaluation
@@ -393,10 +395,10 @@ def test_table1_lookahead_in_the_table_runs_the_cached_episode(sur, solved, netw
     one = jax.tree.map(lambda x: x[:1], (eps, tables, sols))
     ctx = evaluation.Context(sur, "test", ["e0"], *one, sols.actions[0], network, "x")
     _, decisions, ret, _ = stepped(1)
-    got = jax.jit(online.plan(ctx, "L1", lookahead="table"))(_pick(eps, 0))
+    got = jax.jit(online.episode_planner(ctx, "L1", lookahead="table"))(_pick(eps, 0))
     np.testing.assert_allclose(float(got), ret, atol=tol.REWARD_ATOL * len(decisions))
     with pytest.raises(ValueError, match="lookahead"):
-        online.plan(ctx, "L1", lookahead="tables")
+        online.episode_planner(ctx, "L1", lookahead="tables")
 
 
 @pytest.mark.parametrize("depth", [1, 2])

@@ -36,7 +36,7 @@ def _sphere_grid() -> np.ndarray:
     return pts / math.cos(cover)
 
 
-def _local_points(kind: int, size: np.ndarray, model: mujoco.MjModel, mesh: int) -> np.ndarray:
+def _local_points(kind: int, size: np.ndarray, mj_model: mujoco.MjModel, mesh: int) -> np.ndarray:
     """(N, 3) points, in the geom's frame, whose convex hull contains the geom [m]."""
     if kind == _GEOM.mjGEOM_BOX:
         signs = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float64)
@@ -48,16 +48,16 @@ def _local_points(kind: int, size: np.ndarray, model: mujoco.MjModel, mesh: int)
     if kind == _GEOM.mjGEOM_ELLIPSOID:
         return _sphere_grid() * size
     if kind == _GEOM.mjGEOM_MESH:
-        adr, n = model.mesh_vertadr[mesh], model.mesh_vertnum[mesh]
-        return np.asarray(model.mesh_vert[adr:adr + n], np.float64)
+        adr, n = mj_model.mesh_vertadr[mesh], mj_model.mesh_vertnum[mesh]
+        return np.asarray(mj_model.mesh_vert[adr:adr + n], np.float64)
     raise HandImportError(f"geom type {_enum_word(_GEOM, kind)} cannot be fitted")
 
 
-def geom_points(model: mujoco.MjModel, g: int) -> np.ndarray:
+def geom_points(mj_model: mujoco.MjModel, g: int) -> np.ndarray:
     """(N, 3) points, in the frame of geom g's body, whose convex hull contains the compiled geom [m]: a box's
     corners, a mesh's vertices, a polygon prism around a cylinder, a polytope around an ellipsoid."""
-    local = _local_points(int(model.geom_type[g]), model.geom_size[g], model, int(model.geom_dataid[g]))
-    return model.geom_pos[g] + local @ hand_lib._quat_to_mat(model.geom_quat[g]).T
+    local = _local_points(int(mj_model.geom_type[g]), mj_model.geom_size[g], mj_model, int(mj_model.geom_dataid[g]))
+    return mj_model.geom_pos[g] + local @ hand_lib._quat_to_mat(mj_model.geom_quat[g]).T
 
 
 def _segment_dist(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -129,13 +129,13 @@ def _ellipsoid_surface(size: np.ndarray, spacing: float) -> np.ndarray:
     return np.stack([np.cos(la) * np.cos(lo), np.cos(la) * np.sin(lo), np.sin(la)], -1).reshape(-1, 3) * size
 
 
-def geom_distance(model: mujoco.MjModel, g: int, spacing: float | None = None):
+def geom_distance(mj_model: mujoco.MjModel, g: int, spacing: float | None = None):
     """A function of points x (N, 3), in the frame of geom g's body, giving their distance (N,) from the solid geom
     [m]: exact for boxes, cylinders and (`spacing` None) meshes (to the mesh's triangles: only points outside it are
     asked); for an ellipsoid, and for a mesh given a `spacing`, the distance to the nearest of its surface samples
     about `spacing` apart (too large by at most about `spacing` / 2; `SURFACE_SPACING` for an ellipsoid)."""
-    kind, size = int(model.geom_type[g]), model.geom_size[g].copy()
-    pos, mat = model.geom_pos[g].copy(), hand_lib._quat_to_mat(model.geom_quat[g])
+    kind, size = int(mj_model.geom_type[g]), mj_model.geom_size[g].copy()
+    pos, mat = mj_model.geom_pos[g].copy(), hand_lib._quat_to_mat(mj_model.geom_quat[g])
     if kind == _GEOM.mjGEOM_BOX:
         return lambda x: np.linalg.norm(np.maximum(np.abs((x - pos) @ mat) - size, 0.0), axis=1)
     if kind == _GEOM.mjGEOM_CYLINDER:
@@ -145,9 +145,9 @@ def geom_distance(model: mujoco.MjModel, g: int, spacing: float | None = None):
             return np.hypot(dr, np.maximum(np.abs(local[:, 2]) - size[1], 0.0))
         return cylinder
     if kind == _GEOM.mjGEOM_MESH:
-        mesh = int(model.geom_dataid[g])
-        vert = np.asarray(model.mesh_vert[model.mesh_vertadr[mesh]:][:model.mesh_vertnum[mesh]], np.float64)
-        face = np.asarray(model.mesh_face[model.mesh_faceadr[mesh]:][:model.mesh_facenum[mesh]])
+        mesh = int(mj_model.geom_dataid[g])
+        vert = np.asarray(mj_model.mesh_vert[mj_model.mesh_vertadr[mesh]:][:mj_model.mesh_vertnum[mesh]], np.float64)
+        face = np.asarray(mj_model.mesh_face[mj_model.mesh_faceadr[mesh]:][:mj_model.mesh_facenum[mesh]])
         if spacing is not None:
             samples = pos + _thin(_triangle_samples(vert, face, spacing), spacing) @ mat.T
             return lambda x: _nearest(x, samples)

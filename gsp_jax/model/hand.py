@@ -44,9 +44,9 @@ JOINT_ARMATURE = 0.002  # [kg m^2]
 JOINT_FRICTIONLOSS = 0.001  # [N m]
 
 
-def collides(model: mujoco.MjModel, g: int) -> bool:
+def collides(mj_model: mujoco.MjModel, g: int) -> bool:
     """Whether geom `g` collides with anything (contype or conaffinity set); the others are visual only."""
-    return bool(model.geom_contype[g] or model.geom_conaffinity[g])
+    return bool(mj_model.geom_contype[g] or mj_model.geom_conaffinity[g])
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -155,27 +155,27 @@ def enclosing_half(kinds, size: np.ndarray) -> np.ndarray:
     return np.asarray(out, np.float64).reshape(-1, 3)
 
 
-def _text(model: mujoco.MjModel, name: str, default: str | None = None) -> str:
-    i = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXT, name)
+def _text(mj_model: mujoco.MjModel, name: str, default: str | None = None) -> str:
+    i = mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_TEXT, name)
     if i < 0:
         if default is not None:
             return default
         raise ValueError(f"model: custom text {name!r} is missing")
-    data = model.text_data
+    data = mj_model.text_data
     raw = (data.tobytes() if hasattr(data, "tobytes")
            else bytes(data, "latin1") if isinstance(data, str) else bytes(data))
-    return raw[model.text_adr[i] : model.text_adr[i] + model.text_size[i]].split(b"\0")[0].decode()
+    return raw[mj_model.text_adr[i] : mj_model.text_adr[i] + mj_model.text_size[i]].split(b"\0")[0].decode()
 
 
-def _numeric(model: mujoco.MjModel, name: str) -> np.ndarray | None:
+def _numeric(mj_model: mujoco.MjModel, name: str) -> np.ndarray | None:
     """A custom numeric's values, or None if the file has none of that name."""
-    if mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_NUMERIC, name) < 0:
+    if mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_NUMERIC, name) < 0:
         return None
-    return np.asarray(model.numeric(name).data, dtype=np.float64)
+    return np.asarray(mj_model.numeric(name).data, dtype=np.float64)
 
 
-def _site(model: mujoco.MjModel, name: str) -> int:
-    return mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, name)
+def _site(mj_model: mujoco.MjModel, name: str) -> int:
+    return mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_SITE, name)
 
 
 def _quat_to_mat(q: np.ndarray) -> np.ndarray:
@@ -222,94 +222,94 @@ class _Tree:
         return moves
 
 
-def table_geom(model: mujoco.MjModel) -> int:
+def table_geom(mj_model: mujoco.MjModel) -> int:
     """The table: the world's one plane geom."""
-    planes = [g for g in range(model.ngeom)
-              if model.geom_bodyid[g] == 0 and int(model.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_PLANE)]
+    planes = [g for g in range(mj_model.ngeom)
+              if mj_model.geom_bodyid[g] == 0 and int(mj_model.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_PLANE)]
     if len(planes) != 1:
         raise ValueError(f"model: the scene needs one plane geom in the worldbody (the table); found {len(planes)}")
     return planes[0]
 
 
-def tool_body(model: mujoco.MjModel) -> int:
+def tool_body(mj_model: mujoco.MjModel) -> int:
     """The tool: the scene's one body with a free joint (any name)."""
-    free = sorted({int(model.jnt_bodyid[j]) for j in range(model.njnt)
-                   if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE})
+    free = sorted({int(mj_model.jnt_bodyid[j]) for j in range(mj_model.njnt)
+                   if mj_model.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE})
     if len(free) != 1:
-        names = [model.body(b).name for b in free]
+        names = [mj_model.body(b).name for b in free]
         raise ValueError(f"model: the tool must be the scene's one free body (a body with <freejoint/>); found "
                          f"{len(free)}{': ' + ', '.join(map(repr, names)) if names else ''}")
     return free[0]
 
 
-def contact_links(model: mujoco.MjModel) -> tuple[str, ...]:
+def contact_links(mj_model: mujoco.MjModel) -> tuple[str, ...]:
     """The contact links in the grasp encoding's order (custom text ``gsp_contact_links``)."""
-    names = tuple(_text(model, "gsp_contact_links").split())
+    names = tuple(_text(mj_model, "gsp_contact_links").split())
     if not names:
         raise ValueError("model: custom text 'gsp_contact_links' names no link")
     return names
 
 
-def hand_root(model: mujoco.MjModel) -> int:
+def hand_root(mj_model: mujoco.MjModel) -> int:
     """The hand's root (its palm): the world's child body that holds the contact links' sites."""
-    sites = [s for n in contact_links(model) if (s := _site(model, f"contact_{n}")) >= 0]
+    sites = [s for n in contact_links(mj_model) if (s := _site(mj_model, f"contact_{n}")) >= 0]
     if not sites:
         raise ValueError("model: no contact link has its site 'contact_<link>'")
-    return int(model.body_rootid[model.site_bodyid[sites[0]]])
+    return int(mj_model.body_rootid[mj_model.site_bodyid[sites[0]]])
 
 
-def hinged_root(model: mujoco.MjModel, exclude=()) -> int | None:
+def hinged_root(mj_model: mujoco.MjModel, exclude=()) -> int | None:
     """The world's child (not one of `exclude`) with the most hinge joints below it, the first such in MuJoCo's
     order; None if no body has a hinge. A hand's palm before its contact links are named."""
-    hinges = np.bincount([model.body_rootid[model.jnt_bodyid[j]] for j in range(model.njnt)
-                          if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE], minlength=model.nbody)
+    hinges = np.bincount([mj_model.body_rootid[mj_model.jnt_bodyid[j]] for j in range(mj_model.njnt)
+                          if mj_model.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE], minlength=mj_model.nbody)
     hinges[[0, *exclude]] = 0
     return int(np.argmax(hinges)) if hinges.max() > 0 else None
 
 
-def _tree(model: mujoco.MjModel, palm: int) -> _Tree:
+def _tree(mj_model: mujoco.MjModel, palm: int) -> _Tree:
     """The bodies below the palm, each with at most one hinge joint."""
-    bodies = [b for b in range(1, model.nbody) if model.body_rootid[b] == palm]
+    bodies = [b for b in range(1, mj_model.nbody) if mj_model.body_rootid[b] == palm]
     index = {b: i for i, b in enumerate(bodies)}
-    joints = [j for j in range(model.njnt) if model.jnt_bodyid[j] in index]
+    joints = [j for j in range(mj_model.njnt) if mj_model.jnt_bodyid[j] in index]
     for j in joints:
-        if model.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE:
-            raise ValueError(f"model: hand joint {model.joint(j).name!r} is not a hinge")
+        if mj_model.jnt_type[j] != mujoco.mjtJoint.mjJNT_HINGE:
+            raise ValueError(f"model: hand joint {mj_model.joint(j).name!r} is not a hinge")
     body_joint = np.full(len(bodies), -1)
     for ji, j in enumerate(joints):
-        bi = index[model.jnt_bodyid[j]]
+        bi = index[mj_model.jnt_bodyid[j]]
         if body_joint[bi] >= 0:
-            raise ValueError(f"model: body {model.body(model.jnt_bodyid[j]).name!r} has more than one joint")
+            raise ValueError(f"model: body {mj_model.body(mj_model.jnt_bodyid[j]).name!r} has more than one joint")
         body_joint[bi] = ji
-    tree = _Tree(model, palm, bodies, index, joints, body_joint, [])
+    tree = _Tree(mj_model, palm, bodies, index, joints, body_joint, [])
     fingers = set()
     for b in bodies:
         if b != palm:
-            while model.body_parentid[b] != palm:
-                b = model.body_parentid[b]
+            while mj_model.body_parentid[b] != palm:
+                b = mj_model.body_parentid[b]
             fingers.add(b)
     return dataclasses.replace(tree, fingers=sorted(fingers))
 
 
-def _links(model: mujoco.MjModel, tree: _Tree, tool: int) -> dict:
+def _links(mj_model: mujoco.MjModel, tree: _Tree, tool: int) -> dict:
     """The contact links (sites ``contact_<link>``) and their candidate contacts on the tool (``opt_<link>_<k>``)."""
-    names = contact_links(model)
+    names = contact_links(mj_model)
     body, site, axis, half, radius, n_options, opts = [], [], [], [], [], [], []
     for name in names:
-        s = _site(model, f"contact_{name}")
+        s = _site(mj_model, f"contact_{name}")
         if s < 0:
             raise ValueError(f"model: site 'contact_{name}' is missing")
-        body.append(tree.index[model.site_bodyid[s]])
-        site.append(model.site_pos[s].copy())
-        axis.append(_quat_to_mat(model.site_quat[s])[:, 2])
-        capsule = model.site_type[s] == mujoco.mjtGeom.mjGEOM_CAPSULE
-        half.append(float(model.site_size[s][1]) if capsule else 0.0)
-        radius.append(float(model.site_size[s][0]))
+        body.append(tree.index[mj_model.site_bodyid[s]])
+        site.append(mj_model.site_pos[s].copy())
+        axis.append(_quat_to_mat(mj_model.site_quat[s])[:, 2])
+        capsule = mj_model.site_type[s] == mujoco.mjtGeom.mjGEOM_CAPSULE
+        half.append(float(mj_model.site_size[s][1]) if capsule else 0.0)
+        radius.append(float(mj_model.site_size[s][0]))
         k, link_opts = 1, []
-        while (o := _site(model, f"opt_{name}_{k}")) >= 0:
-            if model.site_bodyid[o] != tool:
-                raise ValueError(f"model: site 'opt_{name}_{k}' is not on the tool body {model.body(tool).name!r}")
-            link_opts.append((model.site_pos[o].copy(), _quat_to_mat(model.site_quat[o])[:, 2]))
+        while (o := _site(mj_model, f"opt_{name}_{k}")) >= 0:
+            if mj_model.site_bodyid[o] != tool:
+                raise ValueError(f"model: site 'opt_{name}_{k}' is not on the tool body {mj_model.body(tool).name!r}")
+            link_opts.append((mj_model.site_pos[o].copy(), _quat_to_mat(mj_model.site_quat[o])[:, 2]))
             k += 1
         if not link_opts:
             raise ValueError(f"model: link {name!r} has no candidate contact 'opt_{name}_1'")
@@ -328,32 +328,32 @@ def _links(model: mujoco.MjModel, tree: _Tree, tool: int) -> dict:
                 option_pos=option_pos, option_normal=option_normal, link_finger=link_finger, link_is_tip=is_tip)
 
 
-def _collision(model: mujoco.MjModel, tree: _Tree, link_body: np.ndarray) -> dict:
+def _collision(mj_model: mujoco.MjModel, tree: _Tree, link_body: np.ndarray) -> dict:
     """The hand's collision geoms as chains of spheres, and the capsules checked for self-collision."""
     body_link = {b: li for li, b in enumerate(link_body)}
     sph_body, sph_pos, sph_rad, sph_finger, sph_link = [], [], [], [], []
     cap_body, cap_ends, cap_rad, cap_finger = [], [], [], []
-    for g in range(model.ngeom):
-        b = model.geom_bodyid[g]
-        if b not in tree.index or b == tree.palm or not collides(model, g):
+    for g in range(mj_model.ngeom):
+        b = mj_model.geom_bodyid[g]
+        if b not in tree.index or b == tree.palm or not collides(mj_model, g):
             continue
-        gtype = model.geom_type[g]
-        mat = _quat_to_mat(model.geom_quat[g])
+        gtype = mj_model.geom_type[g]
+        mat = _quat_to_mat(mj_model.geom_quat[g])
         if gtype == mujoco.mjtGeom.mjGEOM_CAPSULE:
-            r, h = model.geom_size[g][:2]
+            r, h = mj_model.geom_size[g][:2]
             offsets = _capsule_spheres(h, r)
             if tree.depth(b) >= SELF_COLLISION_MIN_DEPTH:
                 cap_body.append(tree.index[b])
-                cap_ends.append([model.geom_pos[g] - mat[:, 2] * h, model.geom_pos[g] + mat[:, 2] * h])
+                cap_ends.append([mj_model.geom_pos[g] - mat[:, 2] * h, mj_model.geom_pos[g] + mat[:, 2] * h])
                 cap_rad.append(r)
                 cap_finger.append(tree.finger_of(b))
         elif gtype == mujoco.mjtGeom.mjGEOM_SPHERE:
-            r, offsets = model.geom_size[g][0], np.zeros(1)
+            r, offsets = mj_model.geom_size[g][0], np.zeros(1)
         else:
-            raise ValueError(f"model: hand geom {_geom_label(model, g)} must be a capsule or sphere")
+            raise ValueError(f"model: hand geom {_geom_label(mj_model, g)} must be a capsule or sphere")
         for z in offsets:
             sph_body.append(tree.index[b])
-            sph_pos.append(model.geom_pos[g] + mat[:, 2] * z)
+            sph_pos.append(mj_model.geom_pos[g] + mat[:, 2] * z)
             sph_rad.append(r)
             sph_finger.append(tree.finger_of(b))
             sph_link.append(body_link.get(tree.index[b], -1))
@@ -366,46 +366,47 @@ def _collision(model: mujoco.MjModel, tree: _Tree, link_body: np.ndarray) -> dic
                 capsule_radius=np.array(cap_rad), self_pairs=pairs)
 
 
-def _geom_label(model: mujoco.MjModel, g: int) -> str:
-    name = model.geom(g).name
-    return repr(name) if name else f"#{g} (unnamed, on body {model.body(model.geom_bodyid[g]).name!r})"
+def _geom_label(mj_model: mujoco.MjModel, g: int) -> str:
+    name = mj_model.geom(g).name
+    return repr(name) if name else f"#{g} (unnamed, on body {mj_model.body(mj_model.geom_bodyid[g]).name!r})"
 
 
-def tool_geoms(model: mujoco.MjModel, tool: int) -> list[int]:
+def tool_geoms(mj_model: mujoco.MjModel, tool: int) -> list[int]:
     """The tool's collision geoms: those of its body that collide with something (contype or conaffinity)."""
-    return [g for g in range(model.ngeom) if model.geom_bodyid[g] == tool and collides(model, g)]
+    return [g for g in range(mj_model.ngeom) if mj_model.geom_bodyid[g] == tool and collides(mj_model, g)]
 
 
-def _tool(model: mujoco.MjModel, tool: int) -> dict:
+def _tool(mj_model: mujoco.MjModel, tool: int) -> dict:
     """The tool's collision primitives (its frame), nominal inertial properties, rest pose and start supports."""
-    geoms = tool_geoms(model, tool)
+    geoms = tool_geoms(mj_model, tool)
     for g in geoms:
-        if int(model.geom_type[g]) not in TOOL_GEOMS:
-            raise ValueError(f"model: tool geom {_geom_label(model, g)} must be one of {sorted(TOOL_GEOMS.values())}")
-    boxes = [g for g in geoms if model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX]
-    rounds = [g for g in geoms if int(model.geom_type[g]) in ROUND_GEOMS]
-    out = dict(tool_name=model.body(tool).name,
-               tool_box_pos=np.array([model.geom_pos[g] for g in boxes]).reshape(-1, 3),
-               tool_box_mat=np.array([_quat_to_mat(model.geom_quat[g]) for g in boxes]).reshape(-1, 3, 3),
-               tool_box_half=np.array([model.geom_size[g] for g in boxes]).reshape(-1, 3),
-               tool_round_type=tuple(ROUND_GEOMS[int(model.geom_type[g])] for g in rounds),
-               tool_round_pos=np.array([model.geom_pos[g] for g in rounds]).reshape(-1, 3),
-               tool_round_mat=np.array([_quat_to_mat(model.geom_quat[g]) for g in rounds]).reshape(-1, 3, 3),
-               tool_round_size=np.array([model.geom_size[g] for g in rounds]).reshape(-1, 3),
-               tool_mass=float(model.body_mass[tool]), tool_inertia=np.array(model.body_inertia[tool]),
-               tool_com=np.array(model.body_ipos[tool]), tool_rest=np.array(model.body_pos[tool]))
-    return {**out, **_supports(model, tool, out)}
+        if int(mj_model.geom_type[g]) not in TOOL_GEOMS:
+            raise ValueError(f"model: tool geom {_geom_label(mj_model, g)} must be one of "
+                             f"{sorted(TOOL_GEOMS.values())}")
+    boxes = [g for g in geoms if mj_model.geom_type[g] == mujoco.mjtGeom.mjGEOM_BOX]
+    rounds = [g for g in geoms if int(mj_model.geom_type[g]) in ROUND_GEOMS]
+    out = dict(tool_name=mj_model.body(tool).name,
+               tool_box_pos=np.array([mj_model.geom_pos[g] for g in boxes]).reshape(-1, 3),
+               tool_box_mat=np.array([_quat_to_mat(mj_model.geom_quat[g]) for g in boxes]).reshape(-1, 3, 3),
+               tool_box_half=np.array([mj_model.geom_size[g] for g in boxes]).reshape(-1, 3),
+               tool_round_type=tuple(ROUND_GEOMS[int(mj_model.geom_type[g])] for g in rounds),
+               tool_round_pos=np.array([mj_model.geom_pos[g] for g in rounds]).reshape(-1, 3),
+               tool_round_mat=np.array([_quat_to_mat(mj_model.geom_quat[g]) for g in rounds]).reshape(-1, 3, 3),
+               tool_round_size=np.array([mj_model.geom_size[g] for g in rounds]).reshape(-1, 3),
+               tool_mass=float(mj_model.body_mass[tool]), tool_inertia=np.array(mj_model.body_inertia[tool]),
+               tool_com=np.array(mj_model.body_ipos[tool]), tool_rest=np.array(mj_model.body_pos[tool]))
+    return {**out, **_supports(mj_model, tool, out)}
 
 
-def _supports(model: mujoco.MjModel, tool: int, shape: dict) -> dict:
+def _supports(mj_model: mujoco.MjModel, tool: int, shape: dict) -> dict:
     """The start supports: the tool's box sites ``support_<k>`` (top centre, half sizes) if it has any; else two,
     under the tool's lowest point near either end of its longest horizontal extent (from its geoms' boxes)."""
     k, top, half = 1, [], []
-    while (s := _site(model, f"support_{k}")) >= 0:
-        if model.site_bodyid[s] != tool or model.site_type[s] != mujoco.mjtGeom.mjGEOM_BOX:
+    while (s := _site(mj_model, f"support_{k}")) >= 0:
+        if mj_model.site_bodyid[s] != tool or mj_model.site_type[s] != mujoco.mjtGeom.mjGEOM_BOX:
             raise ValueError(f"model: site 'support_{k}' must be a box site on the tool body")
-        top.append(model.site_pos[s].copy())
-        half.append(model.site_size[s].copy())
+        top.append(mj_model.site_pos[s].copy())
+        half.append(mj_model.site_size[s].copy())
         k += 1
     if top:
         return dict(support_top=np.array(top), support_half=np.array(half))
@@ -425,94 +426,94 @@ def _supports(model: mujoco.MjModel, tool: int, shape: dict) -> dict:
     return dict(support_top=np.array(top), support_half=half)
 
 
-def _torque_limits(model: mujoco.MjModel, joints) -> np.ndarray:
+def _torque_limits(mj_model: mujoco.MjModel, joints) -> np.ndarray:
     """(J,) each hand joint's motor limit [N m]: min(-lo, hi) of the ctrlrange of the one motor that drives it,
     times its gear."""
     limit = {}
-    for a in range(model.nu):
-        if model.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT:
-            lo, hi = model.actuator_ctrlrange[a] if model.actuator_ctrllimited[a] else (-np.inf, np.inf)
-            limit[int(model.actuator_trnid[a, 0])] = min(-lo, hi) * abs(model.actuator_gear[a, 0])
-    missing = [model.joint(j).name for j in joints if not limit.get(int(j), 0) > 0]
+    for a in range(mj_model.nu):
+        if mj_model.actuator_trntype[a] == mujoco.mjtTrn.mjTRN_JOINT:
+            lo, hi = mj_model.actuator_ctrlrange[a] if mj_model.actuator_ctrllimited[a] else (-np.inf, np.inf)
+            limit[int(mj_model.actuator_trnid[a, 0])] = min(-lo, hi) * abs(mj_model.actuator_gear[a, 0])
+    missing = [mj_model.joint(j).name for j in joints if not limit.get(int(j), 0) > 0]
     if missing:
         raise ValueError(f"model: hand joints {missing} need a motor with a control range around 0")
     return np.array([limit[int(j)] for j in joints])
 
 
-def _bodies_text(model: mujoco.MjModel, name: str, default: list[int], tree: _Tree) -> tuple[str, ...]:
+def _bodies_text(mj_model: mujoco.MjModel, name: str, default: list[int], tree: _Tree) -> tuple[str, ...]:
     """Hand body names from custom text `name`, or the `default` bodies."""
-    names = _text(model, name, "").split()
+    names = _text(mj_model, name, "").split()
     for n in names:
-        b = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, n)
+        b = mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_BODY, n)
         if b not in tree.index:
             raise ValueError(f"model: custom text {name!r} names {n!r}, which is not a body of the hand")
-    return tuple(names) if names else tuple(model.body(b).name for b in default)
+    return tuple(names) if names else tuple(mj_model.body(b).name for b in default)
 
 
-def _conventions(model: mujoco.MjModel, tree: _Tree, links: dict) -> dict:
+def _conventions(mj_model: mujoco.MjModel, tree: _Tree, links: dict) -> dict:
     """Start grasp, the all-tips grasp, the bodies that touch the tool and the table, the reach box."""
     n_links = len(links["link_names"])
     tips = tuple(int(t) for t in links["link_is_tip"])
-    start = _numeric(model, "gsp_start_options")
+    start = _numeric(mj_model, "gsp_start_options")
     if start is None:
         start = np.array(tips)
     if (len(start) != n_links or np.any(start != np.round(start)) or np.any(start < 0)
             or np.any(start >= links["n_options"])):
         raise ValueError(f"model: gsp_start_options {start.tolist()} must give each of the {n_links} links an option "
                          f"in [0, n_options) = {list(links['n_options'])}")
-    below = {b for b in tree.bodies for lb in links["link_body"] if _is_below(model, b, tree.bodies[lb])}
-    leaves = [b for b in tree.bodies if b != tree.palm and not any(model.body_parentid[c] == b for c in tree.bodies)]
-    box = _numeric(model, "gsp_workspace")
+    below = {b for b in tree.bodies for lb in links["link_body"] if _is_below(mj_model, b, tree.bodies[lb])}
+    leaves = [b for b in tree.bodies if b != tree.palm and not any(mj_model.body_parentid[c] == b for c in tree.bodies)]
+    box = _numeric(mj_model, "gsp_workspace")
     box = np.array(WORKSPACE).ravel() if box is None else box
     if box.size != 6 or np.any(box[:3] >= box[3:]):
         raise ValueError(f"model: gsp_workspace {box.tolist()} must be 6 values, lower corner below upper corner")
-    torque = _numeric(model, "gsp_torque")
+    torque = _numeric(mj_model, "gsp_torque")
     torque = np.array([TASK_TORQUE]) if torque is None else torque
     if torque.size != 1 or not 0 < torque[0] < np.inf:
         raise ValueError(f"model: gsp_torque {torque.tolist()} must be one positive value [N m]")
     return dict(start_options=tuple(int(o) for o in start), tip_options=tips, torque=float(torque[0]),
-                touch_tool=_bodies_text(model, "gsp_touch_tool", sorted(below), tree),
-                touch_table=_bodies_text(model, "gsp_touch_table", leaves, tree), workspace=box.reshape(2, 3))
+                touch_tool=_bodies_text(mj_model, "gsp_touch_tool", sorted(below), tree),
+                touch_table=_bodies_text(mj_model, "gsp_touch_table", leaves, tree), workspace=box.reshape(2, 3))
 
 
-def _is_below(model: mujoco.MjModel, b: int, ancestor: int) -> bool:
+def _is_below(mj_model: mujoco.MjModel, b: int, ancestor: int) -> bool:
     while b > 0:
         if b == ancestor:
             return True
-        b = model.body_parentid[b]
+        b = mj_model.body_parentid[b]
     return False
 
 
-def from_mjmodel(model: mujoco.MjModel) -> HandModel:
+def from_mjmodel(mj_model: mujoco.MjModel) -> HandModel:
     """Extract a `HandModel` from a compiled scene (hand + one free body, the tool); raise ValueError naming the
     first convention it breaks (`gsp_jax.check_model` lists them all)."""
-    tool = tool_body(model)
-    palm = hand_root(model)
-    tree = _tree(model, palm)
-    links = _links(model, tree, tool)
+    tool = tool_body(mj_model)
+    palm = hand_root(mj_model)
+    tree = _tree(mj_model, palm)
+    links = _links(mj_model, tree, tool)
     bodies, joints = tree.bodies, tree.joints
-    q_start = _numeric(model, "gsp_ik_start")
+    q_start = _numeric(mj_model, "gsp_ik_start")
     if q_start is None:
         raise ValueError("model: custom numeric 'gsp_ik_start' is missing")
     return HandModel(
         joint_moves_body=tree.joint_moves_body(),
-        body_names=tuple(model.body(b).name for b in bodies),
-        body_parent=np.array([tree.index.get(model.body_parentid[b], -1) for b in bodies]),
-        body_pos=np.array([model.body_pos[b] for b in bodies]),
-        body_mat=np.array([_quat_to_mat(model.body_quat[b]) for b in bodies]),
+        body_names=tuple(mj_model.body(b).name for b in bodies),
+        body_parent=np.array([tree.index.get(mj_model.body_parentid[b], -1) for b in bodies]),
+        body_pos=np.array([mj_model.body_pos[b] for b in bodies]),
+        body_mat=np.array([_quat_to_mat(mj_model.body_quat[b]) for b in bodies]),
         body_joint=tree.body_joint,
-        joint_names=tuple(model.joint(j).name for j in joints),
-        joint_axis=np.array([model.jnt_axis[j] for j in joints]),
-        joint_pos=np.array([model.jnt_pos[j] for j in joints]),
-        joint_range=np.array([model.jnt_range[j] for j in joints]),
-        joint_torque_limit=_torque_limits(model, joints),
+        joint_names=tuple(mj_model.joint(j).name for j in joints),
+        joint_axis=np.array([mj_model.jnt_axis[j] for j in joints]),
+        joint_pos=np.array([mj_model.jnt_pos[j] for j in joints]),
+        joint_range=np.array([mj_model.jnt_range[j] for j in joints]),
+        joint_torque_limit=_torque_limits(mj_model, joints),
         q_start=q_start,
-        qpos_adr=np.array([model.jnt_qposadr[j] for j in joints]),
-        finger_names=tuple(model.body(f).name.split("_")[0] for f in tree.fingers),
-        joint_finger=np.array([tree.finger_of(int(model.jnt_bodyid[j])) for j in joints], np.int32),
-        gravity=np.array(model.opt.gravity),
-        **links, **_collision(model, tree, links["link_body"]), **_tool(model, tool),
-        **_conventions(model, tree, links),
+        qpos_adr=np.array([mj_model.jnt_qposadr[j] for j in joints]),
+        finger_names=tuple(mj_model.body(f).name.split("_")[0] for f in tree.fingers),
+        joint_finger=np.array([tree.finger_of(int(mj_model.jnt_bodyid[j])) for j in joints], np.int32),
+        gravity=np.array(mj_model.opt.gravity),
+        **links, **_collision(mj_model, tree, links["link_body"]), **_tool(mj_model, tool),
+        **_conventions(mj_model, tree, links),
     )
 
 

@@ -53,7 +53,7 @@ def _rotation(quat) -> np.ndarray:
     return mat.reshape(3, 3)
 
 
-def option_places(model: mujoco.MjModel) -> dict[str, tuple[str, ...]]:
+def option_places(mj_model: mujoco.MjModel) -> dict[str, tuple[str, ...]]:
     """{contact link: (where its option k touches the tool, for k = 1, 2, ...)}: the tool geom nearest the option's
     site ``opt_<link>_<k>`` (the geom's name, or "geom <i>"), the face the finger pushes on (the site's inward z
     axis reversed, by its largest tool-frame component: "+y side", "underside", "-x end", ...) and the site's
@@ -61,14 +61,14 @@ def option_places(model: mujoco.MjModel) -> dict[str, tuple[str, ...]]:
     the tool's colliding geoms (by contact bits or by contact pairs)."""
     from gsp_jax.model import hand as hand_lib
 
-    tool = hand_lib.tool_body(model)
-    paired = {int(g) for g in (*model.pair_geom1, *model.pair_geom2) if model.geom_bodyid[g] == tool}
-    geoms = hand_lib.tool_geoms(model, tool) or sorted(paired)  # the physics scene collides by explicit pairs
+    tool = hand_lib.tool_body(mj_model)
+    paired = {int(g) for g in (*mj_model.pair_geom1, *mj_model.pair_geom2) if mj_model.geom_bodyid[g] == tool}
+    geoms = hand_lib.tool_geoms(mj_model, tool) or sorted(paired)  # the physics scene collides by explicit pairs
     if not geoms:
-        raise ValueError(f"model: the tool body {model.body(tool).name!r} has no colliding geom")
+        raise ValueError(f"model: the tool body {mj_model.body(tool).name!r} has no colliding geom")
     # each geom's box (its aabb, in its own frame) and that box's corners in the tool frame
-    boxes = [(model.geom_pos[g], _rotation(model.geom_quat[g]), model.geom_aabb[g, :3], model.geom_aabb[g, 3:])
-             for g in geoms]
+    boxes = [(mj_model.geom_pos[g], _rotation(mj_model.geom_quat[g]), mj_model.geom_aabb[g, :3],
+              mj_model.geom_aabb[g, 3:]) for g in geoms]
     signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float64)
     corners = np.concatenate([pos + (centre + signs * half) @ mat.T for pos, mat, centre, half in boxes])
     axis = int(np.argmax(np.ptp(corners, axis=0)))  # the tool's longest axis
@@ -79,14 +79,14 @@ def option_places(model: mujoco.MjModel) -> dict[str, tuple[str, ...]]:
         return float(np.linalg.norm(np.maximum(q, 0.0)) + min(q.max(), 0.0))
 
     places = {}
-    for link in hand_lib.contact_links(model):
+    for link in hand_lib.contact_links(mj_model):
         names, k = [], 1
-        while (site := mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, f"opt_{link}_{k}")) >= 0:
-            point = model.site_pos[site]
-            outward = -_rotation(model.site_quat[site])[:, 2]
+        while (site := mujoco.mj_name2id(mj_model, mujoco.mjtObj.mjOBJ_SITE, f"opt_{link}_{k}")) >= 0:
+            point = mj_model.site_pos[site]
+            outward = -_rotation(mj_model.site_quat[site])[:, 2]
             face = int(np.argmax(np.abs(outward)))
             nearest = min(range(len(geoms)), key=lambda i: abs(signed_distance(point, boxes[i])))
-            geom = model.geom(geoms[nearest]).name or f"geom {geoms[nearest]}"
+            geom = mj_model.geom(geoms[nearest]).name or f"geom {geoms[nearest]}"
             names.append(f"{geom} {FACES[face][int(outward[face] > 0)]}, {'xyz'[axis]} {1000 * point[axis]:+.0f} mm")
             k += 1
         places[link] = tuple(names)
@@ -115,30 +115,30 @@ def caption(images: np.ndarray, texts: list[str], size: int = 14) -> np.ndarray:
     return np.stack(out)
 
 
-def _fingers(model: mujoco.MjModel) -> tuple[int, list[int]]:
+def _fingers(mj_model: mujoco.MjModel) -> tuple[int, list[int]]:
     """(the hand's root body, its children: one per finger), from the model's conventions (`gsp_jax.model.hand`)."""
     from gsp_jax.model import hand as hand_lib
 
-    palm = hand_lib.hand_root(model)
-    return palm, [b for b in range(model.nbody) if model.body_parentid[b] == palm and b != palm]
+    palm = hand_lib.hand_root(mj_model)
+    return palm, [b for b in range(mj_model.nbody) if mj_model.body_parentid[b] == palm and b != palm]
 
 
-def finger_colours(model: mujoco.MjModel | None = None) -> dict[str, tuple[float, float, float]]:
+def finger_colours(mj_model: mujoco.MjModel | None = None) -> dict[str, tuple[float, float, float]]:
     """{finger: (r, g, b) in [0, 1]}, the colours the frames give each finger (for a legend), named by the finger's
     first body's name up to "_" (default model: the shipped wrench's scene)."""
     from gsp_jax.model import hand as hand_lib
 
-    model = hand_lib.load_mjmodel() if model is None else model
-    _, fingers = _fingers(model)
-    return {model.body(f).name.split("_")[0]: FINGER_PALETTE[i % len(FINGER_PALETTE)] for i, f in enumerate(fingers)}
+    mj_model = hand_lib.load_mjmodel() if mj_model is None else mj_model
+    _, fingers = _fingers(mj_model)
+    return {mj_model.body(f).name.split("_")[0]: FINGER_PALETTE[i % len(FINGER_PALETTE)] for i, f in enumerate(fingers)}
 
 
-def styled(model: mujoco.MjModel, size: tuple[int, int] = (0, 0)) -> mujoco.MjModel:
+def styled(mj_model: mujoco.MjModel, size: tuple[int, int] = (0, 0)) -> mujoco.MjModel:
     """A copy of `model` restyled for pictures (colours, lights, an offscreen buffer of at least `size` (H, W))."""
     from gsp_jax.model import hand as hand_lib
     from gsp_jax.physics.scene import SUPPORT
 
-    m = copy.deepcopy(model)
+    m = copy.deepcopy(mj_model)
     palm, fingers = _fingers(m)
     tool = hand_lib.tool_body(m)
     for g in range(m.ngeom):
@@ -179,14 +179,14 @@ def view_camera(name: str) -> mujoco.MjvCamera | str:
     return cam
 
 
-def frames(model: mujoco.MjModel, qpos: np.ndarray, every: int = 1, camera: str = "closeup",
+def frames(mj_model: mujoco.MjModel, qpos: np.ndarray, every: int = 1, camera: str = "closeup",
            size: tuple[int, int] = (360, 480)) -> np.ndarray:
     """RGB frames (N, H, W, 3) uint8 of the configurations qpos (K, nq), every `every`-th one, seen from
     `camera` (a view in `VIEWS` or a camera of the model); `size` is (H, W)."""
     qpos = np.asarray(qpos)
-    if qpos.ndim != 2 or qpos.shape[1] != model.nq:
-        raise ValueError(f"qpos must have shape (K, {model.nq}), got {qpos.shape}")
-    m = styled(model, size)
+    if qpos.ndim != 2 or qpos.shape[1] != mj_model.nq:
+        raise ValueError(f"qpos must have shape (K, {mj_model.nq}), got {qpos.shape}")
+    m = styled(mj_model, size)
     cam = view_camera(camera)
     data = mujoco.MjData(m)
     out = []

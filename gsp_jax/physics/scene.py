@@ -240,9 +240,9 @@ class Scene:
         m.pair_friction[self.finger_tool_pairs, :2] = fields.friction
         return m
 
-    def c_pedestals(self, model: mujoco.MjModel, fields: EpisodeFields, drop: float) -> None:
+    def c_pedestals(self, mj_model: mujoco.MjModel, fields: EpisodeFields, drop: float) -> None:
         """Set the pedestals of a C model `drop` (<= 0) metres below their start (in place)."""
-        model.geom_pos[self.pedestal_geoms] = self.pedestal_positions(fields, drop)
+        mj_model.geom_pos[self.pedestal_geoms] = self.pedestal_positions(fields, drop)
 
     def initial_qpos(self, episode: Episode, q: jax.Array) -> jax.Array:
         """(nq,) hand at joint angles q (J,), tool at rest on waypoint 0."""

@@ -1,6 +1,6 @@
 """Planning one unseen episode online, in one jitted call: the form the paper's Table 1 times.
 
-    plan = online.plan(ctx, "L1")        # episode -> return, the episode's table built inside the call
+    plan = online.episode_planner(ctx, "L1")  # episode -> return, the episode's table built inside the call
     ret = jax.jit(plan)(episode)
 
 DP optimal builds the episode's table, backs it up and runs its policy in it; L1 and L2 search in the episode's
@@ -35,7 +35,7 @@ def default_ahead() -> int:
     return GPU_AHEAD if jax.default_backend() == "gpu" else 1
 
 
-def plan(ctx, name: str, lookahead: str = "table", batched: bool | None = None, ahead: int | None = None):
+def episode_planner(ctx, name: str, lookahead: str = "table", batched: bool | None = None, ahead: int | None = None):
     """episode -> return for policy `name`, planned online on the surrogate. L1 and L2 (`lookahead`): "table"
     builds the unseen episode's table (as DP optimal does) and searches in it, root included: from its start the
     surrogate visits only the table's discrete states, so the root's children are the table's (exact, as for DP

@@ -247,28 +247,28 @@ def _rl(ctx: evaluation.Context):
     return ctx.rl, None
 
 
-def _lookahead(ctx: evaluation.Context, depth: int, model, cached: bool):
+def _lookahead(ctx: evaluation.Context, depth: int, step_model, cached: bool):
     sur = ctx.surrogate
     if not cached:
-        return policies.Lookahead(_base(ctx), model or sur, depth=depth), None
+        return policies.Lookahead(_base(ctx), step_model or sur, depth=depth), None
     if ctx.tables is None:
         raise ValueError(f"L{depth} with cached=True: the context was built without tables")
     inner = dp.TableModel(ctx.tables, sur.space)
-    return (policies.Lookahead(_base(ctx), model or sur, depth=depth, inner=inner),
+    return (policies.Lookahead(_base(ctx), step_model or sur, depth=depth, inner=inner),
             policies.Lookahead(None, None, depth=depth, inner=0))
 
 
 @register("L1", group="paper", needs=("base",))
-def _l1(ctx: evaluation.Context, *, cached: bool = True, model=None):
+def _l1(ctx: evaluation.Context, *, cached: bool = True, step_model=None):
     """L1: one step of lookahead over the base policy's rollouts (`cached`: the tree's interior and rollouts as
     lookups in each episode's DP table, exact below the root; `model`: what steps the root, default the surrogate)."""
-    return _lookahead(ctx, 1, model, cached)
+    return _lookahead(ctx, 1, step_model, cached)
 
 
 @register("L2", group="paper", needs=("base",))
-def _l2(ctx: evaluation.Context, *, cached: bool = True, model=None):
+def _l2(ctx: evaluation.Context, *, cached: bool = True, step_model=None):
     """L2: two steps of lookahead over the base policy's rollouts (options as L1)."""
-    return _lookahead(ctx, 2, model, cached)
+    return _lookahead(ctx, 2, step_model, cached)
 
 
 @register("dp-opt", group="paper", needs=("solutions",))
@@ -302,15 +302,15 @@ def _random(ctx: evaluation.Context, *, seed: int = 0, hold: float = 0.0):
 
 @register("L1-physics", group="verified", needs=("base",), backends=("c",))
 def _l1_physics(ctx: evaluation.Context, *, k: int = evaluation.L1_PHYSICS["k"],
-                bases: tuple = evaluation.L1_PHYSICS["bases"], cached: bool = True, model=None):
+                bases: tuple = evaluation.L1_PHYSICS["bases"], cached: bool = True, step_model=None):
     """L1's `k` best root actions (and each base's own) at each decision, branched in C MuJoCo to the episode's end
     under each of `bases` (registered planners, e.g. ("four-tips", "dp-opt")); never worse than either base."""
     from gsp_jax.physics.verified import PhysicsLookahead
 
     if isinstance(bases, str) or not bases or any(b not in names() or b == "L1-physics" for b in bases):
         raise ValueError(f"bases: one or more registered planners other than L1-physics, got {bases!r}")
-    root_model = model
-    if model is None and platform.current() == "cpu":  # online, the root's few dozen IK problems in the batch-last
+    root_model = step_model
+    if step_model is None and platform.current() == "cpu":  # online, the root's few dozen IK problems in the batch-last
         # form (`IKConfig.lanes`; its cost and gain: docs/performance.md), its compile kept on disk
         # (`gsp_jax.core.cache`)
         sur = ctx.surrogate
@@ -319,7 +319,7 @@ def _l1_physics(ctx: evaluation.Context, *, k: int = evaluation.L1_PHYSICS["k"],
     made = []
     for b in bases:
         try:
-            made.append(make(ctx, b, dict(cached=cached, model=model)))
+            made.append(make(ctx, b, dict(cached=cached, step_model=step_model)))
         except ValueError as e:
             raise ValueError(f"bases: {b!r} cannot be built here: {e}") from None
     return PhysicsLookahead(root, axis, tuple(made), k=k), None

@@ -63,7 +63,7 @@ def build_table(sur: Surrogate, episode: Episode) -> Table:
     """The reward/transition table of one episode from G x T IK solves (see the module docstring): the surrogate's
     terms of every transition (`Surrogate.realise_every`, `arrival_terms`, `every_transition`), tabulated. A
     concrete episode is checked first (`Surrogate.check`)."""
-    episode = sur.check(episode)
+    episode = sur.validate(episode)
     contacts = sur.realise_every(episode)
     return table_from_terms(sur, episode, sur.arrival_terms(episode, contacts), contacts)
 
@@ -94,7 +94,7 @@ def table_from_terms(sur: Surrogate, episode: Episode, plain: RewardTerms, conta
 def build_tables(sur: Surrogate, episodes: Episode, batch_size: int | None = None) -> Table:
     """Tables of a stacked episode set (leaves (N, ...)), `batch_size` episodes at a time (`lax.map`: one
     compilation, bounded memory; None = all at once). Concrete episodes are checked first (`Surrogate.check`)."""
-    episodes = sur.check(episodes)
+    episodes = sur.validate(episodes)
     return jax.lax.map(lambda ep: build_table(sur, ep), episodes, batch_size=batch_size)
 
 

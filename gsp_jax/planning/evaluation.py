@@ -123,7 +123,7 @@ def dp_tables(sur: Surrogate, set_name: str, episodes: dict, batch_size: int = 4
     the surrogate's configuration, so a change to any of them rebuilds; None: no cache). Builds `batch_size` at a
     time on each local device (all at once for a smaller set: the batch depends on the set, never on the process
     count); with several processes each builds its share of the batches."""
-    batch = sur.check(scenario.stack(list(episodes.values())))
+    batch = sur.validate(scenario.stack(list(episodes.values())))
     h = hashlib.sha256()
     for leaf in jax.tree.leaves(batch):
         h.update(np.asarray(leaf).tobytes())

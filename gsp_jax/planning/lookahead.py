@@ -1,8 +1,8 @@
 """Online l-step lookahead with m-step policy rollouts (the paper's Algorithm 2), one jitted, vmappable search.
 
-    plan = lookahead.search(model, state, base, depth=2)            # Plan: action, q (A,), best path
-    policy = lookahead.Lookahead(base, model, depth=1)              # act(state), like every other policy
-    ret, final = lookahead.rollout(model, base, state)               # the base policy to the episode's end
+    found = lookahead.search(step_model, state, base, depth=2)     # SearchResult: action, q (A,), best path
+    policy = lookahead.Lookahead(base, step_model, depth=1)         # act(state), like every other policy
+    ret, final = lookahead.rollout(step_model, base, state)          # the base policy to the episode's end
     ret, final = lookahead.rollout_planned(policy, state)             # policy's episode, stepped by its own search
 
 From `state` the search expands the complete tree of depth l over the A actions: every action path
@@ -14,7 +14,7 @@ chance node (expectimax): what follows a step counts with its chance to hold (`r
 first action of the best path, and q[a] = the best score under first action a (Q-values, for inspection). A
 finished state is absorbing (reward 0), so paths that end the episode early are scored by what they earned.
 
-`model` is any step model (`protocols.StepModel`: `reset`, `step`, and `step_every`, which the root expands): the
+`step_model` is any step model (`protocols.StepModel`: `reset`, `step`, and `step_every`, which the root expands): the
 `Surrogate` (IK + wrench solves; from any continuous state, e.g. the simulated one in the physics check) or
 `dp.TableModel` (one episode's DP table: exact, and cheap, for the discrete states the surrogate visits). `base`
 is any policy (`protocols.Policy`, `act(state)`):
@@ -49,7 +49,7 @@ Value = Callable[[State], jax.Array]  # optional value estimate of a state, in r
 
 
 @struct.dataclass
-class Plan:
+class SearchResult:
     """The result of one search (one state; vmap adds axes)."""
 
     action: jax.Array  # () int32, the first action of the best path
@@ -60,12 +60,12 @@ class Plan:
     reward: jax.Array  # () that step's reward
 
 
-def rollout(model: StepModel, policy: Policy, state: State, horizon: int | None = None,
+def rollout(step_model: StepModel, policy: Policy, state: State, horizon: int | None = None,
             value: Value | None = None):
     """Run `policy` from `state` for `horizon` steps (None: until the episode ends) in `model`; return
     (the (expected) sum of rewards [+ value(final) if the episode has not ended], final state): the walk of
     `planning.rollout.rollout` (under `vmap` it stops when every rollout of the batch has ended)."""
-    traj = rollout_lib.rollout(model, policy, state, horizon)
+    traj = rollout_lib.rollout(step_model, policy, state, horizon)
     ret = traj.ret
     if value is not None:
         ret = ret + jnp.where(traj.final.done, 0.0, traj.hold * value(traj.final))
@@ -86,14 +86,14 @@ def planned(policy: "Lookahead", state: State, horizon: int | None = None) -> ro
     """The `Trajectory` of `rollout_planned`: `planning.rollout.walk` moving on to each search's root child."""
 
     def transition(s):
-        plan = policy.plan(s)
-        return plan.action, plan.child, plan.reward
+        found = policy.search(s)
+        return found.action, found.child, found.reward
 
     return rollout_lib.walk(transition, state, state.episode.waypoints.shape[-2] if horizon is None else horizon)
 
 
-def search(model, state: State, base, depth: int = 1, horizon: int | None = None, value: Value | None = None,
-           inner=None) -> Plan:
+def search(step_model, state: State, base, depth: int = 1, horizon: int | None = None, value: Value | None = None,
+           inner=None) -> SearchResult:
     """Algorithm 2 from one state: the best first action of the depth-`depth` tree with rollouts of `base`
     (see the module docstring). Shapes for one state; `jax.vmap` over states / episodes / base parameters.
     `inner`: the model below the root (default `model`), e.g. the episode's `dp.TableModel`: every state below
@@ -102,13 +102,13 @@ def search(model, state: State, base, depth: int = 1, horizon: int | None = None
         raise ValueError(f"depth: the lookahead depth l must be >= 1, got {depth}")
     if horizon is not None and horizon < 0:
         raise ValueError(f"horizon: the rollout length m must be >= 0 or None (to the episode's end), got {horizon}")
-    inner = model if inner is None else inner
-    protocols.checked(model, base)
+    inner = step_model if inner is None else inner
+    protocols.checked(step_model, base)
     protocols.checked(inner, where="inner")
-    space: GraspSpace = model.space
+    space: GraspSpace = step_model.space
     n_a = space.n_actions
     # children (A, ...), their rewards (A,); leaves (A^l, ...), path rewards and chances to hold (A^l,)
-    (children, child_reward), (leaves, path_reward, path_hold) = _expand(model, state, depth, n_a, inner)
+    (children, child_reward), (leaves, path_reward, path_hold) = _expand(step_model, state, depth, n_a, inner)
 
     # One rollout per distinct grasp among the live leaves (all at waypoint t + l); the paths that ended early
     # (frozen at an earlier waypoint) share one extra key and are scored 0 beyond their rewards.
@@ -126,15 +126,15 @@ def search(model, state: State, base, depth: int = 1, horizon: int | None = None
     path = jnp.stack([(best // n_a ** (depth - 1 - k)) % n_a for k in range(depth)]).astype(jnp.int32)
     action = path[0]
     child = jax.tree.map(lambda x: x[action], children)
-    return Plan(action=action, q=q, path=path, value=q[action], child=child, reward=child_reward[action])
+    return SearchResult(action=action, q=q, path=path, value=q[action], child=child, reward=child_reward[action])
 
 
-def _expand(model, state: State, depth: int, n_a: int, inner):
+def _expand(step_model, state: State, depth: int, n_a: int, inner):
     """Every action path of length `depth` from `state`: (children (A leading), their rewards (A,)) and (the leaf
     states (A^depth leading), path rewards (A^depth,), the paths' chances to hold (A^depth,)): a path's reward is
     its first step's plus, where that segment held, the rest's (`reward.backed_up`). The first step in `model`, the
     deeper ones in `inner`."""
-    children, rewards, _ = model.step_every(state)  # every action at once (`StepModel.step_every`)
+    children, rewards, _ = step_model.step_every(state)  # every action at once (`StepModel.step_every`)
     risk = children.terms.fall_risk  # (A,)
     hold = reward_lib.chance_to_hold(risk)
     if depth == 1:
@@ -179,9 +179,9 @@ class Lookahead:
     value: Any = None  # a pytree with `value(state)` (e.g. a NetworkPolicy), or None
     inner: Any = None  # the model below the root (None: `model`)
 
-    def plan(self, state: State) -> Plan:
+    def search(self, state: State) -> SearchResult:
         value = None if self.value is None else self.value.value
         return search(self.model, state, self.base, self.depth, self.horizon, value, self.inner)
 
     def act(self, state: State) -> jax.Array:
-        return self.plan(state).action
+        return self.search(state).action

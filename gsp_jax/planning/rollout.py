@@ -5,7 +5,8 @@
 
 Every walk of the library goes through `walk`: the lookahead's rollouts and its episodes (`lookahead.rollout`,
 `lookahead.rollout_planned`, which moves on to each search's own child), a planner's episode
-(`planners.registry.plan`, `returns`) and the online one (`planners.online.plan`). Each step's reward counts with
+(`planners.registry.plan`, `returns`) and the online one (`planners.online.episode_planner`). Each step's reward
+counts with
 the chance that every earlier segment held (`reward.accumulated`: the learned physics term's chance node; 1 without
 the term, where the return is the plain sum).
 
@@ -73,15 +74,15 @@ def walk(transition: Callable, state: State, steps: int) -> Trajectory:
                       alive=alive, ret=ret, hold=hold, final=final)
 
 
-def rollout(model: StepModel, policy: Policy, state: State, steps: int | None = None) -> Trajectory:
+def rollout(step_model: StepModel, policy: Policy, state: State, steps: int | None = None) -> Trajectory:
     """`policy` run in `model` from `state` for at most `steps` steps (static; None: the episode's length T, which
     from any state reaches its end): each step `model.step(s, policy.act(s))`. jit- and vmap-able."""
-    protocols.checked(model, policy)
+    protocols.checked(step_model, policy)
     steps = state.episode.waypoints.shape[-2] if steps is None else steps
 
     def transition(s):
         action = policy.act(s)
-        nxt, reward, _ = model.step(s, action)
+        nxt, reward, _ = step_model.step(s, action)
         return action, nxt, reward
 
     return walk(transition, state, steps)

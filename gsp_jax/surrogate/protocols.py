@@ -54,19 +54,19 @@ class Policy(Protocol):
         ...
 
 
-def step_each(model: StepModel, state: State) -> tuple[State, jax.Array, jax.Array]:
+def step_each(step_model: StepModel, state: State) -> tuple[State, jax.Array, jax.Array]:
     """`model.step(state, a)` for every action a, vmapped: the `step_every` of a model without a cheaper one."""
-    return jax.vmap(model.step, (None, 0))(state, jnp.arange(model.space.n_actions, dtype=jnp.int32))
+    return jax.vmap(step_model.step, (None, 0))(state, jnp.arange(step_model.space.n_actions, dtype=jnp.int32))
 
 
-def checked(model, policy=None, where: str = "model"):
+def checked(step_model, policy=None, where: str = "step_model"):
     """`model` (and `policy`), having checked that they are a `StepModel` (and a `Policy`); else a TypeError naming
     what is missing. Returns `model`."""
-    if not isinstance(model, StepModel):
-        missing = [m for m in ("space", "reset", "step", "step_every") if not hasattr(model, m)]
+    if not isinstance(step_model, StepModel):
+        missing = [m for m in ("space", "reset", "step", "step_every") if not hasattr(step_model, m)]
         raise TypeError(f"{where}: a step model needs {', '.join(missing)} (`gsp_jax.surrogate.protocols.StepModel`; "
-                        f"`step_every` can be `step_each(self, state)`), got {type(model).__name__}")
+                        f"`step_every` can be `step_each(self, state)`), got {type(step_model).__name__}")
     if policy is not None and not isinstance(policy, Policy):
         raise TypeError(f"policy: a policy needs `act(state)` (`gsp_jax.surrogate.protocols.Policy`), got "
                         f"{type(policy).__name__}")
-    return model
+    return step_model

@@ -342,9 +342,9 @@ class Surrogate:
         episode, it first checks it against the model (`scenario.validate`: an EpisodeError names the field and the
         value); traced (inside `jit` / `vmap`) it cannot raise. Compiled (once per model and episode shapes): it runs
         as one program, not op by op."""
-        return self._reset(self.check(episode))
+        return self._reset(self.validate(episode))
 
-    def check(self, episodes: Episode, name: str = "episode") -> Episode:
+    def validate(self, episodes: Episode, name: str = "episode") -> Episode:
         """`episodes` (one, or a stack with leading axis N) checked against this surrogate's model and reward
         (`scenario.validate`; an EpisodeError names the field, e.g. "episodes[3].mass"). Traced inputs (inside
         `jit` / `vmap`) pass unchecked: their steps flag themselves (`RewardTerms.invalid`)."""

@@ -56,15 +56,15 @@ def run(ctx: evaluation.Context, batch: int, repeats: int, out, lookahead: str =
     rows = {}
     for name in names:
         batched = online.default_batched(name)
-        fn = online.plan(ctx, name, lookahead, batched, ahead)
+        fn = online.episode_planner(ctx, name, lookahead, batched, ahead)
         compile_s, warm = measure(fn, one, repeats)
         row = dict(warm_s=warm, compile_s=compile_s)
         if name in online.BATCHED:  # both forms, side by side; warm_s is the platform's default
-            other = measure(online.plan(ctx, name, lookahead, not batched, ahead), one, repeats)[1]
+            other = measure(online.episode_planner(ctx, name, lookahead, not batched, ahead), one, repeats)[1]
             row |= dict(rollout="batched" if batched else "stepped", batched_warm_s=warm if batched else other,
                         stepped_warm_s=other if batched else warm)
         if compare_before and name in ("dp-opt", "L1", "L2"):  # the code before, in the same run
-            c_old, w_old = measure(online.plan(before(ctx), name, "cached", batched, ahead), one, repeats)
+            c_old, w_old = measure(online.episode_planner(before(ctx), name, "cached", batched, ahead), one, repeats)
             row |= dict(before_warm_s=w_old, before_compile_s=c_old, speedup=w_old / warm)
         if batch:
             n = min(batch, len(ctx.names))

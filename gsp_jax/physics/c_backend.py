@@ -21,6 +21,11 @@ docs/performance.md), the reference the native tick must equal; checked by
 `tests/test_native.py::test_native_tick_is_the_jax_tick_on_recorded_states`. A policy decided in numpy
 (`ActionTable`, `native.keep_grasp`) must give the JAX decisions' run bit for bit; checked by
 `tests/test_physics.py::test_c_lockstep_decides_table_policies_in_numpy_as_jax_does`.
+
+The backend reads a `Physics` through its `spec` (`spec.PhysicsSpec`: the scene, the config, the controller, the
+timeline and the JAX functions both backends share; every entry point takes a `Physics` or its spec); a policy that
+decides in physics has a hook `in_physics(spec, snapshot, rows, obs, episodes, k, n_steps)` that gives the
+segment's policy.
 """
 from __future__ import annotations
 
@@ -36,9 +41,10 @@ import mujoco
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from gsp_jax.physics import native
-from gsp_jax.planning.policies import SequencePolicy
 from gsp_jax.model.scenario import Episode
+from gsp_jax.physics import native
+from gsp_jax.physics.spec import HasSpec, PhysicsSpec, of
+from gsp_jax.planning.policies import SequencePolicy
 
 CONTROLLERS = ("native", "jax")  # the controller's tick: compiled to native code, or the JAX program
 
@@ -72,12 +78,12 @@ class _Programs:
     """The jitted programs of one `Physics` (built once, shared by every call): start, the JAX controller's tick
     (`controller="jax"`), and a decision per way a policy is batched."""
 
-    def __init__(self, phys, one_episode: Episode):
-        self.phys, scene = phys, phys.scene
-        m = phys.model
+    def __init__(self, spec: PhysicsSpec, one_episode: Episode):
+        self.spec, scene = spec, spec.scene
+        m = spec.mj_model
         self.nq, self.nv, self.nu = m.nq, m.nv, m.nu
         zeros = lambda tree: jax.tree.map(lambda x: np.zeros(x.shape, x.dtype), tree)  # noqa: E731
-        self.cs = _Flat(zeros(jax.eval_shape(phys.start, one_episode)[1]))  # its layout only: nothing runs
+        self.cs = _Flat(zeros(jax.eval_shape(spec.start, one_episode)[1]))  # its layout only: nothing runs
         self.ep = _Flat(zeros(one_episode))
         nq, nv = self.nq, self.nv
 
@@ -85,14 +91,14 @@ class _Programs:
             return jax.vmap(scene.observe)(obs_flat[:, :nq], obs_flat[:, nq:nq + nv], obs_flat[:, nq + nv:])
 
         def start(episodes):
-            qpos, cs = jax.vmap(phys.start)(episodes)
+            qpos, cs = jax.vmap(spec.start)(episodes)
             return qpos, self.cs.ravel(cs)
 
         def tick(cs_flat, obs_flat, ep_flat, j):
             """(next controller states, [ctrl (nu) | external wrench (6) | angle, position error, fell of tick j-1])"""
             episodes, obs = self.ep.unravel(ep_flat), observe(obs_flat)
-            angle, perr, fell = jax.vmap(phys.check, in_axes=(0, 0, None))(obs, episodes, j - 1)
-            ctrl, ext, cs = jax.vmap(phys.tick, in_axes=(0, 0, 0, None))(self.cs.unravel(cs_flat), obs, episodes, j)
+            angle, perr, fell = jax.vmap(spec.check, in_axes=(0, 0, None))(obs, episodes, j - 1)
+            ctrl, ext, cs = jax.vmap(spec.tick, in_axes=(0, 0, 0, None))(self.cs.unravel(cs_flat), obs, episodes, j)
             status = jnp.stack([angle, perr, fell.astype(jnp.float32)], -1)
             return self.cs.ravel(cs), jnp.concatenate([ctrl, ext, status], -1)
 
@@ -100,16 +106,16 @@ class _Programs:
         self.start = jax.jit(start)
         self.tick = jax.jit(tick)
         self.fields = jax.jit(jax.vmap(scene.episode_fields))
-        self.hold_error = jax.jit(phys.hold_error, static_argnums=2)
+        self.hold_error = jax.jit(spec.hold_error, static_argnums=2)
         self.ravel_episodes = jax.jit(self.ep.ravel)
         self._decide = {}
 
     def decide(self, policy_axis):
         if policy_axis not in self._decide:
-            phys = self.phys
+            spec = self.spec
 
             def decide(policy, cs_flat, obs_flat, grasp, episodes, k):
-                action, grasp, cs = jax.vmap(phys.decide, in_axes=(policy_axis, 0, 0, 0, 0, None))(
+                action, grasp, cs = jax.vmap(spec.decide, in_axes=(policy_axis, 0, 0, 0, 0, None))(
                     policy, self.cs.unravel(cs_flat), self.observe(obs_flat), grasp, episodes, k)
                 return action, grasp, self.cs.ravel(cs)
 
@@ -117,10 +123,11 @@ class _Programs:
         return self._decide[policy_axis]
 
 
-def programs(phys, episodes: Episode) -> _Programs:
-    """The C backend's jitted programs of `phys` for episodes of this length (made on first use: the flat
-    layout of an episode depends on its number of waypoints)."""
-    return phys.kept(("c", episodes.n_steps), lambda: _Programs(phys, jax.tree.map(lambda x: np.asarray(x)[0],
+def programs(phys: PhysicsSpec | HasSpec, episodes: Episode) -> _Programs:
+    """The C backend's jitted programs of a `Physics` (or its spec) for episodes of this length (made on first use:
+    the flat layout of an episode depends on its number of waypoints)."""
+    spec = of(phys)
+    return spec.kept(("c", episodes.n_steps), lambda: _Programs(spec, jax.tree.map(lambda x: np.asarray(x)[0],
                                                                                     episodes)))
 
 
@@ -259,8 +266,8 @@ class _Lockstep:
     split into `workers` chunks of contiguous rows that run side by side (threads); the recorded trace and the
     controller states (flat rows, float32), all numpy."""
 
-    def __init__(self, phys, groups, episodes: Episode, workers: int, engine_log: list | None,
-                 start: Snapshot | None = None, controller: str = "native", device=None):
+    def __init__(self, phys: PhysicsSpec | HasSpec, groups, episodes: Episode, workers: int,
+                 engine_log: list | None, start: Snapshot | None = None, controller: str = "native", device=None):
         if controller not in CONTROLLERS:
             raise ValueError(f"controller must be one of {CONTROLLERS}, got {controller!r}")
         G = len(groups)
@@ -269,13 +276,14 @@ class _Lockstep:
             raise ValueError(f"episodes: one batch for every group, or one batch per group ({G}) of one length")
         episodes = per_group[0]
         sizes = [int(np.shape(e.mass)[0]) for e in per_group]
-        self.phys, self.groups, self.episodes, self.controller = phys, groups, per_group, controller
-        scene = phys.scene
+        self.spec = spec = of(phys)
+        self.groups, self.episodes, self.controller = groups, per_group, controller
+        scene = spec.scene
         T = episodes.n_steps
-        M, K, nq = sum(sizes), phys.n_ticks(T), phys.model.nq
-        self.T, self.K, self.nq, self.nu, self.n = T, K, nq, phys.model.nu, phys.n_segment
-        self.pr = pr = programs(phys, episodes)
-        self.native = native_tick(phys)
+        M, K, nq = sum(sizes), spec.n_ticks(T), spec.mj_model.nq
+        self.T, self.K, self.nq, self.nu, self.n = T, K, nq, spec.mj_model.nu, spec.n_segment
+        self.pr = pr = programs(spec, episodes)
+        self.native = native_tick(spec)
         # the device of the decisions' programs (and the episodes' set-up): JAX's default, or the one named
         named = device is not None
         self.device = jax.local_devices(backend=device)[0] if device is None or isinstance(device, str) else device
@@ -287,7 +295,7 @@ class _Lockstep:
         cat = lambda make: jax.tree.map(lambda *x: np.concatenate([np.asarray(a) for a in x]),  # noqa: E731
                                         *[make(e) for e in per_group])
         self.ep_native = cat(self.native.episodes)
-        end = T + phys.n_hold
+        end = T + spec.n_hold
         if start is not None and (np.shape(start.state)[0] != M or np.shape(start.qpos0)[0] != M
                                   or not 0 <= start.segment <= end):
             raise ValueError(f"start: a snapshot of {M} rows (the groups' episodes) at a segment in 0..{end} is "
@@ -306,7 +314,7 @@ class _Lockstep:
         self.chunks = np.array_split(np.arange(M), workers)  # contiguous rows
         if engine_log is not None and workers != 1:
             raise ValueError(f"engine_log needs workers=1, got workers={workers}")
-        pool = phys.kept("c-pool", Pool) if start is not None and engine_log is None else None
+        pool = spec.kept("c-pool", Pool) if start is not None and engine_log is None else None
         self.engine = Engine(scene, fields, self.qpos0, engine_log, pool)
         self.grasp = cat(lambda e: np.asarray(e.start_grasp, np.int32))
         self.fell, self.fall_tick = np.zeros(M, bool), np.full(M, -1, np.int32)
@@ -318,12 +326,12 @@ class _Lockstep:
         self.group_rows = [slice(int(e - n), int(e)) for e, n in zip(ends, sizes)]
         self.decides = [pr.decide(0 if _outside_jax(policy) else axis) for policy, axis in groups]
         # a policy that reads only its grasp and waypoint decides in numpy (`ActionTable`), without a JAX call
-        self.tables = [action_table(policy, axis, n, phys.space.n_grasps, T) for (policy, axis), n
+        self.tables = [action_table(policy, axis, n, spec.space.n_grasps, T) for (policy, axis), n
                        in zip(original, sizes)]
-        self.transitions = phys.space.transitions
+        self.transitions = spec.space.transitions
         # the decisions' episodes on their device once (a call would otherwise send every leaf again)
         self.episodes_on_device = [jax.device_put(e, self.device) for e in per_group]
-        self.pedestal_drop, self.tick = scene.pedestal_drop, phys.timestep
+        self.pedestal_drop, self.tick = scene.pedestal_drop, spec.timestep
         self._scratch = [native.scratch(self.native.constants) for _ in self.chunks]  # one a thread
         self.steps = [0] * len(self.chunks)  # physics steps taken, per chunk
         self.segment = 0
@@ -377,9 +385,9 @@ class _Lockstep:
                 # gets the lockstep's state and gives this segment's policy (one per episode, axis 0)
                 if k < self.T:
                     snapshot = self.snapshot() if snapshot is None else snapshot
-                policy = policy.in_physics(self.phys, snapshot if k < self.T else None,
+                policy = policy.in_physics(self.spec, snapshot if k < self.T else None,
                                            np.arange(len(self.fell))[rows], obs[rows], self.episodes[g], k, self.T)
-                table = action_table(policy, 0, rows.stop - rows.start, self.phys.space.n_grasps, self.T)
+                table = action_table(policy, 0, rows.stop - rows.start, self.spec.space.n_grasps, self.T)
             if table is not None:
                 action = self._decide_in_numpy(rows, table, k)
                 if action is None:
@@ -405,7 +413,7 @@ class _Lockstep:
                 return action
             self.actions[rows, k], self.grasps[rows, k] = action, grasp
         ids = np.arange(rows.start, rows.stop)
-        native.keep_grasp(self.native.constants, ids, self.cs, self.phys.segment_start(k))
+        native.keep_grasp(self.native.constants, ids, self.cs, self.spec.segment_start(k))
         return None
 
     def run_segment(self, w, k):
@@ -450,7 +458,7 @@ class _Lockstep:
             f = self.fall_tick[e]
             self.qpos_trace[e, f:] = self.qpos_trace[e, f - 1] if f > 0 else self.qpos0[e]
         with jax.default_device(self.device):
-            return [jax.device_get(self.phys.result(
+            return [jax.device_get(self.spec.result(
                 jnp.asarray(self.actions[rows]), jnp.asarray(self.grasps[rows]), jnp.asarray(self.angle[rows]),
                 jnp.asarray(self.perr[rows]), jnp.asarray(self.qpos_trace[rows]), jnp.asarray(self.fell[rows]),
                 jnp.asarray(self.fall_tick[rows]), self.T)) for rows in self.group_rows]
@@ -486,24 +494,26 @@ def action_table(policy, axis, rows: int, n_grasps: int, n_steps: int) -> np.nda
     return np.broadcast_to(table, (rows, n_grasps, n_steps))
 
 
-def native_tick(phys) -> native.Tick:
-    """The native tick of `phys` (made once)."""
-    return phys.kept("native", lambda: native.Tick(phys))
+def native_tick(phys: PhysicsSpec | HasSpec) -> native.Tick:
+    """The native tick of a `Physics` (or its spec; made once)."""
+    spec = of(phys)
+    return spec.kept("native", lambda: native.Tick(spec))
 
 
-def warm_up(phys):
+def warm_up(phys: PhysicsSpec | HasSpec):
     """Compile the native code a C MuJoCo run calls (numba's, kept in its cache on disk once compiled) in a
     background thread: runs the model's nominal episode under the constant four-tip grasp, one episode, in `phys`.
     XLA releases Python's lock while it compiles, so the caller compiles its own programs meanwhile (a DP table,
     a lookahead) on the other cores. Returns a `concurrent.futures.Future`: `.result()` waits for it (and raises
     what the run raised)."""
-    from gsp_jax.planning import evaluation
     from gsp_jax.model import scenario
+    from gsp_jax.planning import evaluation
+
+    spec = of(phys)
 
     def run():
-        sur = phys.surrogate
-        sequence = SequencePolicy(jnp.asarray(evaluation.four_tips(sur.space)), sur.space)
-        simulate(phys, [(sequence, None)], scenario.stack(list(scenario.nominal(sur.model).values())), workers=1)
+        sequence = SequencePolicy(jnp.asarray(evaluation.four_tips(spec.space)), spec.space)
+        simulate(spec, [(sequence, None)], scenario.stack([spec.nominal()]), workers=1)
 
     pool = ThreadPoolExecutor(1, thread_name_prefix="gsp_jax-warm-up")
     future = pool.submit(run)
@@ -511,10 +521,10 @@ def warm_up(phys):
     return future
 
 
-def simulate(phys, groups, episodes: Episode | list[Episode], cores: int | None = None, progress: bool = False,
-             workers: int | None = None, engine_log: list | None = None, start: Snapshot | None = None,
-             until: int | None = None, controller: str = "native", stats: dict | None = None, device=None,
-             outcomes: bool = False):
+def simulate(phys: PhysicsSpec | HasSpec, groups, episodes: Episode | list[Episode], cores: int | None = None,
+             progress: bool = False, workers: int | None = None, engine_log: list | None = None,
+             start: Snapshot | None = None, until: int | None = None, controller: str = "native",
+             stats: dict | None = None, device=None, outcomes: bool = False):
     """`Physics.simulate_many(..., backend="c")`: every (policy, policy_axis) of `groups` on every episode of
     `episodes` (leading axis) in one lockstep; a list of `runner.Result`s of numpy arrays, one per group.
     `episodes` may instead be a list of batches, one per group (of one length, any sizes): group g runs on its own.
@@ -540,8 +550,9 @@ def simulate(phys, groups, episodes: Episode | list[Episode], cores: int | None 
         else len(groups) * int(np.shape(one.mass)[0])
     cores = available_cores() if cores is None else cores
     workers = max(1, min(cores, M)) if workers is None else max(1, min(workers, M))
-    run = _Lockstep(phys, groups, episodes, workers, engine_log, start, controller, device)
-    end = one.n_steps + phys.n_hold
+    spec = of(phys)
+    run = _Lockstep(spec, groups, episodes, workers, engine_log, start, controller, device)
+    end = one.n_steps + spec.n_hold
     if until is not None and not run.segment <= until <= end:
         raise ValueError(f"until must be a segment in {run.segment}..{end}, got {until!r}")
     run.advance(end if until is None else until, progress)
@@ -552,17 +563,19 @@ def simulate(phys, groups, episodes: Episode | list[Episode], cores: int | None 
     return out
 
 
-def engine_alone(phys, episodes: Episode, log: list) -> tuple[float, int]:
+def engine_alone(phys: PhysicsSpec | HasSpec, episodes: Episode, log: list) -> tuple[float, int]:
     """(steps / s of `mujoco.mj_step` on one core, steps) over the states of an engine log (`simulate(...,
     engine_log=log)` on `episodes`): every logged state is loaded into its episode's own model and data and
     stepped once; only `mj_step` is timed. The engine's own limit on this machine, for the same steps."""
-    fields = jax.device_get(jax.vmap(phys.scene.episode_fields)(episodes))
-    eng = Engine(phys.scene, fields, np.tile(phys.model.qpos0, (int(np.shape(episodes.mass)[0]), 1)))
+    spec = of(phys)
+    scene = spec.scene
+    fields = jax.device_get(jax.vmap(scene.episode_fields)(episodes))
+    eng = Engine(scene, fields, np.tile(spec.mj_model.qpos0, (int(np.shape(episodes.mass)[0]), 1)))
     busy, steps = 0.0, 0
     for ids, states, pedestals in log:
         for e, state, ped in zip(ids, states, pedestals):
             m, d = eng.models[e], eng.datas[e]
-            m.geom_pos[phys.scene.pedestal_geoms] = ped
+            m.geom_pos[scene.pedestal_geoms] = ped
             mujoco.mj_setState(m, d, state, eng._spec)
             t0 = time.perf_counter()
             mujoco.mj_step(m, d)

@@ -18,7 +18,7 @@ the views of `Scratch` it reads: a call passes its arguments word by word, so a 
 working array would cost the tick ~10% (measured); passed its own, nothing measurable, and it compiles no slower than
 one long function did.
 
-    ctl = native.Tick(phys)                          # the constants of one `Physics`
+    ctl = native.Tick(phys)                          # the constants of one `Physics` (or its spec)
     ctl(j, rows, cs, obs, episodes, out)             # tick j of the episodes `rows`: cs updated in place
 """
 from __future__ import annotations
@@ -35,8 +35,8 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from llvmlite import binding as llvm
 
-from gsp_jax.model import scenario
 from gsp_jax.physics.controller import PATH_TIMES, ControllerState
+from gsp_jax.physics.spec import HasSpec, PhysicsSpec, of
 
 F32 = np.float32
 
@@ -269,17 +269,17 @@ def state_offsets(one_state: ControllerState) -> dict[str, int]:
 
 
 class Tick:
-    """The native tick of one `runner.Physics` (its hand, scene and config)."""
+    """The native tick of one `runner.Physics` (its hand, scene and config: a `Physics` or its `spec`)."""
 
-    def __init__(self, phys):
-        hand, scene, cfg, ctl = phys.hand, phys.scene, phys.config, phys.controller
+    def __init__(self, phys: PhysicsSpec | HasSpec):
+        self.spec = spec = of(phys)
+        hand, scene, cfg, ctl = spec.hand, spec.scene, spec.config, spec.controller
         tl, c, fi, out = cfg.timeline, cfg.controller, cfg.fingers, cfg.outcome
         kp, kd = c.tool_gains
         # the controller state's layout, as `c_backend` flattens it (its shapes only: nothing runs)
-        m = phys.model
+        m = spec.mj_model
         rest = scene.observe(m.qpos0, np.zeros(m.nv), np.zeros(m.nv))
-        zeros = jax.eval_shape(ctl.start, scenario.make_episode(model=phys.surrogate.model),
-                               np.zeros(hand.n_joints, np.float32), rest)
+        zeros = jax.eval_shape(ctl.start, spec.nominal(), np.zeros(hand.n_joints, np.float32), rest)
         offsets = state_offsets(jax.tree.map(lambda x: np.zeros(x.shape, x.dtype), zeros))
         f64 = lambda x: np.ascontiguousarray(x, np.float64)  # noqa: E731
         i64 = lambda x: np.ascontiguousarray(x, np.int64)  # noqa: E731
@@ -298,10 +298,10 @@ class Tick:
                 tool_corners=f64(scene.tool_corners), ctrl_low=f64(scene.ctrl_range[0]),
                 ctrl_high=f64(scene.ctrl_range[1]), gravity=f64(np.asarray(hand.gravity, np.float32))),
             timeline=Timeline(
-                timestep=F32(phys.timestep), unload=F32(tl.unload), move=F32(tl.move),
-                load_step=F32(phys.timestep / tl.load), unload_step=F32(phys.timestep / tl.unload),
+                timestep=F32(spec.timestep), unload=F32(tl.unload), move=F32(tl.move),
+                load_step=F32(spec.timestep / tl.load), unload_step=F32(spec.timestep / tl.unload),
                 path_times=np.ascontiguousarray(PATH_TIMES, np.float32), touch_tol=float(F32(tl.touch_tol)),
-                reach_tol=float(F32(tl.reach_tol)), ramp=F32(tl.ramp), n_segment=phys.n_segment),
+                reach_tol=float(F32(tl.reach_tol)), ramp=F32(tl.ramp), n_segment=spec.n_segment),
             controller=Gains(
                 kp=float(F32(kp)), kd=float(F32(kd)), feedback_limit=float(c.feedback_limit),
                 feedback_floor=float(c.feedback_floor), tool_radius=float(c.tool_radius),
@@ -315,13 +315,12 @@ class Tick:
             outcome=Outcome(fall_angle=float(out.fall_angle), fall_distance=float(out.fall_distance),
                             fall_height=float(out.fall_height)),
             state=Offsets(**offsets))
-        self.phys = phys
 
     def episodes(self, episodes) -> Episodes:
         """The `Episodes` of an `Episode` batch (leading axis)."""
         f32 = lambda x: np.ascontiguousarray(np.asarray(x), np.float32)  # noqa: E731
         n = np.shape(episodes.mass)[0]
-        hold = np.full(n, F32(self.phys.hold_time(episodes.n_steps)), np.float32)
+        hold = np.full(n, F32(self.spec.hold_time(episodes.n_steps)), np.float32)
         return Episodes(waypoints=f32(episodes.waypoints), quats=f32(episodes.quats), dt=f32(episodes.dt),
                         w_ext=f32(episodes.w_ext), mass=f32(episodes.mass), inertia=f32(episodes.inertia),
                         com=f32(episodes.com), friction=f32(episodes.friction), hold_time=hold)

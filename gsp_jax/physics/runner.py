@@ -26,6 +26,7 @@ from gsp_jax.model import scenario
 from gsp_jax.physics.config import PhysicsConfig
 from gsp_jax.physics.controller import Controller, ControllerState, reference_motion
 from gsp_jax.physics.scene import Observation, Scene
+from gsp_jax.physics.spec import PhysicsSpec
 from gsp_jax.surrogate.reward import RewardTerms
 from gsp_jax.model.scenario import Episode
 from gsp_jax.surrogate.step import State, Surrogate
@@ -75,6 +76,13 @@ class Physics:
         self.n_segment = self.ticks(self.segment)  # control ticks per segment
         self.n_hold = max(1, int(round(config.timeline.hold / self.segment)))  # hold segments
         self._kept = {}  # `kept`: this Physics's programs and what else its backends make once
+        # what the C backend reads of this Physics (`spec.PhysicsSpec`)
+        self.spec = PhysicsSpec(
+            hand=self.hand, space=self.space, scene=self.scene, mj_model=self.model, config=config,
+            controller=self.controller, timestep=self.timestep, n_segment=self.n_segment, n_hold=self.n_hold,
+            start=self.start, decide=self.decide, tick=self.tick, check=self.check,
+            observed_state=self.observed_state, hold_error=self.hold_error, result=self.result, kept=self.kept,
+            nominal=lambda: scenario.make_episode(model=self.surrogate.model))
 
     def kept(self, key, make):
         """What `make()` gives, made on the first call with this key and kept for this Physics: its compiled
@@ -90,15 +98,15 @@ class Physics:
 
     def n_ticks(self, n_steps: int) -> int:
         """Control ticks of an episode with n_steps waypoints (the length of `Result.angle`)."""
-        return (n_steps + self.n_hold) * self.n_segment
+        return self.spec.n_ticks(n_steps)
 
     def segment_start(self, k: int) -> np.float32:
         """[s] when segment k starts, float32 as `decide` computes it in JAX (k n_segment, then times the tick)."""
-        return np.float32(k * self.n_segment) * np.float32(self.timestep)
+        return self.spec.segment_start(k)
 
     def hold_time(self, n_steps: int) -> float:
         """Simulated time at which the hold starts [s]."""
-        return n_steps * self.n_segment * self.timestep
+        return self.spec.hold_time(n_steps)
 
     # ------------------------------------------------------------------ the pieces both backends share
     def start(self, episode: Episode):
@@ -246,7 +254,8 @@ class Physics:
         if backend == "c":
             from gsp_jax.physics import c_backend
 
-            return c_backend.simulate(self, list(policies), episodes, cores=cores, progress=progress, workers=workers)
+            return c_backend.simulate(self.spec, list(policies), episodes, cores=cores, progress=progress,
+                                      workers=workers)
         out = []
         for policy, policy_axis in policies:
             run = self.kept(("mjx", policy_axis), lambda a=policy_axis: jax.jit(

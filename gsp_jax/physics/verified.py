@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from gsp_jax.physics.spec import HasSpec, PhysicsSpec, of
 from gsp_jax.planning.policies import SequencePolicy
 
 
@@ -75,7 +76,7 @@ class PhysicsLookahead:
     """The physics-verified lookahead policy (`L1-physics`). Not a JAX policy: the C backend's lockstep runs it
     (`Physics.simulate_many(..., backend="c")`). `decisions` collects every decision's `Decision` (appended)."""
 
-    root: Any  # a policy with `plan(state)` -> Q-values `.q` (A,) over the actions (`lookahead.Lookahead`)
+    root: Any  # a policy with `search(state)` -> Q-values `.q` (A,) over the actions (`lookahead.Lookahead`)
     root_axis: Any  # its policy_axis (e.g. 0 for the tables of the cached L1)
     bases: tuple  # ((policy, policy_axis), ...): the policies the branches follow after their first action (axis
     # None: one for every branch; per episode, e.g. DP optimal's tables: each branch gets its episode's)
@@ -104,33 +105,35 @@ class PhysicsLookahead:
                              f"got {self.bases!r}")
         self.bases = tuple(tuple(b) for b in self.bases)
 
-    def in_physics(self, phys, snapshot, rows: np.ndarray, obs: np.ndarray, episodes, k: int, n_steps: int):
-        """The C backend's hook at segment k: this segment's policy for the lockstep's episodes `rows` (their
-        observations `obs`), from the lockstep's `snapshot` (None after the last decision): each episode's action
-        at k chosen by branching in physics (`choose`), as a `SequencePolicy` (one per episode, axis 0)."""
+    def in_physics(self, spec: PhysicsSpec, snapshot, rows: np.ndarray, obs: np.ndarray, episodes, k: int,
+                   n_steps: int):
+        """The C backend's hook at segment k (`spec`: the lockstep's `Physics`): this segment's policy for the
+        lockstep's episodes `rows` (their observations `obs`), from the lockstep's `snapshot` (None after the last
+        decision): each episode's action at k chosen by branching in physics (`choose`), as a `SequencePolicy` (one
+        per episode, axis 0)."""
         actions = np.zeros((len(rows), n_steps), np.int32)
         if snapshot is not None:
-            actions[:, k] = choose(self, phys, snapshot, rows, obs, episodes, k)
+            actions[:, k] = choose(self, spec, snapshot, rows, obs, episodes, k)
         return SequencePolicy(actions)
 
 
-def _program(phys, key, make):
+def _program(spec: PhysicsSpec, key, make):
     """`jax.jit(make())`, made once per Physics and key (`Physics.kept`)."""
-    return phys.kept(key, lambda: jax.jit(make()))
+    return spec.kept(key, lambda: jax.jit(make()))
 
 
-def root_q(phys, root_axis, observe):
+def root_q(spec: PhysicsSpec, root_axis, observe):
     """A jitted program: (root, obs_flat (N, nq + 2 nv), grasp (N,), episodes (N), k) -> (N, A) the root's Q;
     `observe` the C backend's flat-observation reader (`c_backend.programs(...).observe`)."""
-    return _program(phys, ("root_q", root_axis), lambda: lambda root, obs_flat, grasp, episodes, k: jax.vmap(
-        lambda pol, o, g, e: pol.plan(phys.observed_state(o, g, e, k)).q, in_axes=(root_axis, 0, 0, 0))(
+    return _program(spec, ("root_q", root_axis), lambda: lambda root, obs_flat, grasp, episodes, k: jax.vmap(
+        lambda pol, o, g, e: pol.search(spec.observed_state(o, g, e, k)).q, in_axes=(root_axis, 0, 0, 0))(
         root, observe(obs_flat), grasp, episodes))
 
 
-def base_action(phys, axis, observe):
+def base_action(spec: PhysicsSpec, axis, observe):
     """A jitted program: (base, obs_flat (N, ...), grasp (N,), episodes (N), k) -> (N,) the base's actions."""
-    return _program(phys, ("base_action", axis), lambda: lambda base, obs_flat, grasp, episodes, k: jax.vmap(
-        lambda pol, o, g, e: jnp.asarray(pol.act(phys.observed_state(o, g, e, k)), jnp.int32),
+    return _program(spec, ("base_action", axis), lambda: lambda base, obs_flat, grasp, episodes, k: jax.vmap(
+        lambda pol, o, g, e: jnp.asarray(pol.act(spec.observed_state(o, g, e, k)), jnp.int32),
         in_axes=(axis, 0, 0, 0))(base, observe(obs_flat), grasp, episodes))
 
 
@@ -151,7 +154,8 @@ def _gather(policy: PhysicsLookahead, b: int, episodes: np.ndarray, slots: int):
     return policy._gathered[key]
 
 
-def choose(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, obs: np.ndarray, episodes, k: int) -> np.ndarray:
+def choose(policy: PhysicsLookahead, spec: PhysicsSpec, snapshot, rows: np.ndarray, obs: np.ndarray, episodes,
+           k: int) -> np.ndarray:
     """(N,) the actions of the episodes `rows` of a lockstep at segment k (its `snapshot`, observations `obs`
     (N, ...), their `episodes`): every candidate branched under every base to the episode's end in C MuJoCo,
     the best branch's first action. An episode whose tool has fallen, or one candidate in all, takes the
@@ -159,15 +163,15 @@ def choose(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, obs: np.n
     from gsp_jax.physics import c_backend
 
     t0 = time.perf_counter()
-    n, n_base, top = len(rows), len(policy.bases), min(policy.k, phys.space.n_actions)
+    n, n_base, top = len(rows), len(policy.bases), min(policy.k, spec.space.n_actions)
     grasp = snapshot.grasp[rows]
-    observe = c_backend.programs(phys, episodes).observe
+    observe = c_backend.programs(spec, episodes).observe
     args = (jnp.asarray(obs), jnp.asarray(grasp), episodes, k)
-    q = np.asarray(root_q(phys, policy.root_axis, observe)(policy.root, *args))
+    q = np.asarray(root_q(spec, policy.root_axis, observe)(policy.root, *args))
     best = np.argsort(-q, axis=1, kind="stable")[:, :top].astype(np.int32)  # (N, top): ties keep the lower action
     cand = np.broadcast_to(best, (n_base, n, top))
-    if policy.base_actions and top < phys.space.n_actions:
-        own = np.stack([np.asarray(base_action(phys, axis, observe)(base, *args)) for base, axis in policy.bases])
+    if policy.base_actions and top < spec.space.n_actions:
+        own = np.stack([np.asarray(base_action(spec, axis, observe)(base, *args)) for base, axis in policy.bases])
         cand = np.concatenate([cand, own[:, :, None]], 2)  # (B, N, slots)
     slots = cand.shape[2]
     chosen, chosen_base = best[:, 0].copy(), np.full(n, -1)
@@ -191,16 +195,16 @@ def choose(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, obs: np.n
                     elif (i, a) not in todo[b]:
                         todo[b].append((i, a))
         runs = sum(len(t) for t in todo)
-        tables = _tables(policy, phys, episodes)
+        tables = _tables(policy, spec, episodes)
         if runs and tables is not None:  # every base reads only its grasp and waypoint: decided in numpy
-            outcome = _run_tabled(policy, phys, snapshot, rows, episodes, k, todo, tables, n_base * n * slots, stats)
+            outcome = _run_tabled(policy, spec, snapshot, rows, episodes, k, todo, tables, n_base * n * slots, stats)
         elif runs:
             # each base's branches padded to a multiple of a quarter of the episodes' candidates (the branches'
             # programs are compiled per row count: padding repeats a branch; one episode: none)
             quarter = -(-n * slots // 4)
             padded = [(t * quarter)[:-(-len(t) // quarter) * quarter] for t in todo]  # a base with none: none
-            _warm(policy, phys, snapshot, rows, episodes, k, padded, range(quarter, n * slots + 1, quarter))
-            outcome = _run_branches(policy, phys, snapshot, rows, episodes, k, padded, stats)
+            _warm(policy, spec, snapshot, rows, episodes, k, padded, range(quarter, n * slots + 1, quarter))
+            outcome = _run_branches(policy, spec, snapshot, rows, episodes, k, padded, stats)
         for b, t in enumerate(todo):
             for r, (i, a) in enumerate(t):
                 f, e, acts = outcome[b][0][r], outcome[b][1][r], outcome[b][2][r]
@@ -220,20 +224,20 @@ def choose(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, obs: np.n
     return chosen
 
 
-def _tables(policy: PhysicsLookahead, phys, episodes) -> list | None:
+def _tables(policy: PhysicsLookahead, spec: PhysicsSpec | HasSpec, episodes) -> list | None:
     """Per base, its actions at every grasp and waypoint ((E, G, T) at axis 0, else (1, G, T); kept), if every base
     reads only its grasp and waypoint (`c_backend.action_table`); else None."""
     from gsp_jax.physics import c_backend
 
     if episodes.n_steps not in policy._tables:
-        E, G = int(np.shape(episodes.mass)[0]), phys.space.n_grasps
+        E, G = int(np.shape(episodes.mass)[0]), of(spec).space.n_grasps
         made = [c_backend.action_table(base, axis, E if axis == 0 else 1, G, episodes.n_steps)
                 for base, axis in policy.bases]
         policy._tables[episodes.n_steps] = None if any(t is None for t in made) else made
     return policy._tables[episodes.n_steps]
 
 
-def _run_tabled(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, episodes, k: int, todo, tables,
+def _run_tabled(policy: PhysicsLookahead, spec: PhysicsSpec, snapshot, rows: np.ndarray, episodes, k: int, todo, tables,
                 most: int, stats, warm_width: int | None = None):
     """`_run_branches` for bases that read only their grasp and waypoint (`tables`, per base (E or 1, G, T)): every
     branch of every base one row of a single group (`c_backend.ActionTable`: its first action at segment k, then
@@ -247,10 +251,10 @@ def _run_tabled(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, epis
     step = max(1, most // 8)
     if warm_width is None:
         key = ("tabled-widths", len(rows), most, policy.branch_device)
-        done = phys.kept(key, set)
+        done = spec.kept(key, set)
         for w in range(step, -(-most // step) * step + 1, step):
             if w not in done:
-                _run_tabled(policy, phys, snapshot, rows, episodes, k, todo, tables, most, {}, warm_width=w)
+                _run_tabled(policy, spec, snapshot, rows, episodes, k, todo, tables, most, {}, warm_width=w)
                 done.add(w)
         width = -(-len(flat) // step) * step
     else:
@@ -260,10 +264,10 @@ def _run_tabled(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, epis
     table = np.stack([tables[b][i if len(tables[b]) > 1 else 0] for b, i in zip(b_, i_)])  # (R, G, T) a copy
     if warm_width is not None:  # a first action that changes the grasp: the JAX decision runs (and compiles)
         g = snapshot.grasp[rows[i_]]
-        a_ = np.argmax(phys.space.transitions[g] != g[:, None], 1).astype(np.int32)
+        a_ = np.argmax(spec.space.transitions[g] != g[:, None], 1).astype(np.int32)
     table[:, :, k] = a_[:, None]
     sub = jax.tree.map(lambda x: np.asarray(x)[i_], episodes)
-    result = c_backend.simulate(phys, [(c_backend.ActionTable(table), 0)], [sub], cores=policy.cores,
+    result = c_backend.simulate(spec, [(c_backend.ActionTable(table), 0)], [sub], cores=policy.cores,
                                 workers=policy.workers, start=snapshot.take(rows[i_]), stats=stats,
                                 device=policy.branch_device, until=k + 1 if warm_width else None, outcomes=True)
     if warm_width is not None:
@@ -274,25 +278,25 @@ def _run_tabled(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, epis
             for t, e in zip(todo, ends)]
 
 
-def _warm(policy: PhysicsLookahead, phys, snapshot, rows, episodes, k: int, todo, widths) -> None:
+def _warm(policy: PhysicsLookahead, spec: PhysicsSpec, snapshot, rows, episodes, k: int, todo, widths) -> None:
     """Compile, once per process, the branches' programs for every number of branches a decision can run
     (`widths` per base): a decision that first meets a new number would otherwise wait for its compiles (seconds,
     in the tail of the decision times). Each is a one-segment lockstep of the given branches repeated."""
     key = ("branch-widths", len(rows), len(todo), tuple(axis is None for _, axis in policy.bases),
            policy.branch_device)
-    done = phys.kept(key, set)
+    done = spec.kept(key, set)
     if all(len(t) == len(todo[0]) for t in todo):
         done.add(len(todo[0]))
     some = next(t for t in todo if t)
     for w in widths:
         if w not in done and k + 1 <= episodes.n_steps:
-            _run_branches(policy, phys, snapshot, rows, episodes, k, [((t or some) * w)[:w] for t in todo], {},
+            _run_branches(policy, spec, snapshot, rows, episodes, k, [((t or some) * w)[:w] for t in todo], {},
                           until=k + 1)
             done.add(w)
 
 
-def _run_branches(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, episodes, k: int, todo, stats,
-                  until: int | None = None):
+def _run_branches(policy: PhysicsLookahead, spec: PhysicsSpec, snapshot, rows: np.ndarray, episodes, k: int, todo,
+                  stats, until: int | None = None):
     """Per base b, the branches todo[b] = [(episode, first action), ...] (any number, none included) run from the
     snapshot to the episode's end in one C MuJoCo lockstep: per base (fell (R,), angle error (R,), actions (R, T)),
     None for a base with none; stats["steps"] grows by the physics steps taken. `until`: stop there instead and
@@ -306,7 +310,7 @@ def _run_branches(policy: PhysicsLookahead, phys, snapshot, rows: np.ndarray, ep
                FirstThen(first=0, at=None, base=policy.bases[b][1])) for g, b in enumerate(bases)]
     per_base = [jax.tree.map(lambda x, ib=ib: np.asarray(x)[ib], episodes) for ib in idx]
     every = np.concatenate(idx)
-    results = c_backend.simulate(phys, groups, per_base, cores=policy.cores, workers=policy.workers,
+    results = c_backend.simulate(spec, groups, per_base, cores=policy.cores, workers=policy.workers,
                                  start=snapshot.take(rows[every]), stats=stats, device=policy.branch_device,
                                  until=until, outcomes=True)
     if until is not None:

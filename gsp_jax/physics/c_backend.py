@@ -23,9 +23,9 @@ docs/performance.md), the reference the native tick must equal; checked by
 `tests/test_physics.py::test_c_lockstep_decides_table_policies_in_numpy_as_jax_does`.
 
 The backend reads a `Physics` through its `spec` (`spec.PhysicsSpec`: the scene, the config, the controller, the
-timeline and the JAX functions both backends share; every entry point takes a `Physics` or its spec); a policy that
-decides in physics has a hook `in_physics(spec, snapshot, rows, obs, episodes, k, n_steps)` that gives the
-segment's policy.
+timeline and the JAX functions both backends share; every entry point takes a `Physics` or its spec) and knows no
+planner: a policy is anything with `act(state)` (`OpenLoop` is its own open-loop one); a policy that decides in
+physics has a hook `in_physics(spec, snapshot, rows, obs, episodes, k, n_steps)` that gives the segment's policy.
 """
 from __future__ import annotations
 
@@ -39,12 +39,13 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+from flax import struct
 from jax.flatten_util import ravel_pytree
 
+from gsp_jax.model import grasps, scenario
 from gsp_jax.model.scenario import Episode
 from gsp_jax.physics import native
 from gsp_jax.physics.spec import HasSpec, PhysicsSpec, of
-from gsp_jax.planning.policies import SequencePolicy
 
 CONTROLLERS = ("native", "jax")  # the controller's tick: compiled to native code, or the JAX program
 
@@ -393,7 +394,7 @@ class _Lockstep:
                 if action is None:
                     continue
                 if isinstance(policy, ActionTable):  # a grasp changes: the JAX decision, with these actions
-                    policy = SequencePolicy(np.repeat(action[:, None], self.T, 1))
+                    policy = OpenLoop(np.repeat(action[:, None], self.T, 1))
             with jax.default_device(self.device):
                 act, gr, cs_g = decide(policy, jax.device_put(self.cs[rows], self.device), obs[rows],
                                        self.grasp[rows], self.episodes_on_device[g], k)
@@ -473,6 +474,25 @@ class ActionTable:
     table: np.ndarray  # (R, G, T) int32
 
 
+@struct.dataclass
+class OpenLoop:
+    """A JAX policy given as its action at each waypoint, whatever the state: actions (T,), or (E, T) at policy
+    axis 0 (one row an episode). The physics check's own open-loop policy (the JAX decision of an `ActionTable`
+    whose grasp changes, a policy that decides in physics at a segment, the preflight's hold), with the same
+    decisions as `planning.policies.SequencePolicy` (it reads only its waypoint: decided in numpy, `act_table`)."""
+
+    actions: jax.Array  # (T,) or (E, T) int32
+
+    def act(self, state) -> jax.Array:
+        return self.actions[jnp.minimum(state.t, self.actions.shape[0] - 1)]
+
+    def act_table(self, n_grasps: int, n_steps: int) -> np.ndarray:
+        """(..., n_grasps, n_steps) int32 numpy: `act` at every grasp and waypoint (it reads nothing else)."""
+        actions = np.asarray(self.actions, np.int32)
+        actions = actions[..., np.minimum(np.arange(n_steps), actions.shape[-1] - 1)]
+        return np.broadcast_to(actions[..., None, :], actions.shape[:-1] + (n_grasps, n_steps))
+
+
 def _outside_jax(policy) -> bool:
     """A group's policy that is not a JAX policy as given: one that decides in physics (its hook gives each
     segment's policy, per episode) or an `ActionTable` (decided in numpy)."""
@@ -481,8 +501,8 @@ def _outside_jax(policy) -> bool:
 
 def action_table(policy, axis, rows: int, n_grasps: int, n_steps: int) -> np.ndarray | None:
     """(rows, G, T) int32: the actions of a policy that reads only its grasp and waypoint (`ActionTable`, or one
-    with `act_table`: `policies.SequencePolicy`, `TablePolicy`) at policy_axis None (one for every row) or 0 (one
-    a row); None for any other policy."""
+    with `act_table`: `OpenLoop`, `policies.SequencePolicy`, `TablePolicy`) at policy_axis None (one for every
+    row) or 0 (one a row); None for any other policy."""
     if isinstance(policy, ActionTable):
         return policy.table
     if not hasattr(policy, "act_table") or axis not in (None, 0) \
@@ -502,18 +522,17 @@ def native_tick(phys: PhysicsSpec | HasSpec) -> native.Tick:
 
 def warm_up(phys: PhysicsSpec | HasSpec):
     """Compile the native code a C MuJoCo run calls (numba's, kept in its cache on disk once compiled) in a
-    background thread: runs the model's nominal episode under the constant four-tip grasp, one episode, in `phys`.
-    XLA releases Python's lock while it compiles, so the caller compiles its own programs meanwhile (a DP table,
-    a lookahead) on the other cores. Returns a `concurrent.futures.Future`: `.result()` waits for it (and raises
-    what the run raised)."""
-    from gsp_jax.model import scenario
-    from gsp_jax.planning import evaluation
-
+    background thread: runs the model's nominal episode under its start grasp held, one episode, in `phys` (numba
+    compiles a function whole on its first call, whatever the grasps; a grasp held is decided in numpy, so no XLA
+    decision is compiled here). XLA releases Python's lock while it compiles, so the caller compiles its own
+    programs meanwhile (a DP table, a lookahead) on the other cores. Returns a `concurrent.futures.Future`:
+    `.result()` waits for it (and raises what the run raised)."""
     spec = of(phys)
 
     def run():
-        sequence = SequencePolicy(jnp.asarray(evaluation.four_tips(spec.space)), spec.space)
-        simulate(spec, [(sequence, None)], scenario.stack([spec.nominal()]), workers=1)
+        episodes = scenario.stack([spec.nominal()])
+        hold = np.full((1, spec.space.n_grasps, episodes.n_steps), grasps.NULL, np.int32)
+        simulate(spec, [(ActionTable(hold), 0)], episodes, workers=1)
 
     pool = ThreadPoolExecutor(1, thread_name_prefix="gsp_jax-warm-up")
     future = pool.submit(run)

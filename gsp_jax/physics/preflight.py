@@ -194,14 +194,13 @@ class DryRun:
 
 def dry_run(sur: Surrogate, config: PhysicsConfig = PhysicsConfig()) -> DryRun:
     """`DryRun` of the model's start grasp (`Surrogate`'s model) on its nominal lift without the external torque."""
-    from gsp_jax.planning import policies
     from gsp_jax.physics import c_backend
     from gsp_jax.physics.controller import reference_motion
     from gsp_jax.physics.runner import Physics
 
     phys = Physics(sur, config)
     episode = scenario.make_episode(model=sur.model, torque=0.0)
-    hold = policies.SequencePolicy(jnp.full(episode.n_steps, grasps.NULL, jnp.int32), sur.space)
+    hold = c_backend.OpenLoop(jnp.full(episode.n_steps, grasps.NULL, jnp.int32))
     batch = jax.tree.map(lambda x: x[None], episode)
     log: list = []
     res = c_backend.simulate(phys, [(hold, None)], batch, cores=1, workers=1, engine_log=log)[0]

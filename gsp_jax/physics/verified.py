@@ -36,7 +36,6 @@ import numpy as np
 from flax import struct
 
 from gsp_jax.physics.spec import HasSpec, PhysicsSpec, of
-from gsp_jax.planning.policies import SequencePolicy
 
 
 @struct.dataclass
@@ -109,12 +108,14 @@ class PhysicsLookahead:
                    n_steps: int):
         """The C backend's hook at segment k (`spec`: the lockstep's `Physics`): this segment's policy for the
         lockstep's episodes `rows` (their observations `obs`), from the lockstep's `snapshot` (None after the last
-        decision): each episode's action at k chosen by branching in physics (`choose`), as a `SequencePolicy` (one
-        per episode, axis 0)."""
+        decision): each episode's action at k chosen by branching in physics (`choose`), as a `c_backend.OpenLoop`
+        (one per episode, axis 0)."""
+        from gsp_jax.physics import c_backend
+
         actions = np.zeros((len(rows), n_steps), np.int32)
         if snapshot is not None:
             actions[:, k] = choose(self, spec, snapshot, rows, obs, episodes, k)
-        return SequencePolicy(actions)
+        return c_backend.OpenLoop(actions)
 
 
 def _program(spec: PhysicsSpec, key, make):

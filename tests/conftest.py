@@ -119,3 +119,61 @@ def sur(hand):
     from gsp_jax.surrogate import step as surrogate
 
     return surrogate.Surrogate(hand, ik_config=TABLE_IK)
+
+
+# ------------------------------------------------------------------------------------------ the small test model
+# `models/testhand` (shipped as "testhand"): three fingers of two hinges, a bar; 27 grasps x 10 actions where the
+# paper's hand has 288 x 17. A test whose property does not depend on the model (DP against brute force, lookahead
+# against its base policy, ...) runs on it: its programs are about as large (they are vectorised over the model's
+# grasps, actions and joints), but they run on a tenth of the grasps, and a brute force over its sequences is 10^T,
+# not 17^T. The paper model's end-to-end tests stay on `sur` above.
+SMALL_MODEL = "testhand"
+
+
+@pytest.fixture(scope="session")
+def small_model():
+    """The `Model` of the small test hand (`models/testhand/scene.xml`)."""
+    from gsp_jax.model import load as model_lib
+
+    return model_lib.load_model(SMALL_MODEL)
+
+
+@pytest.fixture(scope="session")
+def small_sur(small_model):
+    """A Surrogate of the small test hand, its tables' IK vmapped (`TABLE_IK`), as `sur`."""
+    from gsp_jax.surrogate import step as surrogate
+
+    return surrogate.Surrogate(small_model, ik_config=TABLE_IK)
+
+
+def small_episode_set(model) -> dict:
+    """The small hand's evaluation-like episodes (16 waypoints each), named as the paper's sets name theirs: its
+    nominal lift, the height shifts with the model's torque of either sign, and mass with centre-of-mass offsets
+    along y (the bar is 3 cm across: the paper's +-2 cm do not fit it), which keep the centre of mass on the
+    thumb-index pinch's line, and one along x, which takes it off."""
+    from gsp_jax.model import scenario
+
+    t0 = model.hand.torque
+
+    def ep(**kw):
+        return scenario.make_episode(model=model, **kw)
+
+    return {"nominal": ep(),
+            f"shift+4mm_{-t0:+g}Nm": ep(shift_mm=4, torque=-t0),
+            f"shift-6mm_{t0:+g}Nm": ep(shift_mm=-6, torque=t0),
+            "mass2m0_comy+1cm": ep(mass_factor=2.0, com_y_cm=1.0),
+            "mass0.5m0_comy-1cm": ep(mass_factor=0.5, com_y_cm=-1.0),
+            "mass1.5m0_comy+1cm": ep(mass_factor=1.5, com_y_cm=1.0),
+            "mass1.5m0_comx+1cm": ep(mass_factor=1.5, com_x_cm=1.0)}
+
+
+@pytest.fixture(scope="session")
+def small_episodes(small_model):
+    """name -> Episode: `small_episode_set` of the small hand."""
+    return small_episode_set(small_model)
+
+
+@pytest.fixture(scope="session")
+def small_episode(small_episodes):
+    """The small hand's nominal lift (16 waypoints)."""
+    return small_episodes["nominal"]

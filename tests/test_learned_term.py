@@ -1,7 +1,10 @@
 """The learned physics term inside the surrogate (`Surrogate(learned=...)`, `reward.with_risk`): the DP table, the
 surrogate's step and the corpus's offline returns (`learned.returns`) agree on it; a hazard of zero leaves the
 analytic reward as it was; it is finite for every valid episode (fuzz); weights of another model, or none, are
-refused by name."""
+refused by name.
+
+The agreement and the expectimax backup hold for any model: they run on the small test hand (`models/testhand`:
+27 grasps, 10 actions; tests/conftest.py); the fuzz is the shipped model's, over its corpus distribution."""
 from __future__ import annotations
 
 import jax
@@ -22,10 +25,11 @@ from gsp_jax.surrogate.step import Surrogate
 T = 3  # waypoints of the episodes here (the first three of drawn ones)
 
 
-def _fitted(digest: str, bias: float = 0.0, seed: int = 0) -> learned.Fitted:
+def _fitted(digest: str, bias: float = 0.0, seed: int = 0, space=None) -> learned.Fitted:
     """An untrained hazard network of the corpus's features (random weights, `bias` added to the logit; an ensemble
-    of one), scaled by rough feature magnitudes so its probabilities spread over (0, 1)."""
-    names = learned.input_names(grasps.space_of(model_lib.load_model().hand))  # the wrench's inputs
+    of one), scaled by rough feature magnitudes so its probabilities spread over (0, 1); its inputs those of
+    `space`'s grasps (None: the wrench's)."""
+    names = learned.input_names(space or grasps.space_of(model_lib.load_model().hand))
     F = len(names)
     params = learned._MLP((16,)).init(jax.random.PRNGKey(seed), jnp.zeros((1, F)))
     params = jax.tree.map(lambda x: x, params)
@@ -42,12 +46,13 @@ def _episodes(n: int, seed: int = 3) -> list[scenario.Episode]:
 
 
 @pytest.fixture(scope="module")
-def case(table_ik):
-    """One episode where sequences hold in the analytic surrogate, a surrogate with an untrained hazard (fall chances
-    spread over (0, 1), most below `risk_falls`), and its DP table with and without the term."""
-    sur = Surrogate(ik_config=table_ik)
-    with_term = sur.replace(reward=RewardConfig(risk_falls=0.95), learned=_fitted(sur.model.digest))
-    ep = _episodes(1, seed=4)[0]
+def case(small_sur, small_episodes):
+    """One episode of the small hand where sequences hold in the analytic surrogate (1.5 times the mass, the centre
+    of mass 1 cm off), a surrogate with an untrained hazard (fall chances spread over (0, 1), most below
+    `risk_falls`), and its DP table with and without the term."""
+    sur = small_sur
+    with_term = sur.replace(reward=RewardConfig(risk_falls=0.95), learned=_fitted(sur.model.digest, space=sur.space))
+    ep = small_episodes["mass1.5m0_comy+1cm"].head(T)
     build = jax.jit(dp.build_table)
     return with_term, ep, build(with_term, ep), build(with_term.analytic, ep)
 
@@ -91,7 +96,8 @@ def test_the_table_the_step_and_the_offline_returns_agree_on_the_learned_term(ca
     # the term costs: a step's expected reward is at most its analytic one
     assert np.all(np.asarray(table.reward) <= np.asarray(plain.reward) + tol.REWARD_ATOL)
     # a hazard of (almost) zero leaves the analytic table as it was
-    zero = jax.jit(dp.build_table)(with_term.replace(learned=_fitted(with_term.model.digest, -60.0)), ep)
+    zero = jax.jit(dp.build_table)(with_term.replace(learned=_fitted(with_term.model.digest, -60.0,
+                                                                     space=with_term.space)), ep)
     np.testing.assert_allclose(np.asarray(zero.reward), np.asarray(plain.reward), atol=1e-5)
     np.testing.assert_array_equal(np.asarray(zero.terminal), np.asarray(plain.terminal))
 

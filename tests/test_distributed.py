@@ -93,6 +93,8 @@ def test_map_chunks_joins_each_chunks_result_in_order():
 DEVICES = '''
 import sys
 import jax, numpy as np
+import gsp_jax
+gsp_jax.enable_cache()  # the run's test cache (GSP_JAX_CACHE, set by conftest)
 from gsp_jax.planning import evaluation
 from gsp_jax.solvers import ik
 from gsp_jax.model import scenario
@@ -117,8 +119,7 @@ def test_dp_tables_over_two_local_devices_equal_one_devices(tmp_path):
     script.write_text(DEVICES)
     for n in (1, 2):
         proc = subprocess.run([sys.executable, str(script), str(n)], capture_output=True, text=True, timeout=900,
-                              cwd=tmp_path, env=dict(os.environ, JAX_PLATFORMS="cpu", JAX_NUM_CPU_DEVICES=str(n),
-                                                     GSP_JAX_CACHE="off"))
+                              cwd=tmp_path, env=dict(os.environ, JAX_PLATFORMS="cpu", JAX_NUM_CPU_DEVICES=str(n)))
         assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]
     with np.load(tmp_path / "tables1.npz") as one, np.load(tmp_path / "tables2.npz") as two:
         assert sorted(one.files) == sorted(two.files) and one["reward"].shape[0] == 3

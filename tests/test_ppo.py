@@ -508,6 +508,8 @@ def test_save_and_load_policy_round_trip_is_exact(trainer, uninterrupted, probe,
 TWO_DEVICES = '''
 import dataclasses, json
 import jax, jax.numpy as jnp, numpy as np
+import gsp_jax
+gsp_jax.enable_cache()  # the run's test cache (GSP_JAX_CACHE, set by conftest)
 from test_ppo import CONFIG, SMALL, T, _probe_tables
 from gsp_jax.model import scenario
 from gsp_jax.surrogate import step as surrogate
@@ -568,7 +570,7 @@ def test_data_parallel_on_two_devices_is_deterministic_and_averages_gradients_ov
     script = tmp_path / "two.py"
     script.write_text(TWO_DEVICES)
     proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=900, cwd=tmp_path,
-                          env=dict(os.environ, JAX_PLATFORMS="cpu", JAX_NUM_CPU_DEVICES="2", GSP_JAX_CACHE="off",
+                          env=dict(os.environ, JAX_PLATFORMS="cpu", JAX_NUM_CPU_DEVICES="2",
                                    PYTHONPATH=os.pathsep.join([str(pathlib.Path(__file__).parent),
                                                                str(pathlib.Path(__file__).parents[1])])))
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-3000:]

@@ -11,8 +11,8 @@ The public face is this package's names (`__all__`); a user imports only it:
     results = gsp.check(ctx, ["dp-opt", "L1"])            # the physics check: closed loop in C MuJoCo
 
 The modules below (`gsp_jax.surrogate.step`, `gsp_jax.planning.dp`, ...) are the library's inside: documented and
-importable for
-those who extend it (docs/architecture.md), but their names may change; what this package exports stays.
+importable for those who extend it (docs/architecture.md), but their names may change; what this package exports
+stays.
 
 The library's folders are its layers, each importing only itself and the folders above it (docs/architecture.md):
 

@@ -1,6 +1,5 @@
 """The batch-last IK (gsp_jax.solvers.ik_lanes) against `ik.solve` vmapped: the normal equations at random
-configurations,
-the solved grasps of a table's problems, leading batch axes, and the table built either way.
+configurations, the solved grasps of a table's problems, leading batch axes, and the table built either way.
 
 Two float32 computations of the same solve in another order of arithmetic: compared with the tolerances of
 tests/tolerances.py (the precision the solvers reach), allowing rare ties where Levenberg-Marquardt's accept/reject

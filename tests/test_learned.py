@@ -1,6 +1,5 @@
 """The learned physics term (`gsp_jax.surrogate.learned`): the fit recovers a known synthetic hazard, the split keeps
-episodes
-whole, and weights refuse another model or another feature set by name."""
+episodes whole, and weights refuse another model or another feature set by name."""
 from __future__ import annotations
 
 import jax

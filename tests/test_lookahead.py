@@ -388,8 +388,8 @@ def test_per_decision_latency_times_the_planners_own_decisions(sur, solved, netw
 
 def test_table1_dp_optimal_earns_its_dp_optimum_by_replaying_its_own_table(sur, solved, network):
     """`online.episode_planner`'s DP optimal (Table 1's) solves the unseen episode inside the timed call and runs its
-    policy in
-    that table (from its start the surrogate visits only the table's states: `test_env` checks the two step for step):
+    policy in that table (from its start the surrogate visits only the table's states: `test_env` checks the two step
+    for step):
     the episode earns exactly the DP optimum of the episode."""
     from gsp_jax.planning import evaluation
     from gsp_jax.planners import online

@@ -1,6 +1,5 @@
 """Tests of gsp_jax.surrogate.reward: the calibration file (read, refused when missing or malformed, written and read
-back),
-the reward of a step's terms against a plain numpy reference, the previous grasp's part (the start support, the
+back), the reward of a step's terms against a plain numpy reference, the previous grasp's part (the start support, the
 change term's fall check, the motor check), and the table's transitions against the step's function applied one
 transition at a time."""
 from __future__ import annotations

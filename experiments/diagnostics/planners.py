@@ -1,6 +1,5 @@
 """`python -m experiments planners [--plugin MODULE]`: every registered planner (`gsp_jax.planners.registry`), its
-group,
-options with their defaults, what of the evaluation context it reads, and its first docstring line."""
+group, options with their defaults, what of the evaluation context it reads, and its first docstring line."""
 from __future__ import annotations
 
 import argparse

@@ -6,8 +6,7 @@ Writes, per run, results/train/<pretrain>/seed<k>/: history.json (per iteration:
 deterministic validation and training-set returns, losses, env steps, wall time), policy/ (the best validated
 policy, orbax), checkpoints/ (the run resumes from there when started again); and results/train/reference.json
 (the DP returns to compare with). Steps are exact table lookups of the surrogate (see gsp_jax/learning/env.py). On a
-host
-with several GPUs the environments are split over all of them (`gsp_jax.ppo.train`: data-parallel).
+host with several GPUs the environments are split over all of them (`gsp_jax.ppo.train`: data-parallel).
 """
 from __future__ import annotations
 

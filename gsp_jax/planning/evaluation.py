@@ -1,7 +1,6 @@
 """What the planners of a batch of unseen episodes are built from (`Context`: the episodes, their DP tables, the PPO
 policy, the DP baseline), and the library's planners, registered by name in `gsp_jax.planners.registry`: the paper's
-five
-(DP baseline, RL, L1, L2, DP optimal), the physics check's references (fixed grasp sequences, random feasible ones)
+five (DP baseline, RL, L1, L2, DP optimal), the physics check's references (fixed grasp sequences, random feasible ones)
 and L1-physics, built the same way for Fig. 4a, Fig. 4b, `envelope` and Table 1.
 
     ctx = evaluation.context("eval")                  # 27 evaluation episodes, their DP tables, the PPO policy

@@ -11,8 +11,7 @@ AdamW), split by episode into train / validation / test, stopped early on the va
 
 `reliability` bins predicted against observed rates (a calibration picture); `gsp_jax.core.stats.auc` ranks them.
 The reward turns the hazard into its learned physics term (`gsp_jax.surrogate.reward.with_risk`); the weights of a
-model sit
-beside its scene file (`path_of`: models/scene.learned.npz for the shipped wrench).
+model sit beside its scene file (`path_of`: models/scene.learned.npz for the shipped wrench).
 """
 from __future__ import annotations
 

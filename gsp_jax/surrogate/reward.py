@@ -28,8 +28,7 @@ of (d) unmet (`RewardTerms.motor_unmet`); `r_min` ends the episode.
 
 The learned physics term (`Surrogate(learned=...)`, off by default: the paper's surrogate): a network fitted on a
 physics corpus of the model (`gsp_jax.surrogate.learned`) gives each transition its probability p of a fall in the
-segment
-(`RewardTerms.fall_risk`), a chance node after the decision (the paper's lookahead is expectimax). A transition
+segment (`RewardTerms.fall_risk`), a chance node after the decision (the paper's lookahead is expectimax). A transition
 with p above `risk_falls` is a fall; below it, the step's reward is its expectation, (1 - p) times the analytic
 reward plus p times `r_min`, and what follows it counts only if the segment held: every planner backs values up as
 reward + (1 - p) * value of the next state (`backed_up`, `expected_return`), so a sequence's value is its expected
@@ -341,8 +340,9 @@ def chance_to_hold(fall_risk):
 
 def expected_reward(held, fall_risk, r_min):
     """A step's expected reward over its chance node: the reward `held` if the segment held, `r_min` with chance
-    `fall_risk` (a fall ends the run). Any array type (numpy too); broadcasts."""
-    return chance_to_hold(fall_risk) * held + fall_risk * r_min
+    `fall_risk` (a fall ends the run); `held` itself for None (no term), as `chance_to_hold`. Any array type (numpy
+    too); broadcasts."""
+    return held if fall_risk is None else chance_to_hold(fall_risk) * held + fall_risk * r_min
 
 
 def backed_up(reward, fall_risk, terminal, value_next) -> jax.Array:
@@ -432,8 +432,8 @@ def write_calibration(path: str | pathlib.Path, values: dict, measured: dict, wr
         raise CalibrationError(f"write_calibration: measured: expected a flat object of numbers and strings, got "
                                f"{measured!r}")
     doc = {"about": "The reward's calibrated defaults (gsp_jax.surrogate.reward.RewardConfig) and what the "
-                    "calibration measured "
-                    "for them. Written by `python -m experiments calibrate --write`; rerun it rather than editing by "
+                    "calibration measured for them. Written by `python -m experiments calibrate --write`; rerun it "
+                    "rather than editing by "
                     "hand.",
            "written": written or datetime.date.today().isoformat(),
            "calibrated": values, "measured": dict(measured)}

@@ -8,8 +8,8 @@ sets one contact link to one option), realises the new grasp g' by IK at the cur
 desired pose (waypoint t+1), and, when the grasp changes, the shared grasp (g without the link that moves) at the
 current pose; it solves the wrench problems of those contacts and scores them with the shaped reward of
 `gsp_jax.surrogate.reward` (its terms (a)-(f), `RewardConfig`). A step that collides or drops the tool gets `r_min`
-and ends
-the episode. Every IK starts from the model's fixed start configuration, so the next joint state is the IK result at
+and ends the episode. Every IK starts from the model's fixed start configuration, so the next joint state is the IK
+result at
 the next desired pose (the paper's transition). Rotational inertia is not modelled here (the paper's trajectories
 are pure translations): the contacts must supply m (a - g) and zero torque about the CoM while moving; the MJX
 physics check carries the full rigid-body dynamics.
@@ -207,8 +207,8 @@ class Surrogate:
     ) -> RewardTerms:
         """Reward terms of moving, with new grasp contacts `now` (at the current pose) and `nxt` (at waypoint
         t+1), from waypoint t: the wrench problems solved here, the terms assembled by `gsp_jax.surrogate.reward`. The
-        previous
-        grasp enters through `redundant`, `changed` (the grasp changes) and `during` (the shared grasp's contacts at
+        previous grasp enters through `redundant`, `changed` (the grasp changes) and `during` (the shared grasp's
+        contacts at
         the current pose; None: no change term). The motor check counts at the last step only (`reward.arrival`):
         under a `cond` (`_only_where`), so a step of one t solves it only there and a batch of steps only where one
         of its rows is a last step; a batch over t solves it for its last step's rows alone through `score_deferred`

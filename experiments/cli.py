@@ -150,7 +150,8 @@ def main(argv: list[str] | None = None, outer: common.Run | None = None) -> None
                              "themselves (`gsp_jax.planners.registry.register`); repeatable")
         if name != "check-model":
             sp.add_argument("--model", default=None, metavar="NAME_OR_PATH",
-                            help="the hand + tool scene: a shipped model (wrench, hammer, allegro) or a scene file "
+                            help="the hand + tool scene: a shipped model (wrench, hammer, allegro, "
+                                 "screwdriver) or a scene file "
                                  "(default: wrench); checked first (check-model)")
         if name not in ("check-model", "calibrate", "figures"):
             sp.add_argument("--learned", action="store_true",

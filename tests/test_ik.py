@@ -711,3 +711,24 @@ def test_unrolled_loop_solves_the_same_problems(hand, all_grasps, nominal_waypoi
     out = jax.tree.map(np.asarray, jax.jit(jax.vmap(f), compiler_options=FAST)(jnp.asarray(opts[pick])))
     np.testing.assert_allclose(out.q, plain.q[pick], rtol=0, atol=tol.Q_ATOL)
     np.testing.assert_allclose(out.link_error, plain.link_error[pick], rtol=0, atol=tol.IK_ATOL)
+
+
+def test_collisions_name_the_bodies_and_the_depth(hand):
+    """`ik.collisions` (what check-model and `Surrogate.explain` print): the tool's centre put at a sphere of the
+    index tip names the index distal among the bodies in the tool, each body once, deepest first, the first as deep
+    as the IK's own penetration measure at that configuration; a tool far away names no tool contact, and a tolerance beyond the depth names nothing."""
+    q = jnp.asarray(hand.q_start, jnp.float32)
+    pos, mat = kinematics.body_poses(hand, q)
+    s = int(np.flatnonzero(np.asarray(hand.sphere_body) == hand.body_names.index("index_distal"))[-1])
+    centre = kinematics.points_on_bodies(pos, mat, hand.sphere_body[s:s + 1], hand.sphere_pos[s:s + 1])[0]
+    eye = jnp.eye(3, dtype=jnp.float32)
+    lines = ik.collisions(hand, q, centre, eye, tol=0.0)
+    geo = ik._geometry(hand, pos, mat, jnp.zeros((hand.n_links, 3), jnp.float32), centre, eye)
+    deepest = -float(jnp.min(jnp.concatenate([geo.tool_gap, geo.table_gap, geo.self_gap])))
+    assert any(x.startswith("index_distal into the tool ") for x in lines), lines
+    depths = [float(x.split()[-2]) for x in lines]
+    assert depths == sorted(depths, reverse=True) and len({x.split(" into ")[0] for x in lines}) == len(lines)
+    assert float(lines[0].split()[-2]) == pytest.approx(deepest * 1e3, abs=0.051), (lines[0], deepest)
+    far = jnp.asarray([0.5, 0.5, 0.5], jnp.float32)
+    assert [x for x in ik.collisions(hand, q, far, eye) if "into the tool" in x] == []
+    assert ik.collisions(hand, q, centre, eye, tol=deepest + 1e-4) == []  # tol: only deeper ones

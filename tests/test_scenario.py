@@ -4,6 +4,8 @@ import collections
 import json
 import math
 import re
+import types
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -324,3 +326,43 @@ def test_stress_set_spans_the_envelope_and_is_fixed():
                    for a in cal.values() for b in stress.values())
     with pytest.raises(sc.EpisodeError, match="torque_axis"):
         sc.make_episode(torque_axis="w")
+
+
+def test_the_sets_fit_a_narrow_tool():
+    """Issue 83: every episode set and the corpus draw for a tool check-model accepts, however narrow: the
+    screwdriver's round grip is 2 cm across (1 cm from its CoM to the grip's faces), so its CoM offsets are 0.4 of
+    the wrench's and still span the room; the wrench keeps its sets (its fit is 1 everywhere)."""
+    from gsp_jax.physics import corpus
+
+    assert sc.fit("wrench") == sc.Fit() and sc.fit("hammer") == sc.Fit()
+    fit = sc.fit("screwdriver")
+    assert fit.com[1] == pytest.approx(0.4) and fit.com[0] == 1.0 and fit.down == fit.up == 1.0
+    hand = model_lib.load_model("screwdriver").hand
+    lo, hi = hand.tool_bounds()
+    sets = {name: sc.episode_set(name, "screwdriver") for name in ("all", "val", "variations", "stress", "stress-cal")}
+    sets["corpus"] = corpus.draw(corpus.Distribution(), 3, 40, "screwdriver")
+    for name, eps in sets.items():
+        com = np.stack([np.asarray(e.com) for e in eps.values()])
+        assert np.all((com >= lo) & (com <= hi)), name
+    offset = np.stack([np.asarray(e.com) for e in sets["corpus"].values()]) - hand.tool_com
+    assert np.abs(offset[:, 1]).max() > 0.8 * 0.01 and np.abs(offset[:, 0]).max() > 0.02  # the room is used
+    assert "mass1m0_comy+0.8cm" in sets["all"]  # evaluation set B's +2 cm, scaled to the grip: named as it is
+    names = list(sc.eval_set_b())
+    assert names[:5] == [f"mass0.5m0_comy{c:+d}cm" for c in (-2, -1, 0, 1, 2)]  # the wrench's names as before
+
+
+def test_fit_keeps_within_the_hands_reach_and_the_tools_box():
+    """The fit's factors: the room a model has over the room the sets were written for, capped at 1, in whole
+    tenths of a millimetre (the wrench's exactly 1); a tool whose CoM sits on a face gets none (factor 0)."""
+    room = sc.COM_REACH * 0.5
+    fake = types.SimpleNamespace(tool_bounds=lambda: (np.array([-0.1, -room, -0.01]), np.array([0.1, room, 0.01])),
+                                 tool_com=np.zeros(3), workspace=np.array([[-0.05, -0.05, 0.005], [0.05, 0.05, 0.1]]),
+                                 tool_rest=np.array([0.0, 0.0, 0.014]))
+    with mock.patch.object(model_lib, "load_model", return_value=types.SimpleNamespace(hand=fake)):
+        assert sc.fit("x") == sc.Fit(com=(1.0, 0.5))
+        fake.tool_rest = np.array([0.0, 0.04, 0.009])  # 4 mm above the reach's floor, 1 cm from its side
+        f = sc.fit("x")
+        assert f.down == pytest.approx(0.5) and f.lateral == (1.0, pytest.approx(10 / 18)) and f.up == 1.0
+        assert f.shift(-6) == pytest.approx(-3) and f.shift(12) == 12
+        fake.tool_com = np.array([0.0, room, 0.0])
+        assert sc.fit("x").com[1] == 0.0

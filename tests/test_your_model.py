@@ -420,3 +420,18 @@ def test_check_model_names_a_tool_on_the_table_and_options_out_of_reach(tmp_path
     reach = preflight.reach(Surrogate(model_lib.load_model(_write(tmp_path / "far", far)), ik_config=table_ik))
     assert reach.unreachable() == [("thumb_distal", 3)], reach.table()
     assert reach.error[0, 3].min() > 0.1 and reach.error[0, 1].max() < reach.tolerance
+
+
+def test_check_model_lists_every_missing_file_at_once(tmp_path):
+    """A published hand whose meshes are not beside it (issue 83): every missing file is named in one problem, where
+    MuJoCo's compiler stops at the first; a file with its meshes present is not reported."""
+    (tmp_path / "assets").mkdir()
+    (tmp_path / "scene.xml").write_text(
+        '<mujoco><compiler meshdir="assets"/><asset><mesh name="a" file="palm.stl"/><mesh name="b" file="tip.obj"/>'
+        '<texture name="t" type="2d" file="skin.png"/></asset>'
+        '<worldbody><body><geom type="mesh" mesh="a"/></body></worldbody></mujoco>')
+    problems = model_lib.check_model(tmp_path / "scene.xml")
+    assert len(problems) == 1 and "3 file(s)" in problems[0], problems
+    for name in ("assets/palm.stl", "assets/tip.obj", "skin.png"):
+        assert name in problems[0], problems
+    assert model_lib.missing_files(model_lib.SHIPPED["allegro"]) == []

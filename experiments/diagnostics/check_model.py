@@ -65,6 +65,7 @@ def main(args: argparse.Namespace, run: Run) -> None:
         problems += preflight.clearance(sur)
         print("the start grasp at waypoint 0 (IK) ...", flush=True)
         problems += preflight.start_reach(sur)
+        problems += preflight.start_band(sur)
         if not getattr(args, "quick", False):
             print(f"a dry run in C MuJoCo: the start grasp held for {preflight.DRY_SEGMENTS * scenario.DT:g} s of the "
                   "nominal lift ...", flush=True)

@@ -13,7 +13,8 @@ from experiments.common import Run, table
 from gsp_jax.model import scenario
 from gsp_jax.surrogate import step as surrogate
 
-# (description, per-link options in model order: thumb_d, index_d, index_m, middle_d, middle_m, ring_d)
+# The paper hand's grasps: (description, per-link options in its links' order)
+PAPER_LINKS = ("thumb_distal", "index_distal", "index_medial", "middle_distal", "middle_medial", "ring_distal")
 GRASPS = [
     ("index tip alone", (0, 1, 0, 0, 0, 0)),
     ("thumb + index tips", (1, 1, 0, 0, 0, 0)),
@@ -22,6 +23,26 @@ GRASPS = [
     ("head pinch + under + ring", (2, 2, 0, 3, 0, 1)),
     ("five-contact power wrap", (1, 0, 1, 3, 1, 1)),
 ]
+
+
+def grasps_of(space) -> list[tuple[str, tuple[int, ...]]]:
+    """The grasps shown for a grasp space: `GRASPS` where its links are the paper hand's; for any other model
+    (any number of contact links), the same kinds built from its own: one tip alone, the start grasp, every tip,
+    every link on its first option, every link on its last."""
+    if tuple(space.link_names) == PAPER_LINKS:
+        return GRASPS
+    n, tips = space.n_options, space.tip_options
+    first_tip = next(i for i, o in enumerate(tips) if o)
+    one = tuple(int(i == first_tip) for i in range(len(n)))
+    out = [(f"{space.link_names[first_tip]} alone", one), ("start grasp", tuple(space.start_options)),
+           ("every tip", tuple(tips)), ("every link, first option", (1,) * len(n)),
+           ("every link, last option", tuple(k - 1 for k in n))]
+    seen, unique = set(), []
+    for desc, options in out:  # a model's start grasp may be its tips: each grasp once
+        if options not in seen:
+            seen.add(options)
+            unique.append((desc, options))
+    return unique
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -37,7 +58,8 @@ def main(args: argparse.Namespace, run: Run) -> None:
         raise SystemExit(f"--waypoints: {bad[0]} is out of range 0..{ep.n_steps - 1}")
     env = surrogate.Surrogate(run.model, learned=run.learned)
     space = env.space
-    gs = jnp.asarray([int(space.encode(o)) for _, o in GRASPS], jnp.int32)
+    shown = grasps_of(space)
+    gs = jnp.asarray([int(space.encode(o)) for _, o in shown], jnp.int32)
 
     @jax.jit
     def terms(g, t):
@@ -55,7 +77,7 @@ def main(args: argparse.Namespace, run: Run) -> None:
     res, pen = jax.vmap(jax.vmap(terms))(grid_g, grid_t)
     res, pen = jax.tree.map(np.asarray, (res, pen))
     rows = []
-    for i, (desc, _) in enumerate(GRASPS):
+    for i, (desc, _) in enumerate(shown):
         for j, t in enumerate(ts):
             status = "collision" if res.collision[i, j] else "FALL" if res.fall[i, j] else "ok"
             rows.append([

@@ -1,9 +1,10 @@
 """A model: one hand, one tool and their grasp space, loaded once from an MJCF scene and carried everywhere.
 
-`load_model(name_or_path)` is the one door: a shipped model by name (`SHIPPED`: ``wrench``, the default, ``hammer``,
-``allegro``; ``testhand``, a small model for the tests) or any scene file that follows the conventions of
-`docs/your-model.md`. The surrogate, the physics scene (both backends), episodes, policies, DP tables and their
-cache, the environments and every ``python -m experiments`` command (``--model NAME_OR_PATH``) are built from it,
+`load_model(name_or_path)` is the one door: a shipped model by name (`SHIPPED`: ``wrench``, the default,
+``hammer``, ``allegro``, ``screwdriver``; ``testhand``, a small model for the tests) or any scene file that follows
+the conventions of `docs/your-model.md`. The surrogate, the physics scene (both backends), episodes, policies, DP
+tables and their cache, the environments and every ``python -m experiments`` command (``--model NAME_OR_PATH``)
+are built from it,
 and nothing falls back to the shipped files: what was made for one model (an episode, a table, a policy) is refused
 by another with an error naming both.
 
@@ -25,6 +26,7 @@ from gsp_jax.model import grasps, hand as hand_lib
 SHIPPED = {"wrench": hand_lib.MODELS_DIR / "scene.xml",  # the paper's tool and our four-fingered hand
            "hammer": hand_lib.MODELS_DIR / "hammer" / "scene.xml",  # round handle, heavy head: CoM far off the grip
            "allegro": hand_lib.MODELS_DIR / "allegro" / "scene.xml",  # the Allegro hand's kinematics, the wrench
+           "screwdriver": hand_lib.MODELS_DIR / "screwdriver" / "scene.xml",  # a round grip 2 cm across
            "testhand": hand_lib.MODELS_DIR / "testhand" / "scene.xml"}  # a test model: 3 two-hinge fingers, a bar
 DEFAULT = "wrench"
 
@@ -146,10 +148,33 @@ def require(path) -> None:
 
 
 @functools.lru_cache(maxsize=16)
+def missing_files(path) -> list[str]:
+    """The asset files (meshes, textures, height fields, skins) the scene at `path` and its includes name but that
+    do not exist, as the paths MuJoCo would open (relative to the scene's folder, through meshdir / texturedir /
+    assetdir): all of them at once, where MuJoCo's compiler stops at the first. [] where the file does not parse."""
+    try:
+        spec = mujoco.MjSpec.from_file(str(path))
+    except Exception:  # noqa: BLE001 -- a file that does not parse: MuJoCo's compile message says why
+        return []
+    root = pathlib.Path(path).resolve().parent
+    named = [(spec.meshdir, m.file) for m in spec.meshes] + [(spec.texturedir, t.file) for t in spec.textures] + \
+        [(spec.meshdir, h.file) for h in spec.hfields] + [(spec.meshdir, k.file) for k in spec.skins]
+    out = []
+    for folder, file in named:
+        if file and not (root / (folder or "") / file).exists() and not (root / file).exists():
+            out.append(str(pathlib.Path(folder or "") / file))
+    return list(dict.fromkeys(out))
+
+
 def _check(path: str) -> tuple[str, ...]:
     try:
         m = hand_lib.load_mjmodel(path)
     except Exception as e:  # noqa: BLE001 -- MuJoCo's own message, passed on
+        missing = missing_files(path)
+        if missing:
+            return (f"{len(missing)} file(s) the scene names are missing (relative to {pathlib.Path(path).resolve().parent}): "
+                    f"{', '.join(missing)}; get them beside the file, or drop the visual meshes (`import-hand "
+                    f"--drop-visual`)",)
         return (f"MuJoCo cannot compile the file: {e}".strip(),)
     problems = [*_check_tool(m), *_check_table(m)]
     links = _check_links(m, problems)

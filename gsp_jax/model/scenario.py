@@ -176,8 +176,55 @@ def start_options(space, start) -> np.ndarray:
 
 
 def _fmt_mm(mm: float) -> str:
-    return f"{mm:+d}mm" if float(mm).is_integer() else f"{mm:+g}mm"
+    return f"{int(mm):+d}mm" if float(mm).is_integer() else f"{mm:+g}mm"
 
+
+def _fmt_cm(cm: float) -> str:
+    return f"{int(cm):+d}cm" if float(cm).is_integer() else f"{cm:+g}cm"
+
+
+# The widest offsets any episode set draws, written for the shipped wrench (the corpus's: `corpus.Distribution`):
+# a model with less room scales them down (`Fit`), a model with as much keeps them.
+COM_REACH = 0.025  # [m] CoM offset along x or y (the wrench: its CoM 2.5 cm from the handle's faces)
+DOWN_REACH = 0.008  # [m] start and end heights shifted down
+UP_REACH = 0.014  # [m] ... and up
+LATERAL_REACH = 0.018  # [m] the lift's end point moved along x or y
+
+
+@struct.dataclass
+class Fit:
+    """The factors (each in [0, 1]) by which the episode sets' offsets, written in the wrench's centimetres and
+    millimetres, are scaled for a model's tool and hand (`fit`): 1 where the model has the wrench's room."""
+
+    com: tuple = struct.field(pytree_node=False, default=(1.0, 1.0))  # CoM offsets along the tool's x, y
+    down: float = struct.field(pytree_node=False, default=1.0)  # height shifts below the rest
+    up: float = struct.field(pytree_node=False, default=1.0)  # height shifts above it
+    lateral: tuple = struct.field(pytree_node=False, default=(1.0, 1.0))  # the end point's moves along x, y
+
+    def shift(self, mm: float) -> float:
+        """A height shift [mm] of the sets, scaled for the model."""
+        return mm * (self.down if mm < 0 else self.up)
+
+
+def fit(model=None) -> Fit:
+    """How far `model`'s tool and hand let the sets move an episode (see `Fit`). A CoM offset along x or y
+    reaches at most the tool's bounding box face nearest its file CoM (`COM_REACH` on the wrench: a round grip 2 cm
+    across gets 0.4 of the wrench's offsets); the lift's start, end and lateral end point stay in the hand's reach
+    box (`HandModel.workspace`). Room is counted in whole tenths of a millimetre, so the wrench's 1 is exact."""
+    from gsp_jax.model import load as model_lib
+
+    hand = model_lib.load_model(model).hand
+    lo, hi = hand.tool_bounds()
+    room = lambda d, reach: float(min(1.0, np.floor(max(d, 0.0) * 1e4 + 1e-6) / 1e4 / reach))  # noqa: E731
+    com = tuple(room(min(hand.tool_com[k] - lo[k], hi[k] - hand.tool_com[k]), COM_REACH) for k in (0, 1))
+    (wlo, whi), rest = hand.workspace, hand.tool_rest
+    down = room(rest[2] - wlo[2], DOWN_REACH)
+    up = room(whi[2] - (rest[2] + Z_END - Z_START), UP_REACH)
+    lateral = tuple(room(min(rest[k] - wlo[k], whi[k] - rest[k]), LATERAL_REACH) for k in (0, 1))
+    return Fit(com=com, down=down, up=up, lateral=lateral)
+
+
+STRESS_SEED = 20261125
 
 def _torque(model) -> float:
     """The final torque magnitude of a model's episodes [N m] (`HandModel.torque`; the wrench's: TORQUE0)."""
@@ -193,9 +240,9 @@ def nominal(model=None) -> dict[str, Episode]:
 def training_set(model=None) -> dict[str, Episode]:
     """The paper's 9 training episodes: nominal (+1 N m), nominal with -1 N m, and the seven height shifts with
     -1 N m for negative shifts and +1 N m for positive ones."""
-    t0 = _torque(model)
+    t0, f = _torque(model), fit(model)
     eps = {"nominal": make_episode(model=model), f"nominal_{-t0:+g}Nm": make_episode(model=model, torque=-t0)}
-    for s in HEIGHT_SHIFTS_MM:
+    for s in map(f.shift, HEIGHT_SHIFTS_MM):
         tau = -t0 if s < 0 else t0
         eps[f"shift{_fmt_mm(s)}_{tau:+g}Nm"] = make_episode(model=model, shift_mm=s, torque=tau)
     return eps
@@ -203,8 +250,8 @@ def training_set(model=None) -> dict[str, Episode]:
 
 def eval_set_a(model=None) -> dict[str, Episode]:
     """Evaluation set A, path deviation (7): the height shifts with the torque sign flipped."""
-    eps, t0 = {}, _torque(model)
-    for s in HEIGHT_SHIFTS_MM:
+    eps, t0, f = {}, _torque(model), fit(model)
+    for s in map(f.shift, HEIGHT_SHIFTS_MM):
         tau = t0 if s < 0 else -t0
         eps[f"shift{_fmt_mm(s)}_{tau:+g}Nm"] = make_episode(model=model, shift_mm=s, torque=tau)
     return eps
@@ -212,8 +259,9 @@ def eval_set_a(model=None) -> dict[str, Episode]:
 
 def eval_set_b(model=None) -> dict[str, Episode]:
     """Evaluation set B, mass and centre of mass (20): mass x {0.5..2} m0 crossed with CoM y-offset -2..+2 cm."""
+    k = fit(model).com[1]
     return {
-        f"mass{f:g}m0_comy{c:+d}cm": make_episode(model=model, mass_factor=f, com_y_cm=c)
+        f"mass{f:g}m0_comy{_fmt_cm(c * k)}": make_episode(model=model, mass_factor=f, com_y_cm=c * k)
         for f in MASS_FACTORS
         for c in COM_Y_OFFSETS_CM
     }
@@ -224,13 +272,13 @@ def validation_set(model=None) -> dict[str, Episode]:
     evaluation: the odd height shifts with set A's torque convention (positive shifts -1 N m), and mass
     0.5 / 0.75 / 1.75 / 2 m0 crossed with CoM y-offset -1.5 / +1.5 cm -- unseen variations of both evaluation kinds
     (15 episodes; the CoM offsets are not evaluation set B's, so the lightest and heaviest tools are in both)."""
-    eps, t0 = {}, _torque(model)
-    for s in VALIDATION_SHIFTS_MM:
+    eps, t0, fitted = {}, _torque(model), fit(model)
+    for s in map(fitted.shift, VALIDATION_SHIFTS_MM):
         tau = t0 if s < 0 else -t0
         eps[f"shift{_fmt_mm(s)}_{tau:+g}Nm"] = make_episode(model=model, shift_mm=s, torque=tau)
     for f in VALIDATION_MASS_FACTORS:
-        for c in VALIDATION_COM_Y_CM:
-            eps[f"mass{f:g}m0_comy{c:+g}cm"] = make_episode(model=model, mass_factor=f, com_y_cm=c)
+        for c in (c * fitted.com[1] for c in VALIDATION_COM_Y_CM):
+            eps[f"mass{f:g}m0_comy{_fmt_cm(c)}"] = make_episode(model=model, mass_factor=f, com_y_cm=c)
     return eps
 
 
@@ -257,21 +305,23 @@ def stress_set(n: int = STRESS_SIZE, seed: int = STRESS_SEED, prefix: str = "str
     in, fixed and seeded, never used for calibration or training. Per episode, stratified over the set (each range
     cut into n strata, one draw per stratum, strata shuffled per parameter): mass 0.25-3 m0 (log-uniform), friction
     0.3-2, final torque -2..+2 N m about x, y or z (in turn), CoM x and y offsets -2..+2 cm, start/end height shift
-    -6..+12 mm; the path vertical, lateral (end point up to 15 mm off along x or y) or diagonal (both), in turn."""
+    -6..+12 mm; the path vertical, lateral (end point up to 15 mm off along x or y) or diagonal (both), in turn.
+    The offsets are the wrench's, scaled for a model with less room (`fit`)."""
     rng = np.random.default_rng(seed)
 
     def strata(lo, hi):
         return lo + (hi - lo) * (rng.permutation(n) + rng.uniform(size=n)) / n
 
     log_mass = strata(np.log(0.25), np.log(3.0))
-    t0 = _torque(model)
+    t0, f = _torque(model), fit(model)
     mu, torque, com_x, com_y = strata(0.3, 2.0), strata(-2.0, 2.0) * t0, strata(-2.0, 2.0), strata(-2.0, 2.0)
     shift, lat = strata(-6.0, 12.0), strata(-15.0, 15.0)
+    com_x, com_y, shift = com_x * f.com[0], com_y * f.com[1], np.where(shift < 0, f.down, f.up) * shift
     eps = {}
     for i in range(n):
         path = ("vertical", "lateral-x", "lateral-y", "diagonal")[i % 4]
-        dx = lat[i] if path in ("lateral-x", "diagonal") else 0.0
-        dy = (lat[i] if path == "lateral-y" else -lat[i] if path == "diagonal" else 0.0)
+        dx = lat[i] * f.lateral[0] if path in ("lateral-x", "diagonal") else 0.0
+        dy = (lat[i] if path == "lateral-y" else -lat[i] if path == "diagonal" else 0.0) * f.lateral[1]
         axis = "xyz"[i % 3]
         m = float(np.exp(log_mass[i]))
         name = f"{prefix}{i:03d}_{m:.2f}m0_mu{mu[i]:.2f}_{axis}{torque[i]:+.1f}Nm_{path}"

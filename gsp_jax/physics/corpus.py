@@ -48,7 +48,8 @@ class Distribution:
     [m0], finger-tool friction, final torque [x the model's torque] about a uniformly drawn axis (x, y, z or any unit
     vector), CoM offsets [cm], start/end height shift [mm], lateral end point [mm] along a path drawn from vertical,
     lateral x, lateral y and diagonal. The stress set spans 0.25-3 m0, mu 0.3-2, +-2 torques about x, y or z,
-    +-2 cm, -6..12 mm and +-15 mm (`scenario.stress_set`)."""
+    +-2 cm, -6..12 mm and +-15 mm (`scenario.stress_set`). The offsets are the wrench's: `draw` scales them for a
+    model with less room (`scenario.fit`: a narrower tool, a lower rest)."""
 
     mass: tuple[float, float] = (0.2, 3.5)
     friction: tuple[float, float] = (0.25, 2.2)
@@ -82,17 +83,19 @@ def draw(dist: Distribution, seed: int, n: int, model=None) -> dict[str, scenari
         raise ValueError(f"n: at least one episode, got {n}")
     rng = np.random.default_rng([VERSION, seed])
     held = _held_out(model)
-    t0 = scenario._torque(model)
+    t0, fit = scenario._torque(model), scenario.fit(model)
     out = {}
     while len(out) < n:
         path = ("vertical", "lateral-x", "lateral-y", "diagonal")[int(rng.integers(4))]
         lat = rng.uniform(*dist.lateral_mm)
-        dx = lat if path in ("lateral-x", "diagonal") else 0.0
-        dy = lat if path == "lateral-y" else -lat if path == "diagonal" else 0.0
+        dx = lat * fit.lateral[0] if path in ("lateral-x", "diagonal") else 0.0
+        dy = (lat if path == "lateral-y" else -lat if path == "diagonal" else 0.0) * fit.lateral[1]
         ep = scenario.make_episode(
-            model=model, shift_mm=float(rng.uniform(*dist.shift_mm)), torque=float(rng.uniform(*dist.torque) * t0),
+            model=model, shift_mm=fit.shift(float(rng.uniform(*dist.shift_mm))),
+            torque=float(rng.uniform(*dist.torque) * t0),
             mass_factor=float(np.exp(rng.uniform(*np.log(dist.mass)))), friction=float(rng.uniform(*dist.friction)),
-            com_x_cm=float(rng.uniform(*dist.com_cm)), com_y_cm=float(rng.uniform(*dist.com_cm)),
+            com_x_cm=float(rng.uniform(*dist.com_cm)) * fit.com[0],
+            com_y_cm=float(rng.uniform(*dist.com_cm)) * fit.com[1],
             lateral_mm=(float(dx), float(dy)), torque_axis=_torque_axis(rng))
         if _key(ep) not in held:
             out[f"corpus{seed}-{len(out):04d}"] = ep

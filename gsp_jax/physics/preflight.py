@@ -24,8 +24,9 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from gsp_jax.model import grasps, hand as hand_lib, scenario
+from gsp_jax.model import grasps, hand as hand_lib, kinematics, scenario
 from gsp_jax.physics.config import PhysicsConfig
+from gsp_jax.solvers import ik
 from gsp_jax.surrogate.step import Surrogate
 
 THROWN = 0.005  # [m] the start grasp's tool leaving its path by more than this in the dry run is a problem
@@ -95,14 +96,14 @@ def joint_dynamics(m: mujoco.MjModel, config: PhysicsConfig = PhysicsConfig()) -
 def clearance(sur: Surrogate) -> list[str]:
     """Problems with the tool's gap to the table at the start of the nominal lift and the lowest standard one."""
     lowest = float(sur.hand.tool_hull()[:, 2].min() + sur.hand.tool_rest[2])
-    shift = min(scenario.HEIGHT_SHIFTS_MM) * 1e-3
-    if lowest + shift >= CLEARANCE:
+    shift = scenario.fit(sur.model).shift(min(scenario.HEIGHT_SHIFTS_MM)) * 1e-3
+    if lowest + shift >= CLEARANCE - 1e-7:  # a tool exactly CLEARANCE clear passes (0.1 um of rounding)
         return []
     where = "in" if lowest < 0 else "on" if lowest < CLEARANCE else f"{lowest * 1e3:.1f} mm above"
+    raise_mm = max(np.ceil(np.round((CLEARANCE - lowest - shift) * 1e4, 6)), 1) / 10  # whole tenths: never "0.0"
     return [f"the tool starts {where} the table (its lowest point at z = {lowest * 1e3:.1f} mm): the standard "
-            f"episodes start the lift up to {-shift * 1e3:g} mm lower (shift{min(scenario.HEIGHT_SHIFTS_MM)}mm), so "
-            f"raise the tool body in the file by at least {(CLEARANCE - lowest - shift) * 1e3:.1f} mm, onto its "
-            "supports"]
+            f"episodes start the lift up to {-shift * 1e3:g} mm lower, so raise the tool body in the file by at least "
+            f"{raise_mm:.1f} mm, onto its supports"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -164,6 +165,22 @@ def start_reach(sur: Surrogate) -> list[str]:
     return [f"the start grasp's link {n!r} does not reach its option {opts[li]} at the start of the lift: the IK "
             f"leaves it {err[li] * 1e3:.1f} mm away (> {tol * 1e3:g} mm); move the option, the palm or gsp_ik_start"
             for li, n in enumerate(sur.hand.link_names) if active[li] and err[li] > tol]
+
+
+def start_band(sur: Surrogate) -> list[str]:
+    """Problems with the start grasp over the heights the episodes start at: the lowest and highest starts any set
+    or corpus draws (`scenario.fit`'s shifts), where the IK's start grasp collides, naming the bodies and depths."""
+    f, out = scenario.fit(sur.model), []
+    for mm in (f.shift(-scenario.DOWN_REACH * 1e3), f.shift(scenario.UP_REACH * 1e3)):
+        episode = scenario.make_episode(model=sur.model, shift_mm=mm)
+        pos, quat = episode.waypoints[0], episode.quats[0]
+        c = sur.realise(episode.start_grasp, pos, quat)
+        if bool(c.ik.collision):
+            hits = ik.collisions(sur.hand, c.ik.q, pos, kinematics.quat_to_mat(quat), sur.ik_config.collision_tol)
+            out.append(f"the start grasp collides where the episodes start {abs(mm):.3g} mm "
+                       f"{'lower' if mm < 0 else 'higher'} than the file's rest (the sets and the corpus reach "
+                       f"there): {'; '.join(hits)}; move the palm, the options or gsp_ik_start")
+    return out
 
 
 @dataclasses.dataclass(frozen=True)

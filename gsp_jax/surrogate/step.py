@@ -398,10 +398,22 @@ class Surrogate:
         states, terms = _replay(self, episode, jnp.asarray(actions))
         for t in range(min(len(actions), episode.n_steps)):
             if bool(terms.collision[t]) or bool(terms.fall[t]):
-                grasp = self.space.label(int(self.space.transitions[int(states.grasp[t]), actions[t]]))
-                return reward_lib.explain_failure(self.reward_config, jax.tree.map(lambda x, t=t: x[t], terms), t,
-                                                  grasp)
+                g = int(self.space.transitions[int(states.grasp[t]), actions[t]])
+                why = reward_lib.explain_failure(self.reward_config, jax.tree.map(lambda x, t=t: x[t], terms), t,
+                                                 self.space.label(g))
+                return why + self.where_collides(episode, g, t) if bool(terms.collision[t]) else why
         return None
+
+    def where_collides(self, episode: Episode, grasp: int, t: int) -> str:
+        """What collides when `grasp` is realised at waypoints t and t + 1 (a step's two poses), as ': <body> into
+        the tool 2.7 mm, ...' naming the bodies and depths (`ik.collisions`), or '' where neither pose collides."""
+        found = []
+        for k in dict.fromkeys((t, min(t + 1, episode.n_steps - 1))):
+            pos, quat = episode.waypoints[k], episode.quats[k]
+            q = self.realise(jnp.int32(grasp), pos, quat).ik.q
+            hits = ik.collisions(self.hand, q, pos, kinematics.quat_to_mat(quat), self.ik_config.collision_tol)
+            found += [f"{text} at waypoint {k}" for text in hits]
+        return (": " + "; ".join(found)) if found else ""
 
     def transition(self, episode: Episode, grasp: jax.Array, t: jax.Array, action: jax.Array):
         """`step(discrete_state(episode, grasp, t), action)` without realising the state it starts from (a step reads

@@ -716,7 +716,8 @@ def test_unrolled_loop_solves_the_same_problems(hand, all_grasps, nominal_waypoi
 def test_collisions_name_the_bodies_and_the_depth(hand):
     """`ik.collisions` (what check-model and `Surrogate.explain` print): the tool's centre put at a sphere of the
     index tip names the index distal among the bodies in the tool, each body once, deepest first, the first as deep
-    as the IK's own penetration measure at that configuration; a tool far away names no tool contact, and a tolerance beyond the depth names nothing."""
+    as the IK's own penetration measure at that configuration; a tool far away names no tool contact, and a
+    tolerance beyond the depth names nothing."""
     q = jnp.asarray(hand.q_start, jnp.float32)
     pos, mat = kinematics.body_poses(hand, q)
     s = int(np.flatnonzero(np.asarray(hand.sphere_body) == hand.body_names.index("index_distal"))[-1])

@@ -516,3 +516,35 @@ def test_bodies_whose_mass_was_in_dropped_visual_geoms_take_it_from_their_collis
     density = float(re.search(r"density ([0-9.]+) kg/m\^3", line).group(1))
     volume = sum(8 * np.prod(g.size) for g in body.geoms if g.type == mujoco.mjtGeom.mjGEOM_BOX)
     assert res.spec.compile().body("middle_prox").mass[0] == pytest.approx(density * volume, rel=1e-6)
+
+
+def test_a_moving_body_whose_only_geom_was_a_dropped_visual_mesh_gets_a_mass(tmp_path):
+    """Issue 83: a body that moves and whose only geom is a visual mesh whose file is missing (a knuckle drawn by a
+    mesh, its mass in it) compiled to 'mass and inertia of moving bodies must be larger than mjMINVAL'; with
+    --drop-visual it now gets a few grams at its origin, and the change says so and names it."""
+    spec = mujoco.MjSpec.from_file(str(write_hand(tmp_path / "src")))
+    parent = next(b for b in spec.bodies if b.name == "middle_prox")
+    knuckle = parent.add_body(name="knuckle", pos=[0, 0, 0.01])
+    knuckle.add_joint(name="knuckle_hinge", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[1, 0, 0], range=[-0.1, 0.1])
+    knuckle.add_geom(name="knuckle_skin", type=mujoco.mjtGeom.mjGEOM_MESH, meshname="shell", contype=0, conaffinity=0)
+    (tmp_path / "src" / "knuckle.xml").write_text(spec.to_xml())
+    (tmp_path / "src" / "meshes" / "shell.obj").unlink()
+    res = importer.import_hand(tmp_path / "src" / "knuckle.xml", torque_limit=TORQUE_LIMIT, drop_visual=True)
+    line = next(c for c in res.changes if c.startswith("body 'knuckle': no mass left"))
+    assert "5 g" in line, line
+    m = res.spec.compile()
+    assert m.body("knuckle").mass[0] == pytest.approx(0.005) and np.all(m.body("knuckle").inertia > 0)
+
+
+def test_a_missing_palm_mesh_is_not_said_to_be_fitted(tmp_path):
+    """Issue 83: the palm's geoms are kept as the file has them (only the fingers' are fitted): a collision mesh of
+    the palm whose file is missing is named with that reason, not as a capsule 'fitted to the mesh's vertices'."""
+    spec = mujoco.MjSpec.from_file(str(write_hand(tmp_path / "src")))
+    palm = next(b for b in spec.bodies if b.name == "palm")
+    palm.add_geom(name="palm_shell", type=mujoco.mjtGeom.mjGEOM_MESH, meshname="shell")
+    (tmp_path / "src" / "palm_mesh.xml").write_text(spec.to_xml())
+    (tmp_path / "src" / "meshes" / "shell.obj").unlink()
+    with pytest.raises(importer.HandImportError, match="shell.obj") as err:
+        importer.import_hand(tmp_path / "src" / "palm_mesh.xml", torque_limit=TORQUE_LIMIT, drop_visual=True)
+    assert "palm_shell" in str(err.value) and "the palm's geoms are kept" in str(err.value) and \
+        "fitted to the mesh" not in str(err.value), err.value

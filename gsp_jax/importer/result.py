@@ -151,9 +151,14 @@ def _changing_bodies(spec: mujoco.MjSpec, m: mujoco.MjModel, palm: int, drop_vis
     return sorted(bodies), []
 
 
+BARE_MASS = 0.005  # [kg] a moving body left with no geom and no mass (`mass_from_collision`): a knuckle's few grams
+BARE_RADIUS = 0.01  # [m] ... its inertia: a solid ball of this radius
+
+
 def mass_from_collision(spec: mujoco.MjSpec) -> list[str]:
     """Bodies left without mass (their mass came from visual geoms that were dropped, their colliding geoms set to
-    mass 0, as Menagerie's Allegro's are) take it from their colliding geoms' volume at those geoms' density. The
+    mass 0, as Menagerie's Allegro's are) take it from their colliding geoms' volume at those geoms' density; a
+    moving body left with no geom at all gets `BARE_MASS` (MuJoCo compiles no moving body without mass). The
     change lines."""
     lines = []
     for body in spec.bodies:
@@ -165,6 +170,17 @@ def mass_from_collision(spec: mujoco.MjSpec) -> list[str]:
                 g.mass = float("nan")  # MuJoCo's unset value: the mass comes from the density
             lines.append(f"body {body.name!r}: no mass left (it came from its visual geoms); now from its colliding "
                          f"geoms' volume at density {', '.join(sorted({f'{g.density:g}' for g in geoms}))} kg/m^3")
+    for body in spec.bodies:  # moving bodies left with no geom at all: MuJoCo refuses a moving body without mass
+        if body.name == "world" or body.explicitinertial or body.geoms or not body.joints:
+            continue
+        body.mass, body.ipos, body.iquat = BARE_MASS, np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])
+        body.inertia = np.full(3, 0.4 * BARE_MASS * BARE_RADIUS**2)
+        body.fullinertia = np.full(6, np.nan)
+        body.explicitinertial = True
+        lines.append(f"body {body.name!r}: no mass left (its only geoms were visual, their mesh files missing) and it "
+                     f"moves: given {BARE_MASS * 1e3:g} g at its origin, the inertia of a ball "
+                     f"{BARE_RADIUS * 1e3:g} mm in radius (MuJoCo refuses a moving body without mass); write its "
+                     "<inertial> if you know it")
     return lines
 
 
@@ -251,7 +267,7 @@ def import_hand(src, *, torque_limit: float | None = None, palm: str | None = No
     changes = reroot(spec, sk, palm)
     rename, lines = strip_prefix(spec, palm)
     palm = rename(palm)
-    changes += lines + reset_option(spec) + check_files(spec, drop_visual)
+    changes += lines + reset_option(spec) + check_files(spec, drop_visual, palm)
     changes += mass_from_collision(spec)
     m = _compile(spec, "after moving the palm")
     pid = m.body(palm).id

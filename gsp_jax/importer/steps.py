@@ -210,9 +210,10 @@ def mesh_files(spec: mujoco.MjSpec) -> dict[str, pathlib.Path]:
     return out
 
 
-def check_files(spec: mujoco.MjSpec, drop_visual: bool) -> list[str]:
+def check_files(spec: mujoco.MjSpec, drop_visual: bool, palm: str | None = None) -> list[str]:
     """Raise `HandImportError` naming a mesh file that is missing where it is needed; with `drop_visual`, delete the
-    visual geoms whose mesh files are missing (their meshes go with the other unused ones). The change lines."""
+    visual geoms whose mesh files are missing (their meshes go with the other unused ones). `palm`: the palm body's
+    name (its geoms are kept as they are, not fitted). The change lines."""
     paths = mesh_files(spec)
     missing = {x.name: paths[x.name or x.file] for x in spec.meshes
                if x.file and not paths[x.name or x.file].is_file()}
@@ -222,9 +223,11 @@ def check_files(spec: mujoco.MjSpec, drop_visual: bool) -> list[str]:
         colliding = [g for g in users if g.contype or g.conaffinity]
         if colliding:
             g = colliding[0]
+            why = ("the palm's geoms are kept as they are: MuJoCo needs the file to compile it; or replace the geom "
+                   "by a box or capsule in the file" if g.parent.name == palm else
+                   "its capsule is fitted to the mesh's vertices")
             raise HandImportError(f"mesh {name!r}: file {str(path)!r} is missing, and collision geom "
-                                  f"{g.name or '(unnamed)'!r} (body {g.parent.name!r}) needs it (its capsule is fitted "
-                                  "to the mesh's vertices)")
+                                  f"{g.name or '(unnamed)'!r} (body {g.parent.name!r}) needs it ({why})")
         if users and not drop_visual:
             raise HandImportError(f"mesh {name!r}: file {str(path)!r} is missing (used by the visual geoms "
                                   f"{', '.join(repr(g.name or '(unnamed)') for g in users)}); put the file there, or "

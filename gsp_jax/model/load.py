@@ -172,7 +172,8 @@ def _check(path: str) -> tuple[str, ...]:
     except Exception as e:  # noqa: BLE001 -- MuJoCo's own message, passed on
         missing = missing_files(path)
         if missing:
-            return (f"{len(missing)} file(s) the scene names are missing (relative to {pathlib.Path(path).resolve().parent}): "
+            folder = pathlib.Path(path).resolve().parent
+            return (f"{len(missing)} file(s) the scene names are missing (relative to {folder}): "
                     f"{', '.join(missing)}; get them beside the file, or drop the visual meshes (`import-hand "
                     f"--drop-visual`)",)
         return (f"MuJoCo cannot compile the file: {e}".strip(),)

@@ -210,6 +210,7 @@ import json, pathlib, sys
 import gymnasium as gym, imageio.v3 as iio, numpy as np
 import gsp_jax
 from gsp_jax.learning.gym_env import ENV_ID
+gsp_jax.enable_cache()  # the run's test cache (GSP_JAX_CACHE, set by conftest.py)
 out = pathlib.Path(sys.argv[2])
 env = gym.make(ENV_ID, episodes=sys.argv[1], render_mode="rgb_array", progress=False)
 env = gym.wrappers.RecordVideo(env, str(out), episode_trigger=lambda e: True, disable_logger=True)
@@ -228,7 +229,8 @@ print(json.dumps(dict(frames=int(frames.shape[0]), shape=list(frames.shape[1:]),
 
 def test_record_video_writes_a_readable_file(episodes_json, tmp_path):
     """RecordVideo over one episode writes an MP4 whose frames read back (one per step plus the reset, 360x480,
-    not blank, the tool moved between first and last). Slow-ish (~30 s: a fresh process builds its tables).
+    not blank, the tool moved between first and last). A fresh process builds its tables (programs from the test
+    cache).
     Rendering needs OpenGL, chosen before mujoco is imported: MUJOCO_GL=egl in a subprocess; skipped if none works."""
     env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"), JAX_PLATFORMS="cpu")
     proc = subprocess.run([sys.executable, "-c", textwrap.dedent(RECORD), str(episodes_json), str(tmp_path / "video")],

@@ -23,6 +23,7 @@ import gsp_jax
 from gsp_jax.planning import evaluation
 from gsp_jax.model import hand, scenario
 from gsp_jax.surrogate import step as surrogate
+gsp_jax.enable_cache()  # the run's test cache (GSP_JAX_CACHE, set by conftest.py)
 env = surrogate.Surrogate()
 state = jax.jit(env.reset)(scenario.make_episode())
 state, reward, done = jax.jit(env.step)(state, jnp.int32(3))

@@ -154,9 +154,13 @@ def main(argv: list[str] | None = None, outer: common.Run | None = None) -> None
                                  "screwdriver) or a scene file "
                                  "(default: wrench); checked first (check-model)")
         if name not in ("check-model", "calibrate", "figures"):
+            default = ("without it" if name in PAPER_BY_DEFAULT else
+                       "the default where the model has weights, `calibrate --learn`")
             sp.add_argument("--learned", action="store_true",
-                            help="plan with the learned physics term (the model's weights, `calibrate --learn`); "
-                                 "results and records are named -learned")
+                            help=f"plan with the learned physics term ({default}; refused where the model has "
+                                 "none); results and records are named -learned")
+            sp.add_argument("--paper", action="store_true",
+                            help="plan with the paper's surrogate alone (no learned physics term)")
     args = parser.parse_args(argv)
     for plugin in args.plugin:
         load_plugin(plugin)
@@ -174,9 +178,10 @@ def main(argv: list[str] | None = None, outer: common.Run | None = None) -> None
 
 def make_run(args: argparse.Namespace, words: list[str], outer: common.Run | None = None) -> common.Run:
     """The `Run` of a parsed command line: its `--model` loaded and checked (the outer run's model where it gives
-    none; the default model for the outermost), `--learned` (or the outer run's) with the model's weights checked,
-    `--record` (or the outer run's), and the words its records name (the outer run's: the outermost command).
-    `--model` and `--learned` leave `args`: a command reads them from its run."""
+    none; the default model for the outermost), the learned physics term (`_learned`: the model's where it has one,
+    `--paper` / `--learned` to choose, the outer run's for a nested command), `--record` (or the outer run's), and
+    the words its records name (the outer run's: the outermost command). `--model`, `--learned` and `--paper`
+    leave `args`: a command reads them from its run."""
     from experiments import common
     from gsp_jax.model import load as model_lib
     from gsp_jax.surrogate import learned
@@ -191,18 +196,42 @@ def make_run(args: argparse.Namespace, words: list[str], outer: common.Run | Non
             raise SystemExit(f"--model: {e}") from None
         if given:
             print(f"model: {model.name} ({model.path})", flush=True)
-    use_learned = bool(getattr(args, "learned", False) or outer.learned)  # `Surrogate(run.model, learned=)`
-    if use_learned and "model" in args:  # the model's weights exist (checked before any work)
-        try:
-            learned.resolve(True, model)
-        except learned.LearnedTermError as e:
-            raise SystemExit(f"--learned: {e}") from None
-        if not outer.learned:
-            print(f"learned physics term: {learned.path_of(model)}", flush=True)
-    for name in ("model", "learned"):
+    use_learned = _learned(args, model, outer)  # `Surrogate(run.model, learned=)`
+    if use_learned and "model" in args and not outer.learned:
+        print(f"learned physics term: {learned.path_of(model)}" + (
+            "" if getattr(args, "learned", False) else " (the model's default; --paper: the paper's surrogate)"),
+            flush=True)
+    for name in ("model", "learned", "paper"):
         vars(args).pop(name, None)
     return common.Run(model=model, learned=use_learned, record=outer.record or args.record,
                       command=outer.command or tuple(words))
+
+
+PAPER_BY_DEFAULT = ("corpus", "reproduce")  # the learned term's own data (its corpus plans with the analytic
+# surrogate), and the paper's reproduction: these plan without the term unless --learned
+
+
+def _learned(args: argparse.Namespace, model, outer) -> bool:
+    """Whether a command plans with the learned physics term: `--paper` no, `--learned` yes (the model's weights
+    checked before any work); else a nested command as the command that runs it, and a command that plans (it takes
+    --learned) with the model's weights where the model has them (`learned.has_own`), except `PAPER_BY_DEFAULT`."""
+    from gsp_jax.surrogate import learned
+
+    paper, asked = getattr(args, "paper", False), getattr(args, "learned", False)
+    if paper and asked:
+        raise SystemExit("--learned and --paper: one or the other")
+    if paper:
+        return False
+    if asked or outer.learned:
+        if "model" in args:
+            try:
+                learned.resolve(True, model)
+            except learned.LearnedTermError as e:
+                raise SystemExit(f"--learned: {e}") from None
+        return True
+    if outer.command or "learned" not in args or args.command in PAPER_BY_DEFAULT:
+        return False
+    return learned.has_own(model)
 
 
 def run_command(words: list[str], run: common.Run) -> None:

@@ -105,7 +105,8 @@ class Run:
     process: a command knows its run only through this object."""
 
     model: Model | None = None  # the scene (`--model`; None: the default model, where the command takes no --model)
-    learned: bool = False  # `--learned`: plan with the model's learned physics term (`Surrogate(learned=)`)
+    learned: bool = False  # plan with the model's learned physics term (`Surrogate(learned=)`): where the model has
+    # weights unless `--paper` (`cli.PAPER_BY_DEFAULT`: only with `--learned`)
     record: bool = False  # `--record`: `record_figures` writes to DATA (off: runs leave docs alone)
     command: tuple[str, ...] = ()  # the words of the command its records name (the outermost one's; (): sys.argv)
 

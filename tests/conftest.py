@@ -118,7 +118,7 @@ def sur(hand):
     """A Surrogate of that hand (stateless, so one serves every module), its tables' IK vmapped (`TABLE_IK`)."""
     from gsp_jax.surrogate import step as surrogate
 
-    return surrogate.Surrogate(hand, ik_config=TABLE_IK)
+    return surrogate.Surrogate(hand, ik_config=TABLE_IK, learned=False)
 
 
 # ------------------------------------------------------------------------------------------ the small test model

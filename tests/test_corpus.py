@@ -136,7 +136,7 @@ def test_a_real_shard_agrees_with_the_surrogate_and_c_mujoco():
     from gsp_jax.surrogate.step import Surrogate
     import tolerances as tol
 
-    phys = physics.Physics(Surrogate())
+    phys = physics.Physics(Surrogate(learned=False))
     got = corpus.shard(phys, seed=7, n_episodes=2, dist=corpus.Distribution(), n_random=1, n_perturbed=1, n_steps=2)
     M, T, F = got["features"].shape
     assert (M, T, F) == (8, 2, len(corpus.FEATURES)) and list(got["kinds"]) == ["four-tips", "dp-opt", "random0",

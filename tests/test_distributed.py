@@ -100,7 +100,7 @@ from gsp_jax.solvers import ik
 from gsp_jax.model import scenario
 from gsp_jax.surrogate import step as surrogate
 
-sur = surrogate.Surrogate(ik_config=ik.IKConfig(lanes=False))
+sur = surrogate.Surrogate(ik_config=ik.IKConfig(lanes=False), learned=False)
 episodes = {k: e.head(2) for k, e in list(scenario.episode_set("eval").items())[:3]}
 tables = evaluation.dp_tables(sur, "eval", episodes, batch_size=2, cache=None)
 n = int(sys.argv[1])

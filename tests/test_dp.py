@@ -344,7 +344,7 @@ def test_table_costs_g_times_t_ik_solves(sur, episodes, solved):
     the shared grasp through a change; 2 without the change term) first, so a broken counter cannot pass."""
     iters = 37
     assert iters not in (sur.ik_config.iterations, sur.wrench_config.iterations)
-    sur37 = surrogate.Surrogate(sur.hand, ik_config=ik.IKConfig(iterations=iters, lanes=False))
+    sur37 = surrogate.Surrogate(sur.hand, ik_config=ik.IKConfig(iterations=iters, lanes=False), learned=False)
     per = 1 + len(sur37.ik_config.extra_starts)  # each IK problem runs from every start configuration
     ep = episodes["nominal"]
     n_g, n_j = sur.space.n_grasps, sur.hand.n_joints
@@ -353,7 +353,7 @@ def test_table_costs_g_times_t_ik_solves(sur, episodes, solved):
     state = jax.eval_shape(sur37.reset, ep)  # abstract: tracing needs no IK to run
     assert sur37.reward_config.prices_changes and count(sur37.step, state, jnp.int32(3)) == 3 * per
     off = surrogate.Surrogate(sur.hand, RewardConfig(w_wrench_change=0.0, change_falls=False),
-                              ik_config=ik.IKConfig(iterations=iters))
+                              ik_config=ik.IKConfig(iterations=iters), learned=False)
     assert count(off.step, state, jnp.int32(3)) == 2 * per
     assert count(lambda e: dp.build_table(sur37, e), ep) == n_g * T * per
     full = scenario.make_episode(model=sur.hand)

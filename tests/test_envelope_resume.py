@@ -22,7 +22,7 @@ from gsp_jax.model import scenario
 
 # 2 evaluation episodes x (the four tips, 1 random sequence), one episode a chunk: 2 chunks; falls classified here
 LINE = ["envelope", "--set", "eval", "--episodes", "2", "--random", "1", "--policies", "four-tips", "--chunk", "1",
-        "--jobs", "1"]
+        "--jobs", "1", "--paper"]
 WAYPOINTS = launch.WAYPOINTS
 
 

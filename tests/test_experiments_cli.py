@@ -110,26 +110,41 @@ def test_a_commands_model_is_handed_down_and_left_behind_nowhere(monkeypatch, ca
     assert seen[-1].name == model_lib.DEFAULT
 
 
-def test_learned_is_handed_down_and_left_behind_nowhere(monkeypatch, capsys, tmp_path):
-    """`--learned` becomes `run.learned`, which a command run by another inherits; no surrogate built outside
-    the command has the learned term, during or after (no process-wide default)."""
+def test_learned_is_the_default_where_weights_exist_and_handed_down(monkeypatch, capsys, tmp_path):
+    """Issue 83: a command plans with the learned physics term where the model has weights (the wrench does; the
+    screwdriver does not), `--paper` without it, `--learned` with it or refused; a command run by another inherits
+    its run's choice; the corpus (the term's own data) plans without it unless asked. `Surrogate(model)` alike:
+    the term where the model has weights, `learned=False` the paper's surrogate."""
     from gsp_jax.surrogate.step import Surrogate
 
     seen = []
 
     def main(args, run):
-        seen.append((run.learned, run.results_dir().name, Surrogate(run.model).learned is None))
+        seen.append((run.learned, run.results_dir().name))
+        assert "paper" not in args and "learned" not in args
         if len(seen) == 1:
             cli.run_command(["planners"], run)
 
     monkeypatch.setattr("experiments.diagnostics.planners.main", main)
     monkeypatch.setattr("experiments.common.RESULTS", tmp_path / "results")
-    cli.main(["planners", "--learned"])
+    cli.main(["planners"])
     assert "learned physics term:" in capsys.readouterr().out
-    assert seen == [(True, "learned", True), (True, "learned", True)]  # the command, the one it ran; Surrogate()
-    cli.main(["planners"])  # stays off
-    assert seen[-1] == (False, "results", True)
-    assert Surrogate(learned=True).learned is not None  # the shipped wrench's weights, asked for by name
+    assert seen == [(True, "learned"), (True, "learned")]  # the command, the one it ran
+    seen.clear()
+    cli.main(["planners", "--paper"])
+    assert seen == [(False, "results"), (False, "results")]
+    seen.clear()
+    cli.main(["planners", "--model", "screwdriver"])  # no weights: the paper's surrogate, said by check-model
+    assert seen[0] == (False, "screwdriver")
+    with pytest.raises(SystemExit, match="screwdriver.*no learned physics term"):
+        cli.main(["planners", "--model", "screwdriver", "--learned"])
+    with pytest.raises(SystemExit, match="one or the other"):
+        cli.main(["planners", "--learned", "--paper"])
+    assert Surrogate().learned is not None and Surrogate(learned=False).learned is None
+    assert Surrogate("screwdriver").learned is None
+    monkeypatch.setattr("experiments.physics.corpus.main", lambda args, run: seen.append((run.learned, "corpus")))
+    cli.main(["corpus"])
+    assert seen[-1] == (False, "corpus")  # the term's own data: the analytic surrogate's plans
 
 
 def test_record_and_its_command_are_handed_down_and_left_behind_nowhere(monkeypatch, tmp_path):
@@ -154,10 +169,10 @@ def test_record_and_its_command_are_handed_down_and_left_behind_nowhere(monkeypa
     assert [r["command"] for r in rows] == ["python -m experiments --record planners"] * 2 + [
         "python -m experiments --record planners --plugin x"]
     assert [r["figures"] for r in rows] == [{"n": 0}, {"n": 1}, {"n": 2}]
-    history = (tmp_path / "history" / "bench_x_cpu.jsonl").read_text().splitlines()
+    history = (tmp_path / "history" / "bench_x_learned_cpu.jsonl").read_text().splitlines()  # the wrench's term
     assert len(history) == 3
     cli.main(["planners"])
-    assert rows[-1] is None and len((tmp_path / "history" / "bench_x_cpu.jsonl").read_text().splitlines()) == 3
+    assert rows[-1] is None and len((tmp_path / "history" / "bench_x_learned_cpu.jsonl").read_text().splitlines()) == 3
     assert common.Run().record_figures("bench_x", {}, data=tmp_path) is None  # a run without --record
 
 

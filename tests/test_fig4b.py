@@ -80,7 +80,7 @@ def test_two_processes_give_one_processs_outcomes_bit_for_bit(tmp_path):
     """`--processes 2 fig4b` on two episodes: each process runs one chunk (the four tips and a network that decides
     in JAX), process 0 gathers and alone writes; every episode's outcome equals one process's run of the same
     chunks, to the last bit."""
-    line = ["fig4b", "--set", "eval", "--episodes", "2", "--policies", "four-tips", "net", "--chunk", "1"]
+    line = ["fig4b", "--set", "eval", "--episodes", "2", "--policies", "four-tips", "net", "--chunk", "1", "--paper"]
     out = {}
     for n in (1, 2):
         folder = tmp_path / f"p{n}"

@@ -162,7 +162,8 @@ def test_a_command_takes_its_folders_before_its_set_up(tmp_path, monkeypatch):
     try:
         assert owner.stdout.readline().strip() == "holding"
         try:  # before the change: the DP tables first (minutes), then the refusal
-            second = subprocess.run([sys.executable, "-m", "experiments", "train", "--out", "train-x", "--seeds", "1",
+            second = subprocess.run([sys.executable, "-m", "experiments", "train", "--out", "train-x", "--paper",
+                                     "--seeds", "1",
                                      "--iterations", "1"], cwd=tmp_path, env=env, capture_output=True, text=True,
                                     timeout=90)
         except subprocess.TimeoutExpired:
@@ -177,7 +178,7 @@ def test_a_command_takes_its_folders_before_its_set_up(tmp_path, monkeypatch):
         monkeypatch.chdir(tmp_path)
         monkeypatch.setattr(envelope.evaluation, "context", set_up)
         with pytest.raises(SystemExit) as stop:
-            cli.main(["envelope", "--set", "eval", "--episodes", "1", "--random", "0"])
+            cli.main(["envelope", "--set", "eval", "--episodes", "1", "--random", "0", "--paper"])
         assert f"envelope: results/envelope: in use by process {owner.pid}" in str(stop.value), stop.value
     finally:
         owner.kill()

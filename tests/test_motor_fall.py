@@ -29,7 +29,7 @@ SCALES = (0.5, 8.0)  # the external torque times these: grasps that clearly hold
 
 @pytest.fixture(scope="module")
 def sur(table_ik):
-    return surrogate.Surrogate(ik_config=table_ik)
+    return surrogate.Surrogate(ik_config=table_ik, learned=False)
 
 
 @pytest.fixture(scope="module")

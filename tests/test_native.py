@@ -31,7 +31,7 @@ CONFIG = physics.PhysicsConfig().replace(hold=0.25)
 
 @pytest.fixture(scope="module")
 def phys():
-    return physics.Physics(Surrogate(), CONFIG)
+    return physics.Physics(Surrogate(learned=False), CONFIG)
 
 
 @pytest.fixture(scope="module")

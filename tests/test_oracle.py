@@ -19,7 +19,7 @@ from gsp_jax.surrogate.step import Surrogate  # noqa: E402
 
 @pytest.fixture(scope="module")
 def oracle():
-    sur = Surrogate()
+    sur = Surrogate(learned=False)
     return Oracle(sur, physics.Scene(sur.hand))
 
 

@@ -37,7 +37,7 @@ def _short(ep: scenario.Episode) -> scenario.Episode:
 
 @pytest.fixture(scope="module")
 def phys():
-    return physics.Physics(Surrogate(), CONFIG)
+    return physics.Physics(Surrogate(learned=False), CONFIG)
 
 
 @pytest.fixture(scope="module")
@@ -84,7 +84,7 @@ def test_a_tip_added_at_the_lowest_start_arrives_before_the_pedestals_sink():
     mu > 0.8: `wrench.least_friction`). A free link pulled along the damped least-squares step (`free_stiffness`)
     arrives and the tool is held; with a hundredth of that pull the tip is late and the tool touches the table
     (C MuJoCo, 3 waypoints)."""
-    env = Surrogate()
+    env = Surrogate(learned=False)
     ep = scenario.make_episode(shift_mm=-6.0, torque=0.0).head(3)
     policy = policies.SequencePolicy(jnp.full((1, 3), env.space.action("ring_distal", 1), jnp.int32))
     touched, fell = {}, {}
@@ -121,7 +121,7 @@ def test_the_tool_loop_is_stable_at_the_control_rate():
     rate's Nyquist frequency against the rest), from the pedestals' sinking to the end, < 0.1 (the settings this
     tells apart: docs/physics.md, "The tool loop at the control rate")."""
     config = CONFIG.replace(hold=1.0)
-    phys = physics.Physics(Surrogate(), config)
+    phys = physics.Physics(Surrogate(learned=False), config)
     masses = (0.25, 2.5)
     eps = [_short(scenario.make_episode(mass_factor=f)) for f in masses]
     ring, keep = phys.space.action("ring_distal", 1), phys.space.action("index_distal", 1)
@@ -235,7 +235,7 @@ def test_bad_episodes_errors_name_the_field(phys):
 
 def test_pedestal_drop_in_numpy_is_the_jax_value():
     """The C backend computes the pedestals' drop per tick in numpy float32: bit for bit the jax.numpy value."""
-    phys = physics.Physics(Surrogate(), CONFIG)
+    phys = physics.Physics(Surrogate(learned=False), CONFIG)
     ticks = np.arange(0, phys.n_ticks(16), 7)
     ours = [float(phys.scene.pedestal_drop(j * phys.timestep, xp=np)) for j in ticks]
     theirs = [float(phys.scene.pedestal_drop(j * phys.timestep)) for j in ticks]

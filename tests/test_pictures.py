@@ -62,7 +62,7 @@ def test_demo_captions_name_the_time_and_the_grasp_being_executed():
     from gsp_jax.model import scenario
     from gsp_jax.surrogate.step import Surrogate
 
-    sur = Surrogate()
+    sur = Surrogate(learned=False)
     phys, space, T = physics.Physics(sur), sur.space, scenario.N_WAYPOINTS
     start = space.encode(space.start_options)
     to_under = space.action("middle_distal", 3)

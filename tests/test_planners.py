@@ -87,16 +87,17 @@ def test_a_planner_from_outside_the_package_runs_through_the_commands(tmp_path):
     listed = _run(["planners", "--plugin", "mine"], tmp_path)
     assert "keep-start" in listed and "action=0" in listed and "Keep the start grasp" in listed
     _run(["fig4b", "--plugin", "mine", "--set", "evalA", "--episodes", "1", "--backend", "c",
-          "--policies", "keep-start", "four-tips"], tmp_path)
+          "--policies", "keep-start", "four-tips", "--paper"], tmp_path)
     result = json.loads((tmp_path / "results/fig4b/keep-start.json").read_text())
     assert result["policy"] == "keep-start" and len(result["per_episode"]) == 1
     start = int(scenario.eval_set_a()[result["episodes"][0]].start_grasp)
     assert set(result["per_episode"][0]["grasps"]) == {start}  # it kept the start grasp throughout, in physics
     _run(["envelope", "--plugin", "mine", "--set", "eval", "--episodes", "1", "--random", "0",
-          "--policies", "keep-start", "four-tips"], tmp_path)
+          "--policies", "keep-start", "four-tips", "--paper"], tmp_path)
     kinds = json.loads((tmp_path / "results/envelope/eval.json").read_text())["kinds"]
     assert kinds == ["keep-start", "four-tips"]
-    bad = subprocess.run([sys.executable, "-m", "experiments", "fig4b", "--policies", "keep-start"], cwd=tmp_path,
+    bad = subprocess.run([sys.executable, "-m", "experiments", "fig4b", "--policies", "keep-start", "--paper"],
+                         cwd=tmp_path,
                          env=dict(os.environ, PYTHONPATH=str(ROOT), JAX_PLATFORMS="cpu"), capture_output=True,
                          text=True)
     assert bad.returncode != 0 and "--policies: planner: 'keep-start' is not registered" in bad.stderr, bad.stderr

@@ -518,7 +518,7 @@ from gsp_jax.ppo import networks as nets
 from gsp_jax.ppo import train as ppo
 
 assert len(jax.devices()) == 2, jax.devices()
-sur = surrogate.Surrogate()
+sur = surrogate.Surrogate(learned=False)
 episodes = scenario.stack([scenario.make_episode().head(T), scenario.make_episode(shift_mm=6, torque=-1.0).head(T)])
 tables, _ = _probe_tables(sur.space, np.asarray(episodes.start_grasp), seed=0)
 env, eval_env = GraspEnv(sur, episodes, tables=tables), GraspEnv(sur, episodes, tables=tables, auto_reset=False)

@@ -27,7 +27,7 @@ from gsp_jax.surrogate.reward import RewardConfig  # noqa: E402
 def test_rescored_returns_equal_the_tables_replay():
     ep = scenario.eval_set_b()["mass1.5m0_comy+1cm"].head(3)
     batch = scenario.stack([ep])
-    sur = surrogate.Surrogate()
+    sur = surrogate.Surrogate(learned=False)
     start = int(ep.start_grasp)
     space = sur.space
     # sequences as `envelope` records them (the grasp after each decision): hold, change and come back, a lone tip

@@ -70,7 +70,8 @@ def test_kernels_are_traced_in_the_platforms_form_alone(sur):
     state = sur.reset(scenario.make_episode())
     text = jax.jit(sur.step).lower(state, jnp.int32(3)).as_text()
     assert text.count("stablehlo.case") == 1 and "platform_index" not in text
-    no_motor = surrogate.Surrogate(sur.hand, reward=dataclasses.replace(sur.reward_config, motor_fall_unmet=np.inf))
+    no_motor = surrogate.Surrogate(sur.hand, reward=dataclasses.replace(sur.reward_config, motor_fall_unmet=np.inf),
+                                   learned=False)
     assert "stablehlo.case" not in jax.jit(no_motor.step).lower(state, jnp.int32(3)).as_text()
     with jax.default_device(jax.devices("cpu")[0]):
         assert platform.current() == "cpu"
@@ -89,8 +90,8 @@ def test_by_platform_follows_the_platform_traced_for(monkeypatch):
 def test_surrogates_of_one_model_share_their_programs(hand):
     """Two surrogates of the same hand and configs are equal and hash alike, so `reset` (compiled: `_reset`) builds
     one program for both; another reward config is another model."""
-    a, b = surrogate.Surrogate(hand), surrogate.Surrogate(hand)
-    other = surrogate.Surrogate(hand, reward=RewardConfig(w_redundant=0.1))
+    a, b = surrogate.Surrogate(hand, learned=False), surrogate.Surrogate(hand, learned=False)
+    other = surrogate.Surrogate(hand, reward=RewardConfig(w_redundant=0.1), learned=False)
     assert a == b and hash(a) == hash(b) and a != other
     episode = scenario.make_episode().head(5)  # a shape no other test resets
     before = surrogate.Surrogate._reset._cache_size()

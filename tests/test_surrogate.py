@@ -38,7 +38,7 @@ TIPS_UNDER = (1, 1, 0, 3, 0, 0)  # thumb and index tips, middle tip under the to
 # ------------------------------------------------------------------------------------------ fixtures
 @pytest.fixture(scope="module")
 def sur():
-    return surrogate.Surrogate()
+    return surrogate.Surrogate(learned=False)
 
 
 @pytest.fixture(scope="module")
@@ -217,7 +217,8 @@ def test_step_every_equals_a_step_per_action(sur, fns, batch):
     form by default, `ik_lanes`, compared with it in tests/test_ik_lanes.py and through the lookahead in
     tests/test_lookahead.py). A finished state stays as it is, reward 0."""
     vmapped_ik = dataclasses.replace(sur.ik_config, lanes=False)
-    every = jax.jit(surrogate.Surrogate(sur.hand, sur.reward_config, vmapped_ik, sur.wrench_config).step_every)
+    every = jax.jit(surrogate.Surrogate(sur.hand, sur.reward_config, vmapped_ik, sur.wrench_config,
+                                        learned=False).step_every)
     actions = jnp.arange(sur.n_actions, dtype=jnp.int32)
     picks = [0, 3, 4, 5, 8, 9]  # (episode, grasp, t) of CASES: four-tips, index alone, head pinch, ...
     got, want = [], []
@@ -341,7 +342,7 @@ def test_reward_is_weighted_sum_capped_or_r_min(batch):
 def test_reward_cap_applies(sur, fns, episodes):
     """With a tiny cap, a non-failing step's reward is -max_step_cost (score only depends on its config)."""
     cfg = RewardConfig(max_step_cost=0.01)
-    capped = surrogate.Surrogate(hand=sur.hand, reward=cfg)
+    capped = surrogate.Surrogate(hand=sur.hand, reward=cfg, learned=False)
     ep = episodes["nominal"]
     now, nxt = fns["contacts"](ep, jnp.int32(_encode(sur, FOUR_TIPS)), jnp.int32(0))
     args = (ep, jnp.int32(0), ep.waypoints[0], ep.quats[0], now, nxt, jnp.array(False))
@@ -486,7 +487,8 @@ def test_change_term_is_the_shared_grasps_moving_wrench(sur, fns, episodes):
     s1, r1, _ = fns["step"](fns["reset"](ep), jnp.int32(cases["slide"]))
     assert float(s1.terms.wrench_change) == 0.0 and float(s1.terms.unmet[3]) == 0.0 and not bool(s1.terms.fall)
     # switched off, the slide is scored by its new grasp alone
-    off = surrogate.Surrogate(hand=sur.hand, reward=RewardConfig(w_wrench_change=0.0, change_falls=False))
+    off = surrogate.Surrogate(hand=sur.hand, reward=RewardConfig(w_wrench_change=0.0, change_falls=False),
+                              learned=False)
     assert not off.reward_config.prices_changes
     s1, _, _ = jax.jit(off.step)(s0, jnp.int32(cases["slide"]))
     assert not bool(s1.terms.fall) and float(s1.terms.wrench_change) == 0.0
@@ -503,7 +505,8 @@ def test_grip_drops_a_grasp_balanced_on_one_support(sur):
     t = jnp.int32(12)
 
     def unmet(grip, label):
-        gripped = surrogate.Surrogate(hand=sur.hand, reward=dataclasses.replace(sur.reward_config, grip=grip))
+        gripped = surrogate.Surrogate(hand=sur.hand, reward=dataclasses.replace(sur.reward_config, grip=grip),
+                                      learned=False)
         c = gripped.realise(jnp.int32(labels[label]), ep.waypoints[t], ep.quats[t])
         return float(gripped.wrench_error(c, ep, ep.waypoints[t], ep.quats[t], gripped.move_wrench(ep, t)).unmet)
 
@@ -572,7 +575,7 @@ def test_doubling_mass_increases_wrench_hold(sur, fns, episodes):
     ep1 = episodes["nominal"]
     ep2 = scenario.make_episode(mass_factor=2.0)
     double = surrogate.Surrogate(hand=sur.hand, reward=dataclasses.replace(  # by hand: a fixed grip, doubled
-        sur.reward_config, grip=2.0 * sur.reward_config.grip, grip_scales_with_mass=False))
+        sur.reward_config, grip=2.0 * sur.reward_config.grip, grip_scales_with_mass=False), learned=False)
     _, nxt1, t1 = _terms_at(sur, fns, ep1, THREE_TIPS)
     now2, nxt2 = fns["contacts"](ep2, jnp.int32(_encode(sur, THREE_TIPS)), jnp.int32(0))
     t2 = jax.jit(double.score)(ep2, jnp.int32(0), ep2.waypoints[0], ep2.quats[0], now2, nxt2, jnp.array(False))
@@ -589,9 +592,9 @@ def test_grip_in_proportion_to_the_mass_keeps_the_reward_homogeneous(sur, fns, e
     the lighter tool harder to hold (a larger unmet fraction), which the physics does not show."""
     g, t = jnp.int32(_encode(sur, FOUR_TIPS)), jnp.int32(4)
     scaled = surrogate.Surrogate(hand=sur.hand, reward=dataclasses.replace(sur.reward_config, grip=4.0,
-                                                                           grip_scales_with_mass=True))
+                                                                           grip_scales_with_mass=True), learned=False)
     fixed = surrogate.Surrogate(hand=sur.hand, reward=dataclasses.replace(sur.reward_config, grip=4.0,
-                                                                          grip_scales_with_mass=False))
+                                                                          grip_scales_with_mass=False), learned=False)
 
     def terms(sur, factor):
         ep = scenario.make_episode(mass_factor=factor)

@@ -60,8 +60,9 @@ def main(args: argparse.Namespace, run: Run) -> None:
         from gsp_jax.surrogate.step import Surrogate
 
         model = model_lib.load_model(path)
-        sur = Surrogate(model)
+        sur = Surrogate(model, learned=False)  # the checks are the analytic surrogate's (the IK, the forces)
         print(model.describe())
+        print(_learned_term(model))
         problems += preflight.clearance(sur)
         print("the start grasp at waypoint 0 (IK) ...", flush=True)
         problems += preflight.start_reach(sur)
@@ -85,6 +86,20 @@ def main(args: argparse.Namespace, run: Run) -> None:
             print(f"  - {p}")
         raise SystemExit(1)
     print("follows every convention" + ("" if getattr(args, "quick", False) else "; the start holds in C MuJoCo"))
+
+
+def _learned_term(model) -> str:
+    """Whether the commands will plan with a learned physics term for `model`, and how to make one."""
+    from gsp_jax.surrogate import learned
+
+    path = learned.path_of(model)
+    if learned.has_own(model):
+        return f"  learned physics term: {path} (every command plans with it; --paper: without)"
+    return (f"  learned physics term: none yet ({path.name} beside the scene), so the commands plan with the paper's "
+            f"surrogate, which calls plans feasible that physics drops more often. `python -m experiments calibrate "
+            f"--learn --model {model.path}` makes it: a corpus of 40 x 64 episodes in C MuJoCo, then the fit "
+            "(24 shards took 6.3 min on the 16-core H200 host; on 2 cores hours: `--shards 2 --episodes 16` makes a "
+            "first, rougher term in minutes)")
 
 
 def _picture(model, reach, folder: pathlib.Path) -> pathlib.Path:

@@ -54,16 +54,15 @@ def candidate_tables(configs, episodes: scenario.Episode, model=None) -> list[dp
     """Every candidate's tables (leaves (E, ...)) for `model` (None: the default): IK once, wrench solves once per
     grip."""
     grip_key = lambda c: (c.grip, c.grip_scales_with_mass)  # noqa: E731
-    base = surrogate.Surrogate(model, reward=configs[0])
+    base = surrogate.Surrogate(model, reward=configs[0], learned=False)  # the analytic reward is what is calibrated
     contacts = jax.jit(jax.vmap(lambda ep: dp.realise_all(base, ep)))(episodes)
     terms = {}
     for gr, gm in sorted({grip_key(c) for c in configs}):
-        sur = surrogate.Surrogate(hand=base.hand, reward=dataclasses.replace(configs[0], grip=gr,
-                                                                             grip_scales_with_mass=gm))
+        sur = base.replace(reward=dataclasses.replace(configs[0], grip=gr, grip_scales_with_mass=gm))
         terms[gr, gm] = jax.jit(jax.vmap(lambda ep, c: dp.grasp_terms(sur, ep, c)))(episodes, contacts)
     out = []
     for cfg in configs:
-        sur = surrogate.Surrogate(hand=base.hand, reward=cfg)
+        sur = base.replace(reward=cfg)
         out.append(jax.jit(jax.vmap(lambda ep, t, c: dp.table_from_terms(sur, ep, t, c)))(
             episodes, terms[grip_key(cfg)], contacts))
     return out

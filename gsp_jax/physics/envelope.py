@@ -71,7 +71,7 @@ def _start_worker(model_path) -> None:
     from gsp_jax.physics.scene import Scene
     from gsp_jax.surrogate.step import Surrogate
 
-    sur = Surrogate(model_lib.load_model(model_path))
+    sur = Surrogate(model_lib.load_model(model_path), learned=False)  # the oracle reads forces, not the term
     _ORACLE = Oracle(sur, Scene(sur.hand))
 
 

@@ -223,7 +223,8 @@ def context(set_name: str = "eval", n_episodes: int | None = None, policy_dir=No
     their DP tables and solutions (`tables`), the PPO policy (`rl`, `load_rl(policy_dir, results)`) and the DP
     baseline's sequence (`nominal`: the nominal episode's table). With a results folder `results`, the tables are
     kept in its `TABLES` subfolder (built once) and the policy `train` wrote there is looked for; None: neither.
-    `learned`: the surrogate's learned physics term, as `Surrogate(learned=)` takes it (None: off)."""
+    `learned`: the surrogate's learned physics term, as `Surrogate(learned=)` takes it (None: the model's own where
+    it has one; False: the paper's surrogate)."""
     cache = None if results is None else pathlib.Path(results, TABLES)
     sur = Surrogate(model, learned=learned)
     everything = scenario.episode_set(set_name, sur.model) if episodes is None else episodes

@@ -19,6 +19,7 @@ import dataclasses
 import hashlib
 import json
 import pathlib
+import warnings
 from typing import Sequence
 
 import flax.linen as nn
@@ -262,17 +263,29 @@ def reliability(p: np.ndarray, event: np.ndarray, bins: int = 10) -> list[dict]:
 
 # ---------------------------------------------------------------------------------------------------- files
 def resolve(learned, model) -> "Fitted | None":
-    """The weights a `Surrogate(learned=...)` uses for `model`: None (off) for None or False; the model's own
-    (`path_of`) for True; a `Fitted` or a weights file as given (checked: fitted for this model).
-    `LearnedTermError` naming the model and the file where there are none."""
-    if learned is None or learned is False:
+    """The weights a `Surrogate(learned=...)` uses for `model`: None (the default) the model's own where its scene
+    has them (`path_of`), else none; False none (the paper's surrogate); True the model's own (`LearnedTermError`
+    naming the model and the command that makes them where there are none); a `Fitted` or a weights file as given
+    (checked: fitted for this model). Under None a weights file fitted for another version of the model (its scene
+    edited since) is not used, with a warning naming it."""
+    if learned is False:
         return None
+    if learned is None:
+        path = path_of(model)
+        if not path.exists():
+            return None
+        try:
+            return _own(path, model)
+        except LearnedTermError as e:
+            warnings.warn(f"{e}: planning without the learned physics term (`calibrate --learn --model "
+                          f"{model.path}` fits it again)", stacklevel=3)
+            return None
     if learned is True:
         path = path_of(model)
         if not path.exists():
             raise LearnedTermError(f"model {model.name!r} has no learned physics term ({path} is missing): "
                                    f"`python -m experiments calibrate --learn --model {model.path}` makes it")
-        return load(path, model, _names(model))
+        return _own(path, model)
     if isinstance(learned, Fitted):
         if learned.digest != model.digest:
             raise LearnedTermError(f"learned term fitted for another model (digest {learned.digest[:12]}), not "
@@ -282,6 +295,23 @@ def resolve(learned, model) -> "Fitted | None":
                                    f" (`learned.input_names` of {model.name!r})")
         return learned
     return load(learned, model, _names(model))
+
+
+_OWN: dict = {}  # (file, its mtime and size, the model's digest) -> Fitted: a model's own weights, read once
+
+
+def _own(path: pathlib.Path, model) -> "Fitted":
+    """A model's own weights file, read once per version of the file (every `Surrogate()` of the model asks)."""
+    st = path.stat()
+    key = (str(path.resolve()), st.st_mtime_ns, st.st_size, model.digest)
+    if key not in _OWN:
+        _OWN[key] = load(path, model, _names(model))
+    return _OWN[key]
+
+
+def has_own(model) -> bool:
+    """Whether `model`'s scene has weights fitted for it (what `Surrogate(model)` then uses by default)."""
+    return resolve(None, model) is not None
 
 
 def _names(model) -> tuple[str, ...]:

@@ -26,7 +26,8 @@ either IK collides, any wrench term leaves more than `fall_unmet` of its wrench 
 when `change_falls`), or at the last step the forces the hand's motors can give leave more than `motor_fall_unmet`
 of (d) unmet (`RewardTerms.motor_unmet`); `r_min` ends the episode.
 
-The learned physics term (`Surrogate(learned=...)`, off by default: the paper's surrogate): a network fitted on a
+The learned physics term (`Surrogate(learned=...)`, on by default where the model has weights; `learned=False`: the
+paper's surrogate): a network fitted on a
 physics corpus of the model (`gsp_jax.surrogate.learned`) gives each transition its probability p of a fall in the
 segment (`RewardTerms.fall_risk`), a chance node after the decision (the paper's lookahead is expectimax). A transition
 with p above `risk_falls` is a fall; below it, the step's reward is its expectation, (1 - p) times the analytic

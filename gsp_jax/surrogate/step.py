@@ -92,8 +92,10 @@ class Surrogate:
         """`hand`: the model, as a shipped name, a scene path, a `gsp_jax.model.load.Model` or a loaded `HandModel`
         (None: the shipped wrench, `gsp_jax.model.load.DEFAULT`). `reward`: None, `RewardConfig()` (its calibrated
         defaults read when it is built). `learned`: the learned physics term
-        (`gsp_jax.surrogate.reward.with_risk`): False off (the paper's surrogate), True the model's own weights
-        (`learned.path_of`), a `learned.Fitted` or a weights file; None: off. Weights of another model are refused."""
+        (`gsp_jax.surrogate.reward.with_risk`): None (the default) the model's own weights where its scene has them
+        (`learned.path_of`: the shipped wrench, hammer and Allegro do), else off; False off (the paper's surrogate);
+        True the model's own weights (refused where there are none); a `learned.Fitted` or a weights file. Weights
+        of another model are refused."""
         self.hand = hand if isinstance(hand, hand_lib.HandModel) else model_lib.load_model(hand).hand
         self.space = grasps.space_of(self.hand)
         reward = RewardConfig() if reward is None else reward

@@ -70,3 +70,18 @@ def test_reference_sequences_reach_their_grasps(sur):
     assert axis is None and np.array_equal(np.asarray(policy.actions), evaluation.four_tips(space))
     assert (np.all(evaluation.one_tip(space)[2:] == grasps.NULL)
             and jnp.asarray(evaluation.one_tip(space)).dtype == jnp.int32)
+    np.testing.assert_array_equal(evaluation.one_tip(space)[:2], [space.action("middle_distal", 0),
+                                                                  space.action("thumb_distal", 0)])  # as written for it
+
+
+def test_one_tip_leaves_one_contact_on_any_hand(small_model):
+    """Issue 83: the one-tip sequence of any model (the test hand: three fingers) ends with one contact of its start
+    grasp, the others let go one a waypoint."""
+    from gsp_jax.model import grasps as grasps_lib
+
+    space = grasps_lib.space_of(small_model.hand)
+    g = int(space.encode(space.start_options))
+    for a in evaluation.one_tip(space, 6):
+        g = int(space.apply(g, int(a))[0])
+    left = np.flatnonzero(np.asarray(space.decode(g)))
+    assert len(left) == 1 and space.start_options[left[0]] > 0

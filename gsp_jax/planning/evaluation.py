@@ -193,9 +193,16 @@ def four_tips(space: grasps.GraspSpace, n_steps: int = scenario.N_WAYPOINTS) -> 
 
 
 def one_tip(space: grasps.GraspSpace, n_steps: int = scenario.N_WAYPOINTS) -> np.ndarray:
-    """(T,) the index tip alone: the middle tip lets go at waypoint 0, the thumb at 1, then keep (must drop)."""
+    """(T,) one contact of the start grasp alone (must drop): its second contact is kept, the others let go one a
+    waypoint from the last link to the first, then keep. The wrench's start T1 I1 . M1: the index tip alone (the
+    middle lets go at waypoint 0, the thumb at 1). Any model whose start grasp has a contact."""
+    active = [i for i, o in enumerate(space.start_options) if o]
+    if not active:
+        raise ValueError("one_tip: the start grasp has no contact (build the space with grasps.space_of)")
+    kept = active[1] if len(active) > 1 else active[0]
     seq = np.full(n_steps, grasps.NULL, np.int32)
-    seq[0], seq[1] = space.action("middle_distal", 0), space.action("thumb_distal", 0)
+    for t, i in enumerate([i for i in reversed(active) if i != kept][:n_steps]):
+        seq[t] = space.action(space.link_names[i], 0)
     return seq
 
 

@@ -188,3 +188,22 @@ def test_no_module_of_the_commands_keeps_state():
         names = {t.id for node in tree.body if isinstance(node, (ast.Assign, ast.AnnAssign))
                  for t in (node.targets if isinstance(node, ast.Assign) else [node.target]) if isinstance(t, ast.Name)}
         assert not names & {"MODEL", "RECORD", "COMMAND", "LEARNED"}, (path, names)
+
+
+def test_the_surrogate_commands_grasps_fit_any_number_of_contact_links(small_model):
+    """Issue 83: `python -m experiments surrogate --model` crashed on any model without the paper hand's six
+    contact links (its grasps were written for them): another model gets the same kinds of grasps built from its
+    own links, each a valid grasp of its space, each once; the paper's hand keeps its six."""
+    from experiments.diagnostics import surrogate as command
+    from gsp_jax.model import grasps, load as model_lib
+
+    paper = grasps.space_of(model_lib.load_model("wrench").hand)
+    assert command.grasps_of(paper) == command.GRASPS
+    space = grasps.space_of(small_model.hand)
+    shown = command.grasps_of(space)
+    options = [o for _, o in shown]
+    assert len(shown) >= 3 and len(set(options)) == len(options)
+    for _, o in shown:
+        assert len(o) == space.n_links and all(0 <= k < n for k, n in zip(o, space.n_options))
+        assert 0 <= int(space.encode(o)) < space.n_grasps
+    assert sum(1 for k in options[0] if k) == 1  # one contact alone

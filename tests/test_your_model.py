@@ -5,6 +5,7 @@ named by `check_model`, and what was made for one model is refused by another.""
 from __future__ import annotations
 
 import pathlib
+import re
 import shutil
 
 import jax
@@ -435,3 +436,27 @@ def test_check_model_lists_every_missing_file_at_once(tmp_path):
     for name in ("assets/palm.stl", "assets/tip.obj", "skin.png"):
         assert name in problems[0], problems
     assert model_lib.missing_files(model_lib.SHIPPED["allegro"]) == []
+
+
+def test_check_model_checks_the_start_over_the_height_band(tmp_path, table_ik):
+    """Issue 83: a placement whose nominal start is clear but whose start grasp collides at the highest start the
+    sets and the corpus use (a handle 6 cm wide: at +14 mm the middle and index tips are pushed into it) is refused
+    by check-model, naming the bodies and their depths; the shipped wrench passes. The clearance message never asks
+    to raise the tool by 0.0 mm."""
+    from gsp_jax.physics import preflight
+
+    folder = hand_lib.MODELS_DIR
+    (tmp_path / "hand.xml").write_text((folder / "hand.xml").read_text())
+    (tmp_path / "scene.xml").write_text((folder / "scene.xml").read_text())
+    wide = (folder / "wrench.xml").read_text().replace('size="0.075 0.0125 0.005"', 'size="0.075 0.03 0.005"')
+    (tmp_path / "wrench.xml").write_text(wide)
+    sur = Surrogate(model_lib.load_model(tmp_path / "scene.xml"), ik_config=table_ik, learned=False)
+    assert preflight.start_reach(sur) == []  # the nominal start reaches and does not collide
+    problems = preflight.start_band(sur)
+    assert len(problems) == 1 and "14 mm higher" in problems[0], problems
+    depths = re.findall(r"(\w+) into the tool (\d+\.\d) mm", problems[0])
+    assert depths and all(float(d) > ik.IKConfig().collision_tol * 1e3 for _, d in depths), problems
+    assert preflight.start_band(Surrogate(ik_config=table_ik, learned=False)) == []
+    exact = (folder / "wrench.xml").read_text().replace('pos="0 0 0.014"', 'pos="0 0 0.013"')  # lowest point 7 mm
+    (tmp_path / "wrench.xml").write_text(exact)
+    assert preflight.clearance(Surrogate(model_lib.load_model(tmp_path / "scene.xml"), learned=False)) == []

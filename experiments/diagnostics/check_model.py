@@ -64,14 +64,21 @@ def main(args: argparse.Namespace, run: Run) -> None:
         print(model.describe())
         print(_learned_term(model))
         problems += preflight.clearance(sur)
-        print("the start grasp at waypoint 0 (IK) ...", flush=True)
-        problems += preflight.start_reach(sur)
-        problems += preflight.start_band(sur)
-        if not getattr(args, "quick", False):
+        runnable = True
+        try:
+            scenario.make_episode(model=model)
+        except scenario.EpisodeError as e:  # e.g. a tool resting outside the hand's reach box: nothing else can run
+            problems.append(f"the nominal lift is not an episode of this model: {e}")
+            runnable = False
+        else:
+            print("the start grasp at waypoint 0 (IK) and at the lowest and highest starts ...", flush=True)
+            problems += preflight.start_reach(sur)
+            problems += preflight.start_band(sur)
+        if runnable and not getattr(args, "quick", False):
             print(f"a dry run in C MuJoCo: the start grasp held for {preflight.DRY_SEGMENTS * scenario.DT:g} s of the "
                   "nominal lift ...", flush=True)
             problems += preflight.dry_run(sur).problems()
-        if getattr(args, "reach", False):
+        if runnable and getattr(args, "reach", False):
             print("every link on every option at the lift's first and last waypoint (IK) ...", flush=True)
             reach = preflight.reach(sur)
             print(reach.table())

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from gsp_jax.planning import dp, evaluation, policies
-from gsp_jax.model import hand as hand_lib, load as model_lib, scenario
+from gsp_jax.model import grasps, hand as hand_lib, load as model_lib, scenario
 from gsp_jax.solvers import ik
 from gsp_jax.surrogate import learned
 from gsp_jax import physics
@@ -460,3 +460,16 @@ def test_check_model_checks_the_start_over_the_height_band(tmp_path, table_ik):
     exact = (folder / "wrench.xml").read_text().replace('pos="0 0 0.014"', 'pos="0 0 0.013"')  # lowest point 7 mm
     (tmp_path / "wrench.xml").write_text(exact)
     assert preflight.clearance(Surrogate(model_lib.load_model(tmp_path / "scene.xml"), learned=False)) == []
+
+
+def test_explain_names_the_grip_rule_and_where_the_opposing_contact_should_sit(sur):
+    """Issue 83: every realised contact presses with at least the grip: the wrench's start grasp (thumb at x = -2 cm
+    against the index and middle tips at 3 and 0 cm) holds without that floor but not with it, and `explain` says so,
+    naming the thumb as the contact that opposes the others and its 35 mm from the line through their centroid; a
+    sequence that falls without the floor too (the index tip alone) gets no such note."""
+    ep = scenario.make_episode().head(4)
+    why = sur.explain(ep, np.full(ep.n_steps, grasps.NULL, np.int32))
+    assert why is not None and "without the grip floor it holds" in why, why
+    assert re.search(r"thumb_distal opposes the others: its option is 35 mm from the line", why), why
+    alone = sur.explain(ep, evaluation.one_tip(sur.space, ep.n_steps))
+    assert alone is not None and "grip floor" not in alone, alone

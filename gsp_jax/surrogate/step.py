@@ -401,10 +401,47 @@ class Surrogate:
         for t in range(min(len(actions), episode.n_steps)):
             if bool(terms.collision[t]) or bool(terms.fall[t]):
                 g = int(self.space.transitions[int(states.grasp[t]), actions[t]])
-                why = reward_lib.explain_failure(self.reward_config, jax.tree.map(lambda x, t=t: x[t], terms), t,
-                                                 self.space.label(g))
-                return why + self.where_collides(episode, g, t) if bool(terms.collision[t]) else why
+                step = jax.tree.map(lambda x, t=t: x[t], terms)
+                why = reward_lib.explain_failure(self.reward_config, step, t, self.space.label(g))
+                if bool(terms.collision[t]):
+                    return why + self.where_collides(episode, g, t)
+                return why + self.grip_note(episode, actions, g, t, step)
         return None
+
+    def grip_note(self, episode: Episode, actions, grasp: int, t: int, terms: RewardTerms) -> str:
+        """Where step t (new grasp `grasp`) falls only because every contact must press with at least the grip
+        (`grip_of`): '; without the grip floor it holds: ...', naming the net force and torque the contacts' least
+        forces leave and, for the contact that opposes the others, how far its option is from the line through their
+        centroid along its normal (where it would balance them); '' otherwise (the motors, the learned term, or a
+        fall without the grip too)."""
+        cfg = self.reward_config
+        unmet = np.asarray(terms.unmet)[:4 if cfg.change_falls else 3]
+        if cfg.grip <= 0 or float(terms.motor_unmet) > cfg.motor_fall_unmet or not np.any(unmet > cfg.fall_unmet):
+            return ""
+        free = self.analytic.replace(reward=dataclasses.replace(cfg, grip=0.0))
+        if bool(_replay(free, episode, jnp.asarray(actions, jnp.int32))[1].fall[t]):
+            return ""
+        k = min(t + 1, episode.n_steps - 1)
+        c = self.realise(jnp.int32(grasp), episode.waypoints[k], episode.quats[k])
+        on = np.flatnonzero(np.asarray(c.realised))
+        p, n = np.asarray(c.points, np.float64)[on], np.asarray(c.normals, np.float64)[on]
+        g = float(self.grip_of(episode))
+        mat = np.asarray(kinematics.quat_to_mat(episode.quats[k]), np.float64)
+        com = np.asarray(episode.waypoints[k], np.float64) + mat @ np.asarray(episode.com, np.float64)
+        force, torque = g * n.sum(0), g * np.cross(p - com, n).sum(0)
+        note = (f"; without the grip floor it holds: each contact must press with at least {g:.1f} N "
+                f"(RewardConfig.grip), and these least forces alone leave {np.linalg.norm(force):.1f} N and "
+                f"{np.linalg.norm(torque):.3f} N m about the centre of mass that the contacts cannot cancel")
+        if len(on) >= 2:
+            others = n.sum(0, keepdims=True) - n
+            i = int(np.argmin(np.sum(n * others, -1)))  # the contact that opposes the rest most
+            rest = np.delete(np.arange(len(on)), i)
+            off = p[i] - p[rest].mean(0)
+            miss = np.linalg.norm(off - (off @ n[i]) * n[i])
+            note += (f"; {self.hand.link_names[on[i]]} opposes the others: its option is {miss * 1e3:.0f} mm from the "
+                     "line through their centroid along its normal (an option on that line balances their least "
+                     "forces)")
+        return note
 
     def where_collides(self, episode: Episode, grasp: int, t: int) -> str:
         """What collides when `grasp` is realised at waypoints t and t + 1 (a step's two poses), as ': <body> into

@@ -473,3 +473,25 @@ def test_explain_names_the_grip_rule_and_where_the_opposing_contact_should_sit(s
     assert re.search(r"thumb_distal opposes the others: its option is 35 mm from the line", why), why
     alone = sur.explain(ep, evaluation.one_tip(sur.space, ep.n_steps))
     assert alone is not None and "grip floor" not in alone, alone
+
+
+def test_the_placement_search_finds_a_palm_that_reaches(tmp_path):
+    """Issue 83: the test hand with its palm raised 4 cm reaches no option at both ends of the lift and its start
+    grasp misses; `placement.search` (along z only, 2 cm steps) moves the palm back down to where every option is
+    reached at both ends and the start is clear, and reports the palm's position there."""
+    from gsp_jax.physics import placement
+
+    src = hand_lib.MODELS_DIR / "testhand"
+    for name in ("scene.xml", "bar.xml"):
+        (tmp_path / name).write_text((src / name).read_text())
+    hand = (src / "hand.xml").read_text()
+    assert hand.count('<body name="palm" pos="0 0 0.11"') == 1
+    raised_palm = hand.replace('<body name="palm" pos="0 0 0.11"', '<body name="palm" pos="0 0 0.15"')
+    (tmp_path / "hand.xml").write_text(raised_palm)
+    found = placement.search(tmp_path / "scene.xml", steps=((2, 0.02),), progress=False)
+    raised = next(c for c in found if c.offset == (0.0, 0.0, 0.0))
+    best = found[0]
+    assert not raised.clear and raised.both < raised.options, raised
+    assert best.clear and best.both == best.options and best.offset[2] < 0, best
+    assert best.pos[2] == pytest.approx(0.15 + best.offset[2]) and best.pos[2] <= 0.13 + 1e-9
+    assert not list(tmp_path.glob(".*place*")), "the candidates' scene files are left behind"

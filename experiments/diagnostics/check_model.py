@@ -3,11 +3,15 @@
 1. The conventions (`gsp_jax.model.load.check_model`: the tool, the table, the contact links and options, the hand's
    joints, motors, geoms and IK start).
 2. The joint dynamics against the controller's finger gains (`physics.preflight.joint_dynamics`).
-3. On a file that loads: the tool's clearance above the table, the start grasp's reach at waypoint 0 and (unless
-   `--quick`) a dry run of the start grasp in C MuJoCo (`preflight.clearance`, `start_reach`, `dry_run`).
+3. On a file that loads: whether it has a learned physics term, the tool's clearance above the table, the start
+   grasp's reach at waypoint 0 and its collisions at the lowest and highest starts the episodes use (each body and
+   its depth), and (unless `--quick`) a dry run of the start grasp in C MuJoCo (`preflight.clearance`,
+   `start_reach`, `start_band`, `dry_run`).
 4. With `--reach`: each contact link alone on each option at the nominal lift's first and last waypoint (the IK's
    error [mm]), the options no link reaches, and a picture of them on the tool
    (results/check-model/reach-<model>.png).
+5. With `--place`: palm positions searched for the one that reaches the most options with the start clear, and the
+   flags that put the palm there (`physics.placement.search`).
 
 Exits 1 and lists the problems if there is any (docs/your-model.md says what each is); otherwise prints what the
 model is and exits 0. Every command's `--model` runs the conventions first (`gsp_jax.model.load.require`).
@@ -33,6 +37,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "only: no dry run in C MuJoCo")
     p.add_argument("--reach", action="store_true", help="every link on every option at the lift's first and last "
                    "waypoint, and a picture (results/check-model/reach-<model>.png)")
+    p.add_argument("--place", action="store_true", help="also search palm positions (z, then x, then y) for the one "
+                   "whose fingers reach the most options at both ends of the lift with the start clear, and print "
+                   "the flags that put it there (minutes: each candidate compiles its own IK)")
 
 
 def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
@@ -87,12 +94,33 @@ def main(args: argparse.Namespace, run: Run) -> None:
                          f"{np.nanmin(reach.error[reach.links.index(link), k]) * 1e3:.1f} mm)"
                          for link, k in reach.unreachable()]
             print(f"wrote {out}")
+    if not conventions and getattr(args, "place", False):
+        _place(path)
     if problems:
         print(f"{path}: {len(problems)} problem(s) (see docs/your-model.md)")
         for p in problems:
             print(f"  - {p}")
         raise SystemExit(1)
     print("follows every convention" + ("" if getattr(args, "quick", False) else "; the start holds in C MuJoCo"))
+
+
+def _place(path) -> None:
+    """The palm search (`placement.search`): its candidates as a table, the best one's position as flags."""
+    from experiments.common import table
+    from gsp_jax.physics import placement
+
+    print("palm positions (placement.search: z, then x, then y) ...", flush=True)
+    found = placement.search(path)
+    rows = [[f"{np.round(np.asarray(c.offset) * 1e3, 1).tolist()}", f"{c.both}/{c.options}", c.either,
+             "yes" if c.clear else "no"] for c in found]
+    print(table(["palm moved by [mm]", "options at both ends", "at one", "start clear"], rows))
+    best = found[0]
+    x, y, z = best.pos
+    if best.offset == (0.0, 0.0, 0.0):
+        print("the file's palm position scores best")
+    else:
+        print(f"best: the palm at {x:.4f} {y:.4f} {z:.4f} m: `import-hand SRC OUT --palm-pos {x:.4f} {y:.4f} {z:.4f}` "
+              f"(or set the palm body's pos in the file)")
 
 
 def _learned_term(model) -> str:

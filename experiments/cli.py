@@ -36,6 +36,8 @@ COMMANDS = {  # command -> (module, one-line help)
                     "for 1, 2, 4 ... processes (one GPU and C cores each)"),
     "envelope": ("experiments.physics.envelope", "the stress envelope in physics: "
                  "falls classified by the oracle, regret"),
+    "hands": ("experiments.physics.hands", "a hands x tools table: DP optimal, L1 and L1-physics on each model's "
+              "variations in C MuJoCo, falls classified by the oracle"),
     "rescore": ("experiments.physics.rescore", "surrogate against physics: "
                 "a recorded envelope pool scored under rewards (rho, AUC), no new physics"),
     "corpus": ("experiments.physics.corpus", "a physics corpus of the model: surrogate features of grasp sequences "
@@ -213,8 +215,9 @@ PAPER_BY_DEFAULT = ("corpus", "reproduce")  # the learned term's own data (its c
 
 def _learned(args: argparse.Namespace, model, outer) -> bool:
     """Whether a command plans with the learned physics term: `--paper` no, `--learned` yes (the model's weights
-    checked before any work); else a nested command as the command that runs it, and a command that plans (it takes
-    --learned) with the model's weights where the model has them (`learned.has_own`), except `PAPER_BY_DEFAULT`."""
+    checked before any work); else a nested command as the command that runs it (for another model than its own:
+    that model's term where it has one), and a command that plans (it takes --learned) with the model's weights
+    where the model has them (`learned.has_own`), except `PAPER_BY_DEFAULT`."""
     from gsp_jax.surrogate import learned
 
     paper, asked = getattr(args, "paper", False), getattr(args, "learned", False)
@@ -222,6 +225,8 @@ def _learned(args: argparse.Namespace, model, outer) -> bool:
         raise SystemExit("--learned and --paper: one or the other")
     if paper:
         return False
+    if outer.command and outer.learned and not asked and "model" in args and model is not outer.model:
+        return learned.has_own(model)  # a nested command for another model: that model's term where it has one
     if asked or outer.learned:
         if "model" in args:
             try:

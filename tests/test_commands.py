@@ -35,6 +35,8 @@ QUICKEST = {
                       "--policies", "four-tips", "dp-opt"], ["results/envelope-screwdriver/stress.json"]),
                     (["demo", "--no-gif", "--model", "screwdriver"], ["results/demo-screwdriver/demo.png"])],  # no term
 
+    "hands": [(["hands", "--models", "screwdriver", "--episodes", "1", "--k", "1"],
+               ["results/hands-learned/hands.json", "results/envelope-screwdriver/variations.json"])],
     "planners": [(["planners"], [])],
     "figures": [(["figures", "--list"], []), (["figures", "--stale"], [])],
     "surrogate": [(["surrogate", "--episode", "nominal", "--waypoints", "0"], [])],

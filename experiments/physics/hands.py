@@ -1,0 +1,85 @@
+"""`python -m experiments hands [--models M ...] [--episodes N] [--k K]`: a hands x tools table in C MuJoCo.
+
+Each model (a hand with a tool: the shipped `wrench`, `screwdriver` and `hammer` on the paper's four-fingered hand,
+the Allegro with the wrench, and any scene file given) runs its `variations` set (the nominal lift, mass 0.5 / 1.5 /
+2 m0, friction 0.5 / 1.2, the torque reversed, halved and 1.5 times) under DP optimal, L1 and L1-physics in C
+MuJoCo, as `envelope --set variations --random 0 --policies dp-opt L1 --physics-lookahead K` does (each model's run
+is that command, nested: its results in results/envelope-<model>[-learned]/variations.json, resumable), with the
+model's learned physics term where it has one. Falls are classified by the feasibility oracle (controller: holding
+forces existed). A cell: falls of N per planner, the controller's among them, and the episodes where L1-physics
+held while DP optimal or L1 fell.
+
+Hands the library cannot import here are listed with why (Menagerie's LEAP, Shadow and Sharpa Wave need their
+meshes: docs/your-model.md). Prints the table last; writes results/hands/hands.json.
+"""
+from __future__ import annotations
+
+import argparse
+
+from experiments.common import Run, results_dir, table
+from gsp_jax.core import files
+from gsp_jax.model import load as model_lib
+from gsp_jax.surrogate import learned
+
+MODELS = ("wrench", "screwdriver", "hammer", "allegro")  # (hand, tool) cells the library ships
+NAMED = {"wrench": ("four-fingered (ours)", "wrench bar"), "screwdriver": ("four-fingered (ours)", "screwdriver"),
+         "hammer": ("four-fingered (ours)", "hammer"), "allegro": ("Allegro", "wrench bar")}
+NOT_HERE = (("LEAP (Menagerie)", "import-hand needs its meshes to fit capsules"),
+            ("Shadow E3M5 (Menagerie)", "import-hand needs its meshes to fit capsules"),
+            ("Sharpa Wave (Menagerie)", "import-hand needs its meshes to fit capsules"))
+PLANNERS = ("dp-opt", "L1", "L1-physics")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--models", nargs="+", default=list(MODELS), metavar="NAME_OR_PATH",
+                   help=f"the hand + tool scenes (default: {' '.join(MODELS)})")
+    p.add_argument("--episodes", type=int, default=None, help="only N of the 9 variations, spread over the set")
+    p.add_argument("--k", type=int, default=2, help="L1-physics: L1's K best actions branched in physics")
+
+
+def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
+    return [("hands",)]
+
+
+def main(args: argparse.Namespace, run: Run) -> None:
+    from experiments import cli
+
+    cells = []
+    for name in args.models:
+        try:
+            model = model_lib.load_model(name)
+        except model_lib.ModelError as e:
+            raise SystemExit(f"--models: {e}") from None
+        words = ["envelope", "--model", str(model.path), "--set", "variations", "--random", "0", "--policies",
+                 "dp-opt", "L1", "--physics-lookahead", str(args.k)]
+        if args.episodes:
+            words += ["--episodes", str(args.episodes)]
+        print(f"hands: {model.name} ...", flush=True)
+        cli.run_command(words, run)  # the model's learned term where it has one (`cli._learned`), unless --paper
+        use = run.learned and (model is run.model or learned.has_own(model))
+        result = files.read_json(results_dir("envelope", model=model, learned=use) / "variations.json")
+        cells.append(_cell(model, result, term=use))
+    out = dict(cells=cells, not_here=[dict(hand=h, why=w) for h, w in NOT_HERE])
+    path = run.results_dir("hands") / "hands.json"
+    files.write_json(path, out)
+    print(f"wrote {path}\n")
+    rows = [[c["hand"], c["tool"], "yes" if c["learned"] else "no",
+             *[f"{c[p]['falls']}/{c['episodes']} ({c[p]['controller']})" for p in PLANNERS], c["physics_only"]]
+            for c in cells]
+    rows += [[h, "-", "-", "-", "-", "-", why] for h, why in NOT_HERE]
+    print(table(["hand", "tool", "learned term", *[f"{p} falls (controller)" for p in PLANNERS],
+                 "held by L1-physics only"], rows))
+
+
+def _cell(model, result: dict, term: bool) -> dict:
+    """One (hand, tool) cell of an envelope result: per planner its falls and the controller's, and the episodes
+    where L1-physics held while DP optimal or L1 fell."""
+    hand, tool = NAMED.get(model.name, (model.name, "its own"))
+    kinds = result["summary"]["kinds"]
+    fell = {}
+    for row in result["sequences"]:
+        fell.setdefault(row["kind"], {})[row["episode"]] = row["fell"]
+    only = [e for e, f in fell.get("L1-physics", {}).items() if not f and (fell["dp-opt"][e] or fell["L1"][e])]
+    return dict(model=model.name, hand=hand, tool=tool, learned=term, episodes=len(result["episodes"]),
+                physics_only=len(only), physics_only_episodes=only,
+                **{p: dict(falls=kinds[p]["falls"], controller=kinds[p]["controller"]) for p in PLANNERS})

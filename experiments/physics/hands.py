@@ -5,12 +5,13 @@ the Allegro with the wrench, and any scene file given) runs its `variations` set
 2 m0, friction 0.5 / 1.2, the torque reversed, halved and 1.5 times) under DP optimal, L1 and L1-physics in C
 MuJoCo, as `envelope --set variations --random 0 --policies dp-opt L1 --physics-lookahead K` does (each model's run
 is that command, nested: its results in results/envelope-<model>[-learned]/variations.json, resumable), with the
-model's learned physics term where it has one. Falls are classified by the feasibility oracle (controller: holding
+model's learned physics term where it has one (`--paper`: none). Falls are classified by the feasibility oracle (controller: holding
 forces existed). A cell: falls of N per planner, the controller's among them, and the episodes where L1-physics
 held while DP optimal or L1 fell.
 
 Hands the library cannot import here are listed with why (Menagerie's LEAP, Shadow and Sharpa Wave need their
-meshes: docs/your-model.md). Prints the table last; writes results/hands/hands.json.
+meshes: docs/your-model.md). Prints the table last; writes results/hands[-learned]/hands.json; with --record,
+docs/data/hands_<device>.json.
 """
 from __future__ import annotations
 
@@ -63,6 +64,9 @@ def main(args: argparse.Namespace, run: Run) -> None:
     path = run.results_dir("hands") / "hands.json"
     files.write_json(path, out)
     print(f"wrote {path}\n")
+    run.record_figures("hands", dict(episodes=args.episodes or 9, k=args.k, cells=[
+        {key: c[key] for key in ("model", "hand", "tool", "learned", "episodes", "physics_only", *PLANNERS)}
+        for c in cells]))
     rows = [[c["hand"], c["tool"], "yes" if c["learned"] else "no",
              *[f"{c[p]['falls']}/{c['episodes']} ({c[p]['controller']})" for p in PLANNERS], c["physics_only"]]
             for c in cells]

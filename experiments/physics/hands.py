@@ -5,9 +5,9 @@ the Allegro with the wrench, and any scene file given) runs its `variations` set
 2 m0, friction 0.5 / 1.2, the torque reversed, halved and 1.5 times) under DP optimal, L1 and L1-physics in C
 MuJoCo, as `envelope --set variations --random 0 --policies dp-opt L1 --physics-lookahead K` does (each model's run
 is that command, nested: its results in results/envelope-<model>[-learned]/variations.json, resumable), with the
-model's learned physics term where it has one (`--paper`: none). Falls are classified by the feasibility oracle (controller: holding
-forces existed). A cell: falls of N per planner, the controller's among them, and the episodes where L1-physics
-held while DP optimal or L1 fell.
+model's learned physics term where it has one (`--paper`: none). Falls are classified by the feasibility oracle
+(controller: holding forces existed). A cell: falls of N per planner, the controller's among them, and the episodes
+where L1-physics held while DP optimal or L1 fell.
 
 Hands the library cannot import here are listed with why (Menagerie's LEAP, Shadow and Sharpa Wave need their
 meshes: docs/your-model.md). Prints the table last; writes results/hands[-learned]/hands.json; with --record,

@@ -34,7 +34,7 @@ from gsp_jax.planning import policies
 _PAPER = ("experiments/paper/reproduce.py", "experiments/paper/fig4a.py", "experiments/paper/fig4b.py",
           "experiments/paper/table1")  # what `reproduce` runs (it trains only where no PPO policy is shipped)
 _LATENCY = ("table1", "--per-decision", "--episodes", "7", "--policies", "dp-base", "rl", "L1", "L2", "dp-opt",
-            "L1-physics")  # one episode at a time, on either machine
+            "L1-physics", "--paper")  # one episode at a time, on either machine
 
 
 def _other_models() -> tuple[str, ...]:
@@ -73,12 +73,12 @@ FIGURES = (
     Figure("latency", _LATENCY, ("bench_latency",), "gpu", (*_LIBRARY, "experiments/paper/table1"), 2.5),
     Figure("latency-cpu", _LATENCY, ("bench_latency",), "cpu", (*_LIBRARY, "experiments/paper/table1"), 12.0),
     Figure("envelope-stress", ("envelope", "--set", "stress", "--random", "8", "--physics-lookahead", "2", "--bases",
-                               "four-tips", "dp-opt"), ("envelope_stress",), "gpu",
+                               "four-tips", "dp-opt", "--paper"), ("envelope_stress",), "gpu",
            (*_LIBRARY, "experiments/physics/envelope.py"), 9.0),
     Figure("envelope-eval", ("envelope", "--set", "eval", "--random", "8", "--physics-lookahead", "2", "--bases",
-                             "four-tips", "dp-opt"), ("envelope_eval",), "gpu",
+                             "four-tips", "dp-opt", "--paper"), ("envelope_eval",), "gpu",
            (*_LIBRARY, "experiments/physics/envelope.py"), 3.0),
-    Figure("physics-cpu", ("bench-physics", "--backends", "c"), ("bench_physics",), "cpu",
+    Figure("physics-cpu", ("bench-physics", "--backends", "c", "--paper"), ("bench_physics",), "cpu",
            (*_LIBRARY, "experiments/bench/physics.py"), 6.0),
     # the same with the learned physics term (`--learned`: the model's weights, `calibrate --learn`)
     Figure("envelope-stress-learned", ("envelope", "--set", "stress", "--random", "8", "--physics-lookahead", "2",
@@ -90,6 +90,10 @@ FIGURES = (
     Figure("latency-learned", ("table1", "--per-decision", "--episodes", "7", "--policies", "L1", "dp-opt",
                                "--learned"), ("bench_latency_learned",), "gpu",
            (*_LIBRARY, "experiments/paper/table1"), 1.5),
+    # the hands x tools table: every shipped model's files are what it measures (the default's learned term on)
+    Figure("hands", ("hands", "--learned"), ("hands_learned",), "cpu", ("gsp_jax", "models", "experiments/common.py",
+           "experiments/cli.py", "experiments/__main__.py", "pyproject.toml", "requirements.lock",
+           "experiments/physics/hands.py", "experiments/physics/envelope.py"), 26.0),
 )
 # the surrogate's figures (Fig. 4a, Table 1) come from the same run as Fig. 4b, so `paper` measures the physics too
 

@@ -16,6 +16,7 @@ docs/data/hands_<device>.json.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 from experiments.common import Run, results_dir, table
 from gsp_jax.core import files
@@ -56,7 +57,8 @@ def main(args: argparse.Namespace, run: Run) -> None:
         if args.episodes:
             words += ["--episodes", str(args.episodes)]
         print(f"hands: {model.name} ...", flush=True)
-        cli.run_command(words, run)  # the model's learned term where it has one (`cli._learned`), unless --paper
+        # the model's learned term where it has one (`cli._learned`), unless --paper; only the table is recorded
+        cli.run_command(words, dataclasses.replace(run, record=False))
         use = run.learned and (model is run.model or learned.has_own(model))
         result = files.read_json(results_dir("envelope", model=model, learned=use) / "variations.json")
         cells.append(_cell(model, result, term=use))

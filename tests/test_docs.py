@@ -395,3 +395,17 @@ def test_a_figures_run_records_the_commit_it_started_from(tmp_path, monkeypatch)
                  common.Run(record=True))
     last = json.loads((clone / f"docs/data/{tracked[0]}_cpu.json").read_text())
     assert last["commit"] == head + "+dirty"
+
+
+def test_hands_table_is_docs_data():
+    """The README's hands x tools table equals the record its paragraph cites (falls per planner, per model), and
+    that record is the hands figure's (`figures`: `hands --learned`, on a CPU)."""
+    name = _named("hands_learned_")
+    cells = {c["model"]: c for c in _file(name)["figures"]["cells"]}
+    rows = {"ours × wrench bar": "wrench", "ours × screwdriver (2 cm grip, no term)": "screwdriver",
+            "ours × hammer": "hammer", "Allegro × wrench bar": "allegro"}
+    for label, model in rows.items():
+        _, got = _row(label)
+        assert [int(x) for x in got] == [cells[model][p]["falls"] for p in ("dp-opt", "L1", "L1-physics")], label
+    assert not cells["screwdriver"]["learned"] and cells["wrench"]["learned"]
+    assert _file(name)["command"] == "python -m experiments --record hands --learned"

@@ -134,7 +134,7 @@ def _learned_term(model) -> str:
             f"surrogate, which calls plans feasible that physics drops more often. `python -m experiments calibrate "
             f"--learn --model {model.path}` makes it: a corpus of 40 x 64 episodes in C MuJoCo, then the fit "
             "(24 shards took 6.3 min on the 16-core H200 host; on 2 cores hours: `--shards 2 --episodes 16` makes a "
-            "first, rougher term in minutes)")
+            "first, rougher term in about 6 min)")
 
 
 def _picture(model, reach, folder: pathlib.Path) -> pathlib.Path:

@@ -495,3 +495,8 @@ def test_the_placement_search_finds_a_palm_that_reaches(tmp_path):
     assert best.clear and best.both == best.options and best.offset[2] < 0, best
     assert best.pos[2] == pytest.approx(0.15 + best.offset[2]) and best.pos[2] <= 0.13 + 1e-9
     assert not list(tmp_path.glob(".*place*")), "the candidates' scene files are left behind"
+
+
+def test_the_allegro_screwdriver_scene_follows_the_conventions():
+    """The hands table's Allegro x screwdriver cell (a scene file beside the shipped models, not a shipped name)."""
+    assert model_lib.check_model(hand_lib.MODELS_DIR / "allegro-screwdriver" / "scene.xml") == []

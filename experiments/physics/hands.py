@@ -1,13 +1,14 @@
 """`python -m experiments hands [--models M ...] [--episodes N] [--k K]`: a hands x tools table in C MuJoCo.
 
 Each model (a hand with a tool: the shipped `wrench`, `screwdriver` and `hammer` on the paper's four-fingered hand,
-the Allegro with the wrench, and any scene file given) runs its `variations` set (the nominal lift, mass 0.5 / 1.5 /
-2 m0, friction 0.5 / 1.2, the torque reversed, halved and 1.5 times) under DP optimal, L1 and L1-physics in C
-MuJoCo, as `envelope --set variations --random 0 --policies dp-opt L1 --physics-lookahead K` does (each model's run
-is that command, nested: its results in results/envelope-<model>[-learned]/variations.json, resumable), with the
-model's learned physics term where it has one (`--paper`: none). Falls are classified by the feasibility oracle
-(controller: holding forces existed). A cell: falls of N per planner, the controller's among them, and the episodes
-where L1-physics held while DP optimal or L1 fell.
+the Allegro with the wrench and with the screwdriver, and any scene file given) runs its `variations` set (the
+nominal lift, mass 0.5 / 1.5 / 2 m0, friction 0.5 / 1.2, the torque reversed, halved and 1.5 times) under DP
+optimal, L1 and L1-physics in C MuJoCo, as `envelope --set variations --random 0 --policies dp-opt L1
+--physics-lookahead K` does (each model's run is that command, nested: its results in
+results/envelope-<model>[-learned]/variations.json, resumable), with the model's learned physics term where it has
+one (`--paper`: none). Falls are classified by the feasibility oracle (controller: holding forces existed). A cell:
+falls of N per planner, the controller's among them, and the episodes where L1-physics held while DP optimal or L1
+fell.
 
 Hands the library cannot import here are listed with why (Menagerie's LEAP, Shadow and Sharpa Wave need their
 meshes: docs/your-model.md). Prints the table last; writes results/hands[-learned]/hands.json; with --record,
@@ -21,11 +22,14 @@ import dataclasses
 from experiments.common import Run, results_dir, table
 from gsp_jax.core import files
 from gsp_jax.model import load as model_lib
+from gsp_jax.model.hand import MODELS_DIR
 from gsp_jax.surrogate import learned
 
-MODELS = ("wrench", "screwdriver", "hammer", "allegro")  # (hand, tool) cells the library ships
+MODELS = ("wrench", "screwdriver", "hammer", "allegro",  # (hand, tool) cells the library ships; and the Allegro's
+          str(MODELS_DIR / "allegro-screwdriver" / "scene.xml"))  # screwdriver (a scene file, not a shipped name)
 NAMED = {"wrench": ("four-fingered (ours)", "wrench bar"), "screwdriver": ("four-fingered (ours)", "screwdriver"),
-         "hammer": ("four-fingered (ours)", "hammer"), "allegro": ("Allegro", "wrench bar")}
+         "hammer": ("four-fingered (ours)", "hammer"), "allegro": ("Allegro", "wrench bar"),
+         "allegro-screwdriver": ("Allegro", "screwdriver")}
 NOT_HERE = (("LEAP (Menagerie)", "import-hand needs its meshes to fit capsules"),
             ("Shadow E3M5 (Menagerie)", "import-hand needs its meshes to fit capsules"),
             ("Sharpa Wave (Menagerie)", "import-hand needs its meshes to fit capsules"))
@@ -34,7 +38,8 @@ PLANNERS = ("dp-opt", "L1", "L1-physics")
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--models", nargs="+", default=list(MODELS), metavar="NAME_OR_PATH",
-                   help=f"the hand + tool scenes (default: {' '.join(MODELS)})")
+                   help="the hand + tool scenes (default: wrench, screwdriver, hammer, allegro and "
+                        "models/allegro-screwdriver)")
     p.add_argument("--episodes", type=int, default=None, help="only N of the 9 variations, spread over the set")
     p.add_argument("--k", type=int, default=2, help="L1-physics: L1's K best actions branched in physics")
 

@@ -402,8 +402,9 @@ def test_hands_table_is_docs_data():
     that record is the hands figure's (`figures`: `hands --learned`, on a CPU)."""
     name = _named("hands_learned_")
     cells = {c["model"]: c for c in _file(name)["figures"]["cells"]}
-    rows = {"ours × wrench bar": "wrench", "ours × screwdriver (2 cm grip, no term)": "screwdriver",
-            "ours × hammer": "hammer", "Allegro × wrench bar": "allegro"}
+    rows = {"ours × wrench bar": "wrench", "ours × screwdriver (2 cm, no term)": "screwdriver",
+            "ours × hammer": "hammer", "Allegro × wrench bar": "allegro",
+            "Allegro × screwdriver (no term)": "allegro-screwdriver"}
     for label, model in rows.items():
         _, got = _row(label)
         assert [int(x) for x in got] == [cells[model][p]["falls"] for p in ("dp-opt", "L1", "L1-physics")], label

@@ -1,7 +1,7 @@
 """Gymnasium users' own tools on the registered environment (gsp_jax.learning.gym_env): gymnasium.make and its env
 checker, seeding and episode choice against the brax env and the DP, RecordEpisodeStatistics, the native vector env
-against
-Gymnasium's own SyncVectorEnv step for step (autoreset included), RecordVideo, and clear errors for bad arguments.
+against Gymnasium's own SyncVectorEnv step for step (autoreset included), RecordVideo, and clear errors for bad
+arguments.
 
 Episodes: three reduced ones (T = 3 waypoints) written to a JSON file, so each table build is cheap; the built
 environment is memoised per process, so every test here shares one set of tables.

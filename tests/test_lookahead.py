@@ -403,9 +403,9 @@ def test_table1_dp_optimal_earns_its_dp_optimum_by_replaying_its_own_table(sur, 
 
 def test_table1_lookahead_in_the_table_runs_the_cached_episode(sur, solved, network, stepped):
     """`online.episode_planner`'s L1 (Table 1's) searching in the unseen episode's table, root included
-    (`lookahead="table"`, the
-    default), runs the episode that the cached L1 runs with the root's actions stepped in the surrogate (from its
-    start the surrogate visits only the table's states): the same return, to the tolerance of a few rewards."""
+    (`lookahead="table"`, the default), runs the episode that the cached L1 runs with the root's actions stepped in the
+    surrogate (from its start the surrogate visits only the table's states): the same return, to the tolerance of a few
+    rewards."""
     from gsp_jax.planning import evaluation
     from gsp_jax.planners import online
 

@@ -1,12 +1,11 @@
 """A model: one hand, one tool and their grasp space, loaded once from an MJCF scene and carried everywhere.
 
-`load_model(name_or_path)` is the one door: a shipped model by name (`SHIPPED`: ``wrench``, the default,
-``hammer``, ``allegro``, ``screwdriver``; ``testhand``, a small model for the tests) or any scene file that follows
-the conventions of `docs/your-model.md`. The surrogate, the physics scene (both backends), episodes, policies, DP
-tables and their cache, the environments and every ``python -m experiments`` command (``--model NAME_OR_PATH``)
-are built from it,
-and nothing falls back to the shipped files: what was made for one model (an episode, a table, a policy) is refused
-by another with an error naming both.
+`load_model(name_or_path)` is the one door: a shipped model by name (`SHIPPED`: ``wrench``, the default, ``hammer``,
+``allegro``, ``screwdriver``; ``testhand``, a small model for the tests) or any scene file that follows the conventions
+of `docs/your-model.md`. The surrogate, the physics scene (both backends), episodes, policies, DP tables and their
+cache, the environments and every ``python -m experiments`` command (``--model NAME_OR_PATH``) are built from it, and
+nothing falls back to the shipped files: what was made for one model (an episode, a table, a policy) is refused by
+another with an error naming both.
 
 `check_model(path)` lists, in plain words, every convention a scene file breaks (an empty list: none); every
 loading path runs it first (`require`), so a broken file is refused before MuJoCo or XLA sees it.

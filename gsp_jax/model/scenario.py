@@ -344,10 +344,9 @@ SETS = {"nominal": nominal, "variations": variations_set, "train": training_set,
 
 
 def episode_set(name: str, model=None) -> dict[str, Episode]:
-    """A named set: nominal, variations (`variations_set`), train, val, evalA, evalB, eval (A then B), all (train
-    then eval), stress (the
-    envelope; never part of "all": not for calibration or training) or stress-cal (the envelope's calibration
-    slice, disjoint from stress)."""
+    """A named set: nominal, variations (`variations_set`), train, val, evalA, evalB, eval (A then B), all (train then
+    eval), stress (the envelope; never part of "all": not for calibration or training) or stress-cal (the envelope's
+    calibration slice, disjoint from stress)."""
     if name == "eval":
         return {**eval_set_a(model), **eval_set_b(model)}
     if name == "all":

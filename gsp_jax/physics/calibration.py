@@ -110,9 +110,9 @@ def sequence_pool(configs, tables, nominal_tables, batch, n_random: int, seed: i
 
 def simulate_pool(pool, episodes: dict, backend: str, chunk_size: int, cache_path, t0: float, model=None) -> dict:
     """Every (episode, sequence) of the pool in `model`'s physics (None: the default model; `backend`, at most
-    `chunk_size` a batch), cached in the JSON
-    file `cache_path` (kept after each chunk, so an interrupted run resumes): {"<episode>|<actions>": [angle error
-    [deg], fell]}. Prints progress against the start time `t0` [s, perf_counter]."""
+    `chunk_size` a batch), cached in the JSON file `cache_path` (kept after each chunk, so an interrupted run resumes):
+    {"<episode>|<actions>": [angle error [deg], fell]}. Prints progress against the start time `t0` [s,
+    perf_counter]."""
     names = list(episodes)
     cache = files.reuse_json(cache_path, lambda c: isinstance(c, dict)) or {}  # unreadable: warned, resimulated
     todo = [(e, seq) for e in range(len(names)) for _, seq in pool[e] if pool_key(names, e, seq) not in cache]

@@ -36,19 +36,17 @@ def default_ahead() -> int:
 
 
 def episode_planner(ctx, name: str, lookahead: str = "table", batched: bool | None = None, ahead: int | None = None):
-    """episode -> return for policy `name`, planned online on the surrogate. L1 and L2 (`lookahead`): "table"
-    builds the unseen episode's table (as DP optimal does) and searches in it, root included: from its start the
-    surrogate visits only the table's discrete states, so the root's children are the table's (exact, as for DP
-    optimal); "cached" steps the root's actions in the surrogate and looks up below the root; "continuous" runs the
-    whole search in the surrogate. With
-    `batched`, DP baseline and RL run their decisions first and then all the episode's transitions as one vmapped
-    batch (`policies.rollout_batched`), instead of stepping the surrogate after each decision: on a GPU a step's
-    cost is its chain of dependent solves, not its arithmetic, so T steps in one batch cost about one. DP
-    baseline's open-loop sequence needs no more work batched; RL's decisions each realise their state first (one
-    IK a step more, a chain of T IKs left on the critical path), which a CPU, where a batch costs what its problems
-    cost, pays in full; `ahead` (default `default_ahead`) realises the states of that many decisions in one batch,
-    shortening the chain to T / ahead batched IKs. Default (`default_batched`): batched for DP baseline, and for RL
-    on a GPU."""
+    """episode -> return for policy `name`, planned online on the surrogate. L1 and L2 (`lookahead`): "table" builds the
+    unseen episode's table (as DP optimal does) and searches in it, root included: from its start the surrogate visits
+    only the table's discrete states, so the root's children are the table's (exact, as for DP optimal); "cached" steps
+    the root's actions in the surrogate and looks up below the root; "continuous" runs the whole search in the
+    surrogate. With `batched`, DP baseline and RL run their decisions first and then all the episode's transitions as
+    one vmapped batch (`policies.rollout_batched`), instead of stepping the surrogate after each decision: on a GPU a
+    step's cost is its chain of dependent solves, not its arithmetic, so T steps in one batch cost about one. DP
+    baseline's open-loop sequence needs no more work batched; RL's decisions each realise their state first (one IK a
+    step more, a chain of T IKs left on the critical path), which a CPU, where a batch costs what its problems cost,
+    pays in full; `ahead` (default `default_ahead`) realises the states of that many decisions in one batch, shortening
+    the chain to T / ahead batched IKs. Default (`default_batched`): batched for DP baseline, and for RL on a GPU."""
     if lookahead not in LOOKAHEAD:
         raise ValueError(f"lookahead: one of {LOOKAHEAD}, got {lookahead!r}")
     sur = ctx.surrogate

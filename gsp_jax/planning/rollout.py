@@ -4,11 +4,10 @@
     traj.ret, traj.final, traj.actions, traj.rewards      # the expected return, where it stopped, step by step
 
 Every walk of the library goes through `walk`: the lookahead's rollouts and its episodes (`lookahead.rollout`,
-`lookahead.rollout_planned`, which moves on to each search's own child), a planner's episode
-(`planners.registry.plan`, `returns`) and the online one (`planners.online.episode_planner`). Each step's reward
-counts with the chance that every earlier segment held (`reward.accumulated`: the learned physics term's chance node; 1
-without
-the term, where the return is the plain sum).
+`lookahead.rollout_planned`, which moves on to each search's own child), a planner's episode (`planners.registry.plan`,
+`returns`) and the online one (`planners.online.episode_planner`). Each step's reward counts with the chance that every
+earlier segment held (`reward.accumulated`: the learned physics term's chance node; 1 without the term, where the return
+is the plain sum).
 
 The walk is a `lax.while_loop` over at most `steps` steps that writes each step into the trajectory's arrays of
 length `steps`: it stops when the episode ends, and under `vmap` when every walk of the batch has ended (a

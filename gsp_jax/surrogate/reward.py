@@ -27,17 +27,16 @@ when `change_falls`), or at the last step the forces the hand's motors can give 
 of (d) unmet (`RewardTerms.motor_unmet`); `r_min` ends the episode.
 
 The learned physics term (`Surrogate(learned=...)`, on by default where the model has weights; `learned=False`: the
-paper's surrogate): a network fitted on a
-physics corpus of the model (`gsp_jax.surrogate.learned`) gives each transition its probability p of a fall in the
-segment (`RewardTerms.fall_risk`), a chance node after the decision (the paper's lookahead is expectimax). A transition
-with p above `risk_falls` is a fall; below it, the step's reward is its expectation, (1 - p) times the analytic
-reward plus p times `r_min`, and what follows it counts only if the segment held: every planner backs values up as
-reward + (1 - p) * value of the next state (`backed_up`, `expected_return`), so a sequence's value is its expected
-return with a fall ending it at `r_min`. Without the term p = 0 and both are the plain sums. The analytic terms
-stay: the network reads them (`learned.FEATURES`) and corrects them. The rule is written here only: a step's chance
-to hold (`chance_to_hold`), its expected reward (`expected_reward`), the backup (`backed_up`), the return walked
-forwards step by step (`accumulated`) or summed over a sequence (`expected_return`, `held_through`); every planner,
-the environment and the offline returns call these.
+paper's surrogate): a network fitted on a physics corpus of the model (`gsp_jax.surrogate.learned`) gives each
+transition its probability p of a fall in the segment (`RewardTerms.fall_risk`), a chance node after the decision (the
+paper's lookahead is expectimax). A transition with p above `risk_falls` is a fall; below it, the step's reward is its
+expectation, (1 - p) times the analytic reward plus p times `r_min`, and what follows it counts only if the segment
+held: every planner backs values up as reward + (1 - p) * value of the next state (`backed_up`, `expected_return`), so a
+sequence's value is its expected return with a fall ending it at `r_min`. Without the term p = 0 and both are the plain
+sums. The analytic terms stay: the network reads them (`learned.FEATURES`) and corrects them. The rule is written here
+only: a step's chance to hold (`chance_to_hold`), its expected reward (`expected_reward`), the backup (`backed_up`), the
+return walked forwards step by step (`accumulated`) or summed over a sequence (`expected_return`, `held_through`); every
+planner, the environment and the offline returns call these.
 
 The calibrated defaults (`CALIBRATED_FIELDS`) are read from the data file `models/reward_calibration.json`
 (`CALIBRATION_JSON`), which `python -m experiments calibrate --write` writes through `write_calibration`: when the

@@ -3,16 +3,15 @@
     state = sur.reset(episode)                      # grasp realised at waypoint 0
     state, reward, done = sur.step(state, action)   # jit- and vmap-able over states, actions, episodes
 
-A step at waypoint t applies the action to the grasp g (action 0, the null action, keeps it; every other action
-sets one contact link to one option), realises the new grasp g' by IK at the current tool pose and at the next
-desired pose (waypoint t+1), and, when the grasp changes, the shared grasp (g without the link that moves) at the
-current pose; it solves the wrench problems of those contacts and scores them with the shaped reward of
-`gsp_jax.surrogate.reward` (its terms (a)-(f), `RewardConfig`). A step that collides or drops the tool gets `r_min`
-and ends the episode. Every IK starts from the model's fixed start configuration, so the next joint state is the IK
-result at
-the next desired pose (the paper's transition). Rotational inertia is not modelled here (the paper's trajectories
-are pure translations): the contacts must supply m (a - g) and zero torque about the CoM while moving; the MJX
-physics check carries the full rigid-body dynamics.
+A step at waypoint t applies the action to the grasp g (action 0, the null action, keeps it; every other action sets one
+contact link to one option), realises the new grasp g' by IK at the current tool pose and at the next desired pose
+(waypoint t+1), and, when the grasp changes, the shared grasp (g without the link that moves) at the current pose; it
+solves the wrench problems of those contacts and scores them with the shaped reward of `gsp_jax.surrogate.reward` (its
+terms (a)-(f), `RewardConfig`). A step that collides or drops the tool gets `r_min` and ends the episode. Every IK
+starts from the model's fixed start configuration, so the next joint state is the IK result at the next desired pose
+(the paper's transition). Rotational inertia is not modelled here (the paper's trajectories are pure translations): the
+contacts must supply m (a - g) and zero torque about the CoM while moving; the MJX physics check carries the full
+rigid-body dynamics.
 """
 from __future__ import annotations
 
@@ -207,14 +206,13 @@ class Surrogate:
         self, episode: Episode, t: jax.Array, tool_pos, tool_quat, now: Contacts, nxt: Contacts, redundant,
         during: Contacts | None = None, changed=False,
     ) -> RewardTerms:
-        """Reward terms of moving, with new grasp contacts `now` (at the current pose) and `nxt` (at waypoint
-        t+1), from waypoint t: the wrench problems solved here, the terms assembled by `gsp_jax.surrogate.reward`. The
-        previous grasp enters through `redundant`, `changed` (the grasp changes) and `during` (the shared grasp's
-        contacts at
-        the current pose; None: no change term). The motor check counts at the last step only (`reward.arrival`):
-        under a `cond` (`_only_where`), so a step of one t solves it only there and a batch of steps only where one
-        of its rows is a last step; a batch over t solves it for its last step's rows alone through `score_deferred`
-        and `motor_check` (`arrival_terms`, `transitions`)."""
+        """Reward terms of moving, with new grasp contacts `now` (at the current pose) and `nxt` (at waypoint t+1), from
+        waypoint t: the wrench problems solved here, the terms assembled by `gsp_jax.surrogate.reward`. The previous
+        grasp enters through `redundant`, `changed` (the grasp changes) and `during` (the shared grasp's contacts at the
+        current pose; None: no change term). The motor check counts at the last step only (`reward.arrival`): under a
+        `cond` (`_only_where`), so a step of one t solves it only there and a batch of steps only where one of its rows
+        is a last step; a batch over t solves it for its last step's rows alone through `score_deferred` and
+        `motor_check` (`arrival_terms`, `transitions`)."""
         terms, problem = self.score_deferred(episode, t, tool_pos, tool_quat, now, nxt, redundant, during, changed)
         if problem is None:
             return terms

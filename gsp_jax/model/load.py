@@ -146,7 +146,6 @@ def require(path) -> None:
                          + "\n  - ".join(problems))
 
 
-@functools.lru_cache(maxsize=16)
 def missing_files(path) -> list[str]:
     """The asset files (meshes, textures, height fields, skins) the scene at `path` and its includes name but that
     do not exist, as the paths MuJoCo would open (relative to the scene's folder, through meshdir / texturedir /
@@ -165,6 +164,7 @@ def missing_files(path) -> list[str]:
     return list(dict.fromkeys(out))
 
 
+@functools.lru_cache(maxsize=16)
 def _check(path: str) -> tuple[str, ...]:
     try:
         m = hand_lib.load_mjmodel(path)

@@ -363,23 +363,19 @@ def collisions(hand: HandModel, q, tool_pos, tool_mat, tol: float = 0.0) -> list
     where deeper than `tol` [m] (the IK's `collision_tol` counts a collision; 0: every overlap). What
     `IKResult.penetration` measures, per body (one line each: its deepest sphere)."""
     pos, mat = kinematics.body_poses(hand, jnp.asarray(q, jnp.float32))
-    c = kinematics.points_on_bodies(pos, mat, hand.sphere_body, hand.sphere_pos)
-    r = np.asarray(hand.sphere_radius)
+    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    geo = _geometry(hand, pos, mat, jnp.zeros((hand.n_links, 3), jnp.float32), f32(tool_pos), f32(tool_mat))
     depth = {}
-    tool = -(np.asarray(box_sdf(c, jnp.asarray(tool_pos, jnp.float32), jnp.asarray(tool_mat, jnp.float32), hand)) - r)
-    table = -(np.asarray(c[:, 2]) - r)
-    for kind, d in (("the tool", tool), ("the table", table)):
+    for kind, gap in (("the tool", geo.tool_gap), ("the table", geo.table_gap)):
+        d = -np.asarray(gap)
         for s in np.flatnonzero(d > tol):
             key = (hand.body_names[hand.sphere_body[s]], kind)
             depth[key] = max(depth.get(key, 0.0), float(d[s]))
-    if len(hand.self_pairs):
-        pi, pk = _self_closest(hand, pos, mat, jnp.float32)
-        cr = np.asarray(hand.capsule_radius)
-        i, k = np.asarray(hand.self_pairs).T
-        d = -(np.linalg.norm(np.asarray(pi) - np.asarray(pk), axis=-1) - cr[i] - cr[k])
-        for p in np.flatnonzero(d > tol):
-            key = (hand.body_names[hand.capsule_body[i[p]]], hand.body_names[hand.capsule_body[k[p]]])
-            depth[key] = max(depth.get(key, 0.0), float(d[p]))
+    d = -np.asarray(geo.self_gap)
+    for p in np.flatnonzero(d > tol):
+        i, k = hand.self_pairs[p]
+        key = (hand.body_names[hand.capsule_body[i]], hand.body_names[hand.capsule_body[k]])
+        depth[key] = max(depth.get(key, 0.0), float(d[p]))
     return [f"{a} {'into' if b.startswith('the ') else 'and'} {b}{'' if b.startswith('the ') else ' overlap'} "
             f"{d * 1e3:.1f} mm" for (a, b), d in sorted(depth.items(), key=lambda kv: -kv[1])]
 

@@ -110,10 +110,10 @@ def processes_asked(words: list[str]) -> tuple[int | None, list[str]]:
     return None, list(words)
 
 
-def main(argv: list[str] | None = None, outer: common.Run | None = None) -> None:
+def main(argv: list[str] | None = None, outer: common.Run | None = None) -> common.Run:
     """`python -m experiments [--processes N] [--record] <command> [options]`: the command's module imported, its
     options parsed, its `Run` made (`make_run`; within `outer`, the run of the command that runs this one:
-    `run_command`) and handed to its `main(args, run)`."""
+    `run_command`) and handed to its `main(args, run)`. Returns that run (where its results went)."""
     words = sys.argv[1:] if argv is None else argv
     n_processes, words = processes_asked(words)
     chosen = next((w for w in words if w in COMMANDS), None)  # only its module is imported (the others: help only)
@@ -176,6 +176,7 @@ def main(argv: list[str] | None = None, outer: common.Run | None = None) -> None
         module.main(args, run)
     except (files.FolderInUse, scenario.EpisodeError) as e:  # a user's input or a busy folder: the message, no trace
         raise SystemExit(f"{args.command}: {e}") from None
+    return run
 
 
 def make_run(args: argparse.Namespace, words: list[str], outer: common.Run | None = None) -> common.Run:
@@ -239,8 +240,9 @@ def _learned(args: argparse.Namespace, model, outer) -> bool:
     return learned.has_own(model)
 
 
-def run_command(words: list[str], run: common.Run) -> None:
+def run_command(words: list[str], run: common.Run) -> common.Run:
     """Run another command in this process, as `python -m experiments <words>` would, within `run` (the running
     command's: its model, learned term and --record, where the words give none; its records name `run.command`): how
-    a pipeline such as `reproduce` composes commands, reading their results from their files."""
-    main(list(words), run)
+    a pipeline such as `reproduce` composes commands, reading their results from their files (the returned run's
+    `results_dir`)."""
+    return main(list(words), run)

@@ -19,11 +19,10 @@ from __future__ import annotations
 import argparse
 import dataclasses
 
-from experiments.common import Run, results_dir, table
+from experiments.common import Run, table
 from gsp_jax.core import files
 from gsp_jax.model import load as model_lib
 from gsp_jax.model.hand import MODELS_DIR
-from gsp_jax.surrogate import learned
 
 MODELS = ("wrench", "screwdriver", "hammer", "allegro",  # (hand, tool) cells the library ships; and the Allegro's
           str(MODELS_DIR / "allegro-screwdriver" / "scene.xml"))  # screwdriver (a scene file, not a shipped name)
@@ -63,10 +62,9 @@ def main(args: argparse.Namespace, run: Run) -> None:
             words += ["--episodes", str(args.episodes)]
         print(f"hands: {model.name} ...", flush=True)
         # the model's learned term where it has one (`cli._learned`), unless --paper; only the table is recorded
-        cli.run_command(words, dataclasses.replace(run, record=False))
-        use = run.learned and (model is run.model or learned.has_own(model))
-        result = files.read_json(results_dir("envelope", model=model, learned=use) / "variations.json")
-        cells.append(_cell(model, result, term=use))
+        nested = cli.run_command(words, dataclasses.replace(run, record=False))
+        result = files.read_json(nested.results_dir("envelope") / "variations.json")
+        cells.append(_cell(model, result, term=nested.learned))
     out = dict(cells=cells, not_here=[dict(hand=h, why=w) for h, w in NOT_HERE])
     path = run.results_dir("hands") / "hands.json"
     files.write_json(path, out)

@@ -5,6 +5,7 @@ An `Episode` is a pytree of arrays, so a batch of episodes is one `Episode` whos
 """
 from __future__ import annotations
 
+import dataclasses
 import pathlib
 from typing import Sequence
 
@@ -191,19 +192,19 @@ UP_REACH = 0.014  # [m] ... and up
 LATERAL_REACH = 0.018  # [m] the lift's end point moved along x or y
 
 
-@struct.dataclass
+@dataclasses.dataclass(frozen=True)
 class Fit:
     """The factors (each in [0, 1]) by which the episode sets' offsets, written in the wrench's centimetres and
     millimetres, are scaled for a model's tool and hand (`fit`): 1 where the model has the wrench's room."""
 
-    com: tuple = struct.field(pytree_node=False, default=(1.0, 1.0))  # CoM offsets along the tool's x, y
-    down: float = struct.field(pytree_node=False, default=1.0)  # height shifts below the rest
-    up: float = struct.field(pytree_node=False, default=1.0)  # height shifts above it
-    lateral: tuple = struct.field(pytree_node=False, default=(1.0, 1.0))  # the end point's moves along x, y
+    com: tuple = (1.0, 1.0)  # CoM offsets along the tool's x, y
+    down: float = 1.0  # height shifts below the rest
+    up: float = 1.0  # height shifts above it
+    lateral: tuple = (1.0, 1.0)  # the end point's moves along x, y
 
-    def shift(self, mm: float) -> float:
-        """A height shift [mm] of the sets, scaled for the model."""
-        return mm * (self.down if mm < 0 else self.up)
+    def shift(self, mm):
+        """Height shifts [mm] of the sets (a number or an array), scaled for the model."""
+        return mm * np.where(np.less(mm, 0), self.down, self.up)
 
 
 def fit(model=None) -> Fit:
@@ -316,7 +317,7 @@ def stress_set(n: int = STRESS_SIZE, seed: int = STRESS_SEED, prefix: str = "str
     t0, f = _torque(model), fit(model)
     mu, torque, com_x, com_y = strata(0.3, 2.0), strata(-2.0, 2.0) * t0, strata(-2.0, 2.0), strata(-2.0, 2.0)
     shift, lat = strata(-6.0, 12.0), strata(-15.0, 15.0)
-    com_x, com_y, shift = com_x * f.com[0], com_y * f.com[1], np.where(shift < 0, f.down, f.up) * shift
+    com_x, com_y, shift = com_x * f.com[0], com_y * f.com[1], f.shift(shift)
     eps = {}
     for i in range(n):
         path = ("vertical", "lateral-x", "lateral-y", "diagonal")[i % 4]

@@ -42,16 +42,16 @@ class Candidate:
         return (self.clear, self.both, self.either)
 
 
-def _moved(path: pathlib.Path, palm: str, offset) -> pathlib.Path:
+def _moved(path: pathlib.Path, palm: str, offset) -> tuple[pathlib.Path, tuple[float, ...]]:
     """The scene with its palm moved by `offset`, written beside it (its includes and meshes resolve alike), named
-    by its content (a model is loaded once per path in a process)."""
+    by its content (a model is loaded once per path in a process); and the palm's new position."""
     spec = mujoco.MjSpec.from_file(str(path))
     body = spec.body(palm)
     body.pos = np.asarray(body.pos, np.float64) + np.asarray(offset, np.float64)
     xml = spec.to_xml()
     out = path.with_name(f".{path.stem}.place-{hashlib.sha256(xml.encode()).hexdigest()[:12]}.xml")
     out.write_text(xml)
-    return out
+    return out, tuple(float(x) for x in body.pos)
 
 
 def evaluate(path, offset=(0.0, 0.0, 0.0)) -> Candidate:
@@ -59,7 +59,7 @@ def evaluate(path, offset=(0.0, 0.0, 0.0)) -> Candidate:
     path = pathlib.Path(model_lib.resolve(path))
     base = model_lib.load_model(path)
     palm = base.hand.body_names[0]
-    moved = _moved(path, palm, offset)
+    moved, pos = _moved(path, palm, offset)
     try:
         model = model_lib.load_model(moved)
         sur = Surrogate(model, learned=False)
@@ -67,7 +67,6 @@ def evaluate(path, offset=(0.0, 0.0, 0.0)) -> Candidate:
         ok = np.nan_to_num(reach.error, nan=np.inf) <= reach.tolerance  # (L, K, 2)
         valid = np.isfinite(reach.error[..., 0])
         problems = tuple(preflight.start_reach(sur) + preflight.start_band(sur))
-        pos = tuple(float(x) for x in mujoco.MjSpec.from_file(str(moved)).body(palm).pos)
     finally:
         moved.unlink(missing_ok=True)
     return Candidate(offset=tuple(float(x) for x in offset), pos=pos, both=int(np.sum(ok.all(-1) & valid)),

@@ -10,9 +10,10 @@ one (`--paper`: none). Falls are classified by the feasibility oracle (controlle
 falls of N per planner, the controller's among them, and the episodes where L1-physics held while DP optimal or L1
 fell.
 
-Hands the library cannot import here are listed with why (Menagerie's LEAP, Shadow and Sharpa Wave need their
-meshes: docs/your-model.md). Prints the table last; writes results/hands[-learned]/hands.json; with --record,
-docs/data/hands_<device>.json.
+Menagerie's published hands (`published.py`: the Shadow E3M5 and the LEAP with the bar and the screwdriver) join the
+table once imported: `--menagerie DIR` (a clone of mujoco_menagerie) imports each one found under DIR into its
+cells under models/published/ (not shipped); cells imported before run without it; the others are listed with
+why. Prints the table last; writes results/hands[-learned]/hands.json; with --record, docs/data/hands_<device>.json.
 """
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ import argparse
 import dataclasses
 
 from experiments.common import Run, table
+from experiments.physics import published
 from gsp_jax.core import files
 from gsp_jax.model import load as model_lib
 from gsp_jax.model.hand import MODELS_DIR
@@ -28,17 +30,19 @@ MODELS = ("wrench", "screwdriver", "hammer", "allegro",  # (hand, tool) cells th
           str(MODELS_DIR / "allegro-screwdriver" / "scene.xml"))  # screwdriver (a scene file, not a shipped name)
 NAMED = {"wrench": ("four-fingered (ours)", "wrench bar"), "screwdriver": ("four-fingered (ours)", "screwdriver"),
          "hammer": ("four-fingered (ours)", "hammer"), "allegro": ("Allegro", "wrench bar"),
-         "allegro-screwdriver": ("Allegro", "screwdriver")}
-NOT_HERE = (("LEAP (Menagerie)", "import-hand needs its meshes to fit capsules"),
-            ("Shadow E3M5 (Menagerie)", "import-hand needs its meshes to fit capsules"),
-            ("Sharpa Wave (Menagerie)", "import-hand needs its meshes to fit capsules"))
+         "allegro-screwdriver": ("Allegro", "screwdriver"),
+         **{f"{h}-{t}": (f"{published.HANDS[h].label} (Menagerie)", "wrench bar" if t == "bar" else t)
+            for h, t in published.CELLS}}
 PLANNERS = ("dp-opt", "L1", "L1-physics")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--models", nargs="+", default=list(MODELS), metavar="NAME_OR_PATH",
-                   help="the hand + tool scenes (default: wrench, screwdriver, hammer, allegro and "
-                        "models/allegro-screwdriver)")
+    p.add_argument("--models", nargs="+", default=None, metavar="NAME_OR_PATH",
+                   help="the hand + tool scenes (default: wrench, screwdriver, hammer, allegro, "
+                        "models/allegro-screwdriver and the published hands' cells imported)")
+    p.add_argument("--menagerie", default=None, metavar="DIR",
+                   help="a clone of github.com/google-deepmind/mujoco_menagerie: import its Shadow and LEAP into "
+                        "their cells (models/published/) first")
     p.add_argument("--episodes", type=int, default=None, help="only N of the 9 variations, spread over the set")
     p.add_argument("--k", type=int, default=2, help="L1-physics: L1's K best actions branched in physics")
 
@@ -50,8 +54,17 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 def main(args: argparse.Namespace, run: Run) -> None:
     from experiments import cli
 
+    if args.menagerie:
+        try:
+            published.install(args.menagerie)
+        except published.importer.HandImportError as e:
+            raise SystemExit(f"hands: {e}") from None
+    ready = [(h, t) for h, t in published.CELLS if published.imported(h, t)]
+    models = args.models or [*MODELS, *(str(published.cell_dir(h, t) / "scene.xml") for h, t in ready)]
+    not_here = [(f"{published.HANDS[h].label} (Menagerie) x {t}", "not imported: `hands --menagerie DIR`")
+                for h, t in published.CELLS if (h, t) not in ready and args.models is None] + list(published.NOT_HERE)
     cells = []
-    for name in args.models:
+    for name in models:
         try:
             model = model_lib.load_model(name)
         except model_lib.ModelError as e:
@@ -65,7 +78,7 @@ def main(args: argparse.Namespace, run: Run) -> None:
         nested = cli.run_command(words, dataclasses.replace(run, record=False))
         result = files.read_json(nested.results_dir("envelope") / "variations.json")
         cells.append(_cell(model, result, term=nested.learned))
-    out = dict(cells=cells, not_here=[dict(hand=h, why=w) for h, w in NOT_HERE])
+    out = dict(cells=cells, not_here=[dict(hand=h, why=w) for h, w in not_here])
     path = run.results_dir("hands") / "hands.json"
     files.write_json(path, out)
     print(f"wrote {path}\n")
@@ -75,7 +88,7 @@ def main(args: argparse.Namespace, run: Run) -> None:
     rows = [[c["hand"], c["tool"], "yes" if c["learned"] else "no",
              *[f"{c[p]['falls']}/{c['episodes']} ({c[p]['controller']})" for p in PLANNERS], c["physics_only"]]
             for c in cells]
-    rows += [[h, "-", "-", "-", "-", "-", why] for h, why in NOT_HERE]
+    rows += [[h, "-", "-", "-", "-", "-", why] for h, why in not_here]
     print(table(["hand", "tool", "learned term", *[f"{p} falls (controller)" for p in PLANNERS],
                  "held by L1-physics only"], rows))
 

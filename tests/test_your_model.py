@@ -500,3 +500,34 @@ def test_the_placement_search_finds_a_palm_that_reaches(tmp_path):
 def test_the_allegro_screwdriver_scene_follows_the_conventions():
     """The hands table's Allegro x screwdriver cell (a scene file beside the shipped models, not a shipped name)."""
     assert model_lib.check_model(hand_lib.MODELS_DIR / "allegro-screwdriver" / "scene.xml") == []
+
+
+def test_the_ik_start_drawn_puts_each_link_near_its_option(tmp_path):
+    """Issue 83: the test hand with its IK start flexed the wrong way (every link 15 mm from its start option at
+    mid-lift) gets a start from `placement.ik_start` that puts every link's contact centre within 3 mm of where it
+    touches its option, by MuJoCo's forward kinematics; the surrogate's own kinematics (JAX) measure the same gaps;
+    no link ends further than the file's start left it (+1 mm)."""
+    from gsp_jax.model import kinematics
+    from gsp_jax.physics import placement
+
+    src = hand_lib.MODELS_DIR / "testhand"
+    for name in ("scene.xml", "bar.xml"):
+        (tmp_path / name).write_text((src / name).read_text())
+    hand_xml = (src / "hand.xml").read_text()
+    assert hand_xml.count('<numeric name="gsp_ik_start" data="0.3 0.6   0.3 0.6   0.3 0.6"/>') == 1
+    (tmp_path / "hand.xml").write_text(hand_xml.replace('data="0.3 0.6   0.3 0.6   0.3 0.6"',
+                                                        'data="-0.5 2.2 -0.5 2.2 -0.5 2.2"'))
+    model = model_lib.load_model(tmp_path / "scene.xml")
+    start = placement.ik_start(model, samples=2000)
+    assert np.all(start.gap_before > 0.01) and np.all(start.gap < 0.003), (start.gap_before, start.gap)
+    assert np.all(start.gap <= start.gap_before + 1e-3)
+    hand = model.hand
+    episode = scenario.make_episode(model=model)
+    t = episode.n_steps // 2
+    mat = np.asarray(kinematics.quat_to_mat(episode.quats[t]))
+    opts = np.where(np.asarray(hand.start_options) > 0, hand.start_options, 1)
+    li = np.arange(hand.n_links)
+    target = (np.asarray(episode.waypoints[t]) + hand.option_pos[li, opts] @ mat.T
+              - (hand.option_normal[li, opts] @ mat.T) * hand.link_radius[:, None])
+    centre, _ = kinematics.contact_segments(hand, jnp.asarray(start.q))
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(centre) - target, axis=1), start.gap, atol=1e-4)

@@ -10,8 +10,9 @@
 4. With `--reach`: each contact link alone on each option at the nominal lift's first and last waypoint (the IK's
    error [mm]), the options no link reaches, and a picture of them on the tool
    (results/check-model/reach-<model>.png).
-5. With `--place`: palm positions searched for the one that reaches the most options with the start clear, and the
-   flags that put the palm there (`physics.placement.search`).
+5. With `--place`: palm positions searched for the one that reaches the most options with the start clear, each with
+   an IK start drawn for it, and the flags that put the palm there and start the IK so
+   (`physics.placement.search`, `ik_start`).
 
 Exits 1 and lists the problems if there is any (docs/your-model.md says what each is); otherwise prints what the
 model is and exits 0. Every command's `--model` runs the conventions first (`gsp_jax.model.load.require`).
@@ -116,11 +117,11 @@ def _place(path) -> None:
     print(table(["palm moved by [mm]", "options at both ends", "at one", "start clear"], rows))
     best = found[0]
     x, y, z = best.pos
-    if best.offset == (0.0, 0.0, 0.0):
-        print("the file's palm position scores best")
-    else:
-        print(f"best: the palm at {x:.4f} {y:.4f} {z:.4f} m: `import-hand SRC OUT --palm-pos {x:.4f} {y:.4f} {z:.4f}` "
-              f"(or set the palm body's pos in the file)")
+    start = " ".join(f"{q:.2f}" for q in best.start)
+    where = ("the file's palm position scores best" if best.offset == (0.0, 0.0, 0.0)
+             else f"best: the palm at {x:.4f} {y:.4f} {z:.4f} m")
+    print(f"{where}, with the IK starting at {start}: `import-hand SRC OUT --palm-pos {x:.4f} {y:.4f} {z:.4f} "
+          f"--ik-start {start}` (or set the palm body's pos and gsp_ik_start in the file)")
 
 
 def _learned_term(model) -> str:

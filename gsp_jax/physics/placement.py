@@ -1,14 +1,18 @@
-"""Where to put the palm: a search over palm positions for the one whose fingers reach the tool's options over the
-lift and whose start grasp is clear over the heights the episodes start at (`check-model --place`).
+"""Where to put the palm, and where the IK starts: a search over palm positions for the one whose fingers reach the
+tool's options over the lift and whose start grasp is clear over the heights the episodes start at
+(`check-model --place`).
 
     best = placement.search("path/to/scene.xml")[0]      # candidates, best first
     best.pos                                              # (3,) the palm's position [m]: `import-hand --palm-pos`
+    best.start                                            # (J,) the IK start there [rad]: `import-hand --ik-start`
 
-Each candidate is the scene with its palm body moved (the tool, the table and the reach box stay), loaded as a
-model of its own and scored by the surrogate's IK (`preflight.reach`: every link on every option at the lift's
-first and last waypoint; `preflight.start_band`: the start grasp at the lowest and highest starts). The search moves
-the palm along z, then x, then y (coordinate descent, `STEPS`); each candidate compiles its own IK (the hand's
-arrays are constants of the program), so a search of a dozen takes minutes on a CPU.
+Each candidate is the scene with its palm body moved (the tool, the table and the reach box stay) and an IK start
+drawn for it (`ik_start`: the IK descends from gsp_ik_start, so a start far from the grasps leaves links short of
+options they can reach), loaded as a model of its own and scored by the surrogate's IK (`preflight.reach`: every
+link on every option at the lift's first and last waypoint; `preflight.start_band`: the start grasp at the lowest
+and highest starts). The search moves the palm along z, then x, then y (coordinate descent, `STEPS`); each
+candidate compiles its own IK (the hand's arrays are constants of the program), so a search of a dozen takes
+minutes on a CPU.
 """
 from __future__ import annotations
 
@@ -19,7 +23,9 @@ import pathlib
 import mujoco
 import numpy as np
 
+from gsp_jax.model import kinematics
 from gsp_jax.model import load as model_lib
+from gsp_jax.model import scenario
 from gsp_jax.physics import preflight
 from gsp_jax.surrogate.step import Surrogate
 
@@ -37,29 +43,42 @@ class Candidate:
     options: int  # options in all
     clear: bool  # the start grasp reaches and collides nowhere over the band of start heights
     problems: tuple[str, ...]  # what `preflight.start_reach` and `start_band` say there
+    start: tuple[float, ...] = ()  # (J,) the IK start drawn for this palm position (`ik_start`) [rad]
 
     def score(self) -> tuple:
         return (self.clear, self.both, self.either)
 
 
-def _moved(path: pathlib.Path, palm: str, offset) -> tuple[pathlib.Path, tuple[float, ...]]:
-    """The scene with its palm moved by `offset`, written beside it (its includes and meshes resolve alike), named
-    by its content (a model is loaded once per path in a process); and the palm's new position."""
+def _moved(path: pathlib.Path, palm: str, offset, start=None) -> tuple[pathlib.Path, tuple[float, ...]]:
+    """The scene with its palm moved by `offset` (and its gsp_ik_start set to `start` (J,) where given), written
+    beside it (its includes and meshes resolve alike), named by its content (a model is loaded once per path in a
+    process); and the palm's new position."""
     spec = mujoco.MjSpec.from_file(str(path))
     body = spec.body(palm)
     body.pos = np.asarray(body.pos, np.float64) + np.asarray(offset, np.float64)
+    if start is not None:
+        numeric = next(n for n in spec.numerics if n.name == "gsp_ik_start")
+        numeric.data = [float(x) for x in start]
     xml = spec.to_xml()
     out = path.with_name(f".{path.stem}.place-{hashlib.sha256(xml.encode()).hexdigest()[:12]}.xml")
     out.write_text(xml)
     return out, tuple(float(x) for x in body.pos)
 
 
-def evaluate(path, offset=(0.0, 0.0, 0.0)) -> Candidate:
-    """`Candidate` of the scene at `path` with its palm moved by `offset` (3,) [m]."""
+def evaluate(path, offset=(0.0, 0.0, 0.0), draw_start: bool = True) -> Candidate:
+    """`Candidate` of the scene at `path` with its palm moved by `offset` (3,) [m], its IK starting from a start
+    drawn there (`ik_start`; `draw_start=False`: the file's)."""
     path = pathlib.Path(model_lib.resolve(path))
     base = model_lib.load_model(path)
     palm = base.hand.body_names[0]
-    moved, pos = _moved(path, palm, offset)
+    start = None
+    if draw_start:
+        moved, _ = _moved(path, palm, offset)
+        try:
+            start = ik_start(moved).q
+        finally:
+            moved.unlink(missing_ok=True)
+    moved, pos = _moved(path, palm, offset, start)
     try:
         model = model_lib.load_model(moved)
         sur = Surrogate(model, learned=False)
@@ -71,7 +90,7 @@ def evaluate(path, offset=(0.0, 0.0, 0.0)) -> Candidate:
         moved.unlink(missing_ok=True)
     return Candidate(offset=tuple(float(x) for x in offset), pos=pos, both=int(np.sum(ok.all(-1) & valid)),
                      either=int(np.sum(ok.any(-1) & valid)), options=int(valid.sum()), clear=not problems,
-                     problems=problems)
+                     problems=problems, start=tuple(float(x) for x in np.asarray(model.hand.q_start)))
 
 
 def search(path, steps=STEPS, progress: bool = True) -> list[Candidate]:
@@ -100,3 +119,67 @@ def search(path, steps=STEPS, progress: bool = True) -> list[Candidate]:
                 break
             best = better
     return sorted(tried.values(), key=Candidate.score, reverse=True)
+
+
+@dataclasses.dataclass(frozen=True)
+class Start:
+    """An IK start that puts each contact link near an option at mid-lift (`ik_start`)."""
+
+    q: np.ndarray  # (J,) the hand's joint angles [rad]: gsp_ik_start (`import-hand --ik-start`)
+    gap: np.ndarray  # (L,) each link's contact centre from its target at mid-lift there [m]
+    gap_before: np.ndarray  # (L,) the same from the file's gsp_ik_start [m]
+
+
+def ik_start(model, samples: int = 4000, seed: int = 0) -> Start:
+    """A start for the IK from which each contact link begins near its option: the IK descends from the file's
+    gsp_ik_start, and a start far from the grasps (a thumb folded the other way) leaves links short of options they
+    can reach. For each link, `samples` draws (uniform within the joint limits, one seed) of the joints between the
+    palm and it, scored by forward kinematics in MuJoCo: the distance from its contact centre to where it would
+    touch its start option (option 1 where the start leaves it off) at the nominal lift's middle waypoint; kept is
+    the draw within 1 mm of the nearest that is nearest the file's start (the file's own angles are one of the
+    draws). Joints on no link's chain keep the file's angles; a joint shared by links is set by the first of them."""
+    model = model_lib.load_model(model)
+    hand, mj = model.hand, model.mjmodel
+    data = mujoco.MjData(mj)
+    episode = scenario.make_episode(model=model)
+    t = episode.n_steps // 2
+    mat = np.asarray(kinematics.quat_to_mat(episode.quats[t]), np.float64)
+    options = np.where(np.asarray(hand.start_options) > 0, hand.start_options, 1)
+    li = np.arange(hand.n_links)
+    point = np.asarray(episode.waypoints[t], np.float64) + hand.option_pos[li, options] @ mat.T
+    centre = point - (hand.option_normal[li, options] @ mat.T) * hand.link_radius[:, None]  # (L, 3)
+    index = {name: j for j, name in enumerate(hand.joint_names)}
+    bodies = np.array([mj.body(name).id for name in hand.link_names])  # MuJoCo's body ids
+    rng = np.random.default_rng(seed)
+
+    def gaps(q) -> np.ndarray:
+        data.qpos[hand.qpos_adr] = q
+        mujoco.mj_kinematics(mj, data)
+        at = data.xpos[bodies] + np.einsum("lij,lj->li", data.xmat[bodies].reshape(-1, 3, 3), hand.link_site)
+        return np.linalg.norm(at - centre, axis=1)
+
+    q = np.array(hand.q_start, np.float64)
+    before = gaps(q)
+    taken: set[int] = set()
+    for k, name in enumerate(hand.link_names):
+        chain, body = [], int(bodies[k])
+        while body > 0:
+            chain += [index[mj.joint(j).name] for j in range(mj.njnt)
+                      if mj.jnt_bodyid[j] == body and mj.joint(j).name in index]
+            body = mj.body_parentid[body]
+        chain = [j for j in chain if j not in taken]
+        if not chain:
+            continue
+        lo, hi = hand.joint_range[chain, 0], hand.joint_range[chain, 1]
+        draws = lo + (hi - lo) * rng.random((samples, len(chain)))
+        draws[0] = q[chain]  # the file's own angles compete too: no link ends further than it began (+ 1 mm)
+        dist = np.empty(samples)
+        for s in range(samples):
+            trial = q.copy()
+            trial[chain] = draws[s]
+            dist[s] = gaps(trial)[k]
+        near = np.flatnonzero(dist <= dist.min() + 1e-3)
+        pick = near[np.argmin(np.linalg.norm(draws[near] - q[chain], axis=1))]
+        q[chain] = draws[pick]
+        taken.update(chain)
+    return Start(q=q.astype(np.float32), gap=gaps(q), gap_before=before)

@@ -346,10 +346,19 @@ def test_a_missing_visual_mesh_names_its_file_and_suggests_drop_visual(tmp_path)
 
 
 def test_a_missing_collision_mesh_is_an_error_naming_it(tmp_path):
+    """... and names --drop-missing; with it the geom is removed, said so, and the hand compiles with that body
+    colliding with nothing (issue 83: the Sharpa Wave's pinky metacarpal, an STL file not at hand)."""
     src = write_hand(tmp_path / "src")
     (tmp_path / "src" / "meshes" / "tip.obj").unlink()
-    with pytest.raises(importer.HandImportError, match="tip.obj.*index_tip"):
+    with pytest.raises(importer.HandImportError, match="tip.obj.*index_tip") as err:
         importer.import_hand(src, torque_limit=TORQUE_LIMIT, drop_visual=True)
+    assert "--drop-missing" in str(err.value)
+    result = importer.import_hand(src, torque_limit=TORQUE_LIMIT, drop_visual=True, drop_missing=True)
+    said = [c for c in result.changes if "tip.obj" in c]
+    assert len(said) == 1 and "body 'index_dist' collides with nothing" in said[0], result.changes
+    m = _compiled(result.write(tmp_path / "out"))
+    tip = m.body("index_dist").id
+    assert not any(m.geom_bodyid[g] == tip and hand_lib.collides(m, g) for g in range(m.ngeom))
 
 
 def test_a_servo_without_force_range_needs_the_torque_limit(tmp_path):

@@ -43,6 +43,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "its geom)")
     p.add_argument("--ik-start", type=float, nargs="+", default=None, metavar="RAD",
                    help="the IK's start, one angle per hand joint in joint order (gsp_ik_start)")
+    p.add_argument("--drop-missing", action="store_true",
+                   help="remove the collision geoms whose mesh files are missing (each reported: its body collides "
+                        "with nothing there then), where the file cannot be had")
     p.add_argument("--per-geom", action="store_true",
                    help="one fitted capsule per replaced geom (default: one per body, over all its geoms)")
 
@@ -51,7 +54,8 @@ def main(args: argparse.Namespace, run: Run) -> None:
     try:
         imported = importer.import_hand(args.src, torque_limit=args.torque_limit, palm=args.palm,
                                         palm_pos=args.palm_pos, palm_quat=args.palm_quat,
-                                        drop_visual=args.drop_visual, per_geom=args.per_geom,
+                                        drop_visual=args.drop_visual, drop_missing=args.drop_missing,
+                                        per_geom=args.per_geom,
                                         contact_links=args.contact_links, start=args.ik_start)
         path = imported.write(args.out_dir)
     except importer.HandImportError as e:

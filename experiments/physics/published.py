@@ -6,8 +6,7 @@ and the link-reach sampling docs/your-model.md describes); each `CELLS` entry pa
 it (models/published/<hand>-<tool>/: the tool's options on that hand's links, and a scene that includes the
 hand.xml that `install` writes beside it). `python -m experiments hands --menagerie DIR` (DIR a clone of
 github.com/google-deepmind/mujoco_menagerie) imports each hand whose file is under DIR into its cells; cells
-imported before run without DIR. The Sharpa Wave is listed without flags: its collision meshes are binary STL
-files, which were not at hand where this table was made.
+imported before run without DIR. Visual geoms are always dropped (a clone's visual meshes change nothing here).
 """
 from __future__ import annotations
 
@@ -32,6 +31,7 @@ class Published:
     start: tuple[float, ...]  # gsp_ik_start, one angle per hand joint in joint order
     palm: str | None = None  # the root body where it is not the world's child
     torque_limit: float | None = None  # [N m] for servos the file gives no force range
+    drop_missing: bool = False  # collision geoms whose mesh files are absent removed (`import_hand`)
 
 
 HANDS = {
@@ -47,9 +47,19 @@ HANDS = {
         "LEAP", "leap_hand/right_hand.xml", palm_pos=(-0.037, 0.015, 0.145), palm_quat=(0.7071068, 0.0, 0.0, 0.7071068),
         contact_links=("th_ds", "if_ds", "mf_ds", "rf_ds"), torque_limit=0.9,
         start=(0.9, 0, 0.8, 0.6) * 3 + (1.2, 0.9, 0.4, 1.2)),
+    # five fingers, 22 joints; the four tips of the thumb, index, middle and ring (the pinky rests). The palm and
+    # start are `check-model --place`'s (the start drawn by `placement.ik_start`; from all zeros the fingers reach few
+    # options at the top of the lift). The pinky metacarpal's only collision geom is a mesh (an STL file in a clone);
+    # where it is absent the geom is dropped (that body, inside the palm's span, then collides with nothing).
+    "sharpa": Published(
+        "Sharpa Wave", "sharpa_wave/right_hand.xml", palm_pos=(0.0, -0.12, 0.11), palm_quat=(0.5, -0.5, 0.5, 0.5),
+        contact_links=("thumb_DP", "index_DP", "middle_DP", "ring_DP"), drop_missing=True,
+        start=(-1.06, 0.09, -0.63, 0.03, -1.56, -0.37, 0.09, -0.80, -1.11, -0.30, 0.04, -1.25, -0.41, -0.32, -0.03,
+               -0.97, -0.53, 0, 0, 0, 0, 0)),
 }
-CELLS = (("shadow", "bar"), ("shadow", "screwdriver"), ("leap", "bar"), ("leap", "screwdriver"))
-NOT_HERE = (("Sharpa Wave (Menagerie)", "no flags yet: its collision meshes (binary STL) were not at hand here"),)
+CELLS = (("shadow", "bar"), ("shadow", "screwdriver"), ("leap", "bar"), ("leap", "screwdriver"),
+         ("sharpa", "bar"), ("sharpa", "screwdriver"))
+NOT_HERE: tuple[tuple[str, str], ...] = ()
 
 
 def cell_dir(hand: str, tool: str) -> pathlib.Path:
@@ -76,7 +86,8 @@ def install(menagerie: str | pathlib.Path, log=print) -> list[tuple[str, str]]:
             log(f"hands: {spec.label}: {src} not found, its cells are skipped")
             continue
         result = importer.import_hand(src, torque_limit=spec.torque_limit, palm=spec.palm, palm_pos=spec.palm_pos,
-                                      palm_quat=spec.palm_quat, drop_visual=True, per_geom=False,
+                                      palm_quat=spec.palm_quat, drop_visual=True, drop_missing=spec.drop_missing,
+                                      per_geom=False,
                                       contact_links=list(spec.contact_links), start=list(spec.start))
         result.write(cell_dir(hand, tool))
         log(f"hands: imported {src} into {cell_dir(hand, tool)} ({len(result.changes)} changes)")

@@ -247,11 +247,13 @@ def ik_start(spec: mujoco.MjSpec, m: mujoco.MjModel, hinges: list[int], start) -
 
 
 def import_hand(src, *, torque_limit: float | None = None, palm: str | None = None, palm_pos=None, palm_quat=None,
-                drop_visual: bool = False, per_geom: bool = False, contact_links=None, start=None) -> Imported:
+                drop_visual: bool = False, per_geom: bool = False, contact_links=None, start=None,
+                drop_missing: bool = False) -> Imported:
     """A published MJCF hand file -> an `Imported` hand that follows the conventions (the module's docstring lists
     the edits). `torque_limit` [N m]: the motor limit of joints whose actuators give none (no forcerange); `palm`:
     the hand's root body (default: the world's child with the most hinges below it); `palm_pos` (3,) [m] /
-    `palm_quat` (4,) w x y z: the palm's pose in the world; `drop_visual`: remove the visual geoms; `per_geom`: one
+    `palm_quat` (4,) w x y z: the palm's pose in the world; `drop_visual`: remove the visual geoms; `drop_missing`:
+    remove the collision geoms whose mesh files are missing (reported; they collide with nothing then); `per_geom`: one
     capsule per replaced geom instead of one per body; `contact_links` (body names, grasp order): write them and
     their contact sites (`contact_sites`); `start` (J,) [rad]: the IK start (`ik_start`). Raises `HandImportError`
     (a ValueError) naming the field."""
@@ -267,7 +269,7 @@ def import_hand(src, *, torque_limit: float | None = None, palm: str | None = No
     changes = reroot(spec, sk, palm)
     rename, lines = strip_prefix(spec, palm)
     palm = rename(palm)
-    changes += lines + reset_option(spec) + check_files(spec, drop_visual, palm)
+    changes += lines + reset_option(spec) + check_files(spec, drop_visual, palm, drop_missing)
     changes += mass_from_collision(spec)
     m = _compile(spec, "after moving the palm")
     pid = m.body(palm).id

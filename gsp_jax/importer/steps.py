@@ -210,10 +210,12 @@ def mesh_files(spec: mujoco.MjSpec) -> dict[str, pathlib.Path]:
     return out
 
 
-def check_files(spec: mujoco.MjSpec, drop_visual: bool, palm: str | None = None) -> list[str]:
+def check_files(spec: mujoco.MjSpec, drop_visual: bool, palm: str | None = None, drop_missing: bool = False
+                ) -> list[str]:
     """Raise `HandImportError` naming a mesh file that is missing where it is needed; with `drop_visual`, delete the
-    visual geoms whose mesh files are missing (their meshes go with the other unused ones). `palm`: the palm body's
-    name (its geoms are kept as they are, not fitted). The change lines."""
+    visual geoms whose mesh files are missing (their meshes go with the other unused ones); with `drop_missing`, the
+    collision geoms too (their bodies then collide with nothing there). `palm`: the palm body's name (its geoms are
+    kept as they are, not fitted). The change lines."""
     paths = mesh_files(spec)
     missing = {x.name: paths[x.name or x.file] for x in spec.meshes
                if x.file and not paths[x.name or x.file].is_file()}
@@ -221,13 +223,25 @@ def check_files(spec: mujoco.MjSpec, drop_visual: bool, palm: str | None = None)
     for name, path in missing.items():
         users = [g for g in spec.geoms if g.type == _GEOM.mjGEOM_MESH and g.meshname == name]
         colliding = [g for g in users if g.contype or g.conaffinity]
+        dropped = bool(colliding and drop_missing)
+        if dropped:
+            bodies = sorted({g.parent.name for g in colliding})
+            out.append(f"mesh {name!r}: file {str(path)!r} is missing; its collision geoms ({len(colliding)}) removed "
+                       f"(drop_missing): {'body' if len(bodies) == 1 else 'bodies'} {', '.join(map(repr, bodies))} "
+                       f"collide{'s' if len(bodies) == 1 else ''} with nothing there now")
+            for g in colliding:
+                spec.delete(g)
+            users = [g for g in users if g not in colliding]
+            colliding = []
         if colliding:
             g = colliding[0]
             why = ("the palm's geoms are kept as they are: MuJoCo needs the file to compile it; or replace the geom "
                    "by a box or capsule in the file" if g.parent.name == palm else
                    "its capsule is fitted to the mesh's vertices")
             raise HandImportError(f"mesh {name!r}: file {str(path)!r} is missing, and collision geom "
-                                  f"{g.name or '(unnamed)'!r} (body {g.parent.name!r}) needs it ({why})")
+                                  f"{g.name or '(unnamed)'!r} (body {g.parent.name!r}) needs it ({why}); put the "
+                                  "file there, or remove such geoms (drop_missing=True; on the command line "
+                                  "--drop-missing)")
         if users and not drop_visual:
             raise HandImportError(f"mesh {name!r}: file {str(path)!r} is missing (used by the visual geoms "
                                   f"{', '.join(repr(g.name or '(unnamed)') for g in users)}); put the file there, or "
@@ -235,7 +249,8 @@ def check_files(spec: mujoco.MjSpec, drop_visual: bool, palm: str | None = None)
         for g in users:
             spec.delete(g)
         spec.delete(spec.mesh(name))
-        out.append(f"mesh {name!r}: file {str(path)!r} is missing; removed with its visual geoms ({len(users)})")
+        if users or not dropped:
+            out.append(f"mesh {name!r}: file {str(path)!r} is missing; removed with its visual geoms ({len(users)})")
     return out
 
 

@@ -398,15 +398,19 @@ def test_a_figures_run_records_the_commit_it_started_from(tmp_path, monkeypatch)
 
 
 def test_hands_table_is_docs_data():
-    """The README's hands x tools table equals the record its paragraph cites (falls per planner, per model), and
-    that record is the hands figure's (`figures`: `hands --learned`, on a CPU)."""
+    """The README's hands x tools table equals the record its paragraph cites (falls per planner, one number per
+    tool of the hand's row, in the row's order), every cell with its learned term, and that record is the hands
+    figure's (`figures`: `hands --learned`, on a CPU)."""
     name = _named("hands_learned_")
     cells = {c["model"]: c for c in _file(name)["figures"]["cells"]}
-    rows = {"ours × wrench bar": "wrench", "ours × screwdriver (2 cm, no term)": "screwdriver",
-            "ours × hammer": "hammer", "Allegro × wrench bar": "allegro",
-            "Allegro × screwdriver (no term)": "allegro-screwdriver"}
-    for label, model in rows.items():
+    rows = {"ours": ("wrench", "screwdriver", "hammer"), "Allegro": ("allegro", "allegro-screwdriver"),
+            "LEAP": ("leap-bar", "leap-screwdriver"), "Shadow": ("shadow-bar", "shadow-screwdriver"),
+            "Sharpa": ("sharpa-bar", "sharpa-screwdriver")}
+    assert set(cells) == {m for models in rows.values() for m in models}, sorted(cells)
+    for label, models in rows.items():
         _, got = _row(label)
-        assert [int(x) for x in got] == [cells[model][p]["falls"] for p in ("dp-opt", "L1", "L1-physics")], label
-    assert not cells["screwdriver"]["learned"] and cells["wrench"]["learned"]
+        for planner, cell in zip(("dp-opt", "L1", "L1-physics"), got):
+            falls = [int(x) for x in cell.split("/")]
+            assert falls == [cells[m][planner]["falls"] for m in models], (label, planner, cell)
+    assert all(c["learned"] for c in cells.values())
     assert _file(name)["command"] == "python -m experiments --record hands --learned"

@@ -531,3 +531,36 @@ def test_the_ik_start_drawn_puts_each_link_near_its_option(tmp_path):
               - (hand.option_normal[li, opts] @ mat.T) * hand.link_radius[:, None])
     centre, _ = kinematics.contact_segments(hand, jnp.asarray(start.q))
     np.testing.assert_allclose(np.linalg.norm(np.asarray(centre) - target, axis=1), start.gap, atol=1e-4)
+
+
+def test_check_model_names_a_hand_that_passes_through_the_table(table_ik):
+    """Issue 83: the physics simulates only the tool's and the fingertips' contacts, so a start grasp whose hand
+    passes through itself or the table would plan and hold; `preflight.hand_overlaps` finds it in MuJoCo with every
+    hand geom colliding. The test hand's start grasp is clean; the same hand with its fingers straight (the IK's pose
+    replaced) has each distal capsule in the table by its lowest point's depth below z = 0, as MuJoCo's geometry
+    says (radius + half-length - centre height, each capsule hanging straight down)."""
+    from gsp_jax.physics import preflight
+
+    model = model_lib.load_model(hand_lib.MODELS_DIR / "testhand" / "scene.xml")
+    sur = Surrogate(model, ik_config=table_ik, learned=False)
+    assert preflight.hand_overlaps(sur) == []
+
+    class Straight:  # the surrogate with every realised pose replaced by the fingers straight down
+        def __getattr__(self, name):
+            return getattr(sur, name)
+
+        def realise(self, grasp, pos, quat):
+            c = sur.realise(grasp, pos, quat)
+            return c.replace(ik=c.ik.replace(q=jnp.zeros_like(c.ik.q)))
+
+    found = preflight.hand_overlaps(Straight())
+    assert len(found) == 1, found
+    m = model.mjmodel
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    for name in ("thumb_distal", "index_distal", "middle_distal"):
+        g = next(g for g in range(m.ngeom) if m.geom_bodyid[g] == m.body(name).id)
+        depth = m.geom_size[g, 0] + m.geom_size[g, 1] - d.geom_xpos[g, 2]
+        assert depth > preflight.OVERLAP
+        said = re.search(rf"(?:table and {name}|{name} and table) (\d+\.\d) mm", found[0])
+        assert said and float(said.group(1)) == pytest.approx(depth * 1e3, abs=0.06), (name, depth, found[0])

@@ -5,8 +5,9 @@
 2. The joint dynamics against the controller's finger gains (`physics.preflight.joint_dynamics`).
 3. On a file that loads: whether it has a learned physics term, the tool's clearance above the table, the start
    grasp's reach at waypoint 0 and its collisions at the lowest and highest starts the episodes use (each body and
-   its depth), and (unless `--quick`) a dry run of the start grasp in C MuJoCo (`preflight.clearance`,
-   `start_reach`, `start_band`, `dry_run`).
+   its depth), the hand's own geoms passing through each other or the table in MuJoCo, and (unless `--quick`) a dry
+   run of the start grasp in C MuJoCo (`preflight.clearance`, `start_reach`, `start_band`, `hand_overlaps`,
+   `dry_run`).
 4. With `--reach`: each contact link alone on each option at the nominal lift's first and last waypoint (the IK's
    error [mm]), the options no link reaches, and a picture of them on the tool
    (results/check-model/reach-<model>.png).
@@ -82,6 +83,7 @@ def main(args: argparse.Namespace, run: Run) -> None:
             print("the start grasp at waypoint 0 (IK) and at the lowest and highest starts ...", flush=True)
             problems += preflight.start_reach(sur)
             problems += preflight.start_band(sur)
+            problems += preflight.hand_overlaps(sur)
         if runnable and not getattr(args, "quick", False):
             print(f"a dry run in C MuJoCo: the start grasp held for {preflight.DRY_SEGMENTS * scenario.DT:g} s of the "
                   "nominal lift ...", flush=True)

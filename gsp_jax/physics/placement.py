@@ -41,8 +41,8 @@ class Candidate:
     both: int  # options reached at the lift's first and last waypoint
     either: int  # options reached at one of them at least
     options: int  # options in all
-    clear: bool  # the start grasp reaches and collides nowhere over the band of start heights
-    problems: tuple[str, ...]  # what `preflight.start_reach` and `start_band` say there
+    clear: bool  # the start grasp reaches, collides nowhere over the band of start heights, and its hand is whole
+    problems: tuple[str, ...]  # what `preflight.start_reach`, `start_band` and `hand_overlaps` say there
     start: tuple[float, ...] = ()  # (J,) the IK start drawn for this palm position (`ik_start`) [rad]
 
     def score(self) -> tuple:
@@ -85,7 +85,7 @@ def evaluate(path, offset=(0.0, 0.0, 0.0), draw_start: bool = True) -> Candidate
         reach = preflight.reach(sur)
         ok = np.nan_to_num(reach.error, nan=np.inf) <= reach.tolerance  # (L, K, 2)
         valid = np.isfinite(reach.error[..., 0])
-        problems = tuple(preflight.start_reach(sur) + preflight.start_band(sur))
+        problems = tuple(preflight.start_reach(sur) + preflight.start_band(sur) + preflight.hand_overlaps(sur))
     finally:
         moved.unlink(missing_ok=True)
     return Candidate(offset=tuple(float(x) for x in offset), pos=pos, both=int(np.sum(ok.all(-1) & valid)),

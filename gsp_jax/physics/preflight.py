@@ -11,12 +11,16 @@
   supports.
 * `reach`: each contact link alone on each of its options at the first and last waypoint of the nominal lift, the
   IK's distance to the option [m]; `start_reach` the start grasp's links at waypoint 0.
+* `hand_overlaps`: the start grasp's hand over the lift in MuJoCo with every hand geom colliding: body pairs that
+  pass through each other (or the table) deeper than at rest. The physics simulates only the tool's and the
+  fingertips' contacts, so a pose with a thumb inside the palm would plan and hold there; a real hand cannot take it.
 * `dry_run`: the start grasp held for the first `DRY_SEGMENTS` decisions of the nominal lift without the external
   torque, in C MuJoCo: the tool neither falls nor leaves its path by more than `THROWN` [m]. (Held longer, a start
   grasp may well drop the tool: the planners change it from waypoint 0 on.)
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 
 import jax
@@ -30,6 +34,8 @@ from gsp_jax.solvers import ik
 from gsp_jax.surrogate.step import Surrogate
 
 THROWN = 0.005  # [m] the start grasp's tool leaving its path by more than this in the dry run is a problem
+OVERLAP = 0.01  # [m] hand bodies passing through each other (or the table) this much deeper than at rest: a problem
+# (capsules `import-hand` fits over-cover a finger's meshes by up to ~1 cm, so neighbours' capsules may overlap that)
 CLEARANCE = 0.001  # [m] the least gap between the tool and the table at the start of a standard episode
 DRY_SEGMENTS = 1  # decisions (`scenario.DT` each) the dry run judges
 FINGER_STEP = 0.5  # the most of the fingers' fastest mode one physics step of the controller may take off (above 1
@@ -181,6 +187,52 @@ def start_band(sur: Surrogate) -> list[str]:
                        f"{'lower' if mm < 0 else 'higher'} than the file's rest (the sets and the corpus reach "
                        f"there): {'; '.join(hits)}; move the palm, the options or gsp_ik_start")
     return out
+
+
+def hand_overlaps(sur: Surrogate, tol: float = OVERLAP) -> list[str]:
+    """Problems with the hand's own geometry in the start grasp: at the nominal lift's first and last waypoint, the
+    IK's pose of the start grasp in MuJoCo with every hand geom colliding with every other (MuJoCo's own filters:
+    parent and child, the file's <exclude> pairs) and with the table; a pair of bodies that overlaps more than `tol`
+    [m] deeper than at the file's rest (qpos0: fitted capsules often touch at the joints), or a body more than `tol`
+    into the table, is named with its depth."""
+    m = hand_lib.load_mjmodel(sur.model.path)
+    m = copy.copy(m)
+    hand = sur.hand
+    tool = hand_lib.tool_body(m)
+    table = [g for g in range(m.ngeom) if m.geom_bodyid[g] == 0 and m.geom_type[g] == mujoco.mjtGeom.mjGEOM_PLANE]
+    solid = [g for g in range(m.ngeom) if m.geom_bodyid[g] not in (0, tool) and hand_lib.collides(m, g)]
+    for g in range(m.ngeom):  # the hand's solid geoms and the table collide with each other only
+        on = g in solid or g in table
+        m.geom_contype[g], m.geom_conaffinity[g] = (1, 1) if on else (0, 0)
+    d = mujoco.MjData(m)
+
+    def depths(q) -> dict[tuple[str, str], float]:
+        d.qpos[:] = m.qpos0
+        d.qpos[hand.qpos_adr] = q
+        mujoco.mj_forward(m, d)
+        out: dict[tuple[str, str], float] = {}
+        for c in d.contact[: d.ncon]:
+            a, b = sorted("table" if g in table else m.body(m.geom_bodyid[g]).name for g in (c.geom1, c.geom2))
+            out[(a, b)] = max(out.get((a, b), 0.0), -float(c.dist))
+        return out
+
+    rest = depths(m.qpos0[hand.qpos_adr])
+    episode = scenario.make_episode(model=sur.model)
+    found: dict[tuple[str, str], tuple[float, int]] = {}
+    for t in (0, episode.n_steps - 1):
+        q = np.asarray(sur.realise(episode.start_grasp, episode.waypoints[t], episode.quats[t]).ik.q)
+        for pair, depth in depths(q).items():
+            base = 0.0 if "table" in pair else rest.get(pair, 0.0)  # the table is no part of the hand at rest
+            if depth - base > tol and depth > found.get(pair, (0.0, 0))[0]:
+                found[pair] = (depth, t)
+    if not found:
+        return []
+    worst = sorted(found.items(), key=lambda kv: -kv[1][0])
+    said = "; ".join(f"{a} and {b} {d * 1e3:.1f} mm at waypoint {t}" for (a, b), (d, t) in worst[:6])
+    return [f"the start grasp's hand passes through itself or the table (by > {tol * 1e3:g} mm more than at rest): "
+            f"{said}. The physics simulates only the tool's and the fingertips' contacts, so it would plan and hold "
+            "this pose, which the real hand cannot take: turn or move the palm (check-model --place), or change "
+            "gsp_ik_start or the options"]
 
 
 @dataclasses.dataclass(frozen=True)

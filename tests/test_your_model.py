@@ -564,3 +564,27 @@ def test_check_model_names_a_hand_that_passes_through_the_table(table_ik):
         assert depth > preflight.OVERLAP
         said = re.search(rf"(?:table and {name}|{name} and table) (\d+\.\d) mm", found[0])
         assert said and float(said.group(1)) == pytest.approx(depth * 1e3, abs=0.06), (name, depth, found[0])
+
+
+def test_the_orientation_screen_turns_an_upside_down_palm_back(tmp_path):
+    """Issue 83: the test hand with its palm turned upside down (180 degrees about x) reaches few options; the
+    orientation screen (forward kinematics over the 24 axis-aligned turns, no IK) finds the file's original
+    orientation reaching every option at both ends of the lift, near the original position (within 2 cm), and
+    ranks the upside-down one lower."""
+    from gsp_jax.physics import placement
+
+    src = hand_lib.MODELS_DIR / "testhand"
+    for name in ("scene.xml", "bar.xml"):
+        (tmp_path / name).write_text((src / name).read_text())
+    hand_xml = (src / "hand.xml").read_text()
+    assert hand_xml.count('<body name="palm" pos="0 0 0.11"') == 1
+    (tmp_path / "hand.xml").write_text(hand_xml.replace('<body name="palm" pos="0 0 0.11"',
+                                                        '<body name="palm" pos="0 0 0.11" quat="0 1 0 0"'))
+    poses = placement.orientations(tmp_path / "scene.xml", samples=1500)
+    best = poses[0]
+    assert best.both == best.options, best
+    assert abs(abs(best.quat[0]) - 1.0) < 1e-6, best  # the identity: the original palm, facing down
+    assert np.linalg.norm(np.subtract(best.pos, (0.0, 0.0, 0.11))) <= 0.02 + 1e-9, best
+    _, own = placement.palm_pose(tmp_path / "scene.xml")
+    upside_down = [p for p in poses if abs(float(np.dot(p.quat, own))) > 0.999]
+    assert not upside_down or upside_down[0].both < best.both, upside_down

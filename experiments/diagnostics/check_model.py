@@ -11,9 +11,10 @@
 4. With `--reach`: each contact link alone on each option at the nominal lift's first and last waypoint (the IK's
    error [mm]), the options no link reaches, and a picture of them on the tool
    (results/check-model/reach-<model>.png).
-5. With `--place`: palm positions searched for the one that reaches the most options with the start clear, each with
-   an IK start drawn for it, and the flags that put the palm there and start the IK so
-   (`physics.placement.search`, `ik_start`).
+5. With `--place`: the palm's 24 axis-aligned orientations screened by forward kinematics (which turn reaches the
+   most options at both ends of the lift, and the flags for it), then palm positions searched for the one that
+   reaches the most options with the start clear, each with an IK start drawn for it, and the flags that put the
+   palm there and start the IK so (`physics.placement.orientations`, `search`, `ik_start`).
 
 Exits 1 and lists the problems if there is any (docs/your-model.md says what each is); otherwise prints what the
 model is and exits 0. Every command's `--model` runs the conventions first (`gsp_jax.model.load.require`).
@@ -112,6 +113,20 @@ def _place(path) -> None:
     from experiments.common import table
     from gsp_jax.physics import placement
 
+    print("palm orientations (placement.orientations: the 24 axis-aligned turns, forward kinematics) ...", flush=True)
+    poses = placement.orientations(path)
+    _, own = placement.palm_pose(path)
+    mine = [p for p in poses if abs(float(np.dot(p.quat, own))) > 0.999]
+    print(table(["palm quat (w x y z)", "palm at [m]", "options at both ends", ""],
+                [[" ".join(f"{q:.4g}" for q in p.quat), " ".join(f"{x:.2f}" for x in p.pos), f"{p.both}/{p.options}",
+                  "the file's" if p in mine else ""] for p in poses[:5]]))
+    best_turn = poses[0] if poses else None
+    if best_turn and (not mine or best_turn.both > mine[0].both):
+        quat, pos = " ".join(f"{q:.4g}" for q in best_turn.quat), " ".join(f"{x:.3f}" for x in best_turn.pos)
+        print(f"turn the palm: `import-hand SRC OUT --palm-quat {quat} --palm-pos {pos}` reaches "
+              f"{best_turn.both} of {best_turn.options} options by forward kinematics (the file's orientation: "
+              f"{mine[0].both if mine else 'not axis-aligned'}); import so, then run --place again to settle the "
+              "position and check collisions")
     print("palm positions (placement.search: z, then x, then y) ...", flush=True)
     found = placement.search(path)
     rows = [[f"{np.round(np.asarray(c.offset) * 1e3, 1).tolist()}", f"{c.both}/{c.options}", c.either,

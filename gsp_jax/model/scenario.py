@@ -461,7 +461,8 @@ def validate(ep: Episode, name: str = "episode", n_grasps: int | None = None, ha
         i = int(np.argmax(out))
         raise EpisodeError(
             f"{name}.waypoints[{i}]: {wp[i].tolist()} is out of the hand's reach "
-            f"(table frame box {lo.tolist()} .. {hi.tolist()} m)"
+            f"(table frame box {lo.tolist()} .. {hi.tolist()} m): rest the tool near the table's origin and move "
+            "the palm to it, or widen the box (custom numeric gsp_workspace in the hand file)"
         )
     g = int(ep.start_grasp)
     if not 0 <= g < n_grasps:

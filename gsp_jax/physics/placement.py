@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import itertools
 import pathlib
 
 import mujoco
@@ -183,3 +184,109 @@ def ik_start(model, samples: int = 4000, seed: int = 0) -> Start:
         q[chain] = draws[pick]
         taken.update(chain)
     return Start(q=q.astype(np.float32), gap=gaps(q), gap_before=before)
+
+
+def _rotations() -> np.ndarray:
+    """(24, 3, 3) the rotations that turn the coordinate axes onto the coordinate axes (the cube's)."""
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            r = np.zeros((3, 3))
+            r[np.arange(3), perm] = signs
+            if np.linalg.det(r) > 0:
+                out.append(r)
+    return np.array(out)
+
+
+@dataclasses.dataclass(frozen=True)
+class Pose:
+    """A palm pose of the orientation screen (`orientations`)."""
+
+    pos: tuple[float, float, float]  # [m] the palm's position in the world
+    quat: tuple[float, float, float, float]  # (w, x, y, z) its orientation
+    both: int  # options some joint draw reaches at the lift's first and last waypoint (forward kinematics alone)
+    options: int  # options in all
+
+
+def _links_cloud(model, samples: int, rng) -> list[np.ndarray]:
+    """Per contact link (L), its contact centre over `samples` draws of its finger's joints, in the palm's frame
+    (S, 3) [m]."""
+    hand, mj = model.hand, model.mjmodel
+    data = mujoco.MjData(mj)
+    palm = mj.body(hand.body_names[0]).id
+    index = {name: j for j, name in enumerate(hand.joint_names)}
+    clouds = []
+    for name, site in zip(hand.link_names, hand.link_site):
+        body = mj.body(name).id
+        chain, b = [], body
+        while b > 0:
+            chain += [index[mj.joint(j).name] for j in range(mj.njnt)
+                      if mj.jnt_bodyid[j] == b and mj.joint(j).name in index]
+            b = mj.body_parentid[b]
+        q = np.array(hand.q_start, np.float64)
+        lo, hi = hand.joint_range[chain, 0], hand.joint_range[chain, 1]
+        pts = np.empty((samples, 3))
+        for s, draw in enumerate(lo + (hi - lo) * rng.random((samples, len(chain)))):
+            q[chain] = draw
+            data.qpos[hand.qpos_adr] = q
+            mujoco.mj_kinematics(mj, data)
+            world = data.xpos[body] + data.xmat[body].reshape(3, 3) @ site
+            pts[s] = data.xmat[palm].reshape(3, 3).T @ (world - data.xpos[palm])
+        clouds.append(pts)
+    return clouds
+
+
+def orientations(path, samples: int = 3000, grid: float = 0.01, seed: int = 0) -> list[Pose]:
+    """Palm poses screened by forward kinematics alone, best first, one per orientation: each of the 24 rotations
+    that turn the palm's axes onto the world's, at the position (on a `grid` [m]) where the most options are within
+    reach of some draw of their link's finger joints at both the lift's first and last waypoint. Seconds, no IK:
+    it finds the orientation (a left hand's thumb may oppose the fingers only with the palm turned otherwise than a
+    right hand's); `search` and the IK then settle the position and check collisions. A link reaches an option
+    where one of its `samples` draws puts its contact centre within one `grid` cell of the option's (its point less
+    the link radius along the normal); palm positions below the lifted tool (its highest waypoint + 1 cm) are not
+    counted; among equals, the position nearest the file's palm is kept."""
+    model = model_lib.load_model(pathlib.Path(model_lib.resolve(path)))
+    hand = model.hand
+    rng = np.random.default_rng(seed)
+    clouds = _links_cloud(model, samples, rng)
+    episode = scenario.make_episode(model=model)
+    ends = (0, episode.n_steps - 1)
+    targets = []  # (link, option, (2, 3) world contact centres at the two ends)
+    for li in range(hand.n_links):
+        for k in range(1, hand.n_options[li]):
+            at = []
+            for t in ends:
+                mat = np.asarray(kinematics.quat_to_mat(episode.quats[t]), np.float64)
+                point = np.asarray(episode.waypoints[t], np.float64) + mat @ hand.option_pos[li, k]
+                at.append(point - (mat @ hand.option_normal[li, k]) * hand.link_radius[li])
+            targets.append((li, k, np.array(at)))
+    mj = model.mjmodel
+    data = mujoco.MjData(mj)
+    mujoco.mj_kinematics(mj, data)
+    here = data.xpos[mj.body(hand.body_names[0]).id] / grid  # the file's palm position, in cells
+    above = (float(np.max(np.asarray(episode.waypoints)[:, 2])) + 0.01) / grid  # the palm above the lifted tool
+    out = []
+    for rot in _rotations():
+        votes: dict[tuple, int] = {}
+        for li, _, at in targets:
+            cells = [set(map(tuple, np.round((c - clouds[li] @ rot.T) / grid).astype(int))) for c in at]
+            for cell in cells[0] & cells[1]:  # palm positions that reach the option at both ends
+                if cell[2] >= above:
+                    votes[cell] = votes.get(cell, 0) + 1
+        if not votes:
+            continue
+        cell, n = max(votes.items(), key=lambda kv: (kv[1], -np.linalg.norm(np.subtract(kv[0], here))))
+        quat = np.zeros(4)
+        mujoco.mju_mat2Quat(quat, rot.reshape(-1))
+        out.append(Pose(pos=tuple(float(x) * grid for x in cell), quat=tuple(float(x) for x in quat), both=n,
+                        options=len(targets)))
+    return sorted(out, key=lambda p: -p.both)
+
+
+def palm_pose(model) -> tuple[np.ndarray, np.ndarray]:
+    """The file's palm position (3,) [m] and orientation (4,) (w, x, y, z) in the world."""
+    model = model_lib.load_model(model)
+    data = mujoco.MjData(model.mjmodel)
+    mujoco.mj_kinematics(model.mjmodel, data)
+    palm = model.mjmodel.body(model.hand.body_names[0]).id
+    return data.xpos[palm].copy(), data.xquat[palm].copy()

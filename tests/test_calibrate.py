@@ -104,3 +104,14 @@ def test_write_targets_the_librarys_calibration_file(tmp_path, monkeypatch):
                           change_falls=False)
     assert measured["sets"] == "train+val" and measured["spearman"] == 0.412 and measured["dp_opt_falls"] == 3
     assert measured["episodes"] == 2
+
+
+def test_a_learned_term_that_ranks_worse_is_not_installed():
+    """Issue 83: the planner that holds is the default, so `calibrate --learn` installs a term beside its scene only
+    where, on the test split, the return with it ranks hold against fall at least as well as without it; a split
+    with no hold or no fall (AUC undefined) installs nothing."""
+    assert calibrate.installs(dict(auc_return_learned=0.913, auc_return_analytic=0.606))
+    assert calibrate.installs(dict(auc_return_learned=0.7, auc_return_analytic=0.7))
+    assert not calibrate.installs(dict(auc_return_learned=0.38, auc_return_analytic=0.617))
+    assert not calibrate.installs(dict(auc_return_learned=float("nan"), auc_return_analytic=float("nan")))
+    assert not calibrate.installs(dict(auc_return_learned=0.9, auc_return_analytic=float("nan")))

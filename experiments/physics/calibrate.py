@@ -59,6 +59,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="with --learn: the corpus folders (default: results/corpus[-<model>], and "
                         "results/corpus-learned[-...] where `corpus --learned` made one)")
     p.add_argument("--out", default=None, help="with --learn: where the weights go (default: beside the scene)")
+    p.add_argument("--keep", action="store_true",
+                   help="with --learn: install the term beside the scene even where, on the test split, it ranks "
+                        "hold against fall no better than the analytic return (by default it is then kept aside)")
     p.add_argument("--fit-seed", type=int, default=0, help="with --learn: the split's and the network's seed")
     p.add_argument("--epochs", type=int, default=learned.FitConfig.epochs, help="with --learn: at most")
     p.add_argument("--members", type=int, default=learned.FitConfig.members,
@@ -177,7 +180,10 @@ def write_calibration(res: dict, summary: dict) -> None:
 #    surrogate calls feasible that hold, with and without; calibration per probability bin (`learned.reliability`);
 #    the hazard's AUC per sequence kind.
 # 4. The weights beside the model's scene (`learned.path_of`, or `--out`), where `Surrogate(learned=True)` and
-#    `--learned` find them. Writes results/learn[-<model>]/report.json; prints the checks as a table last.
+#    `--learned` find them, if on the test split the return with the term ranks hold against fall at least as well
+#    as without it (the planner that holds is the default, not a term that misjudges; `--keep`: installed anyway);
+#    otherwise in results/learn[-<model>]/rejected.learned.npz. Writes results/learn[-<model>]/report.json; prints
+#    the checks as a table last.
 
 
 def _checks(data: dict, fitted: learned.Fitted, cfg: reward.RewardConfig) -> dict:
@@ -211,6 +217,13 @@ def _checks(data: dict, fitted: learned.Fitted, cfg: reward.RewardConfig) -> dic
     return out
 
 
+def installs(checks: dict) -> bool:
+    """Whether a fitted term becomes its model's default: on the test split, the return with it ranks hold against
+    fall at least as well as the analytic return (AUC; not where either is undefined: a split without a hold or
+    without a fall says nothing)."""
+    return bool(checks["auc_return_learned"] >= checks["auc_return_analytic"])
+
+
 def learn(args: argparse.Namespace, run: Run) -> None:
     """`--learn`: the model's learned physics term, corpus to weights (see the section's comment)."""
     model = run.model
@@ -235,10 +248,17 @@ def learn(args: argparse.Namespace, run: Run) -> None:
                          jax.random.PRNGKey(args.fit_seed), model.digest, learned.input_names(space), config,
                          progress=True)
     t_fit = time.perf_counter() - t0 - t_corpus
-    out = pathlib.Path(args.out) if args.out else learned.path_of(model)
-    learned.save(fitted, out)
     cfg = reward.RewardConfig()
     checks = _checks(data, fitted, cfg)
+    out = pathlib.Path(args.out) if args.out else learned.path_of(model)
+    if not (installs(checks) or args.out or args.keep):  # not the model's default: every command would plan with it
+        out = run.results_dir("learn") / "rejected.learned.npz"
+        print(f"learn: NOT installed beside the scene: on the test split the return with the term ranks hold against "
+              f"fall no better than without it (AUC {checks['auc_return_learned']:.3f} against "
+              f"{checks['auc_return_analytic']:.3f}; {checks['test_runs']} runs, {checks['test_falls']} falls), so "
+              f"the commands keep planning without it. More of the corpus gives it more to learn from (--shards N); "
+              f"--keep installs it anyway. Weights kept in {out}", flush=True)
+    learned.save(fitted, out)
     report = dict(model=model.name, digest=model.digest, weights=str(out), corpus=[str(s.folder) for s in stores],
                   shards=sum(len(s.manifest["shards"]) for s in stores), runs=int(len(data["fell"])),
                   epochs=len(fitted.history),

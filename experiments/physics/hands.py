@@ -20,6 +20,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 
+import jax
+
 from experiments.common import Run, table
 from experiments.physics import published
 from gsp_jax.core import files
@@ -78,6 +80,9 @@ def main(args: argparse.Namespace, run: Run) -> None:
         nested = cli.run_command(words, dataclasses.replace(run, record=False))
         result = files.read_json(nested.results_dir("envelope") / "variations.json")
         cells.append(_cell(model, result, term=nested.learned))
+        # each hand's programs are its own (its arrays are constants of them): let go of them before the next, or a
+        # dozen models' programs exhaust what LLVM may map
+        jax.clear_caches()
     out = dict(cells=cells, not_here=[dict(hand=h, why=w) for h, w in not_here])
     path = run.results_dir("hands") / "hands.json"
     files.write_json(path, out)

@@ -377,6 +377,12 @@ def test_per_geom_fits_one_capsule_per_geom(tmp_path):
     body = m.body("middle_prox").id
     assert len([g for g in range(m.ngeom) if m.geom_bodyid[g] == body and hand_lib.collides(m, g)]) == 2
     np.testing.assert_allclose(m.geom("middle_b").friction, [0.5, 0.02, 0.001])  # each geom's own
+    # a tip's contact site goes on the geom that reaches farthest (the pad), not on the phalanx's largest capsule
+    tips = importer.import_hand(src, torque_limit=TORQUE_LIMIT, per_geom=True,
+                                contact_links=["thumb_dist", "index_dist", "middle_dist"])
+    site = _compiled(tips.write(tmp_path / "tips")).site("contact_middle_dist")
+    np.testing.assert_allclose(site.pos, [0.0, 0.03, 0.0], atol=1e-9)
+    assert site.size[0] == pytest.approx(0.007)
 
 
 def test_a_palm_deeper_in_the_tree_becomes_the_worlds_child_at_its_pose(tmp_path):

@@ -135,6 +135,10 @@ def _place(path) -> None:
     best = found[0]
     x, y, z = best.pos
     start = " ".join(f"{q:.2f}" for q in best.start)
+    if not best.clear:
+        print(f"no palm position tried has a clear start grasp; the nearest, at the file's orientation, still has: "
+              f"{'; '.join(best.problems)}. Another orientation (the screen above), other options or another tool "
+              "may have one; this one may have none")
     where = ("the file's palm position scores best" if best.offset == (0.0, 0.0, 0.0)
              else f"best: the palm at {x:.4f} {y:.4f} {z:.4f} m")
     print(f"{where}, with the IK starting at {start}: `import-hand SRC OUT --palm-pos {x:.4f} {y:.4f} {z:.4f} "

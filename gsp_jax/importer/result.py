@@ -186,8 +186,9 @@ def mass_from_collision(spec: mujoco.MjSpec) -> list[str]:
 
 def contact_sites(spec: mujoco.MjSpec, m: mujoco.MjModel, palm: int, links) -> list[str]:
     """Write custom text ``gsp_contact_links`` and a site ``contact_<link>`` on each link body (`links`: body names
-    in grasp order): on a finger's deepest link (its tip) a sphere at the far end of the body's largest colliding
-    capsule or sphere, with its radius; on another link a capsule site along that capsule. The change lines."""
+    in grasp order): on a finger's deepest link (its tip) a sphere at the far end of the body's colliding capsule or
+    sphere that reaches farthest from its joint, with its radius; on another link a capsule site along its largest.
+    The change lines."""
     links = list(links)
     hand = set(_hand_bodies(m, palm))
     lines, depth, finger = [], {}, {}
@@ -208,11 +209,20 @@ def contact_sites(spec: mujoco.MjSpec, m: mujoco.MjModel, palm: int, links) -> l
         if not round_:
             raise HandImportError(f"contact_links: body {name!r} has no colliding capsule or sphere to put its "
                                   "contact site on")
-        g = max(round_, key=lambda g: m.geom_size[g, 0] ** 2 * (4 / 3 * m.geom_size[g, 0] + 2 * m.geom_size[g, 1]))
+        tip = depth[name] == max(depth[n] for n in links if finger[n] == finger[name])
+
+        def far(g) -> float:  # how far the geom reaches from the body's joint (its origin)
+            axis = hand_lib._quat_to_mat(m.geom_quat[g])[:, 2]
+            half = m.geom_size[g, 1] if int(m.geom_type[g]) == int(_GEOM.mjGEOM_CAPSULE) else 0.0
+            return max(float(np.linalg.norm(m.geom_pos[g] + s * half * axis)) for s in (-1.0, 1.0)) + m.geom_size[g, 0]
+
+        # a tip: the geom that reaches farthest (with one capsule per geom, `--per-geom`, the fingertip's, not the
+        # phalanx's largest); another link: its largest geom
+        g = max(round_, key=far) if tip else max(
+            round_, key=lambda g: m.geom_size[g, 0] ** 2 * (4 / 3 * m.geom_size[g, 0] + 2 * m.geom_size[g, 1]))
         r, half = float(m.geom_size[g, 0]), float(m.geom_size[g, 1])
         capsule = int(m.geom_type[g]) == int(_GEOM.mjGEOM_CAPSULE)
         axis = hand_lib._quat_to_mat(m.geom_quat[g])[:, 2]
-        tip = depth[name] == max(depth[n] for n in links if finger[n] == finger[name])
         body = spec.body(name)
         if tip or not capsule:
             ends = [m.geom_pos[g] + s * half * axis for s in (-1.0, 1.0)] if capsule else [m.geom_pos[g]]

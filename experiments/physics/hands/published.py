@@ -3,7 +3,7 @@
 The library ships none of a published hand's files. Each `HANDS` entry is the user's part of `import-hand` for one
 of Menagerie's hands (the palm's pose, the contact links, the IK start: found with `check-model --place`
 and the link-reach sampling docs/your-model.md describes); each `CELLS` entry pairs a hand with a tool written for
-it (models/published/<hand>-<tool>/: the tool's options on that hand's links, and a scene that includes the
+it (examples/published/<hand>-<tool>/: the tool's options on that hand's links, and a scene that includes the
 hand.xml that `install` writes beside it). `python -m experiments hands --menagerie DIR` (DIR a clone of
 github.com/google-deepmind/mujoco_menagerie) imports each hand whose file is under DIR into its cells; cells
 imported before run without DIR. Visual geoms are always dropped (a clone's visual meshes change nothing here).
@@ -14,9 +14,8 @@ import dataclasses
 import pathlib
 
 from gsp_jax import importer
-from gsp_jax.model.hand import MODELS_DIR
 
-ROOT = MODELS_DIR / "published"
+ROOT = pathlib.Path(__file__).resolve().parents[3] / "examples" / "published"  # the checkout's: not in the wheel
 
 
 @dataclasses.dataclass(frozen=True)

@@ -10,10 +10,11 @@ one (`--paper`: none). Falls are classified by the feasibility oracle (controlle
 falls of N per planner, the controller's among them, and the episodes where L1-physics held while DP optimal or L1
 fell.
 
-Menagerie's published hands (`published.py`: the Shadow E3M5 and the LEAP with the bar and the screwdriver) join the
-table once imported: `--menagerie DIR` (a clone of mujoco_menagerie) imports each one found under DIR into its
-cells under models/published/ (not shipped); cells imported before run without it; the others are listed with
-why. Prints the table last; writes results/hands[-learned]/hands.json; with --record, docs/data/hands_<device>.json.
+Menagerie's published hands (`published.py`: the Shadow E3M5, the LEAP and the Sharpa Wave, each with the bar and
+the screwdriver) join the table once imported: `--menagerie DIR` (a clone of mujoco_menagerie) imports each one
+found under DIR into its cells under examples/published/ (not shipped); cells imported before run without it; the
+others are listed with why. Prints the table last; writes results/hands[-learned]/hands.json; with --record,
+docs/data/hands_<device>.json.
 """
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ import dataclasses
 import jax
 
 from experiments.common import Run, table
-from experiments.physics import published
+from experiments.physics.hands import published
 from gsp_jax.core import files
 from gsp_jax.model import load as model_lib
 from gsp_jax.model.hand import MODELS_DIR
@@ -44,7 +45,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "models/allegro-screwdriver and the published hands' cells imported)")
     p.add_argument("--menagerie", default=None, metavar="DIR",
                    help="a clone of github.com/google-deepmind/mujoco_menagerie: import its Shadow and LEAP into "
-                        "their cells (models/published/) first")
+                        "their cells (examples/published/) first")
     p.add_argument("--episodes", type=int, default=None, help="only N of the 9 variations, spread over the set")
     p.add_argument("--k", type=int, default=2, help="L1-physics: L1's K best actions branched in physics")
 

@@ -94,7 +94,7 @@ FIGURES = (
     # its Menagerie rows need the hands imported once before (`hands --menagerie DIR`: examples/published/)
     Figure("hands", ("hands", "--learned"), ("hands_learned",), "cpu", ("gsp_jax", "models", "experiments/common.py",
            "experiments/cli.py", "experiments/__main__.py", "pyproject.toml", "requirements.lock",
-           "experiments/physics/hands", "examples/published", "experiments/physics/envelope.py"),
+           "experiments/physics/hands.py", "examples/published", "experiments/physics/envelope.py"),
            35.0),
 )
 # the surrogate's figures (Fig. 4a, Table 1) come from the same run as Fig. 4b, so `paper` measures the physics too

@@ -563,3 +563,26 @@ def test_a_missing_palm_mesh_is_not_said_to_be_fitted(tmp_path):
         importer.import_hand(tmp_path / "src" / "palm_mesh.xml", torque_limit=TORQUE_LIMIT, drop_visual=True)
     assert "palm_shell" in str(err.value) and "the palm's geoms are kept" in str(err.value) and \
         "fitted to the mesh" not in str(err.value), err.value
+
+
+def test_drop_visual_keeps_the_geoms_a_tendon_wraps(tmp_path):
+    """Issue 83 (a newcomer's Aero hand): `--drop-visual` removed a visual cylinder a spatial tendon wraps around, and
+    MuJoCo could not compile the hand ('geom ... not found in tendon'); it keeps such geoms (and says so), and a
+    tendon spring is named as a force the controller does not compensate."""
+    src = write_hand(tmp_path / "src")
+    text = src.read_text()
+    text = text.replace('<geom name="index_prox" type="box"',
+                        '<geom name="wrap" type="cylinder" size="0.004 0.004" contype="0" conaffinity="0" '
+                        'pos="0 0.02 0.012"/>\n        <site name="s2" pos="0 0.035 0.01"/>\n'
+                        '        <geom name="index_prox" type="box"', 1)
+    palm = '<geom name="palm" type="box" size="0.04 0.05 0.01"/>'
+    text = text.replace(palm, palm + '\n      <site name="s1" pos="0.025 0.04 0.012"/>', 1)
+    text = text.replace("</worldbody>", '</worldbody>\n  <tendon><spatial name="spring" stiffness="100">'
+                        '<site site="s1"/><geom geom="wrap"/><site site="s2"/></spatial></tendon>', 1)
+    assert text.count('name="wrap"') == 1 and text.count('name="s1"') == 1
+    (tmp_path / "src" / "tendon.xml").write_text(text)
+    result = importer.import_hand(tmp_path / "src" / "tendon.xml", torque_limit=TORQUE_LIMIT, drop_visual=True)
+    m = _compiled(result.write(tmp_path / "out"))
+    assert m.tendon("spring").id >= 0 and m.geom("wrap").id >= 0
+    assert any("kept 1 that tendons wrap around" in c for c in result.changes), result.changes
+    assert any("tendon 'spring', a spring of 100 N/m" in c for c in result.changes), result.changes

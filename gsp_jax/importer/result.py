@@ -294,7 +294,7 @@ def import_hand(src, *, torque_limit: float | None = None, palm: str | None = No
     bodies, lines = _changing_bodies(spec, m, pid, drop_visual)
     changes += lines + pin_inertia(spec, m, bodies)
     replacements, lines = replace_geoms(spec, m, pid, per_geom)
-    changes += lines + (remove_visual(spec) if drop_visual else []) + drop_unused_meshes(spec)
+    changes += lines + (remove_visual(spec, m) if drop_visual else []) + drop_unused_meshes(spec)
     changes += motor_lines + joint_dynamics(spec, m, hinges) + equality_notes(m)
     changes += palm_pose(spec, palm, palm_pos, palm_quat)
     edited = _compile(spec, "after its edits")

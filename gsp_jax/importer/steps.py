@@ -371,14 +371,21 @@ def replace_geoms(spec: mujoco.MjSpec, m: mujoco.MjModel, palm: int, per_geom: b
     return out, lines
 
 
-def remove_visual(spec: mujoco.MjSpec) -> list[str]:
-    """Delete every geom that collides with nothing (visual only). The change line."""
-    gone = [g for g in spec.geoms if not (g.contype or g.conaffinity)]
+def remove_visual(spec: mujoco.MjSpec, m: mujoco.MjModel) -> list[str]:
+    """Delete every geom that collides with nothing (visual only), but those a tendon wraps around (part of the
+    tendon's path: a spatial tendon names them). `m`: the spec compiled (its tendons' wraps). The change line."""
+    wrap = {int(mujoco.mjtWrap.mjWRAP_SPHERE), int(mujoco.mjtWrap.mjWRAP_CYLINDER)}
+    wrapped = {mujoco.mj_id2name(m, _OBJ.mjOBJ_GEOM, int(m.wrap_objid[i])) for i in range(m.nwrap)
+               if int(m.wrap_type[i]) in wrap}
+    visual = [g for g in spec.geoms if not (g.contype or g.conaffinity)]
+    gone = [g for g in visual if not (g.name and g.name in wrapped)]
     if not gone:
         return []
     for g in gone:
         spec.delete(g)
-    return [f"visual geoms (contype = conaffinity = 0) removed: {len(gone)}"]
+    kept = len(visual) - len(gone)
+    return [f"visual geoms (contype = conaffinity = 0) removed: {len(gone)}"
+            + (f" (kept {kept} that tendons wrap around)" if kept else "")]
 
 
 def drop_unused_meshes(spec: mujoco.MjSpec) -> list[str]:

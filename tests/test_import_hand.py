@@ -586,3 +586,9 @@ def test_drop_visual_keeps_the_geoms_a_tendon_wraps(tmp_path):
     assert m.tendon("spring").id >= 0 and m.geom("wrap").id >= 0
     assert any("kept 1 that tendons wrap around" in c for c in result.changes), result.changes
     assert any("tendon 'spring', a spring of 100 N/m" in c for c in result.changes), result.changes
+    gone = importer.import_hand(tmp_path / "src" / "tendon.xml", torque_limit=TORQUE_LIMIT, drop_visual=True,
+                                drop_tendons=True)
+    m = _compiled(gone.write(tmp_path / "no_tendons"))
+    assert m.ntendon == 0 and mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "wrap") < 0  # then a visual geom
+    assert m.nu == len([j for j in range(m.njnt) if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE])  # a motor a joint
+    assert any(c.startswith("tendons removed: 2") for c in gone.changes), gone.changes

@@ -46,6 +46,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--drop-missing", action="store_true",
                    help="remove the collision geoms whose mesh files are missing (each reported: its body collides "
                         "with nothing there then), where the file cannot be had")
+    p.add_argument("--drop-tendons", action="store_true",
+                   help="remove every tendon (a tendon-driven hand's paths and springs, and the actuators that pull "
+                        "them): each joint then gets a motor of its own (--torque-limit)")
     p.add_argument("--per-geom", action="store_true",
                    help="one fitted capsule per replaced geom (default: one per body, over all its geoms)")
 
@@ -55,6 +58,7 @@ def main(args: argparse.Namespace, run: Run) -> None:
         imported = importer.import_hand(args.src, torque_limit=args.torque_limit, palm=args.palm,
                                         palm_pos=args.palm_pos, palm_quat=args.palm_quat,
                                         drop_visual=args.drop_visual, drop_missing=args.drop_missing,
+                                        drop_tendons=args.drop_tendons,
                                         per_geom=args.per_geom,
                                         contact_links=args.contact_links, start=args.ik_start)
         path = imported.write(args.out_dir)

@@ -239,7 +239,8 @@ def equality_notes(m: mujoco.MjModel) -> list[str]:
     stiff = [float(np.ravel(m.tendon_stiffness[t])[0]) for t in range(m.ntendon)]
     out = [f"kept: tendon {_named(m, _OBJ.mjOBJ_TENDON, t)!r}, a spring of {k:g} N/m: the physics keeps its force on "
            "the joints, which neither the surrogate nor the controller's gravity compensation knows; remove it (its "
-           "<spatial> or <fixed>) if the real hand's motors cancel it" for t, k in enumerate(stiff) if k > 0]
+           "<spatial> or <fixed>; all of them: --drop-tendons) if the real hand's motors cancel it"
+           for t, k in enumerate(stiff) if k > 0]
     for e in range(m.neq):
         kind = _enum_word(mujoco.mjtEq, m.eq_type[e])
         objs = {"joint": _OBJ.mjOBJ_JOINT, "tendon": _OBJ.mjOBJ_TENDON}.get(kind)

@@ -20,7 +20,7 @@ from gsp_jax.importer.motors import (_compile, equality_notes, facing_lines, joi
 from gsp_jax.importer.spec import HandImportError, _fmt, _named
 from gsp_jax.importer.steps import (Replacement, _hand_bodies, _load, _to_replace, check_files, check_joints,
                                     choose_palm, drop_unused_meshes, mesh_files, name_joints, pin_inertia,
-                                    remove_visual, replace_geoms, reroot, reset_option, skeleton)
+                                    remove_tendons, remove_visual, replace_geoms, reroot, reset_option, skeleton)
 from gsp_jax.model import hand as hand_lib
 
 _OBJ = mujoco.mjtObj
@@ -258,15 +258,16 @@ def ik_start(spec: mujoco.MjSpec, m: mujoco.MjModel, hinges: list[int], start) -
 
 def import_hand(src, *, torque_limit: float | None = None, palm: str | None = None, palm_pos=None, palm_quat=None,
                 drop_visual: bool = False, per_geom: bool = False, contact_links=None, start=None,
-                drop_missing: bool = False) -> Imported:
+                drop_missing: bool = False, drop_tendons: bool = False) -> Imported:
     """A published MJCF hand file -> an `Imported` hand that follows the conventions (the module's docstring lists
     the edits). `torque_limit` [N m]: the motor limit of joints whose actuators give none (no forcerange); `palm`:
     the hand's root body (default: the world's child with the most hinges below it); `palm_pos` (3,) [m] /
     `palm_quat` (4,) w x y z: the palm's pose in the world; `drop_visual`: remove the visual geoms; `drop_missing`:
-    remove the collision geoms whose mesh files are missing (reported; they collide with nothing then); `per_geom`: one
-    capsule per replaced geom instead of one per body; `contact_links` (body names, grasp order): write them and
-    their contact sites (`contact_sites`); `start` (J,) [rad]: the IK start (`ik_start`). Raises `HandImportError`
-    (a ValueError) naming the field."""
+    remove the collision geoms whose mesh files are missing (reported; they collide with nothing then);
+    `drop_tendons`: remove every tendon (a tendon-driven hand's paths and springs: its joints get motors);
+    `per_geom`: one capsule per replaced geom instead of one per body; `contact_links` (body names, grasp order):
+    write them and their contact sites (`contact_sites`); `start` (J,) [rad]: the IK start (`ik_start`). Raises
+    `HandImportError` (a ValueError) naming the field."""
     if torque_limit is not None and not (np.isfinite(torque_limit) and torque_limit > 0):
         raise HandImportError(f"torque_limit: {torque_limit!r} must be a positive number [N m]")
     src = pathlib.Path(src).expanduser().resolve()
@@ -279,7 +280,8 @@ def import_hand(src, *, torque_limit: float | None = None, palm: str | None = No
     changes = reroot(spec, sk, palm)
     rename, lines = strip_prefix(spec, palm)
     palm = rename(palm)
-    changes += lines + reset_option(spec) + check_files(spec, drop_visual, palm, drop_missing)
+    changes += lines + reset_option(spec) + (remove_tendons(spec) if drop_tendons else [])
+    changes += check_files(spec, drop_visual, palm, drop_missing)
     changes += mass_from_collision(spec)
     m = _compile(spec, "after moving the palm")
     pid = m.body(palm).id

@@ -371,6 +371,18 @@ def replace_geoms(spec: mujoco.MjSpec, m: mujoco.MjModel, palm: int, per_geom: b
     return out, lines
 
 
+def remove_tendons(spec: mujoco.MjSpec) -> list[str]:
+    """Delete every tendon, spatial and fixed (their paths and springs), and what names one: the actuators that pull
+    them, sensors, equalities. A tendon-driven hand's joints then take a motor each (`motors`). The change line."""
+    tendons = list(spec.tendons)
+    if not tendons:
+        return []
+    names = ", ".join(t.name or "(unnamed)" for t in tendons[:6]) + (", ..." if len(tendons) > 6 else "")
+    delete(spec, tendons)
+    return [f"tendons removed: {len(tendons)} ({names}), with their springs and what names them (actuators, "
+            "sensors, equalities): each joint is driven by a motor of its own"]
+
+
 def remove_visual(spec: mujoco.MjSpec, m: mujoco.MjModel) -> list[str]:
     """Delete every geom that collides with nothing (visual only), but those a tendon wraps around (part of the
     tendon's path: a spatial tendon names them). `m`: the spec compiled (its tendons' wraps). The change line."""

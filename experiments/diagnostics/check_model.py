@@ -126,7 +126,9 @@ def _place(path) -> None:
         print(f"turn the palm: `import-hand SRC OUT --palm-quat {quat} --palm-pos {pos}` reaches "
               f"{best_turn.both} of {best_turn.options} options by forward kinematics (the file's orientation: "
               f"{mine[0].both if mine else 'not axis-aligned'}); import so, then run --place again to settle the "
-              "position and check collisions")
+              "position and check collisions (no position search at this turn: the problems below are the file's "
+              "as it stands)")
+        return
     print("palm positions (placement.search: z, then x, then y) ...", flush=True)
     found = placement.search(path)
     rows = [[f"{np.round(np.asarray(c.offset) * 1e3, 1).tolist()}", f"{c.both}/{c.options}", c.either,

@@ -475,20 +475,26 @@ def test_explain_names_the_grip_rule_and_where_the_opposing_contact_should_sit(s
     assert alone is not None and "grip floor" not in alone, alone
 
 
+def _testhand_with(folder: pathlib.Path, old: str, new: str) -> pathlib.Path:
+    """The test hand's scene copied into `folder` with the one occurrence of `old` in its hand.xml replaced by `new`;
+    the scene's path."""
+    src = hand_lib.MODELS_DIR / "testhand"
+    for name in ("scene.xml", "bar.xml"):
+        (folder / name).write_text((src / name).read_text())
+    hand_xml = (src / "hand.xml").read_text()
+    assert hand_xml.count(old) == 1, old
+    (folder / "hand.xml").write_text(hand_xml.replace(old, new))
+    return folder / "scene.xml"
+
+
 def test_the_placement_search_finds_a_palm_that_reaches(tmp_path):
     """Issue 83: the test hand with its palm raised 4 cm reaches no option at both ends of the lift and its start
     grasp misses; `placement.search` (along z only, 2 cm steps) moves the palm back down to where every option is
     reached at both ends and the start is clear, and reports the palm's position there."""
     from gsp_jax.physics import placement
 
-    src = hand_lib.MODELS_DIR / "testhand"
-    for name in ("scene.xml", "bar.xml"):
-        (tmp_path / name).write_text((src / name).read_text())
-    hand = (src / "hand.xml").read_text()
-    assert hand.count('<body name="palm" pos="0 0 0.11"') == 1
-    raised_palm = hand.replace('<body name="palm" pos="0 0 0.11"', '<body name="palm" pos="0 0 0.15"')
-    (tmp_path / "hand.xml").write_text(raised_palm)
-    found = placement.search(tmp_path / "scene.xml", steps=((2, 0.02),), progress=False)
+    scene = _testhand_with(tmp_path, '<body name="palm" pos="0 0 0.11"', '<body name="palm" pos="0 0 0.15"')
+    found = placement.search(scene, steps=((2, 0.02),), progress=False)
     raised = next(c for c in found if c.offset == (0.0, 0.0, 0.0))
     best = found[0]
     assert not raised.clear and raised.both < raised.options, raised
@@ -510,14 +516,9 @@ def test_the_ik_start_drawn_puts_each_link_near_its_option(tmp_path):
     from gsp_jax.model import kinematics
     from gsp_jax.physics import placement
 
-    src = hand_lib.MODELS_DIR / "testhand"
-    for name in ("scene.xml", "bar.xml"):
-        (tmp_path / name).write_text((src / name).read_text())
-    hand_xml = (src / "hand.xml").read_text()
-    assert hand_xml.count('<numeric name="gsp_ik_start" data="0.3 0.6   0.3 0.6   0.3 0.6"/>') == 1
-    (tmp_path / "hand.xml").write_text(hand_xml.replace('data="0.3 0.6   0.3 0.6   0.3 0.6"',
-                                                        'data="-0.5 2.2 -0.5 2.2 -0.5 2.2"'))
-    model = model_lib.load_model(tmp_path / "scene.xml")
+    start_xml = '<numeric name="gsp_ik_start" data="{}"'
+    model = model_lib.load_model(_testhand_with(tmp_path, start_xml.format("0.3 0.6   0.3 0.6   0.3 0.6"),
+                                                start_xml.format("-0.5 2.2 -0.5 2.2 -0.5 2.2")))
     start = placement.ik_start(model, samples=2000)
     assert np.all(start.gap_before > 0.01) and np.all(start.gap < 0.003), (start.gap_before, start.gap)
     assert np.all(start.gap <= start.gap_before + 1e-3)
@@ -573,18 +574,13 @@ def test_the_orientation_screen_turns_an_upside_down_palm_back(tmp_path):
     ranks the upside-down one lower."""
     from gsp_jax.physics import placement
 
-    src = hand_lib.MODELS_DIR / "testhand"
-    for name in ("scene.xml", "bar.xml"):
-        (tmp_path / name).write_text((src / name).read_text())
-    hand_xml = (src / "hand.xml").read_text()
-    assert hand_xml.count('<body name="palm" pos="0 0 0.11"') == 1
-    (tmp_path / "hand.xml").write_text(hand_xml.replace('<body name="palm" pos="0 0 0.11"',
-                                                        '<body name="palm" pos="0 0 0.11" quat="0 1 0 0"'))
-    poses = placement.orientations(tmp_path / "scene.xml", samples=1500)
+    palm = '<body name="palm" pos="0 0 0.11"'
+    scene = _testhand_with(tmp_path, palm, palm + ' quat="0 1 0 0"')
+    poses = placement.orientations(scene, samples=1500)
     best = poses[0]
     assert best.both == best.options, best
     assert abs(abs(best.quat[0]) - 1.0) < 1e-6, best  # the identity: the original palm, facing down
     assert np.linalg.norm(np.subtract(best.pos, (0.0, 0.0, 0.11))) <= 0.02 + 1e-9, best
-    _, own = placement.palm_pose(tmp_path / "scene.xml")
+    _, own = placement.palm_pose(scene)
     upside_down = [p for p in poses if abs(float(np.dot(p.quat, own))) > 0.999]
     assert not upside_down or upside_down[0].both < best.both, upside_down

@@ -84,7 +84,6 @@ HANDS = {
 }
 CELLS = (("shadow", "bar"), ("shadow", "screwdriver"), ("leap", "bar"), ("leap", "screwdriver"),
          ("sharpa", "bar"), ("sharpa", "screwdriver"))
-NOT_HERE: tuple[tuple[str, str], ...] = ()
 
 
 def cell_dir(hand: str, tool: str) -> pathlib.Path:
@@ -104,20 +103,19 @@ def install(menagerie: str | pathlib.Path, log=print) -> list[tuple[str, str]]:
     if not root.is_dir():
         raise importer.HandImportError(f"--menagerie: {root} is not a folder (a clone of mujoco_menagerie)")
     done = []
-    for hand, tool in CELLS:
-        spec = HANDS[hand]
+    for hand, spec in HANDS.items():
         src = root / spec.source
         if not src.exists():
             log(f"hands: {spec.label}: {src} not found, its cells are skipped")
             continue
         result = importer.import_hand(src, torque_limit=spec.torque_limit, palm=spec.palm, palm_pos=spec.palm_pos,
                                       palm_quat=spec.palm_quat, drop_visual=True, drop_missing=spec.drop_missing,
-                                      per_geom=False,
                                       contact_links=list(spec.contact_links), start=list(spec.start))
-        result.write(cell_dir(hand, tool))
-        log(f"hands: imported {src} into {cell_dir(hand, tool)} ({len(result.changes)} changes)")
-        done.append((hand, tool))
-    return done
+        for tool in (t for h, t in CELLS if h == hand):  # one import, written into each of the hand's cells
+            result.write(cell_dir(hand, tool))
+            log(f"hands: imported {src} into {cell_dir(hand, tool)} ({len(result.changes)} changes)")
+            done.append((hand, tool))
+    return [c for c in CELLS if c in done]
 
 
 MODELS = ("wrench", "screwdriver", "hammer", "allegro",  # (hand, tool) cells the library ships; and the Allegro's
@@ -135,8 +133,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the hand + tool scenes (default: wrench, screwdriver, hammer, allegro, "
                         "models/allegro-screwdriver and the published hands' cells imported)")
     p.add_argument("--menagerie", default=None, metavar="DIR",
-                   help="a clone of github.com/google-deepmind/mujoco_menagerie: import its Shadow and LEAP into "
-                        "their cells (examples/published/) first")
+                   help="a clone of github.com/google-deepmind/mujoco_menagerie: import its Shadow, LEAP and Sharpa "
+                        "Wave into their cells (examples/published/) first")
     p.add_argument("--episodes", type=int, default=None, help="only N of the 9 variations, spread over the set")
     p.add_argument("--k", type=int, default=2, help="L1-physics: L1's K best actions branched in physics")
 
@@ -156,7 +154,7 @@ def main(args: argparse.Namespace, run: Run) -> None:
     ready = [(h, t) for h, t in CELLS if imported(h, t)]
     models = args.models or [*MODELS, *(str(cell_dir(h, t) / "scene.xml") for h, t in ready)]
     not_here = [(f"{HANDS[h].label} (Menagerie) x {t}", "not imported: `hands --menagerie DIR`")
-                for h, t in CELLS if (h, t) not in ready and args.models is None] + list(NOT_HERE)
+                for h, t in CELLS if (h, t) not in ready and args.models is None]
     cells = []
     for name in models:
         try:

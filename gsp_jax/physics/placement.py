@@ -122,6 +122,26 @@ def search(path, steps=STEPS, progress: bool = True) -> list[Candidate]:
     return sorted(tried.values(), key=Candidate.score, reverse=True)
 
 
+def _chain(mj: mujoco.MjModel, hand, body: int) -> list[int]:
+    """The hand joints (indices into `hand.joint_names`) on the bodies from MuJoCo body `body` up to the world,
+    nearest first: the joints that move it."""
+    index = {name: j for j, name in enumerate(hand.joint_names)}
+    chain = []
+    while body > 0:
+        chain += [index[mj.joint(j).name] for j in range(mj.njnt)
+                  if mj.jnt_bodyid[j] == body and mj.joint(j).name in index]
+        body = mj.body_parentid[body]
+    return chain
+
+
+def _centres(hand, episode, t: int, links, options) -> np.ndarray:
+    """(N, 3) world points where links `links` (N,) sit when touching their `options` (N,) at waypoint `t` of
+    `episode`: each option's point less the link's radius along its inward normal [m]."""
+    mat = np.asarray(kinematics.quat_to_mat(episode.quats[t]), np.float64)
+    local = hand.option_pos[links, options] - hand.option_normal[links, options] * hand.link_radius[links, None]
+    return np.asarray(episode.waypoints[t], np.float64) + local @ mat.T
+
+
 @dataclasses.dataclass(frozen=True)
 class Start:
     """An IK start that puts each contact link near an option at mid-lift (`ik_start`)."""
@@ -143,13 +163,8 @@ def ik_start(model, samples: int = 4000, seed: int = 0) -> Start:
     hand, mj = model.hand, model.mjmodel
     data = mujoco.MjData(mj)
     episode = scenario.make_episode(model=model)
-    t = episode.n_steps // 2
-    mat = np.asarray(kinematics.quat_to_mat(episode.quats[t]), np.float64)
     options = np.where(np.asarray(hand.start_options) > 0, hand.start_options, 1)
-    li = np.arange(hand.n_links)
-    point = np.asarray(episode.waypoints[t], np.float64) + hand.option_pos[li, options] @ mat.T
-    centre = point - (hand.option_normal[li, options] @ mat.T) * hand.link_radius[:, None]  # (L, 3)
-    index = {name: j for j, name in enumerate(hand.joint_names)}
+    centre = _centres(hand, episode, episode.n_steps // 2, np.arange(hand.n_links), options)  # (L, 3)
     bodies = np.array([mj.body(name).id for name in hand.link_names])  # MuJoCo's body ids
     rng = np.random.default_rng(seed)
 
@@ -162,13 +177,8 @@ def ik_start(model, samples: int = 4000, seed: int = 0) -> Start:
     q = np.array(hand.q_start, np.float64)
     before = gaps(q)
     taken: set[int] = set()
-    for k, name in enumerate(hand.link_names):
-        chain, body = [], int(bodies[k])
-        while body > 0:
-            chain += [index[mj.joint(j).name] for j in range(mj.njnt)
-                      if mj.jnt_bodyid[j] == body and mj.joint(j).name in index]
-            body = mj.body_parentid[body]
-        chain = [j for j in chain if j not in taken]
+    for k in range(hand.n_links):
+        chain = [j for j in _chain(mj, hand, int(bodies[k])) if j not in taken]
         if not chain:
             continue
         lo, hi = hand.joint_range[chain, 0], hand.joint_range[chain, 1]
@@ -214,15 +224,10 @@ def _links_cloud(model, samples: int, rng) -> list[np.ndarray]:
     hand, mj = model.hand, model.mjmodel
     data = mujoco.MjData(mj)
     palm = mj.body(hand.body_names[0]).id
-    index = {name: j for j, name in enumerate(hand.joint_names)}
     clouds = []
     for name, site in zip(hand.link_names, hand.link_site):
         body = mj.body(name).id
-        chain, b = [], body
-        while b > 0:
-            chain += [index[mj.joint(j).name] for j in range(mj.njnt)
-                      if mj.jnt_bodyid[j] == b and mj.joint(j).name in index]
-            b = mj.body_parentid[b]
+        chain = _chain(mj, hand, body)
         q = np.array(hand.q_start, np.float64)
         lo, hi = hand.joint_range[chain, 0], hand.joint_range[chain, 1]
         pts = np.empty((samples, 3))
@@ -250,25 +255,15 @@ def orientations(path, samples: int = 3000, grid: float = 0.01, seed: int = 0) -
     rng = np.random.default_rng(seed)
     clouds = _links_cloud(model, samples, rng)
     episode = scenario.make_episode(model=model)
-    ends = (0, episode.n_steps - 1)
-    targets = []  # (link, option, (2, 3) world contact centres at the two ends)
-    for li in range(hand.n_links):
-        for k in range(1, hand.n_options[li]):
-            at = []
-            for t in ends:
-                mat = np.asarray(kinematics.quat_to_mat(episode.quats[t]), np.float64)
-                point = np.asarray(episode.waypoints[t], np.float64) + mat @ hand.option_pos[li, k]
-                at.append(point - (mat @ hand.option_normal[li, k]) * hand.link_radius[li])
-            targets.append((li, k, np.array(at)))
-    mj = model.mjmodel
-    data = mujoco.MjData(mj)
-    mujoco.mj_kinematics(mj, data)
-    here = data.xpos[mj.body(hand.body_names[0]).id] / grid  # the file's palm position, in cells
+    links = np.array([li for li in range(hand.n_links) for _ in range(1, hand.n_options[li])], np.int32)
+    options = np.array([k for li in range(hand.n_links) for k in range(1, hand.n_options[li])], np.int32)
+    ends = np.stack([_centres(hand, episode, t, links, options) for t in (0, episode.n_steps - 1)], 1)  # (N, 2, 3)
+    here = palm_pose(model)[0] / grid  # the file's palm position, in cells
     above = (float(np.max(np.asarray(episode.waypoints)[:, 2])) + 0.01) / grid  # the palm above the lifted tool
     out = []
     for rot in _rotations():
         votes: dict[tuple, int] = {}
-        for li, _, at in targets:
+        for li, at in zip(links, ends):
             cells = [set(map(tuple, np.round((c - clouds[li] @ rot.T) / grid).astype(int))) for c in at]
             for cell in cells[0] & cells[1]:  # palm positions that reach the option at both ends
                 if cell[2] >= above:
@@ -279,7 +274,7 @@ def orientations(path, samples: int = 3000, grid: float = 0.01, seed: int = 0) -
         quat = np.zeros(4)
         mujoco.mju_mat2Quat(quat, rot.reshape(-1))
         out.append(Pose(pos=tuple(float(x) * grid for x in cell), quat=tuple(float(x) for x in quat), both=n,
-                        options=len(targets)))
+                        options=len(links)))
     return sorted(out, key=lambda p: -p.both)
 
 

@@ -195,8 +195,7 @@ def hand_overlaps(sur: Surrogate, tol: float = OVERLAP) -> list[str]:
     parent and child, the file's <exclude> pairs) and with the table; a pair of bodies that overlaps more than `tol`
     [m] deeper than at the file's rest (qpos0: fitted capsules often touch at the joints), or a body more than `tol`
     into the table, is named with its depth."""
-    m = hand_lib.load_mjmodel(sur.model.path)
-    m = copy.copy(m)
+    m = copy.copy(sur.model.mjmodel)  # its geoms' collision flags are changed below
     hand = sur.hand
     tool = hand_lib.tool_body(m)
     table = [g for g in range(m.ngeom) if m.geom_bodyid[g] == 0 and m.geom_type[g] == mujoco.mjtGeom.mjGEOM_PLANE]

@@ -35,6 +35,12 @@ def phys():
 
 
 @pytest.fixture(scope="module")
+def phys_measured():
+    """The controller in the contact frames the links have (`PhysicsConfig.named("measured")`)."""
+    return physics.Physics(Surrogate(learned=False), physics.PhysicsConfig.named("measured", hold=0.25))
+
+
+@pytest.fixture(scope="module")
 def episodes():
     """Three evaluation episodes (their first T waypoints) and a fourth with the CoM off-centre under a torque."""
     eps = [e.head(T) for e in list(scenario.eval_set_a().values())[:3]]
@@ -62,11 +68,14 @@ def test_native_state_layout_is_the_flat_controller_state(phys, episodes):
         np.testing.assert_array_equal(flat[start:start + value.size], value, err_msg=name)
 
 
-def test_native_tick_is_the_jax_tick_on_recorded_states(phys, episodes):
+@pytest.mark.parametrize("controller", ["paper", "measured"])
+def test_native_tick_is_the_jax_tick_on_recorded_states(controller, request, episodes):
     """At every tick of four short episodes (JAX controller, C MuJoCo), the native tick from the same state and
     observation gives the JAX tick's motor commands (within 1e-4 N m), external wrench (1e-5 N), next controller state
     (within 1e-3 in force units: the warm-started force solves carry float32 rounding) and status: the angle
-    within 0.05 deg (float32's arccos near 1 resolves ~0.02 deg), the same falls."""
+    within 0.05 deg (float32's arccos near 1 resolves ~0.02 deg), the same falls. For both named controllers (the
+    measured frames: the tool's surface normals at the touching links)."""
+    phys = request.getfixturevalue("phys" if controller == "paper" else "phys_measured")
     policy = _four_tips_then_changes(phys)
     run = c_backend._Lockstep(phys, [(policy, None)], episodes, 1, None, controller="jax")
     tick = c_backend.native_tick(phys)
@@ -100,9 +109,11 @@ def test_native_tick_is_the_jax_tick_on_recorded_states(phys, episodes):
     assert not np.any(run.fell)
 
 
-def test_native_and_jax_controllers_give_the_same_outcomes(phys, episodes):
-    """The whole lockstep with either controller: the same falls, hold errors within 0.02 deg (the physics
+@pytest.mark.parametrize("controller", ["paper", "measured"])
+def test_native_and_jax_controllers_give_the_same_outcomes(controller, request, episodes):
+    """The whole lockstep with either tick: the same falls, hold errors within 0.02 deg (the physics
     carries the last-bit differences forward: measured 6e-4 deg on the 27 evaluation episodes, full length)."""
+    phys = request.getfixturevalue("phys" if controller == "paper" else "phys_measured")
     policy = _four_tips_then_changes(phys)
     res = {c: c_backend.simulate(phys, [(policy, None)], episodes, controller=c)[0] for c in c_backend.CONTROLLERS}
     np.testing.assert_array_equal(res["native"].fell, res["jax"].fell)
@@ -111,6 +122,29 @@ def test_native_and_jax_controllers_give_the_same_outcomes(phys, episodes):
     assert not np.any(res["native"].fell)
     with pytest.raises(ValueError, match="controller"):
         c_backend.simulate(phys, [(policy, None)], episodes, controller="python")
+
+
+@pytest.mark.parametrize("model", ["wrench", "screwdriver"])
+def test_native_outward_normal_is_the_tool_sdf_gradient(model, rng):
+    """`native._outward` (float64) against `ik.box_sdf_and_grad` (float32): the tool's outward surface normal at
+    random points around it, boxes (the wrench) and round primitives (the screwdriver's cylinders), within 1e-4
+    (float32 rounding of the distance's square root near the surface); the same primitive nearest wherever the two
+    nearest differ by more than 1e-5 m."""
+    from gsp_jax.model import load as model_lib
+    from gsp_jax.solvers import ik
+
+    hand = model_lib.load_model(model).hand
+    K = c_backend.native_tick(physics.Physics(Surrogate(model_lib.load_model(model), learned=False))).constants.hand
+    lo, hi = np.asarray(hand.tool_bounds(), np.float64)
+    pts = rng.uniform(lo - 0.02, hi + 0.02, size=(200, 3))
+    _, want = ik.box_sdf_and_grad(jnp.asarray(pts, jnp.float32), jnp.zeros(3), jnp.eye(3), hand)
+    want = np.asarray(want, np.float64)
+    got, rel, gr = np.zeros(3), np.zeros(3), np.zeros(3)
+    worst = 0.0
+    for p, w in zip(pts, want):
+        native._outward(K, p, got, rel, gr)
+        worst = max(worst, np.abs(got - w).max())
+    assert worst < 1e-4, worst
 
 
 def test_native_chain_and_links_are_kinematics(phys, rng):

@@ -16,6 +16,9 @@ import math
 from gsp_jax.model import scenario
 
 
+FRAMES = ("nominal", "measured")  # `ControllerConfig.frames`
+
+
 def _number(value) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
@@ -93,6 +96,9 @@ class ControllerConfig:
     # in the grasp matrix's null space)
     friction_margin: float = 0.7  # in (0, 1]: the force solve's friction coefficient, as a fraction of the tool's
     force_iterations: int = 40  # >= 1: projected-gradient iterations of the force solve per tick (warm-started)
+    frames: str = "nominal"  # the force solve's contact normals: "nominal" (each option's face normal, the paper's
+    # controller) or "measured" (where a link touches, the tool surface's normal at the link's centre line as
+    # observed: MuJoCo's sphere-box normal, tilted where a fingertip rests on an edge)
 
     @property
     def tool_gains(self) -> tuple[float, float]:
@@ -105,6 +111,8 @@ class ControllerConfig:
         _check(self, positive=("tool_freq", "feedback_limit", "feedback_floor", "tool_radius", "rotation_step",
                                "friction_margin"),
                nonnegative=("tool_damping", "grip_force"), counts=("force_iterations",))
+        if self.frames not in FRAMES:
+            raise ValueError(f"PhysicsConfig.controller.frames must be one of {FRAMES}, got {self.frames!r}")
         if self.friction_margin > 1:
             raise ValueError(f"PhysicsConfig.controller.friction_margin must be in (0, 1], got {self.friction_margin}")
 
@@ -141,6 +149,11 @@ class OutcomeConfig:
     def __post_init__(self):
         _check(self, positive=("fall_angle", "fall_distance"), finite=("fall_height",))
 
+
+CONTROLLERS = {  # named contact controllers: `PhysicsConfig.named(name)`; the fields each sets
+    "paper": {},  # the paper-era controller: nominal option normals, 70% of mu (the default)
+    "measured": dict(frames="measured", friction_margin=1.0),  # the normals the contacts have; all of mu in them
+}
 
 GROUPS = {"sim": SimConfig, "timeline": TimelineConfig, "controller": ControllerConfig, "fingers": FingerConfig,
           "outcome": OutcomeConfig}
@@ -189,6 +202,25 @@ class PhysicsConfig:
             by_group.setdefault(_group(name), {})[name] = value
         return dataclasses.replace(self, **{g: dataclasses.replace(getattr(self, g), **kw)
                                             for g, kw in by_group.items()})
+
+    @staticmethod
+    def named(controller: str, **changes) -> PhysicsConfig:
+        """The default config with the named contact controller's settings (`CONTROLLERS`: "paper", "measured"),
+        then `changes` (`replace`)."""
+        if controller not in CONTROLLERS:
+            raise ValueError(f"controller must be one of {sorted(CONTROLLERS)}, got {controller!r}")
+        return PhysicsConfig().replace(**CONTROLLERS[controller], **changes)
+
+    @property
+    def controller_name(self) -> str | None:
+        """The name in `CONTROLLERS` whose settings this config's controller fields have (None: none of them)."""
+        base = PhysicsConfig()
+        for name, fields in CONTROLLERS.items():
+            want = {f.name: fields.get(f.name, getattr(base.controller, f.name))
+                    for f in dataclasses.fields(ControllerConfig)}
+            if all(getattr(self.controller, k) == v for k, v in want.items()):
+                return name
+        return None
 
     def value(self, name: str):
         """The value of the field `name` of any group."""

@@ -47,7 +47,7 @@ import numpy as np
 from flax import struct
 
 from gsp_jax.model import grasps, kinematics
-from gsp_jax.solvers import wrench
+from gsp_jax.solvers import ik, wrench
 from gsp_jax.model.hand import HandModel
 from gsp_jax.physics.config import PhysicsConfig
 from gsp_jax.physics.scene import Observation
@@ -353,6 +353,10 @@ class Controller:
             radius = jnp.asarray(self.hand.link_radius, jnp.float32)[:, None]
             surface = jnp.where(anchored[:, None], anchor, self._target(current)) + radius * (nrm @ mat)
             pts = p + surface @ mat.T
+            if self.config.controller.frames == "measured":  # a touching link's normal: the tool surface's there
+                outward = ik.box_sdf_and_grad(x, p, mat, self.hand)[1]
+                outward = outward / (jnp.linalg.norm(outward, axis=-1, keepdims=True) + 1e-12)
+                nrm = jnp.where(held, -outward, nrm)
             required = self.tool_wrench(obs, episode, ref, external)
             mu = self.config.controller.friction_margin * episode.friction
             com = p + mat @ episode.com

@@ -88,6 +88,16 @@ class Hand(NamedTuple):
     n_fingers: int
     targets: np.ndarray  # (L, K, 3) the links' centre-line targets per option, tool frame
     normals: np.ndarray  # (L, K, 3) inward normals per option, tool frame
+    box_pos: np.ndarray  # (NB, 3) the tool's boxes (`HandModel.tool_box_*`), tool frame
+    box_half: np.ndarray  # (NB, 3)
+    box_mat: np.ndarray  # (NB, 3, 3)
+    round_kind: np.ndarray  # (NR,) int64, its round primitives: an index into `ROUNDS`
+    round_pos: np.ndarray  # (NR, 3) tool frame
+    round_mat: np.ndarray  # (NR, 3, 3)
+    round_size: np.ndarray  # (NR, 3)
+
+
+ROUNDS = ("sphere", "capsule", "cylinder", "ellipsoid")  # `Hand.round_kind`'s codes (`ik.round_sdf`'s kinds)
 
 
 class Scene(NamedTuple):
@@ -133,6 +143,7 @@ class Gains(NamedTuple):
     rotation_step: float
     grip_force: float
     friction_margin: float
+    measured: bool  # `frames` == "measured"
     iterations: int
     rho: float
     torque_length: float
@@ -202,7 +213,7 @@ class Episodes(NamedTuple):
     hold_time: np.ndarray  # (E,) float32: when the hold starts [s]
 
 
-N_VEC3 = 25  # Scratch.v3's 3-vectors (named where used; `_status` uses rows 0..6 as `_control` does)
+N_VEC3 = 27  # Scratch.v3's 3-vectors (named where used; `_status` uses rows 0..6 as `_control` does)
 # Links.blocks: the links' (L, 3) 3-vectors of a tick
 ANCHOR, PARK, F_WITH, F_WITHOUT, TARGET, X_REF, V_REF, NORMAL, NORMAL_T, X, V, F_TRACK, POINTS, F_A, F_B = range(15)
 N_BLOCKS = 15
@@ -291,7 +302,12 @@ class Tick:
                 link_site=f64(hand.link_site), link_axis=f64(hand.link_axis), link_half=f64(hand.link_half),
                 link_radius=f64(hand.link_radius), link_finger=i64(hand.link_finger),
                 link_is_tip=np.ascontiguousarray(hand.link_is_tip, np.bool_), n_fingers=len(hand.finger_names),
-                targets=f64(ctl.targets_tool), normals=f64(hand.option_normal)),
+                targets=f64(ctl.targets_tool), normals=f64(hand.option_normal),
+                box_pos=f64(hand.tool_box_pos).reshape(-1, 3), box_half=f64(hand.tool_box_half).reshape(-1, 3),
+                box_mat=f64(hand.tool_box_mat).reshape(-1, 3, 3),
+                round_kind=i64([ROUNDS.index(k) for k in hand.tool_round_type]),
+                round_pos=f64(hand.tool_round_pos).reshape(-1, 3), round_mat=f64(hand.tool_round_mat).reshape(-1, 3, 3),
+                round_size=f64(hand.tool_round_size).reshape(-1, 3)),
             scene=Scene(
                 hand_qpos=i64(scene.hand_qpos), hand_dof=i64(scene.hand_dof), hand_act=i64(scene.hand_act),
                 tool_qpos=scene.tool_qpos, tool_dof=scene.tool_dof, nq=m.nq, nv=m.nv, nu=m.nu,
@@ -306,7 +322,8 @@ class Tick:
                 kp=float(F32(kp)), kd=float(F32(kd)), feedback_limit=float(c.feedback_limit),
                 feedback_floor=float(c.feedback_floor), tool_radius=float(c.tool_radius),
                 rotation_step=float(c.rotation_step), grip_force=float(c.grip_force),
-                friction_margin=float(c.friction_margin), iterations=int(c.force_iterations),
+                friction_margin=float(c.friction_margin), measured=c.frames == "measured",
+                iterations=int(c.force_iterations),
                 rho=float(ctl.wrench_config.force_penalty), torque_length=float(ctl.wrench_config.torque_length)),
             fingers=Fingers(
                 finger_kp=float(fi.finger_kp), finger_kd=float(fi.finger_kd),
@@ -969,7 +986,7 @@ def _tool_wrench(C, g, ts, ep, ext, v3, m3, q4, required):
 def _contacts(H, C, friction, p, mat, v3, W):
     """The force solves' problem on the observed tool: the contact points, the CoM (world, v3[24]; its offset
     v3[13] from `_tool_wrench`), the links active with and without the changed one; (the friction coefficient,
-    the changed link's load). v3[23]: scratch."""
+    the changed link's load). v3's rows 9, 23, 25, 26: scratch."""
     current, load, fl = W.options[CURRENT], W.load, W.flags
     anchor, nrm_t, pts = W.blocks[ANCHOR], W.blocks[NORMAL_T], W.blocks[POINTS]
     surface, r_com = v3[23], v3[13]
@@ -980,6 +997,20 @@ def _contacts(H, C, friction, p, mat, v3, W):
                 + H.link_radius[lk] * nrm_t[lk, i]
         for i in range(3):
             pts[lk, i] = p[i] + mat[i, 0] * surface[0] + mat[i, 1] * surface[1] + mat[i, 2] * surface[2]
+    if C.measured:  # a touching link's normal: the tool surface's at its centre-line point (`ik.box_sdf_and_grad`)
+        x, nrm, here, g = W.blocks[X], W.blocks[NORMAL], v3[23], v3[9]
+        for lk in range(current.shape[0]):
+            if not (fl[ANCHORED, lk] and current[lk] > 0):
+                continue
+            for i in range(3):
+                here[i] = mat[0, i] * (x[lk, 0] - p[0]) + mat[1, i] * (x[lk, 1] - p[1]) + mat[2, i] * (x[lk, 2] - p[2])
+            _outward(H, here, g, v3[25], v3[26])
+            n = 0.0
+            for i in range(3):
+                n += g[i] * g[i]
+            n = math.sqrt(n) + 1e-12
+            for i in range(3):
+                nrm[lk, i] = -(mat[i, 0] * g[0] + mat[i, 1] * g[1] + mat[i, 2] * g[2]) / n
     mu = C.friction_margin * float(friction)
     com_w = v3[24]
     for i in range(3):
@@ -991,6 +1022,74 @@ def _contacts(H, C, friction, p, mat, v3, W):
         if fl[CHANGED, lk]:
             share += load[lk]
     return mu, share
+
+
+@_jit
+def _round(kind, size, x, y, z, g):
+    """`ik.round_sdf` of one point (x, y, z) in a round primitive's frame (kind: `ROUNDS` index): the distance,
+    its gradient written to g (3,)."""
+    a, b, c = size[0], size[1], size[2]
+    eps = 1e-12
+    if kind <= 1:  # sphere, capsule
+        dz = z - min(max(z, -b), b) if kind == 1 else z
+        r = math.sqrt(x * x + y * y + dz * dz + eps)
+        g[0], g[1], g[2] = x / r, y / r, dz / r
+        return r - a
+    if kind == 2:  # cylinder
+        rho = math.sqrt(x * x + y * y + eps)
+        dr, dzz = rho - a, abs(z) - b
+        o_r, o_z = max(dr, 0.0), max(dzz, 0.0)
+        outside = math.sqrt(o_r * o_r + o_z * o_z + eps)
+        side = dr >= dzz
+        w_r = o_r / outside if outside > 1e-6 else (1.0 if side else 0.0)
+        w_z = o_z / outside if outside > 1e-6 else (0.0 if side else 1.0)
+        sz = 1.0 if z > 0 else -1.0 if z < 0 else 0.0
+        g[0], g[1], g[2] = w_r * x / rho, w_r * y / rho, w_z * sz
+        return outside + min(max(dr, dzz), 0.0)
+    k0 = math.sqrt((x / a) ** 2 + (y / b) ** 2 + (z / c) ** 2 + eps)  # ellipsoid
+    nx, ny, nz = x / a**2, y / b**2, z / c**2
+    n = math.sqrt(nx * nx + ny * ny + nz * nz + eps)
+    g[0], g[1], g[2] = nx / n, ny / n, nz / n
+    return (k0 - 1.0) * min(a, b, c)
+
+
+@_jit
+def _outward(H, h, g, rel, gr):
+    """The tool's surface normal (outward, tool frame) at the tool-frame point h (3,) written to g (3,): the
+    gradient of its signed distance, as `ik.box_sdf_and_grad` (the nearest box, the first of equals; a round
+    primitive where strictly nearer). rel, gr (3,): scratch."""
+    best = np.inf
+    for b in range(H.box_pos.shape[0]):
+        R = H.box_mat[b]
+        for i in range(3):
+            rel[i] = R[0, i] * (h[0] - H.box_pos[b, 0]) + R[1, i] * (h[1] - H.box_pos[b, 1]) \
+                + R[2, i] * (h[2] - H.box_pos[b, 2])
+        deepest, o2 = -np.inf, 0.0
+        for i in range(3):
+            d = abs(rel[i]) - H.box_half[b, i]
+            deepest = max(deepest, d)
+            o2 += max(d, 0.0) ** 2
+        outside = math.sqrt(o2 + 1e-12)
+        dist = outside + min(deepest, 0.0)
+        if dist < best:
+            best = dist
+            for i in range(3):
+                d = abs(rel[i]) - H.box_half[b, i]
+                face = 1.0 if (d == deepest and deepest < 0.0) else 0.0
+                sg = 1.0 if rel[i] > 0 else -1.0 if rel[i] < 0 else 0.0
+                gr[i] = sg * (max(d, 0.0) / outside + face)
+            for i in range(3):
+                g[i] = R[i, 0] * gr[0] + R[i, 1] * gr[1] + R[i, 2] * gr[2]
+    for r in range(H.round_pos.shape[0]):
+        R = H.round_mat[r]
+        for i in range(3):
+            rel[i] = R[0, i] * (h[0] - H.round_pos[r, 0]) + R[1, i] * (h[1] - H.round_pos[r, 1]) \
+                + R[2, i] * (h[2] - H.round_pos[r, 2])
+        dist = _round(H.round_kind[r], H.round_size[r], rel[0], rel[1], rel[2], gr)
+        if dist < best:
+            best = dist
+            for i in range(3):
+                g[i] = R[i, 0] * gr[0] + R[i, 1] * gr[1] + R[i, 2] * gr[2]
 
 
 @_jit

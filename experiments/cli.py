@@ -163,6 +163,13 @@ def main(argv: list[str] | None = None, outer: common.Run | None = None) -> comm
                                  "none); results and records are named -learned")
             sp.add_argument("--paper", action="store_true",
                             help="plan with the paper's surrogate alone (no learned physics term)")
+        if name in PHYSICS_COMMANDS:
+            from gsp_jax.physics.config import CONTROLLERS
+
+            sp.add_argument("--controller", choices=sorted(CONTROLLERS), default=None,
+                            help="the contact controller in physics (default: paper, its face normals; measured: "
+                                 "the contact frames the links have, docs/physics.md); results and records are "
+                                 "named -<controller> where it is not the paper's")
     args = parser.parse_args(argv)
     for plugin in args.plugin:
         load_plugin(plugin)
@@ -204,10 +211,15 @@ def make_run(args: argparse.Namespace, words: list[str], outer: common.Run | Non
         print(f"learned physics term: {learned.path_of(model)}" + (
             "" if getattr(args, "learned", False) else " (the model's default; --paper: the paper's surrogate)"),
             flush=True)
-    for name in ("model", "learned", "paper"):
+    controller = getattr(args, "controller", None) or outer.controller
+    for name in ("model", "learned", "paper", "controller"):
         vars(args).pop(name, None)
     return common.Run(model=model, learned=use_learned, record=outer.record or args.record,
-                      command=outer.command or tuple(words))
+                      command=outer.command or tuple(words), controller=controller)
+
+
+PHYSICS_COMMANDS = ("demo", "physics", "bench-physics", "bench-scale", "envelope", "hands", "corpus", "calibrate",
+                    "fig4b", "table1", "reproduce")  # they simulate: `--controller` chooses the contact controller
 
 
 PAPER_BY_DEFAULT = ("corpus", "reproduce")  # the learned term's own data (its corpus plans with the analytic

@@ -25,11 +25,13 @@ if TYPE_CHECKING:
 RESULTS = pathlib.Path("results")
 
 
-def results_dir(*parts: str, model=None, learned: bool = False) -> pathlib.Path:
+def results_dir(*parts: str, model=None, learned: bool = False, controller: str = "paper") -> pathlib.Path:
     """results/<parts> (created, and locked for this process); a command run for another model than the wrench
     (`model`, a `Model` or a name; None: the default) writes to results/<first part>-<model>/... (results/<model>
-    for no parts) instead, and one with the learned physics term (`learned`) to results/<first part>-learned/...:
-    no model's or surrogate's results overwrite another's. A command calls its run's (`Run.results_dir`)."""
+    for no parts) instead, one with the learned physics term (`learned`) to results/<first part>-learned/..., and
+    one with another contact controller than the paper's (`controller`) to results/<first part>-<controller>/...:
+    no model's, surrogate's or controller's results overwrite another's. A command calls its run's
+    (`Run.results_dir`)."""
     from gsp_jax.model import load as model_lib
 
     name = model_lib.load_model(model).name
@@ -37,6 +39,8 @@ def results_dir(*parts: str, model=None, learned: bool = False) -> pathlib.Path:
         parts = (f"{parts[0]}-{name}", *parts[1:]) if parts else (name,)
     if learned:
         parts = (f"{parts[0]}-learned", *parts[1:]) if parts else ("learned",)
+    if controller != "paper":
+        parts = (f"{parts[0]}-{controller}", *parts[1:]) if parts else (controller,)
     path = RESULTS.joinpath(*parts)
     path.mkdir(parents=True, exist_ok=True)
     if distributed.is_main():  # the processes of one run (`--processes`) share process 0's lock
@@ -109,10 +113,18 @@ class Run:
     # weights unless `--paper` (`cli.PAPER_BY_DEFAULT`: only with `--learned`)
     record: bool = False  # `--record`: `record_figures` writes to DATA (off: runs leave docs alone)
     command: tuple[str, ...] = ()  # the words of the command its records name (the outermost one's; (): sys.argv)
+    controller: str = "paper"  # the contact controller in physics (`--controller`: `PhysicsConfig.named`)
 
     def results_dir(self, *parts: str) -> pathlib.Path:
-        """`results_dir` for this run's model and learned term: results/<parts>[-<model>][-learned]."""
-        return results_dir(*parts, model=self.model, learned=self.learned)
+        """`results_dir` for this run's model, learned term and controller:
+        results/<parts>[-<model>][-learned][-<controller>]."""
+        return results_dir(*parts, model=self.model, learned=self.learned, controller=self.controller)
+
+    def physics_config(self, **changes):
+        """The `PhysicsConfig` of this run's contact controller (`PhysicsConfig.named`), with `changes`."""
+        from gsp_jax.physics.config import PhysicsConfig
+
+        return PhysicsConfig.named(self.controller, **changes)
 
     def record_figures(self, name: str, figures: dict, data: pathlib.Path | None = None) -> dict | None:
         """With `--record` (`record`): `figures` (a small JSON-able dict, the benchmark's printed table) become the
@@ -122,7 +134,8 @@ class Run:
         if not self.record or not distributed.is_main():  # several processes: process 0 records
             return None
         data = DATA if data is None else pathlib.Path(data)
-        name = f"{name}{'_learned' * self.learned}_{device_slug()}"  # the learned term's figures beside the paper's
+        name = (f"{name}{'_learned' * self.learned}{'_' + self.controller if self.controller != 'paper' else ''}"
+                f"_{device_slug()}")  # the learned term's and another controller's figures beside the paper's
         try:
             commit = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=ROOT, capture_output=True,
                                     text=True, check=True).stdout.strip()

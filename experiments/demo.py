@@ -250,7 +250,7 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 
 def main(args: argparse.Namespace, run: Run) -> None:
     if args.gif_from:
-        _render_gif(physics.Physics(Surrogate(run.model, learned=run.learned)), args.gif_from)
+        _render_gif(physics.Physics(Surrogate(run.model, learned=run.learned), run.physics_config()), args.gif_from)
         return
     model = run.model
     out = run.results_dir("demo")  # results/demo-<model> for another model
@@ -258,7 +258,7 @@ def main(args: argparse.Namespace, run: Run) -> None:
           "L1, executed in C MuJoCo", flush=True)
     t0 = time.perf_counter()
     sur = Surrogate(model, learned=run.learned)
-    phys = physics.Physics(sur)
+    phys = physics.Physics(sur, run.physics_config())
     native_code = c_backend.warm_up(phys)  # numba compiles C MuJoCo's native tick while XLA compiles the table
     ctx = _context(args.episode, sur)
     t_table = time.perf_counter() - t0

@@ -207,3 +207,30 @@ def test_the_surrogate_commands_grasps_fit_any_number_of_contact_links(small_mod
         assert len(o) == space.n_links and all(0 <= k < n for k, n in zip(o, space.n_options))
         assert 0 <= int(space.encode(o)) < space.n_grasps
     assert sum(1 for k in options[0] if k) == 1  # one contact alone
+
+
+def test_controller_is_chosen_handed_down_and_names_results_and_records(monkeypatch, tmp_path):
+    """Issue 84: `--controller measured` gives a simulating command that controller's `PhysicsConfig`, results
+    under results/<part>-measured and records named _measured; a command it runs inherits it; the default is the
+    paper's (no suffix); a command that does not simulate has no such option."""
+    from experiments import common
+
+    seen = []
+
+    def main(args, run):
+        assert "controller" not in args
+        seen.append((run.controller, run.physics_config().controller_name, run.results_dir("envelope").name,
+                     run.record_figures("bench_x", {"n": 1}, data=tmp_path)["name"]))
+        if len(seen) == 1:
+            cli.run_command(["envelope"], run)
+
+    monkeypatch.setattr("experiments.physics.envelope.main", main)
+    monkeypatch.setattr(common, "RESULTS", tmp_path / "results")
+    monkeypatch.setattr(common, "device_slug", lambda: "cpu")
+    cli.main(["--record", "envelope", "--paper", "--controller", "measured"])
+    assert seen == [("measured", "measured", "envelope-measured", "bench_x_measured_cpu")] * 2
+    seen.clear()
+    cli.main(["--record", "envelope", "--paper"])
+    assert seen[0] == ("paper", "paper", "envelope", "bench_x_cpu")
+    with pytest.raises(SystemExit):
+        cli.main(["planners", "--controller", "measured"])

@@ -43,8 +43,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=None)
 
 
-def _variants(specs) -> list[tuple[str, physics.PhysicsConfig]]:
-    base = physics.PhysicsConfig()
+def _variants(specs, base: physics.PhysicsConfig) -> list[tuple[str, physics.PhysicsConfig]]:
     out = [("default", base)]
     for spec in specs:
         name, _, body = spec.partition(":")
@@ -79,7 +78,7 @@ def main(args: argparse.Namespace, run: Run) -> None:
     print(f"device: {device.platform} ({device.device_kind}); {all_cores} CPU cores; {len(eps)} episodes of "
           f"'{args.set}', four tips", flush=True)
     rows, engine = [], {}
-    for name, config in _variants(args.variant):
+    for name, config in _variants(args.variant, run.physics_config()):
         # the engine alone on the states of a one-core run (recorded once per variant)
         log = []
         phys = physics.Physics(env, config)

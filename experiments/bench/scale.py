@@ -84,7 +84,7 @@ def worker(args: argparse.Namespace, run: Run) -> None:
     from gsp_jax.surrogate import step as surrogate
     from gsp_jax.physics import corpus
 
-    phys = physics.Physics(surrogate.Surrogate(run.model, learned=run.learned))
+    phys = physics.Physics(surrogate.Surrogate(run.model, learned=run.learned), run.physics_config())
     sur = phys.surrogate
     P = distributed.count()
     cut = (lambda eps: {k: e.head(args.steps) for k, e in eps.items()}) if args.steps else (lambda eps: eps)

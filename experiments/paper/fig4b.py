@@ -54,11 +54,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def evaluate(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str = "c", cached: bool = True,
         jobs: int | None = None, warm: bool = False, k: int = evaluation.L1_PHYSICS["k"],
-        bases=evaluation.L1_PHYSICS["bases"], chunk: int | None = None) -> dict:
+        bases=evaluation.L1_PHYSICS["bases"], chunk: int | None = None, config=None) -> dict:
     """Fig. 4b's result per policy (saved results reused); `jobs` policies at a time (default as `--jobs`); in C
     MuJoCo the episodes in chunks of `chunk` (`lockstep`; default: one chunk per process). With several processes
-    only process 0 saves and returns the results (the others return {})."""
-    phys = physics.Physics(ctx.surrogate)
+    only process 0 saves and returns the results (the others return {}). `config`: the `PhysicsConfig` (default:
+    the paper's controller)."""
+    phys = physics.Physics(ctx.surrogate, config or physics.PhysicsConfig())
     n_episodes = len(ctx.names)
     chunk = distributed.chunk_size(n_episodes, chunk)
     stamp = f"{common.fingerprint(ctx)}-{backend}" + ("" if cached else "-continuous") + (
@@ -172,7 +173,8 @@ def main(args: argparse.Namespace, run: Run) -> None:
           f"RL policy {ctx.rl_source}", flush=True)
     out = run.results_dir("fig4b")
     results = evaluate(ctx, args.policies, out, args.fresh, args.backend, cached=args.lookahead == "cached",
-                       jobs=args.jobs, warm=args.warm, k=args.k, bases=args.bases, chunk=args.chunk)
+                       jobs=args.jobs, warm=args.warm, k=args.k, bases=args.bases, chunk=args.chunk,
+                       config=run.physics_config())
     if not distributed.is_main():
         return
     print(f"wrote {out}/<policy>.json, {out / 'fig4b.png'}")

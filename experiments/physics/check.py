@@ -131,7 +131,7 @@ def main(args: argparse.Namespace, run: Run) -> None:
     if args.backend != "c" and distributed.count() > 1:
         raise SystemExit(f"physics: --backend {args.backend} runs as one process (one XLA batch); only C MuJoCo's "
                          f"chunks are shared by --processes")
-    phys = physics.Physics(env)
+    phys = physics.Physics(env, run.physics_config())
     if args.policy == "scripted":  # every sequence on every episode, one batch
         seqs = evaluation.scripted_sequences(env.space)
         labels = [f"{k}/{n}" for k in seqs for n in names]

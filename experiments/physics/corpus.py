@@ -54,7 +54,7 @@ def check(args: argparse.Namespace) -> None:
 def build(args: argparse.Namespace, run: Run) -> corpus.Store:
     """The corpus of `args` (of `run`'s model) extended to its shards; returns its store."""
     check(args)
-    phys = physics.Physics(surrogate.Surrogate(run.model, learned=run.learned))
+    phys = physics.Physics(surrogate.Surrogate(run.model, learned=run.learned), run.physics_config())
     folder = folder_of(args, run)
     try:
         store = corpus.Store.open(folder, phys.surrogate.model)

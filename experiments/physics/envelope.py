@@ -153,7 +153,7 @@ def main(args: argparse.Namespace, run: Run) -> None:
     rand = jax.vmap(jax.vmap(dp.random_sequence, (None, None, 0, None, 0)), (0, 0, 0, None, None))(
         ctx.tables, ctx.batch.start_grasp, keys, sur.reward_config.r_min, holds)  # (N, R, T)
     kinds = planners + [f"random{r}" for r in range(args.random)]
-    phys = physics.Physics(sur)
+    phys = physics.Physics(sur, run.physics_config())
     n_seg, tick = phys.n_segment, phys.timestep
     pieces = distributed.chunks(N, args.chunk)
     folder = run.results_dir("envelope") / f"{args.set}.parts"

@@ -124,7 +124,8 @@ def per_decision(args: argparse.Namespace, run: Run, names: list[str]) -> None:
                              learned=run.learned)
     print(f"table1 --per-decision on {jax.local_devices()[0].device_kind}: {len(ctx.names)} episodes ...", flush=True)
     # a decision starts from the surrogate's continuous state: the root is never in the table ("table" = "cached")
-    result = decisions.run(ctx, names, cached=args.lookahead != "continuous", ks=args.k, bases=args.bases)
+    result = decisions.run(ctx, names, cached=args.lookahead != "continuous", ks=args.k, bases=args.bases,
+                           config=run.physics_config())
     out = run.results_dir("bench_latency") / f"{result['platform']}.json"
     files.write_json(out, result)
     print(f"wrote {out}\n")

@@ -22,7 +22,7 @@ def _verified(name: str) -> bool:
 
 
 def run(ctx: evaluation.Context, names: list[str], cached: bool, ks=(evaluation.L1_PHYSICS["k"],),
-        bases=evaluation.L1_PHYSICS["bases"]) -> dict:
+        bases=evaluation.L1_PHYSICS["bases"], config=None) -> dict:
     sur = ctx.surrogate
     step = jax.jit(sur.step)
     act = jax.jit(lambda policy, state: policy.act(state))
@@ -49,7 +49,7 @@ def run(ctx: evaluation.Context, names: list[str], cached: bool, ks=(evaluation.
                 label = name if len(ks) == 1 else f"{name} k={k}"
                 table = cached or "dp-opt" in bases  # the root's table (cached L1), DP optimal's table and backup
                 setup = [table * tb + ("dp-opt" in bases) * tk for tb, tk in zip(t_build, t_backup)]
-                rows[label] = physics_lookahead(ctx, name, k, bases, cached, setup)
+                rows[label] = physics_lookahead(ctx, name, k, bases, cached, setup, config)
             continue
         base, _ = planners.make(ctx, name, dict(cached=False))  # dp-base, rl, continuous lookahead: episode-independent
 
@@ -89,13 +89,13 @@ def run(ctx: evaluation.Context, names: list[str], cached: bool, ks=(evaluation.
                 lookahead="cached" if cached else "continuous", policies=rows, paper=common.PAPER)
 
 
-def physics_lookahead(ctx: evaluation.Context, name: str, k: int, bases, cached: bool, setup) -> dict:
+def physics_lookahead(ctx: evaluation.Context, name: str, k: int, bases, cached: bool, setup, config=None) -> dict:
     """`name` (L1-physics) with k candidates on each episode alone in C MuJoCo, warm (episode 0 run once before):
     per decision the `Decision.seconds` of its call, per episode setup + its decisions."""
     from gsp_jax import physics
     from gsp_jax.physics import c_backend
 
-    phys = physics.Physics(ctx.surrogate)
+    phys = physics.Physics(ctx.surrogate, config or physics.PhysicsConfig())
     # the engine's own speed on this machine: mj_step alone on one core, over the states of a four-tip run
     first = ctx.select([0])
     log = []

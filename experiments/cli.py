@@ -167,9 +167,9 @@ def main(argv: list[str] | None = None, outer: common.Run | None = None) -> comm
             from gsp_jax.physics.config import CONTROLLERS
 
             sp.add_argument("--controller", choices=sorted(CONTROLLERS), default=None,
-                            help="the contact controller in physics (default: paper, its face normals; measured: "
-                                 "the contact frames the links have, docs/physics.md); results and records are "
-                                 "named -<controller> where it is not the paper's")
+                            help="the contact controller in physics (default: measured, the contact frames the "
+                                 "links have; paper: the paper's, its options' face normals, docs/physics.md); "
+                                 "results and records are named -paper with it")
     args = parser.parse_args(argv)
     for plugin in args.plugin:
         load_plugin(plugin)

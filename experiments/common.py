@@ -25,11 +25,11 @@ if TYPE_CHECKING:
 RESULTS = pathlib.Path("results")
 
 
-def results_dir(*parts: str, model=None, learned: bool = False, controller: str = "paper") -> pathlib.Path:
+def results_dir(*parts: str, model=None, learned: bool = False, controller: str = "measured") -> pathlib.Path:
     """results/<parts> (created, and locked for this process); a command run for another model than the wrench
     (`model`, a `Model` or a name; None: the default) writes to results/<first part>-<model>/... (results/<model>
     for no parts) instead, one with the learned physics term (`learned`) to results/<first part>-learned/..., and
-    one with another contact controller than the paper's (`controller`) to results/<first part>-<controller>/...:
+    one with another contact controller than the default (`controller`) to results/<first part>-<controller>/...:
     no model's, surrogate's or controller's results overwrite another's. A command calls its run's
     (`Run.results_dir`)."""
     from gsp_jax.model import load as model_lib
@@ -39,7 +39,7 @@ def results_dir(*parts: str, model=None, learned: bool = False, controller: str 
         parts = (f"{parts[0]}-{name}", *parts[1:]) if parts else (name,)
     if learned:
         parts = (f"{parts[0]}-learned", *parts[1:]) if parts else ("learned",)
-    if controller != "paper":
+    if controller != "measured":  # `config.DEFAULT_CONTROLLER`
         parts = (f"{parts[0]}-{controller}", *parts[1:]) if parts else (controller,)
     path = RESULTS.joinpath(*parts)
     path.mkdir(parents=True, exist_ok=True)
@@ -113,7 +113,7 @@ class Run:
     # weights unless `--paper` (`cli.PAPER_BY_DEFAULT`: only with `--learned`)
     record: bool = False  # `--record`: `record_figures` writes to DATA (off: runs leave docs alone)
     command: tuple[str, ...] = ()  # the words of the command its records name (the outermost one's; (): sys.argv)
-    controller: str = "paper"  # the contact controller in physics (`--controller`: `PhysicsConfig.named`)
+    controller: str = "measured"  # the contact controller in physics (`--controller`: `PhysicsConfig.named`)
 
     def results_dir(self, *parts: str) -> pathlib.Path:
         """`results_dir` for this run's model, learned term and controller:
@@ -134,8 +134,8 @@ class Run:
         if not self.record or not distributed.is_main():  # several processes: process 0 records
             return None
         data = DATA if data is None else pathlib.Path(data)
-        name = (f"{name}{'_learned' * self.learned}{'_' + self.controller if self.controller != 'paper' else ''}"
-                f"_{device_slug()}")  # the learned term's and another controller's figures beside the paper's
+        name = (f"{name}{'_learned' * self.learned}{'_' + self.controller if self.controller != 'measured' else ''}"
+                f"_{device_slug()}")  # the learned term's and the paper controller's figures beside the default's
         try:
             commit = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=ROOT, capture_output=True,
                                     text=True, check=True).stdout.strip()

@@ -26,11 +26,12 @@ EDGE = ("stress084", "stress000")
 def test_named_controllers_and_their_errors():
     """`named` sets each controller's fields and `controller_name` reads them back; unknown names and frames are
     refused by name."""
-    assert physics.PhysicsConfig().controller_name == "paper"
-    measured = physics.PhysicsConfig.named("measured", hold=0.5)
-    assert measured.controller_name == "measured" and measured.value("hold") == 0.5
-    assert measured.value("frames") == "measured" and measured.value("friction_margin") == 1.0
-    assert measured.replace(grip_force=1.0).controller_name is None
+    assert physics.PhysicsConfig().controller_name == "measured"
+    assert physics.PhysicsConfig.named("measured") == physics.PhysicsConfig()
+    paper = physics.PhysicsConfig.named("paper", hold=0.5)
+    assert paper.controller_name == "paper" and paper.value("hold") == 0.5
+    assert paper.value("frames") == "nominal" and paper.value("friction_margin") == 0.7
+    assert paper.replace(grip_force=1.0).controller_name is None
     with pytest.raises(ValueError, match="controller must be one of"):
         physics.PhysicsConfig.named("mpc")
     with pytest.raises(ValueError, match=r"PhysicsConfig\.controller\.frames must be one of .* got 'faces'"):

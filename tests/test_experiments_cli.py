@@ -210,9 +210,9 @@ def test_the_surrogate_commands_grasps_fit_any_number_of_contact_links(small_mod
 
 
 def test_controller_is_chosen_handed_down_and_names_results_and_records(monkeypatch, tmp_path):
-    """Issue 84: `--controller measured` gives a simulating command that controller's `PhysicsConfig`, results
-    under results/<part>-measured and records named _measured; a command it runs inherits it; the default is the
-    paper's (no suffix); a command that does not simulate has no such option."""
+    """Issue 84: `--controller paper` gives a simulating command the paper's controller's `PhysicsConfig`, results
+    under results/<part>-paper and records named _paper; a command it runs inherits it; the default is the
+    measured frames' (no suffix); a command that does not simulate has no such option."""
     from experiments import common
 
     seen = []
@@ -227,10 +227,10 @@ def test_controller_is_chosen_handed_down_and_names_results_and_records(monkeypa
     monkeypatch.setattr("experiments.physics.envelope.main", main)
     monkeypatch.setattr(common, "RESULTS", tmp_path / "results")
     monkeypatch.setattr(common, "device_slug", lambda: "cpu")
-    cli.main(["--record", "envelope", "--paper", "--controller", "measured"])
-    assert seen == [("measured", "measured", "envelope-measured", "bench_x_measured_cpu")] * 2
+    cli.main(["--record", "envelope", "--paper", "--controller", "paper"])
+    assert seen == [("paper", "paper", "envelope-paper", "bench_x_paper_cpu")] * 2
     seen.clear()
     cli.main(["--record", "envelope", "--paper"])
-    assert seen[0] == ("paper", "paper", "envelope", "bench_x_cpu")
+    assert seen[0] == ("measured", "measured", "envelope", "bench_x_cpu")
     with pytest.raises(SystemExit):
-        cli.main(["planners", "--controller", "measured"])
+        cli.main(["planners", "--controller", "paper"])

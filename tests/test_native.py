@@ -35,9 +35,9 @@ def phys():
 
 
 @pytest.fixture(scope="module")
-def phys_measured():
-    """The controller in the contact frames the links have (`PhysicsConfig.named("measured")`)."""
-    return physics.Physics(Surrogate(learned=False), physics.PhysicsConfig.named("measured", hold=0.25))
+def phys_paper():
+    """The paper's controller, its options' face normals (`PhysicsConfig.named("paper")`)."""
+    return physics.Physics(Surrogate(learned=False), physics.PhysicsConfig.named("paper", hold=0.25))
 
 
 @pytest.fixture(scope="module")
@@ -74,8 +74,8 @@ def test_native_tick_is_the_jax_tick_on_recorded_states(controller, request, epi
     observation gives the JAX tick's motor commands (within 1e-4 N m), external wrench (1e-5 N), next controller state
     (within 1e-3 in force units: the warm-started force solves carry float32 rounding) and status: the angle
     within 0.05 deg (float32's arccos near 1 resolves ~0.02 deg), the same falls. For both named controllers (the
-    measured frames: the tool's surface normals at the touching links)."""
-    phys = request.getfixturevalue("phys" if controller == "paper" else "phys_measured")
+    default's measured frames: the tool's surface normals at the touching links; the paper's face normals)."""
+    phys = request.getfixturevalue("phys" if controller == "measured" else "phys_paper")
     policy = _four_tips_then_changes(phys)
     run = c_backend._Lockstep(phys, [(policy, None)], episodes, 1, None, controller="jax")
     tick = c_backend.native_tick(phys)
@@ -113,7 +113,7 @@ def test_native_tick_is_the_jax_tick_on_recorded_states(controller, request, epi
 def test_native_and_jax_controllers_give_the_same_outcomes(controller, request, episodes):
     """The whole lockstep with either tick: the same falls, hold errors within 0.02 deg (the physics
     carries the last-bit differences forward: measured 6e-4 deg on the 27 evaluation episodes, full length)."""
-    phys = request.getfixturevalue("phys" if controller == "paper" else "phys_measured")
+    phys = request.getfixturevalue("phys" if controller == "measured" else "phys_paper")
     policy = _four_tips_then_changes(phys)
     res = {c: c_backend.simulate(phys, [(policy, None)], episodes, controller=c)[0] for c in c_backend.CONTROLLERS}
     np.testing.assert_array_equal(res["native"].fell, res["jax"].fell)

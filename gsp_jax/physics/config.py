@@ -94,9 +94,9 @@ class ControllerConfig:
     # takes off, about each principal axis (a discrete-time bound: above 1 the damping overshoots, above 2 it grows)
     grip_force: float = 8.0  # [N] >= 0: the force solve's preferred force along every contact normal (the grip,
     # in the grasp matrix's null space)
-    friction_margin: float = 0.7  # in (0, 1]: the force solve's friction coefficient, as a fraction of the tool's
+    friction_margin: float = 1.0  # in (0, 1]: the force solve's friction coefficient, as a fraction of the tool's
     force_iterations: int = 40  # >= 1: projected-gradient iterations of the force solve per tick (warm-started)
-    frames: str = "nominal"  # the force solve's contact normals: "nominal" (each option's face normal, the paper's
+    frames: str = "measured"  # the force solve's contact normals: "nominal" (each option's face normal, the paper's
     # controller) or "measured" (where a link touches, the tool surface's normal at the link's centre line as
     # observed: MuJoCo's sphere-box normal, tilted where a fingertip rests on an edge)
 
@@ -151,9 +151,10 @@ class OutcomeConfig:
 
 
 CONTROLLERS = {  # named contact controllers: `PhysicsConfig.named(name)`; the fields each sets
-    "paper": {},  # the paper-era controller: nominal option normals, 70% of mu (the default)
-    "measured": dict(frames="measured", friction_margin=1.0),  # the normals the contacts have; all of mu in them
+    "measured": {},  # the default: the normals the contacts have, all of mu in them (docs/physics.md)
+    "paper": dict(frames="nominal", friction_margin=0.7),  # the paper-era controller: option normals, 70% of mu
 }
+DEFAULT_CONTROLLER = "measured"
 
 GROUPS = {"sim": SimConfig, "timeline": TimelineConfig, "controller": ControllerConfig, "fingers": FingerConfig,
           "outcome": OutcomeConfig}

@@ -90,6 +90,13 @@ FIGURES = (
     Figure("latency-learned", ("table1", "--per-decision", "--episodes", "7", "--policies", "L1", "dp-opt",
                                "--learned"), ("bench_latency_learned",), "gpu",
            (*_LIBRARY, "experiments/paper/table1"), 1.5),
+    # the contact controllers side by side on a CPU (issue 84): the default's measured frames and the paper's
+    Figure("controller-stress-cpu", ("envelope", "--set", "stress", "--random", "0", "--policies", "four-tips",
+                                     "dp-opt", "L1", "L2", "--learned"), ("envelope_stress_learned",), "cpu",
+           (*_LIBRARY, "experiments/physics/envelope.py"), 9.0),
+    Figure("controller-stress-paper-cpu", ("envelope", "--set", "stress", "--random", "0", "--policies", "four-tips",
+                                           "dp-opt", "L1", "L2", "--learned", "--controller", "paper"),
+           ("envelope_stress_learned_paper",), "cpu", (*_LIBRARY, "experiments/physics/envelope.py"), 9.0),
     # the hands x tools table: every shipped model's files are what it measures (the default's learned term on);
     # its Menagerie rows need the hands imported once before (`hands --menagerie DIR`: examples/published/)
     Figure("hands", ("hands", "--learned"), ("hands_learned",), "cpu", ("gsp_jax", "models", "experiments/common.py",

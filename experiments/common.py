@@ -75,14 +75,20 @@ PAPER = dict(  # the paper's numbers, printed beside ours
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
+def fingerprint_sources() -> list[pathlib.Path]:
+    """The files `fingerprint` hashes, sorted: every module of the library (`gsp_jax/`, all its layers: the
+    controller's too), the shipped models' XML and the physics experiments' runners."""
+    package = pathlib.Path(hand.__file__).parents[1]  # gsp_jax/ (hand.py is in its model/ layer)
+    sources = [*package.glob("**/*.py"), *hand.MODELS_DIR.glob("*.xml")]
+    sources += [ROOT / "experiments" / f for f in ("physics/check.py", "paper/fig4b.py")]
+    return sorted(sources)
+
+
 def fingerprint(ctx) -> str:
     """Hash of what a saved result of an `evaluation.Context` depends on: the library and model sources, the physics
     experiments' sources, the episodes, the RL parameters (where the context has them)."""
     h = hashlib.sha256()
-    package = pathlib.Path(hand.__file__).parent
-    sources = [*package.glob("**/*.py"), *hand.MODELS_DIR.glob("*.xml")]
-    sources += [ROOT / "experiments" / f for f in ("physics/check.py", "paper/fig4b.py")]
-    for path in sorted(sources):
+    for path in fingerprint_sources():
         h.update(path.read_bytes())
     h.update(ctx.surrogate.model.digest.encode())  # the model (its scene, includes resolved)
     h.update(ctx.surrogate.learned_tag.encode())  # the learned physics term ("" without one)

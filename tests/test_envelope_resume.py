@@ -120,3 +120,32 @@ if os.environ.get("GSP_JAX_PROCESS_ID") == "1":
 def run_processes(folder: pathlib.Path, n: int, *plugins: str) -> subprocess.CompletedProcess:
     """`python -m experiments --processes n <LINE>` in `folder` (`launch.run`); `plugins`: names of plugin files."""
     return launch.run(folder, n, LINE, {name: (folder / name).read_text() for name in plugins})
+
+
+def test_kept_results_are_keyed_by_every_layer_of_the_library_and_the_controller():
+    """Saved envelope chunks and Fig. 4b results are reused only for the code and controller that made them:
+    `common.fingerprint` hashes every module of `gsp_jax` (the controller's and the native tick's too: a key over
+    one layer reused a run of the paper's controller for the measured frames' default), and the chunks' key
+    changes with the `PhysicsConfig`."""
+    import argparse
+
+    from experiments import common
+    from experiments.physics import envelope
+    from gsp_jax import physics
+
+    sources = {p.relative_to(common.ROOT).as_posix() for p in common.fingerprint_sources()}
+    for layer in ("core", "model", "solvers", "surrogate", "planning", "physics", "planners"):
+        assert any(s.startswith(f"gsp_jax/{layer}/") for s in sources), layer
+    assert {"gsp_jax/physics/controller.py", "gsp_jax/physics/native.py", "gsp_jax/physics/config.py"} <= sources
+
+    class Ctx:  # what `fingerprint` reads of a context
+        class surrogate:
+            class model:
+                digest = "m"
+            learned_tag = ""
+        names = ("a",)
+        rl = None
+
+    args = argparse.Namespace(random=0, seed=0, physics_lookahead=0, bases=["four-tips"], chunk=30)
+    keys = {envelope.parts_key(Ctx, args, ["four-tips"], physics.PhysicsConfig.named(c)) for c in ("measured", "paper")}
+    assert len(keys) == 2

@@ -67,11 +67,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 # ---------------------------------------------------------------------------------------------------- chunks
-def parts_key(ctx, args: argparse.Namespace, kinds: list[str]) -> str:
+def parts_key(ctx, args: argparse.Namespace, kinds: list[str], config=None) -> str:
     """A hash (16 hex digits) of everything a chunk's outcomes depend on: the context (`common.fingerprint`: the
-    library and model sources, the model's digest, the episodes' names, the RL policy), this file, the sequences'
-    kinds, --random, --seed, --physics-lookahead, --bases and --chunk."""
+    library and model sources, the model's digest, the episodes' names, the RL policy), this file, the physics'
+    `PhysicsConfig` (`config`: the contact controller), the sequences' kinds, --random, --seed,
+    --physics-lookahead, --bases and --chunk."""
     h = hashlib.sha256(common.fingerprint(ctx).encode())
+    h.update(repr(config).encode())
     h.update(pathlib.Path(__file__).read_bytes())
     h.update(repr((kinds, args.random, args.seed, args.physics_lookahead, tuple(args.bases), args.chunk)).encode())
     return h.hexdigest()[:16]
@@ -157,7 +159,7 @@ def main(args: argparse.Namespace, run: Run) -> None:
     n_seg, tick = phys.n_segment, phys.timestep
     pieces = distributed.chunks(N, args.chunk)
     folder = run.results_dir("envelope") / f"{args.set}.parts"
-    key = parts_key(ctx, args, kinds)
+    key = parts_key(ctx, args, kinds, phys.config)
     mine = distributed.share(len(pieces))  # this process's chunks (all of them for one)
     done = {c: part for c in mine
             if (part := load_part(part_path(folder, key, pieces[c]), (len(kinds), len(pieces[c])))) is not None}

@@ -418,3 +418,15 @@ def test_hands_table_is_docs_data():
         folder = ROOT / "models" / folders[m] if m in folders else ROOT / "examples" / "published" / m
         assert c["learned"] == (folder / "scene.learned.npz").exists(), (m, c["learned"])
     assert _file(name)["command"] == "python -m experiments --record hands --learned"
+
+
+def test_readme_controller_sentence_is_docs_data():
+    """The contact controller's sentence (issue 84) equals the two CPU records it cites: the stress set's controller
+    falls of four tips, DP optimal, L1 and L2 with the default (measured frames) and with `--controller paper`."""
+    ks = ("four-tips", "dp-opt", "L1", "L2")
+    new = _file("envelope_stress_learned_cpu")["figures"]["summary"]["kinds"]
+    old = _file("envelope_stress_learned_paper_cpu")["figures"]["summary"]["kinds"]
+    got = _claim(r"Stress set, controller falls of four tips / DP optimal / L1 / L2: (\d+) / (\d+) / (\d+) / (\d+); "
+                 r"the paper's (\d+) / (\d+) / (\d+) / (\d+) \(2-core CPU, `envelope_stress_learned_cpu`, "
+                 r"`envelope_stress_learned_paper_cpu`\)")
+    assert tuple(map(int, got)) == (*(new[k]["controller"] for k in ks), *(old[k]["controller"] for k in ks))

@@ -89,11 +89,11 @@ def main(args: argparse.Namespace, run: Run) -> None:
             runs = [(c, w) for c in core_counts for w in args.workers] if backend == "c" else [(None, 0)]
             for cores, workers in runs:
                 phys = physics.Physics(env, config)  # fresh: the first call compiles
-                run = lambda: phys.simulate_many([(policy, None)], batch, backend=backend,  # noqa: E731
-                                                 **({} if cores is None
-                                                    else dict(cores=cores, workers=workers or None)))[0]
-                res, first = timed(run)
-                _, warm = timed(run)
+                go = lambda: phys.simulate_many([(policy, None)], batch, backend=backend,  # noqa: E731
+                                                **({} if cores is None
+                                                   else dict(cores=cores, workers=workers or None)))[0]
+                res, first = timed(go)
+                _, warm = timed(go)
                 rate = steps / warm
                 share = rate / (engine[name] * cores) if cores else float("nan")
                 rows.append([name, backend, cores or "-", workers or "auto", len(eps), first, warm, rate,

@@ -18,6 +18,7 @@ import numpy as np
 
 from gsp_jax.core import distributed, files
 from gsp_jax.model import hand
+from gsp_jax.physics.config import DEFAULT_CONTROLLER
 
 if TYPE_CHECKING:
     from gsp_jax.model.load import Model
@@ -25,7 +26,7 @@ if TYPE_CHECKING:
 RESULTS = pathlib.Path("results")
 
 
-def results_dir(*parts: str, model=None, learned: bool = False, controller: str = "measured") -> pathlib.Path:
+def results_dir(*parts: str, model=None, learned: bool = False, controller: str = DEFAULT_CONTROLLER) -> pathlib.Path:
     """results/<parts> (created, and locked for this process); a command run for another model than the wrench
     (`model`, a `Model` or a name; None: the default) writes to results/<first part>-<model>/... (results/<model>
     for no parts) instead, one with the learned physics term (`learned`) to results/<first part>-learned/..., and
@@ -39,7 +40,7 @@ def results_dir(*parts: str, model=None, learned: bool = False, controller: str 
         parts = (f"{parts[0]}-{name}", *parts[1:]) if parts else (name,)
     if learned:
         parts = (f"{parts[0]}-learned", *parts[1:]) if parts else ("learned",)
-    if controller != "measured":  # `config.DEFAULT_CONTROLLER`
+    if controller != DEFAULT_CONTROLLER:
         parts = (f"{parts[0]}-{controller}", *parts[1:]) if parts else (controller,)
     path = RESULTS.joinpath(*parts)
     path.mkdir(parents=True, exist_ok=True)
@@ -119,7 +120,7 @@ class Run:
     # weights unless `--paper` (`cli.PAPER_BY_DEFAULT`: only with `--learned`)
     record: bool = False  # `--record`: `record_figures` writes to DATA (off: runs leave docs alone)
     command: tuple[str, ...] = ()  # the words of the command its records name (the outermost one's; (): sys.argv)
-    controller: str = "measured"  # the contact controller in physics (`--controller`: `PhysicsConfig.named`)
+    controller: str = DEFAULT_CONTROLLER  # the contact controller in physics (`--controller`: `PhysicsConfig.named`)
 
     def results_dir(self, *parts: str) -> pathlib.Path:
         """`results_dir` for this run's model, learned term and controller:
@@ -140,8 +141,8 @@ class Run:
         if not self.record or not distributed.is_main():  # several processes: process 0 records
             return None
         data = DATA if data is None else pathlib.Path(data)
-        name = (f"{name}{'_learned' * self.learned}{'_' + self.controller if self.controller != 'measured' else ''}"
-                f"_{device_slug()}")  # the learned term's and the paper controller's figures beside the default's
+        other = f"_{self.controller}" if self.controller != DEFAULT_CONTROLLER else ""
+        name = f"{name}{'_learned' * self.learned}{other}_{device_slug()}"  # beside the default's figures
         try:
             commit = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=ROOT, capture_output=True,
                                     text=True, check=True).stdout.strip()

@@ -58,7 +58,7 @@ def evaluate(ctx: evaluation.Context, names, out, fresh: bool = False, backend: 
     """Fig. 4b's result per policy (saved results reused); `jobs` policies at a time (default as `--jobs`); in C
     MuJoCo the episodes in chunks of `chunk` (`lockstep`; default: one chunk per process). With several processes
     only process 0 saves and returns the results (the others return {}). `config`: the `PhysicsConfig` (default:
-    the paper's controller)."""
+    `PhysicsConfig()`, the default controller)."""
     phys = physics.Physics(ctx.surrogate, config or physics.PhysicsConfig())
     n_episodes = len(ctx.names)
     chunk = distributed.chunk_size(n_episodes, chunk)

@@ -215,13 +215,7 @@ class PhysicsConfig:
     @property
     def controller_name(self) -> str | None:
         """The name in `CONTROLLERS` whose settings this config's controller fields have (None: none of them)."""
-        base = PhysicsConfig()
-        for name, fields in CONTROLLERS.items():
-            want = {f.name: fields.get(f.name, getattr(base.controller, f.name))
-                    for f in dataclasses.fields(ControllerConfig)}
-            if all(getattr(self.controller, k) == v for k, v in want.items()):
-                return name
-        return None
+        return next((n for n in CONTROLLERS if PhysicsConfig.named(n).controller == self.controller), None)
 
     def value(self, name: str):
         """The value of the field `name` of any group."""

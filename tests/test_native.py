@@ -125,26 +125,51 @@ def test_native_and_jax_controllers_give_the_same_outcomes(controller, request, 
 
 
 @pytest.mark.parametrize("model", ["wrench", "screwdriver"])
-def test_native_outward_normal_is_the_tool_sdf_gradient(model, rng):
-    """`native._outward` (float64) against `ik.box_sdf_and_grad` (float32): the tool's outward surface normal at
-    random points around it, boxes (the wrench) and round primitives (the screwdriver's cylinders), within 1e-4
-    (float32 rounding of the distance's square root near the surface); the same primitive nearest wherever the two
-    nearest differ by more than 1e-5 m."""
+def test_native_measured_normal_is_the_jax_one(model, rng):
+    """`native._measured_normal` (float64) against `Controller.measured_normals` (float32), the tool at a random
+    pose: at random points around it, boxes (the wrench) and round primitives (the screwdriver's cylinders), the
+    tool surface's unit inward normal within 1e-4 (float32 rounding of the distance's square root near the
+    surface), the nominal one for links not touching; at points exactly on its surface, where the SDF gradient can
+    vanish, a unit normal still (the nominal one where it does)."""
     from gsp_jax.model import load as model_lib
-    from gsp_jax.solvers import ik
 
-    hand = model_lib.load_model(model).hand
-    K = c_backend.native_tick(physics.Physics(Surrogate(model_lib.load_model(model), learned=False))).constants.hand
+    phys_m = physics.Physics(Surrogate(model_lib.load_model(model), learned=False))
+    hand, ctl = phys_m.hand, phys_m.spec.controller
+    K = c_backend.native_tick(phys_m).constants.hand
     lo, hi = np.asarray(hand.tool_bounds(), np.float64)
-    pts = rng.uniform(lo - 0.02, hi + 0.02, size=(200, 3))
-    _, want = ik.box_sdf_and_grad(jnp.asarray(pts, jnp.float32), jnp.zeros(3), jnp.eye(3), hand)
-    want = np.asarray(want, np.float64)
-    got, rel, gr = np.zeros(3), np.zeros(3), np.zeros(3)
-    worst = 0.0
-    for p, w in zip(pts, want):
-        native._outward(K, p, got, rel, gr)
-        worst = max(worst, np.abs(got - w).max())
-    assert worst < 1e-4, worst
+    scratch = [np.zeros(3) for _ in range(4)]
+
+    def both(local, p, mat, touching):
+        x = (p + local @ mat.T).astype(np.float32)
+        nominal = np.tile(np.float32([0.0, 0.0, 1.0]), (len(x), 1))
+        want = np.asarray(ctl.measured_normals(jnp.asarray(x), jnp.asarray(p, jnp.float32),
+                                               jnp.asarray(mat, jnp.float32), jnp.asarray(nominal),
+                                               jnp.asarray(touching)), np.float64)
+        got = nominal.astype(np.float64)
+        for k in np.flatnonzero(touching):
+            native._measured_normal(K, p, mat, x[k].astype(np.float64), got[k], *scratch)
+        assert np.all(np.isfinite(got)) and np.all(np.isfinite(want))
+        return got, want, nominal
+
+    q = rng.normal(size=4)
+    mat = np.asarray(kinematics.quat_to_mat(jnp.asarray(q / np.linalg.norm(q), jnp.float32)), np.float64)
+    touching = np.arange(200) % 5 > 0  # and some links not touching: their nominal normal
+    got, want, nominal = both(rng.uniform(lo - 0.02, hi + 0.02, size=(200, 3)), rng.uniform(-0.1, 0.1, 3), mat,
+                              touching)
+    np.testing.assert_allclose(np.linalg.norm(got[touching], axis=-1), 1.0, atol=1e-6)
+    np.testing.assert_array_equal(got[~touching], nominal[~touching])
+    np.testing.assert_array_equal(want[~touching], nominal[~touching])
+    assert np.abs(got - want).max() < 1e-4, np.abs(got - want).max()
+    # points exactly on the surface (box face centres, round primitives' sides), where the SDF gradient can vanish
+    # (it does at the wrench's face centres in float32): a unit normal still, the tool's or the nominal one
+    cand = [np.asarray(c) + np.asarray(r)[:, a] * h[a] * sgn
+            for c, r, h in zip(hand.tool_box_pos, hand.tool_box_mat, hand.tool_box_half)
+            for a in range(3) for sgn in (-1.0, 1.0)]
+    cand += [np.asarray(c) + np.asarray(r)[:, 0] * s[0]
+             for c, r, s in zip(hand.tool_round_pos, hand.tool_round_mat, hand.tool_round_size)]
+    got, want, _ = both(np.array(cand, np.float64).reshape(-1, 3), np.zeros(3), np.eye(3), np.ones(len(cand), bool))
+    np.testing.assert_allclose(np.linalg.norm(got, axis=-1), 1.0, atol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(want, axis=-1), 1.0, atol=1e-6)
 
 
 def test_native_chain_and_links_are_kinematics(phys, rng):

@@ -18,7 +18,10 @@ of the episode's waypoints (a cubic Hermite spline through them):
   contacts      the grasp's contact points on the *observed* tool (where each link touches); forces f in the
                 friction cones (`friction_margin` of mu) that supply (F, T), with `grip_force` newtons along every
                 normal as the solve's preferred forces, so the grip lives in the grasp matrix's null space and
-                inside the cones (`wrench.solve(prefer=...)`, warm-started from the last tick);
+                inside the cones (`wrench.solve(prefer=...)`, warm-started from the last tick). The normals:
+                with `frames="measured"` (the default) a touching link's is the tool surface's at the link's
+                centre-line point, as observed (`measured_normals`: MuJoCo's sphere-primitive normal, tilted where
+                a fingertip rests on an edge); with "nominal" (the paper's controller) its option's face normal;
   fingers       tau = sum_l J_l^T (f_l + K_l (x*_l - x_l) + D (v*_l - J_l dq)) + bias + posture, with J_l the
                 Jacobian of link l's centre-line point nearest its target x*_l at the *measured* joint angles: no IK
                 while the tool is held. Targets are fixed to the observed tool: a touching link's where it touches
@@ -54,6 +57,8 @@ from gsp_jax.physics.scene import Observation
 from gsp_jax.model.scenario import Episode
 
 N_PATH = 5  # points of a moving link's path
+MIN_GRADIENT = 0.5  # below this norm the tool's SDF gradient gives no normal (a point on its surface: it is 0 there,
+# 1 outside, >= 1 inside a box); the measured frames then keep the option's normal
 PATH_TIMES = np.array([0.0, 0.15, 0.4, 0.65, 1.0], np.float32)  # when (fraction of `move`) the path reaches each
 # point: the last leg, onto the tool, gets the most time (a slow arrival does not kick the tool)
 
@@ -270,6 +275,17 @@ class Controller:
         damp = jnp.minimum(stiff, c.rotation_step / (self.timestep * c.tool_gains[1]) * episode.inertia)
         return inertia, (mat * stiff) @ mat.T, (mat * damp) @ mat.T
 
+    def measured_normals(self, x: jax.Array, p: jax.Array, mat: jax.Array, nominal: jax.Array,
+                         touching: jax.Array) -> jax.Array:
+        """(L, 3) world inward normals: for the `touching` (L,) links the tool surface's at their world points `x`
+        (L, 3) (the gradient of the tool's signed distance, `ik.box_sdf_and_grad`, for the tool at p, mat), else
+        (and where that gradient vanishes: a point exactly on the surface) the `nominal` ones. The reference of
+        `native._measured_normal`; checked by `tests/test_native.py::test_native_measured_normal_is_the_jax_one`."""
+        outward = ik.box_sdf_and_grad(x, p, mat, self.hand)[1]
+        size = jnp.linalg.norm(outward, axis=-1, keepdims=True)
+        use = touching[:, None] & (size > MIN_GRADIENT)
+        return jnp.where(use, -outward / jnp.where(use, size, 1.0), nominal)
+
     def _forces(self, points, normals, active, mu, required, com, init):
         """Cone forces (L, 3) on the links `active` (L,) that supply `required`, pulled towards `grip_force`
         newtons along each normal (the grip: it lives in the grasp matrix's null space, inside the cones). The
@@ -353,10 +369,8 @@ class Controller:
             radius = jnp.asarray(self.hand.link_radius, jnp.float32)[:, None]
             surface = jnp.where(anchored[:, None], anchor, self._target(current)) + radius * (nrm @ mat)
             pts = p + surface @ mat.T
-            if self.config.controller.frames == "measured":  # a touching link's normal: the tool surface's there
-                outward = ik.box_sdf_and_grad(x, p, mat, self.hand)[1]
-                outward = outward / (jnp.linalg.norm(outward, axis=-1, keepdims=True) + 1e-12)
-                nrm = jnp.where(held, -outward, nrm)
+            if self.config.controller.frames == "measured":
+                nrm = self.measured_normals(x, p, mat, nrm, held[:, 0])
             required = self.tool_wrench(obs, episode, ref, external)
             mu = self.config.controller.friction_margin * episode.friction
             com = p + mat @ episode.com

@@ -35,7 +35,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from llvmlite import binding as llvm
 
-from gsp_jax.physics.controller import PATH_TIMES, ControllerState
+from gsp_jax.physics.controller import MIN_GRADIENT, PATH_TIMES, ControllerState
 from gsp_jax.physics.spec import HasSpec, PhysicsSpec, of
 
 F32 = np.float32
@@ -997,20 +997,11 @@ def _contacts(H, C, friction, p, mat, v3, W):
                 + H.link_radius[lk] * nrm_t[lk, i]
         for i in range(3):
             pts[lk, i] = p[i] + mat[i, 0] * surface[0] + mat[i, 1] * surface[1] + mat[i, 2] * surface[2]
-    if C.measured:  # a touching link's normal: the tool surface's at its centre-line point (`ik.box_sdf_and_grad`)
-        x, nrm, here, g = W.blocks[X], W.blocks[NORMAL], v3[23], v3[9]
+    if C.measured:  # a touching link's normal: the tool surface's at its centre-line point
+        x, nrm = W.blocks[X], W.blocks[NORMAL]
         for lk in range(current.shape[0]):
-            if not (fl[ANCHORED, lk] and current[lk] > 0):
-                continue
-            for i in range(3):
-                here[i] = mat[0, i] * (x[lk, 0] - p[0]) + mat[1, i] * (x[lk, 1] - p[1]) + mat[2, i] * (x[lk, 2] - p[2])
-            _outward(H, here, g, v3[25], v3[26])
-            n = 0.0
-            for i in range(3):
-                n += g[i] * g[i]
-            n = math.sqrt(n) + 1e-12
-            for i in range(3):
-                nrm[lk, i] = -(mat[i, 0] * g[0] + mat[i, 1] * g[1] + mat[i, 2] * g[2]) / n
+            if fl[ANCHORED, lk] and current[lk] > 0:
+                _measured_normal(H, p, mat, x[lk], nrm[lk], v3[23], v3[9], v3[25], v3[26])
     mu = C.friction_margin * float(friction)
     com_w = v3[24]
     for i in range(3):
@@ -1022,6 +1013,20 @@ def _contacts(H, C, friction, p, mat, v3, W):
         if fl[CHANGED, lk]:
             share += load[lk]
     return mu, share
+
+
+@_jit
+def _measured_normal(H, p, mat, x, nrm, here, g, rel, gr):
+    """`Controller.measured_normals` of one touching link at world point x (3,), the tool at p, mat: nrm (3,)
+    overwritten by the tool surface's inward normal there, unless the SDF gradient vanishes (then left as it is).
+    here, g, rel, gr (3,): scratch."""
+    for i in range(3):
+        here[i] = mat[0, i] * (x[0] - p[0]) + mat[1, i] * (x[1] - p[1]) + mat[2, i] * (x[2] - p[2])
+    _outward(H, here, g, rel, gr)
+    n = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
+    if n > MIN_GRADIENT:
+        for i in range(3):
+            nrm[i] = -(mat[i, 0] * g[0] + mat[i, 1] * g[1] + mat[i, 2] * g[2]) / n
 
 
 @_jit

@@ -3,6 +3,7 @@ nominal ones, on tools the paper's controller drops though holding forces exist 
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
@@ -31,11 +32,29 @@ def test_named_controllers_and_their_errors():
     paper = physics.PhysicsConfig.named("paper", hold=0.5)
     assert paper.controller_name == "paper" and paper.value("hold") == 0.5
     assert paper.value("frames") == "nominal" and paper.value("friction_margin") == 0.7
+    assert paper.value("tool_radius") == 0.05 and physics.PhysicsConfig().value("tool_radius") is None
+    assert paper.value("rotation_step") == 1.0 and physics.PhysicsConfig().value("rotation_step") == 0.3
     assert paper.replace(grip_force=1.0).controller_name is None
     with pytest.raises(ValueError, match="controller must be one of"):
         physics.PhysicsConfig.named("mpc")
     with pytest.raises(ValueError, match=r"PhysicsConfig\.controller\.frames must be one of .* got 'faces'"):
         physics.PhysicsConfig().replace(frames="faces")
+    for bad in (0.0, -0.1, float("nan")):
+        with pytest.raises(ValueError, match=r"PhysicsConfig\.controller\.tool_radius must be > 0"):
+            physics.PhysicsConfig().replace(tool_radius=bad)
+
+
+def test_rotation_radius_is_the_tools_own():
+    """The default controller's rotational gains act at half the tool's longest side, read from the model's tool
+    geoms (the wrench: handle and head 19 cm end to end; a tool scaled up in the file gets the larger radius); a
+    config's radius overrides it (the paper's 5 cm)."""
+    from gsp_jax.physics.controller import rotation_radius
+
+    hand = Surrogate(learned=False).hand
+    assert rotation_radius(hand, physics.PhysicsConfig()) == pytest.approx(0.095, abs=1e-6)
+    assert rotation_radius(hand, physics.PhysicsConfig.named("paper")) == 0.05
+    longer = dataclasses.replace(hand, tool_box_pos=hand.tool_box_pos * 2, tool_box_half=hand.tool_box_half * 2)
+    assert rotation_radius(longer, physics.PhysicsConfig()) == pytest.approx(0.19, abs=1e-6)
 
 
 def test_measured_frames_hold_edge_contacts_the_paper_controller_drops():
@@ -60,3 +79,59 @@ def test_measured_frames_hold_edge_contacts_the_paper_controller_drops():
     assert np.all(np.asarray(res["paper"].fell))
     assert not np.any(np.asarray(res["measured"].fell))
     assert np.all(np.asarray(res["measured"].angle_error) < 3.0)
+
+
+@pytest.mark.parametrize("name", ["measured", "paper"])
+def test_controller_is_finite_on_fuzzed_states(name):
+    """Fuzz: the control law (`Controller.control`, both named controllers) on 48 random states of random valid
+    episodes (the stress distribution with another seed: mass 0.25-3 m0, friction 0.3-2, torques to 2 N m, CoM
+    offsets), each state its episode's start perturbed (joints +-0.3 rad and +-3 rad/s, tool +-5 mm and +-15 deg,
+    +-0.3 m/s and +-5 rad/s), at a random time from the lift to the hold, in a random grasp change of one link
+    (any phase: unloading, moving, loading) or none, under a random part of the external wrench: every joint torque
+    finite and within the motors' limits, every number of the next state finite."""
+    import jax
+
+    from gsp_jax.physics.controller import reference_motion
+
+    sur = Surrogate(learned=False)
+    phys = physics.Physics(sur, physics.PhysicsConfig.named(name))
+    ctl, rng = phys.controller, np.random.default_rng(84)
+    episodes = list(scenario.stress_set(12, seed=rng.integers(2**31), prefix="fuzz").values())
+    rows = []
+    for _ in range(48):
+        ep = episodes[rng.integers(len(episodes))]
+        qpos, cs = phys.start(ep)
+        obs = phys.scene.observe(qpos, jnp.zeros(phys.model.nv), jnp.zeros(phys.model.nv))
+        q = obs.q + rng.uniform(-0.3, 0.3, obs.q.shape)
+        axis = rng.normal(size=3)
+        turn = np.deg2rad(rng.uniform(-15, 15)) / 2 * axis / np.linalg.norm(axis)
+        quat = np.asarray(obs.tool_quat)
+        dq = np.r_[np.cos(np.linalg.norm(turn)), np.sin(np.linalg.norm(turn)) * turn / (np.linalg.norm(turn) + 1e-12)]
+        w1, v1, w2, v2 = dq[0], dq[1:], quat[0], quat[1:]
+        quat = np.r_[w1 * w2 - v1 @ v2, w1 * v2 + w2 * v1 + np.cross(v1, v2)]
+        obs = obs.replace(q=jnp.asarray(q, jnp.float32), dq=jnp.asarray(rng.uniform(-3, 3, q.shape), jnp.float32),
+                          tool_pos=obs.tool_pos + rng.uniform(-0.005, 0.005, 3).astype(np.float32),
+                          tool_quat=jnp.asarray(quat, jnp.float32),
+                          tool_vel=jnp.asarray(np.r_[rng.uniform(-0.3, 0.3, 3), rng.uniform(-5, 5, 3)], jnp.float32))
+        k = int(rng.integers(ep.n_steps + phys.n_hold))
+        grasp = ep.start_grasp
+        if rng.uniform() < 0.7:  # a grasp change of one link this segment
+            grasp = sur.space.transitions[int(grasp), int(rng.integers(1, sur.space.n_actions))]
+        start = float(phys.segment_start(k))
+        cs = ctl.begin_segment(cs, obs, jnp.int32(grasp), start)
+        cs = cs.replace(load=jnp.asarray(rng.uniform(0, 1, cs.load.shape), jnp.float32))
+        time = start + rng.uniform(0, scenario.DT)
+        ext = rng.uniform(0, 1) * ep.w_ext
+        rows.append((cs, obs, ep, jnp.float32(time), jnp.asarray(ext, jnp.float32)))
+    cs, obs, ep, time, ext = jax.tree.map(lambda *x: jnp.stack(x), *rows)
+
+    def one(cs, obs, ep, time, ext):
+        return ctl.control(cs, obs, ep, reference_motion(ep, time), time, ext)
+
+    tau, nxt = jax.jit(jax.vmap(one))(cs, obs, ep, time, ext)
+    tau = np.asarray(tau)
+    low, high = phys.scene.ctrl_range
+    assert np.all(np.isfinite(tau))
+    assert np.all((tau >= low - 1e-6) & (tau <= high + 1e-6))
+    for field, value in vars(nxt).items():
+        assert np.all(np.isfinite(np.asarray(value))), field

@@ -89,8 +89,10 @@ class ControllerConfig:
     feedback_limit: float = 2.0  # > 0: the pose feedback's force is capped at this many tool weights (its torque at
     # as many weights x tool_radius) ...
     feedback_floor: float = 4.0  # [N] > 0: ... but never below this force
-    tool_radius: float = 0.05  # [m] > 0: rotational gains act as on the tool's mass at this radius (plus its inertia)
-    rotation_step: float = 1.0  # > 0: the most of the tool's angular velocity one control tick's rotational damping
+    tool_radius: float | None = None  # [m] > 0: rotational gains act as on the tool's mass at this radius (plus its
+    # inertia), the feedback torque's cap is the force's times it; None: the model's, half the tool's longest side
+    # (`controller.rotation_radius`)
+    rotation_step: float = 0.3  # > 0: the most of the tool's angular velocity one control tick's rotational damping
     # takes off, about each principal axis (a discrete-time bound: above 1 the damping overshoots, above 2 it grows)
     grip_force: float = 8.0  # [N] >= 0: the force solve's preferred force along every contact normal (the grip,
     # in the grasp matrix's null space)
@@ -108,8 +110,8 @@ class ControllerConfig:
         return w * w, 2 * self.tool_damping * w
 
     def __post_init__(self):
-        _check(self, positive=("tool_freq", "feedback_limit", "feedback_floor", "tool_radius", "rotation_step",
-                               "friction_margin"),
+        _check(self, positive=("tool_freq", "feedback_limit", "feedback_floor", "rotation_step", "friction_margin")
+               + (("tool_radius",) if self.tool_radius is not None else ()),
                nonnegative=("tool_damping", "grip_force"), counts=("force_iterations",))
         if self.frames not in FRAMES:
             raise ValueError(f"PhysicsConfig.controller.frames must be one of {FRAMES}, got {self.frames!r}")
@@ -151,8 +153,10 @@ class OutcomeConfig:
 
 
 CONTROLLERS = {  # named contact controllers: `PhysicsConfig.named(name)`; the fields each sets
-    "measured": {},  # the default: the normals the contacts have, all of mu in them (docs/physics.md)
-    "paper": dict(frames="nominal", friction_margin=0.7),  # the paper-era controller: option normals, 70% of mu
+    "measured": {},  # the default: the normals the contacts have, all of mu in them, the rotational gains' radius
+    # the tool's own, its damping at most 0.3 of the tool's rate a tick (docs/physics.md, "Contact frames")
+    "paper": dict(frames="nominal", friction_margin=0.7, tool_radius=0.05, rotation_step=1.0),  # the paper-era
+    # controller: option normals, 70% of mu, rotational gains as of the tool's mass at 5 cm, damped to the bound
 }
 DEFAULT_CONTROLLER = "measured"
 

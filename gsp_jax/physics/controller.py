@@ -10,11 +10,12 @@ of the episode's waypoints (a cubic Hermite spline through them):
 
   tool wrench   F = m (a_r - g) + m [kp (c_r - c) + kd (v_r - v_c)] - s f_ext          (c: centre of mass)
                 T = I' kp e_R - I'' kd w + w x I w - s tau_ext                       (e_R: rotation error vector)
-                kp, kd from `tool_freq` / `tool_damping`; I' = I + m tool_radius^2 (a thin tool's inertia about its
-                long axis alone would leave it free to roll); I'' = I' but per principal axis at most
-                `rotation_step` / (tick kd) I (damping stable at the control rate); the feedback force and torque
-                capped at `feedback_limit` tool weights, at least `feedback_floor` (times tool_radius for the
-                torque); s the external wrench's ramp (0 while lifting, 1 in the hold);
+                kp, kd from `tool_freq` / `tool_damping`; I' = I + m r^2 with r `rotation_radius` (half the tool's
+                longest side; a thin tool's inertia about its long axis alone would leave it free to roll);
+                I'' = I' but per principal axis at most `rotation_step` / (tick kd) I (damping stable at the
+                control rate); the feedback force and torque capped at `feedback_limit` tool weights, at least
+                `feedback_floor` (times r for the torque); s the external wrench's ramp (0 while lifting, 1 in the
+                hold);
   contacts      the grasp's contact points on the *observed* tool (where each link touches); forces f in the
                 friction cones (`friction_margin` of mu) that supply (F, T), with `grip_force` newtons along every
                 normal as the solve's preferred forces, so the grip lives in the grasp matrix's null space and
@@ -140,6 +141,16 @@ def _solve3(m: jax.Array, v: jax.Array) -> jax.Array:
     return (c0 * v[..., :1] + c1 * v[..., 1:2] + c2 * v[..., 2:]) / det
 
 
+def rotation_radius(hand: HandModel, config: PhysicsConfig) -> float:
+    """The radius [m] the tool's rotational gains act at (`ControllerConfig.tool_radius`): the config's, or where
+    that is None the tool's own, half the longest side of its bounding box in its frame (`HandModel.tool_bounds`):
+    the lever its contacts have about its centre."""
+    if config.controller.tool_radius is not None:
+        return float(config.controller.tool_radius)
+    low, high = hand.tool_bounds()
+    return float(np.max(high - low) / 2)
+
+
 def _smooth(u: jax.Array) -> jax.Array:
     return u * u * (3 - 2 * u)
 
@@ -160,6 +171,7 @@ class Controller:
         radius = hand.link_radius[:, None, None]
         self.targets_tool = (hand.option_pos - radius * hand.option_normal).astype(np.float32)  # (L, K, 3)
         self.wrench_config = wrench.WrenchConfig(method="apg", iterations=config.controller.force_iterations)
+        self.tool_radius = rotation_radius(hand, config)  # [m]
 
     # ----------------------------------------------------------------------------------------- geometry
     def _frame(self, obs: Observation):
@@ -255,14 +267,14 @@ class Controller:
         # would turn the spike into grip forces the motors cannot give, throwing the tool out of the hand
         clip = lambda v, top: v * jnp.minimum(1.0, top / (jnp.linalg.norm(v) + 1e-9))  # noqa: E731
         cap = jnp.maximum(c.feedback_limit * weight, c.feedback_floor)
-        feedback, turn = clip(feedback, cap), clip(turn, cap * c.tool_radius)
+        feedback, turn = clip(feedback, cap), clip(turn, cap * self.tool_radius)
         force = episode.mass * (ref.acc - self.gravity) + feedback
         torque = turn + jnp.cross(omega, inertia @ omega)
         return jnp.concatenate([force, torque]) - external
 
     def _tool_inertia(self, mat: jax.Array, episode: Episode) -> tuple[jax.Array, jax.Array, jax.Array]:
         """(3, 3) x 3, world frame: the tool's inertia about its CoM, and the inertias its rotational stiffness and
-        damping act on. Stiffness: the tool's plus its mass at `tool_radius` (as of that mass: the inertia about a
+        damping act on. Stiffness: the tool's plus its mass at `rotation_radius` (as of that mass: the inertia about a
         thin tool's long axis is ~50x smaller, and inertia-normalised gains would leave it free to roll under an
         offset CoM's grip forces). Damping: the same, but about each principal axis at most `rotation_step` /
         (tick kd) times the tool's own inertia there, so one tick's damping takes at most `rotation_step` of the
@@ -271,7 +283,7 @@ class Controller:
         rate")."""
         c = self.config.controller
         inertia = (mat * episode.inertia) @ mat.T
-        stiff = episode.inertia + episode.mass * c.tool_radius**2  # (3,) about the tool's principal axes
+        stiff = episode.inertia + episode.mass * self.tool_radius**2  # (3,) about the tool's principal axes
         damp = jnp.minimum(stiff, c.rotation_step / (self.timestep * c.tool_gains[1]) * episode.inertia)
         return inertia, (mat * stiff) @ mat.T, (mat * damp) @ mat.T
 

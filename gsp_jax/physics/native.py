@@ -320,7 +320,7 @@ class Tick:
                 reach_tol=float(F32(tl.reach_tol)), ramp=F32(tl.ramp), n_segment=spec.n_segment),
             controller=Gains(
                 kp=float(F32(kp)), kd=float(F32(kd)), feedback_limit=float(c.feedback_limit),
-                feedback_floor=float(c.feedback_floor), tool_radius=float(c.tool_radius),
+                feedback_floor=float(c.feedback_floor), tool_radius=float(ctl.tool_radius),
                 rotation_step=float(c.rotation_step), grip_force=float(c.grip_force),
                 friction_margin=float(c.friction_margin), measured=c.frames == "measured",
                 iterations=int(c.force_iterations),

@@ -128,10 +128,12 @@ class Run:
         return results_dir(*parts, model=self.model, learned=self.learned, controller=self.controller)
 
     def physics_config(self, **changes):
-        """The `PhysicsConfig` of this run's contact controller (`PhysicsConfig.named`), with `changes`."""
-        from gsp_jax.physics.config import PhysicsConfig
+        """The `PhysicsConfig` of this run's contact controller (`PhysicsConfig.named`) with the model's own tuning
+        of it where `calibrate --controller --write` made one (`tuning.config`), then `changes`."""
+        from gsp_jax.model import load as model_lib
+        from gsp_jax.physics import tuning
 
-        return PhysicsConfig.named(self.controller, **changes)
+        return tuning.config(self.model or model_lib.load_model(None), self.controller, **changes)
 
     def record_figures(self, name: str, figures: dict, data: pathlib.Path | None = None) -> dict | None:
         """With `--record` (`record`): `figures` (a small JSON-able dict, the benchmark's printed table) become the

@@ -135,3 +135,47 @@ def test_controller_is_finite_on_fuzzed_states(name):
     assert np.all((tau >= low - 1e-6) & (tau <= high + 1e-6))
     for field, value in vars(nxt).items():
         assert np.all(np.isfinite(np.asarray(value))), field
+
+
+def test_a_models_tuning_is_its_own(tmp_path):
+    """`tuning`: a model's controller tuning beside its scene, read back by every command's config
+    (`Run.physics_config`) for that model and refused, by name, for another (a changed file: another digest); the
+    paper's controller is never tuned; fields outside `TUNABLE` or out of range are refused by name."""
+    import shutil
+
+    from experiments.common import Run
+    from experiments.physics.calibrate import parse_grid
+    from gsp_jax.model import load as model_lib
+    from gsp_jax.physics import tuning
+
+    shutil.copytree(model_lib.load_model("testhand").path.parent, tmp_path / "hand")
+    model = model_lib.load_model(tmp_path / "hand" / "scene.xml")
+    assert tuning.load(model) == {} and Run(model=model).physics_config() == physics.PhysicsConfig()
+    path = tuning.save(model, {"rotation_step": 0.5, "grip_force": 6.0}, {"falls": 3})
+    assert path == tmp_path / "hand" / "scene.controller.json"
+    assert tuning.load(model) == {"rotation_step": 0.5, "grip_force": 6.0}
+    config = Run(model=model).physics_config(hold=0.5)
+    assert config == physics.PhysicsConfig().replace(rotation_step=0.5, grip_force=6.0, hold=0.5)
+    assert Run(model=model, controller="paper").physics_config() == physics.PhysicsConfig.named("paper")
+    with pytest.raises(ValueError, match="never tuned"):
+        tuning.save(model, {"grip_force": 6.0}, controller="paper")
+    for fields, match in (({"finger_kp": 100.0}, "'finger_kp' is not a tunable"),
+                          ({"grip_force": -1.0}, "grip_force must be a finite number > 0, got -1.0"),
+                          ({"rotation_step": float("nan")}, "rotation_step must be a finite number > 0")):
+        with pytest.raises(ValueError, match=match):
+            tuning.save(model, fields)
+    shutil.copytree(tmp_path / "hand", tmp_path / "b" / "hand")  # the file beside a heavier bar: another model
+    bar = tmp_path / "b" / "hand" / "bar.xml"
+    bar.write_text(bar.read_text().replace('mass="0.25"', 'mass="0.3"'))
+    other = model_lib.load_model(tmp_path / "b" / "hand" / "scene.xml")
+    assert other.name == model.name and other.digest != model.digest
+    with pytest.raises(ValueError, match="made for model .* not for"):
+        tuning.load(other)
+    (tmp_path / "hand" / "scene.controller.json").write_text("{")
+    with pytest.raises(ValueError, match="not a controller tuning"):
+        tuning.load(model)
+    assert parse_grid("grip_force=4,8;rotation_step=0.3") == [{"grip_force": 4.0, "rotation_step": 0.3},
+                                                              {"grip_force": 8.0, "rotation_step": 0.3}]
+    for bad in ("finger_kp=1", "grip_force=a", "grip_force=0", ""):
+        with pytest.raises(SystemExit):
+            parse_grid(bad)

@@ -19,10 +19,16 @@ calibrated against the physics check, on the training and validation episodes on
 Prints the sweep as a table; writes results/calibrate/sweep.json, and with --write the winner into
 models/reward_calibration.json (`reward.write_calibration`), where `RewardConfig` reads its defaults.
 
-`calibrate --learn [--shards 40]`: instead, the model's learned physics term, from corpus to weights (`learn`)."""
+`calibrate --learn [--shards 40]`: instead, the model's learned physics term, from corpus to weights (`learn`).
+
+`calibrate --tune [--model M] [--set stress-cal] [--write]`: instead, the contact controller's settings that stay
+tuned (`tuning.TUNABLE`: the preferred grip, the rotational damping's bound, the pose loop's frequency) for the model,
+on episodes never used to test it (`controller_tuning`); with --write into `<scene stem>.controller.json` beside the
+scene, which every command then uses for that model (and refuses for another)."""
 from __future__ import annotations
 
 import argparse
+import itertools
 import pathlib
 import time
 
@@ -30,7 +36,11 @@ import jax
 import numpy as np
 
 from experiments import cli
-from experiments.common import Run, table
+from experiments.common import RESULTS, Run, table
+from gsp_jax.planners import registry as gsp_planners
+from gsp_jax.model import load as model_lib
+from gsp_jax.physics import tuning
+from gsp_jax.planning import evaluation
 from gsp_jax.core import files, stats
 from gsp_jax.model import grasps, scenario
 from gsp_jax.surrogate import learned, reward
@@ -50,6 +60,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--chunk", type=int, default=512, help="most sequences per physics batch")
     p.add_argument("--write", action="store_true", help="write the winner into models/reward_calibration.json")
     p.add_argument("--from-sweep", default=None, help="choose from a saved results/calibrate/sweep.json (no reruns)")
+    p.add_argument("--tune", action="store_true",
+                   help="instead: tune the contact controller for the model (`controller_tuning`, below)")
+    p.add_argument("--set", default="stress-cal", help="with --tune: the episodes it tunes on (not eval or "
+                                                         "stress: they test it)")
+    p.add_argument("--subset", type=int, default=0, help="with --tune: this many episodes of the set, spread evenly "
+                                                          "(0: all)")
+    p.add_argument("--grid", default="grip_force=4,8,12;rotation_step=0.3,1;tool_freq=10,15",
+                   help="with --tune: the candidates, NAME=v,v,...;... (every combination)")
     p.add_argument("--learn", action="store_true",
                    help="instead: the model's learned physics term, corpus to weights (`learn`, below)")
     p.add_argument("--shards", type=int, default=40, help="with --learn: corpus shards to hold (0: fit on the corpus "
@@ -92,10 +110,16 @@ def _from_sweep(path: str, write: bool, folder: pathlib.Path) -> None:
 
 def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
     """The `results_dir` parts of the folders it writes: `python -m experiments` locks them before its set-up."""
+    if getattr(args, "tune", False):
+        return [("calibrate-controller",)]
     return [("learn",), *([] if args.corpus else [("corpus",)])] if args.learn else [("calibrate",)]
 
 
 def main(args: argparse.Namespace, run: Run) -> None:
+    if getattr(args, "tune", False):
+        if args.learn:
+            raise SystemExit("calibrate: --tune and --learn are two runs; give one")
+        return controller_tuning(args, run)
     if getattr(args, "learn", False):
         return learn(args, run)
     if args.from_sweep:
@@ -284,6 +308,93 @@ def learn(args: argparse.Namespace, run: Run) -> None:
             ["corpus, fit [s]", f"{t_corpus:.0f}, {t_fit:.0f}"]]
     run.record_figures("learned_term", {k: v for k, v in report.items() if k not in ("reliability",)})
     print(table([f"learned physics term, {model.name}", "test split"], rows))
+
+
+def parse_grid(text: str) -> list[dict]:
+    """`--grid` "NAME=v,v;NAME=v" as every combination of the values, in order: [{NAME: v, ...}, ...].
+    SystemExit naming the part that is not a tunable field with positive numbers."""
+    axes = []
+    for part in (p.strip() for p in text.split(";") if p.strip()):
+        name, _, values = part.partition("=")
+        name = name.strip()
+        if name not in tuning.TUNABLE:
+            raise SystemExit(f"--grid: {name!r} is not a tunable controller field (tunable: "
+                             f"{', '.join(tuning.TUNABLE)})")
+        try:
+            vals = [float(v) for v in values.split(",") if v.strip()]
+        except ValueError:
+            raise SystemExit(f"--grid: {part!r}: the values must be numbers, NAME=v,v,...") from None
+        if not vals or not all(np.isfinite(v) and v > 0 for v in vals):
+            raise SystemExit(f"--grid: {part!r}: give one or more finite values > 0")
+        axes.append((name, vals))
+    if not axes:
+        raise SystemExit(f"--grid: no candidates in {text!r} (NAME=v,v,...;...)")
+    return [dict(zip([n for n, _ in axes], combo)) for combo in itertools.product(*[v for _, v in axes])]
+
+
+def controller_tuning(args: argparse.Namespace, run: Run) -> None:
+    """`--tune`: every candidate of `--grid` (the model's controller now, `tuning.config`, with those fields; the
+    settings now join the grid where it lacks them) runs the model's DP optimal and DP baseline plans, closed loop
+    in C MuJoCo, on the `--set` episodes (the stress set's calibration slice by default: disjoint from the stress,
+    evaluation and variations sets that test the result). The best is the candidate with the fewest falls, then the
+    lower mean held angle; it is chosen over the settings now only where it holds significantly more of the same
+    runs (McNemar's sign: held more minus held less > 2 sqrt of their sum), else the settings stay. With --write
+    the choice goes beside the scene (`tuning.save`), where every command on that model reads it."""
+    if args.set.startswith("eval") or args.set in ("stress", "variations", "all"):
+        raise SystemExit(f"calibrate --tune: --set {args.set!r} tests the controller; tune on another set "
+                         f"(stress-cal, train or val)")
+    if run.controller == "paper":
+        raise SystemExit("calibrate --tune: the paper's controller is never tuned (drop --controller paper)")
+    grid = parse_grid(args.grid)
+    model = run.model or model_lib.load_model(None)
+    current = tuning.config(model, run.controller)
+    now = {k: current.value(k) for k in grid[0]}  # the model's settings now, on the grid's fields
+    grid = grid if now in grid else [now, *grid]
+    if args.subset < 0:
+        raise SystemExit(f"calibrate --tune: --subset must be >= 0, got {args.subset}")
+    ctx = evaluation.context(args.set, args.subset or None, model=model, results=RESULTS, learned=run.learned,
+                             rl=False)
+    kinds = ("dp-opt", "dp-base")
+    groups = [gsp_planners.make(ctx, k) for k in kinds]
+    t0 = time.perf_counter()
+    print(f"calibrate --tune: {len(grid)} candidates x {len(ctx.names)} episodes ({args.set}) x "
+          f"{len(kinds)} planners in C MuJoCo, model {model.label}; now {tuning.load(model) or 'untuned'}",
+          flush=True)
+    rows, out, fells = [], [], []
+    for i, fields in enumerate(grid):
+        phys = physics.Physics(ctx.surrogate, current.replace(**fields))
+        res = phys.simulate_many(groups, ctx.batch, backend="c")
+        fell = np.stack([np.asarray(r.fell) for r in res])  # (planners, N)
+        angle = np.stack([np.asarray(r.angle_error) for r in res])
+        held = angle[~fell]
+        fells.append(fell.reshape(-1))
+        out.append(dict(fields=fields, falls=int(fell.sum()), falls_by_planner=dict(zip(kinds, fell.sum(1).tolist())),
+                        mean_angle_held_deg=float(held.mean()) if held.size else float("nan")))
+        print(f"  [{i + 1}/{len(grid)}] {fields}: {out[-1]['falls']} falls of {fell.size}, held angle "
+              f"{out[-1]['mean_angle_held_deg']:.2f} deg ({time.perf_counter() - t0:.0f} s)", flush=True)
+        rows.append([", ".join(f"{k}={v:g}" for k, v in fields.items()), *fell.sum(1).tolist(), out[-1]["falls"],
+                     out[-1]["mean_angle_held_deg"]])
+    best = min(range(len(out)), key=lambda j: (out[j]["falls"], np.nan_to_num(out[j]["mean_angle_held_deg"], nan=1e9)))
+    base = grid.index(now)
+    gained, lost = int(np.sum(fells[base] & ~fells[best])), int(np.sum(~fells[base] & fells[best]))
+    significant = gained - lost > 2 * np.sqrt(gained + lost)  # McNemar's sign, ~2 sigma: not a draw's noise
+    chosen = out[best if significant else base]["fields"]
+    summary = dict(model=model.name, digest=model.digest, set=args.set, episodes=len(ctx.names), planners=kinds,
+                   controller=run.controller, candidates=out, best=out[best]["fields"], chosen=chosen, before=now,
+                   held_more=gained, held_less=lost, significant=bool(significant), wall_s=time.perf_counter() - t0)
+    files.write_json(run.results_dir("calibrate-controller") / "sweep.json", summary)
+    if args.write:
+        path = tuning.save(model, chosen, dict(set=args.set, episodes=len(ctx.names), planners=list(kinds),
+                                               candidates=out), run.controller)
+        print(f"calibrate --tune: wrote {path} (every command on {model.name} now uses it)", flush=True)
+    else:
+        print("calibrate --tune: not written (--write puts the winner beside the scene)", flush=True)
+    print(table(["candidate", *kinds, "falls", "held angle [deg]"], rows))
+    verdict = (f"it holds {gained} runs the model's settings now drop and drops {lost} they hold: "
+               f"{'more than' if significant else 'within'} 2 sigma of a draw")
+    print(f"fewest falls: {', '.join(f'{k}={v:g}' for k, v in out[best]['fields'].items())} ({out[best]['falls']} "
+          f"falls; now {out[base]['falls']}); {verdict}; chosen: "
+          f"{', '.join(f'{k}={v:g}' for k, v in chosen.items())}")
 
 
 def _pool_regret(score: np.ndarray, fell: np.ndarray, episode: np.ndarray) -> int:

@@ -62,10 +62,15 @@ class _Carry:
 class Physics:
     """Scene + contact controller + episode runner for one hand/tool model. Stateless after construction."""
 
-    def __init__(self, surrogate: Surrogate | None = None, config: PhysicsConfig = PhysicsConfig()):
+    def __init__(self, surrogate: Surrogate | None = None, config: PhysicsConfig | None = None):
         """The physics of the surrogate's model (its scene file, `HandModel.source`; None: `Surrogate()`, the
-        default model)."""
+        default model). `config` None: the default controller with the model's own tuning where
+        `calibrate --tune --write` made one (`tuning.config`)."""
         self.surrogate = surrogate or Surrogate()
+        if config is None:
+            from gsp_jax.physics import tuning
+
+            config = tuning.config(self.surrogate.model)
         self.hand, self.space, self.config = self.surrogate.hand, self.surrogate.space, config
         self.scene = Scene(self.hand, config)
         self.model = self.scene.model

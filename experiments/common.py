@@ -129,7 +129,7 @@ class Run:
 
     def physics_config(self, **changes):
         """The `PhysicsConfig` of this run's contact controller (`PhysicsConfig.named`) with the model's own tuning
-        of it where `calibrate --controller --write` made one (`tuning.config`), then `changes`."""
+        of it where `calibrate --tune --write` made one (`tuning.config`), then `changes`."""
         from gsp_jax.model import load as model_lib
         from gsp_jax.physics import tuning
 

@@ -1,10 +1,11 @@
 """The physics corpus (`gsp_jax.physics.corpus`): its distribution spans the stress set, one seed gives one set and no
 held-out episode, the labels are a discrete-time hazard's events and risk sets, the store refuses another model's
-corpus or a broken one by name and resumes after a kill with nothing lost or duplicated, and a real shard's
-features and labels agree with the surrogate and with C MuJoCo."""
+corpus or a broken one by name, is extended only with the physics settings its runs had and resumes after a kill
+with nothing lost or duplicated, and a real shard's features and labels agree with the surrogate and with C MuJoCo."""
 from __future__ import annotations
 
 import json
+import types
 
 import jax
 import numpy as np
@@ -13,6 +14,7 @@ import pytest
 from gsp_jax.model import load as model_lib
 from gsp_jax.model import scenario
 from gsp_jax.physics import corpus
+from gsp_jax.physics.config import PhysicsConfig
 
 
 def test_the_distribution_spans_the_stress_set():
@@ -94,13 +96,39 @@ def test_the_store_refuses_another_models_corpus_and_a_broken_one_by_name(tmp_pa
         corpus.Store.open(tmp_path, wrench)
 
 
+_PHYS = types.SimpleNamespace(config=PhysicsConfig())  # what `extend` reads of a `Physics` when `shard` is stubbed
+
+
+def test_a_corpus_is_extended_only_with_the_physics_settings_its_runs_had(tmp_path, monkeypatch):
+    """A corpus records the controller its runs had: another controller (the paper's, a changed gain) is refused by
+    name, and so is a corpus made before corpora recorded it; the same settings extend it."""
+    wrench = model_lib.load_model("wrench")
+    monkeypatch.setattr(corpus, "shard", lambda phys, seed, *a, **k: _arrays(seed))
+    corpus.extend(corpus.Store.open(tmp_path, wrench), _PHYS, [0], episodes=2, progress=False)
+    store = corpus.Store.open(tmp_path, wrench)
+    assert store.manifest["physics"]["controller"]["rotation_step"] == PhysicsConfig().controller.rotation_step
+    paper = types.SimpleNamespace(config=PhysicsConfig.named("paper"))
+    with pytest.raises(corpus.CorpusError, match=r"other physics settings \(.*controller\.frames 'measured' there, "
+                                                 r"'nominal' here"):
+        corpus.extend(store, paper, [1], episodes=2, progress=False)
+    stiffer = types.SimpleNamespace(config=PhysicsConfig().replace(rotation_step=0.5))
+    with pytest.raises(corpus.CorpusError, match=r"controller\.rotation_step 0\.3 there, 0\.5 here"):
+        corpus.extend(store, stiffer, [1], episodes=2, progress=False)
+    assert corpus.extend(store, _PHYS, [0, 1], episodes=2, progress=False) == [1]
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    del manifest["physics"]
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(corpus.CorpusError, match=r"its 2 shards do not record the physics settings"):
+        corpus.extend(corpus.Store.open(tmp_path, wrench), _PHYS, [2], episodes=2, progress=False)
+
+
 def test_extend_resumes_after_a_kill_with_nothing_lost_or_duplicated(tmp_path, monkeypatch):
     """A run killed after writing shard 1 but before listing it, then the same call again: every seed's shard once,
     the load their runs in seed order (episodes renumbered over the corpus)."""
     wrench = model_lib.load_model("wrench")
     monkeypatch.setattr(corpus, "shard", lambda phys, seed, *a, **k: _arrays(seed))
     store = corpus.Store.open(tmp_path, wrench)
-    assert corpus.extend(store, None, [0], episodes=2, progress=False) == [0]
+    assert corpus.extend(store, _PHYS, [0], episodes=2, progress=False) == [0]
     real_write = corpus.files.write_json
 
     def killed(path, obj, **kw):  # the kill: the shard is on disk, the manifest is not rewritten
@@ -110,11 +138,11 @@ def test_extend_resumes_after_a_kill_with_nothing_lost_or_duplicated(tmp_path, m
 
     monkeypatch.setattr(corpus.files, "write_json", killed)
     with pytest.raises(KeyboardInterrupt):
-        corpus.extend(corpus.Store.open(tmp_path, wrench), None, [1, 2], episodes=2, progress=False)
+        corpus.extend(corpus.Store.open(tmp_path, wrench), _PHYS, [1, 2], episodes=2, progress=False)
     monkeypatch.setattr(corpus.files, "write_json", real_write)
     store = corpus.Store.open(tmp_path, wrench)
     assert store.seeds == {0}
-    assert corpus.extend(store, None, [0, 1, 2], episodes=2, progress=False) == [1, 2]
+    assert corpus.extend(store, _PHYS, [0, 1, 2], episodes=2, progress=False) == [1, 2]
     again = corpus.Store.open(tmp_path, wrench)
     assert [s["seed"] for s in again.manifest["shards"]] == [0, 1, 2]
     data = again.load()

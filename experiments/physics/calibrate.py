@@ -259,7 +259,7 @@ def learn(args: argparse.Namespace, run: Run) -> None:
     if args.corpus is None:  # the learned planners' sequences, where `corpus --learned` made them
         on_policy = folders[0].with_name(folders[0].name + "-learned")
         folders += [on_policy] if (on_policy / "manifest.json").exists() else []
-    stores = [_store(f, model) for f in folders]
+    stores = [_store(f, model, run.physics_config()) for f in folders]
     data = _joined([s.load() for s in stores])
     t_corpus = time.perf_counter() - t0
     space = grasps.space_of(model.hand)
@@ -285,6 +285,7 @@ def learn(args: argparse.Namespace, run: Run) -> None:
     learned.save(fitted, out)
     report = dict(model=model.name, digest=model.digest, weights=str(out), corpus=[str(s.folder) for s in stores],
                   shards=sum(len(s.manifest["shards"]) for s in stores), runs=int(len(data["fell"])),
+                  physics=stores[0].manifest["physics"],
                   epochs=len(fitted.history),
                   corpus_s=t_corpus, fit_s=t_fit, risk_falls=cfg.risk_falls, **checks)
     files.write_json(run.results_dir("learn") / "report.json", report)
@@ -413,11 +414,15 @@ def _joined(parts: list[dict]) -> dict:
     return {k: np.concatenate([p[k] for p in out]) for k in out[0]}
 
 
-def _store(folder: pathlib.Path, model) -> corpus.Store:
+def _store(folder: pathlib.Path, model, config) -> corpus.Store:
+    """The corpus in `folder`, of `model` and run with the physics settings `config` (the term learns what that
+    controller drops), else SystemExit saying why."""
     if not (folder / "manifest.json").exists():
         raise SystemExit(f"calibrate --learn: {folder} holds no corpus (`python -m experiments corpus` makes one; "
                          "--shards N > 0 here too)")
     try:
-        return corpus.Store.open(folder, model)
+        store = corpus.Store.open(folder, model)
+        corpus.check_physics(store, config)
     except corpus.CorpusError as e:
         raise SystemExit(f"calibrate --learn: {e}") from None
+    return store

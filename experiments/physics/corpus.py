@@ -58,6 +58,7 @@ def build(args: argparse.Namespace, run: Run) -> corpus.Store:
     folder = folder_of(args, run)
     try:
         store = corpus.Store.open(folder, phys.surrogate.model)
+        corpus.check_physics(store, phys.config)  # the runs it holds were this controller's
     except corpus.CorpusError as e:
         raise SystemExit(f"corpus: {e}") from None
     seeds = range(args.first, args.first + args.shards)

@@ -11,7 +11,8 @@ fell in, the episode's angle error and fall time.
     corpus.extend(store, sur, seeds=range(4), episodes=32)            # a shard a seed; a rerun skips the done ones
 
 A `Store` is a folder of shards (`shard-<seed>.npz`, each written whole) and `manifest.json` (model name and
-digest, the distribution, the features' names, per shard its seed, counts and hash); a shard is listed only once
+digest, the distribution, the physics settings its runs had, the features' names, per shard its seed, counts and
+hash); a shard is listed only once
 written, so a killed run loses at most the shard it was making and a rerun neither repeats nor loses one.
 """
 from __future__ import annotations
@@ -306,6 +307,28 @@ def shard(phys, seed: int, n_episodes: int, dist: Distribution, n_random: int, n
                 kinds=np.array(kinds), episode_names=np.array(list(eps)))
 
 
+def check_physics(store: Store, config) -> None:
+    """The corpus's runs are of the physics settings `config` (a `PhysicsConfig`: the controller, its tuning, the
+    timeline): a new corpus records them (in its manifest, `physics`); `CorpusError` naming the settings that differ
+    where its shards were run with others, or where they were made before corpora recorded them (their runs may be
+    another controller's). A corpus is extended and learned from only with the settings it was run with."""
+    want = json.loads(json.dumps(dataclasses.asdict(config)))
+    have = store.manifest.get("physics")
+    if have is None:
+        if store.manifest["shards"]:
+            raise CorpusError(f"{store.folder}: its {len(store.manifest['shards'])} shards do not record the physics "
+                              "settings they were run with (made before corpora did: their runs may be another "
+                              "controller's); start a new folder (--folder) or remove this one")
+        store.manifest["physics"] = want  # written with the first shard's listing
+        return
+    differ = [f"{group}.{name} {have.get(group, {}).get(name)!r} there, {value!r} here"
+              for group, fields in want.items() for name, value in fields.items()
+              if have.get(group, {}).get(name) != value]
+    if differ:
+        raise CorpusError(f"{store.folder}: its runs were made with other physics settings ({'; '.join(differ[:4])}"
+                          f"{'; ...' if len(differ) > 4 else ''}); start a new folder (--folder) or run with those")
+
+
 def extend(store: Store, phys, seeds, episodes: int, n_random: int = 4, n_perturbed: int = 2,
            cores: int | None = None, progress: bool = True, n_steps: int | None = None) -> list[int]:
     """Add the shard of each seed in `seeds` that the corpus does not hold (`shard`, then `Store.add`): a run
@@ -313,6 +336,7 @@ def extend(store: Store, phys, seeds, episodes: int, n_random: int = 4, n_pertur
     With several processes (`distributed`) the seeds go in rounds of one shard per process; each process writes
     its shard, process 0 lists the round's shards in seed order. A shard is the same in one process or several."""
     dist = Distribution(**{k: tuple(v) for k, v in store.manifest["distribution"].items()})
+    check_physics(store, phys.config)
     todo = [seed for seed in seeds if seed not in store.seeds]
     P = distributed.count()
     for r in range(0, len(todo), P):

@@ -103,6 +103,13 @@ FIGURES = (
     Figure("controller-eval-paper-cpu", ("envelope", "--set", "eval", "--random", "0", "--policies", "four-tips",
                                          "dp-opt", "L1", "L2", "--learned", "--controller", "paper"),
            ("envelope_eval_learned_paper",), "cpu", (*_LIBRARY, "experiments/physics/envelope.py"), 2.5),
+    Figure("controller-stress-predictive-cpu", ("envelope", "--set", "stress", "--random", "0", "--policies",
+                                                "four-tips", "dp-opt", "L1", "L2", "--learned", "--controller",
+                                                "predictive"), ("envelope_stress_learned_predictive",), "cpu",
+           (*_LIBRARY, "experiments/physics/envelope.py"), 14.0),
+    Figure("controller-eval-predictive-cpu", ("envelope", "--set", "eval", "--random", "0", "--policies", "four-tips",
+                                              "dp-opt", "L1", "L2", "--learned", "--controller", "predictive"),
+           ("envelope_eval_learned_predictive",), "cpu", (*_LIBRARY, "experiments/physics/envelope.py"), 4.0),
     # the hands x tools table: every shipped model's files are what it measures (the default's learned term on);
     # its Menagerie rows need the hands imported once before (`hands --menagerie DIR`: examples/published/)
     Figure("hands", ("hands", "--learned"), ("hands_learned",), "cpu", ("gsp_jax", "models", "experiments/common.py",

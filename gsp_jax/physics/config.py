@@ -101,6 +101,8 @@ class ControllerConfig:
     frames: str = "measured"  # the force solve's contact normals: "nominal" (each option's face normal, the paper's
     # controller) or "measured" (where a link touches, the tool surface's normal at the link's centre line as
     # observed: MuJoCo's sphere-box normal, tilted where a fingertip rests on an edge)
+    predictive: bool = False  # C MuJoCo only: before the hold, roll it out under a few settings of these gains and
+    # keep, per episode, the one that holds best (`gsp_jax.physics.predictive`)
 
     @property
     def tool_gains(self) -> tuple[float, float]:
@@ -115,6 +117,8 @@ class ControllerConfig:
                nonnegative=("tool_damping", "grip_force"), counts=("force_iterations",))
         if self.frames not in FRAMES:
             raise ValueError(f"PhysicsConfig.controller.frames must be one of {FRAMES}, got {self.frames!r}")
+        if not isinstance(self.predictive, bool):
+            raise ValueError(f"PhysicsConfig.controller.predictive must be a bool, got {self.predictive!r}")
         if self.friction_margin > 1:
             raise ValueError(f"PhysicsConfig.controller.friction_margin must be in (0, 1], got {self.friction_margin}")
 
@@ -157,6 +161,7 @@ CONTROLLERS = {  # named contact controllers: `PhysicsConfig.named(name)`; the f
     # the tool's own, its damping at most 0.3 of the tool's rate a tick (docs/physics.md, "Contact frames")
     "paper": dict(frames="nominal", friction_margin=0.7, tool_radius=0.05, rotation_step=1.0),  # the paper-era
     # controller: option normals, 70% of mu, rotational gains as of the tool's mass at 5 cm, damped to the bound
+    "predictive": dict(predictive=True),  # the default with the predictive hold (C MuJoCo only)
 }
 DEFAULT_CONTROLLER = "measured"
 

@@ -256,9 +256,14 @@ class Physics:
         if backend != "c" and any(hasattr(p, "in_physics") for p, _ in policies):
             raise ValueError(f"policy: a policy that decides in physics (e.g. PhysicsLookahead) branches copies of C "
                              f"MuJoCo's state and needs backend='c', got backend={backend!r}")
+        if self.config.controller.predictive and backend != "c":
+            raise ValueError(f"PhysicsConfig.controller.predictive: the predictive hold rolls the hold out in C "
+                             f"MuJoCo and needs backend='c', got backend={backend!r}")
         if backend == "c":
             from gsp_jax.physics import c_backend
 
+            if self.config.controller.predictive:
+                return self.simulate_predictive(policies, episodes, cores, progress, workers)[0]
             return c_backend.simulate(self.spec, list(policies), episodes, cores=cores, progress=progress,
                                       workers=workers)
         out = []
@@ -268,6 +273,19 @@ class Physics:
             out.append(run(policy, episodes))
         return out
 
+
+    def simulate_predictive(self, policies, episodes: Episode, cores: int | None = None, progress: bool = False,
+                            workers: int | None = None) -> tuple[list[Result], list[np.ndarray]]:
+        """`simulate_many(..., backend="c")` with the predictive hold whatever the config says, and which candidate
+        each episode kept: (results, chosen), one `Result` and one (R,) int32 array per policy
+        (`gsp_jax.physics.predictive`; the candidates' physics are kept, built once)."""
+        from gsp_jax.physics import predictive
+
+        self._check_batch(policies, episodes)
+        check_episodes(episodes)
+        specs = self.kept("predictive", lambda: [Physics(self.surrogate, c).spec
+                                                 for c in predictive.candidate_configs(self.config, self.hand)])
+        return predictive.simulate(self.spec, specs, list(policies), episodes, cores, progress, workers)
 
     def _check_batch(self, policies, episodes: Episode) -> None:
         """Named errors for a batch the runner cannot take: episodes without a batch axis, an invalid episode of the

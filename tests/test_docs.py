@@ -421,12 +421,14 @@ def test_hands_table_is_docs_data():
 
 
 def test_readme_controller_sentence_is_docs_data():
-    """The contact controller's sentence (issue 84) equals the two CPU records it cites: the stress set's controller
-    falls of four tips, DP optimal, L1 and L2 with the default (measured frames) and with `--controller paper`."""
+    """The contact controller's sentence (issue 84) equals the three CPU records it cites: the stress set's controller
+    falls of four tips, DP optimal, L1 and L2 with the default (measured frames), with `--controller paper` and with
+    `--controller predictive`."""
     ks = ("four-tips", "dp-opt", "L1", "L2")
-    new = _file("envelope_stress_learned_cpu")["figures"]["summary"]["kinds"]
-    old = _file("envelope_stress_learned_paper_cpu")["figures"]["summary"]["kinds"]
-    got = _claim(r"Stress set, controller falls of four tips / DP optimal / L1 / L2: (\d+) / (\d+) / (\d+) / (\d+); "
-                 r"the paper's (\d+) / (\d+) / (\d+) / (\d+) \(2-core CPU, `envelope_stress_learned_cpu`, "
-                 r"`envelope_stress_learned_paper_cpu`\)")
-    assert tuple(map(int, got)) == (*(new[k]["controller"] for k in ks), *(old[k]["controller"] for k in ks))
+    runs = [_file(f"envelope_stress_learned{c}_cpu")["figures"]["summary"]["kinds"]
+            for c in ("", "_paper", "_predictive")]
+    got = _claim(r"Stress\s+set, controller falls of four tips / DP optimal / L1 / L2: (\d+) / (\d+) / (\d+) / (\d+); "
+                 r"paper's (\d+) / (\d+) / (\d+) / (\d+); predictive\s+\(\[hold rolled out\]\([^)]*\)\) "
+                 r"(\d+) / (\d+) / (\d+) / (\d+)\. Aim 3 \(2-core CPU,\s+`envelope_stress_learned_cpu`, "
+                 r"`envelope_stress_learned_paper_cpu`, `envelope_stress_learned_predictive_cpu`\)")
+    assert tuple(map(int, got)) == tuple(r[k]["controller"] for r in runs for k in ks)

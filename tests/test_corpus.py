@@ -182,3 +182,19 @@ def test_a_real_shard_agrees_with_the_surrogate_and_c_mujoco():
     pert, bases = got["actions"][got["kind"] == 3], got["actions"][(got["kind"] == 1) | (got["kind"] == 2)]
     for e in range(2):
         assert min(int(np.sum(pert[e] != b)) for b in bases[[e, e + 2]]) <= 1
+
+
+def test_a_learned_surrogates_runs_get_the_analytic_features():
+    """`corpus --learned` plans with the learned term but records the analytic features: `run_features` of the
+    wrench's learned surrogate equals that of its analytic one, run for run (it once failed inside the trace)."""
+    from gsp_jax.surrogate.step import Surrogate
+
+    learned_sur = Surrogate(learned=True)
+    assert learned_sur.learned is not None
+    eps = [e.head(2) for e in corpus.draw(corpus.Distribution(), 3, 2).values()]
+    runs = scenario.stack(eps)
+    actions = np.array([[0, 5], [3, 0]], np.int32)
+    got = corpus.run_features(learned_sur, runs, actions)
+    want = corpus.run_features(Surrogate(learned=False), runs, actions)
+    assert got.shape == (2, 2, len(corpus.FEATURES)) and np.all(np.isfinite(got))
+    np.testing.assert_array_equal(got, want)

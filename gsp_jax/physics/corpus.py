@@ -122,6 +122,16 @@ def features(sur: surrogate_lib.Surrogate, episode: scenario.Episode, actions: j
                                        learned.episode_features(episode))
 
 
+def run_features(sur: surrogate_lib.Surrogate, runs: scenario.Episode, actions) -> np.ndarray:
+    """(M, T, len(FEATURES)) float32: `features` of M runs at once (`runs` stacked (M,), `actions` (M, T) int32), one
+    program. A learned surrogate's runs get the analytic features too: its analytic twin is made here, outside the
+    trace (made inside it, its arrays would be the trace's)."""
+    return np.asarray(_run_features(sur.analytic, runs, jnp.asarray(actions)))
+
+
+_run_features = jax.jit(jax.vmap(features, (None, 0, 0)))
+
+
 def labels(fell: np.ndarray, fall_time: np.ndarray, T: int, n_segment: int, timestep: float) -> dict[str, np.ndarray]:
     """Per transition of M runs (fell (M,) bool, fall_time (M,) [s], -1 if held): `fell_here` (M, T) bool, the tool
     fell during segment t (for t = T - 1 the hold after it too), and `alive` (M, T) bool, it had not fallen when
@@ -297,7 +307,7 @@ def shard(phys, seed: int, n_episodes: int, dist: Distribution, n_random: int, n
     fall_time = np.stack([np.asarray(r.fall_time) for r in res]).reshape(-1)
     run_actions = np.stack([np.asarray(r.actions) for r in res]).reshape(-1, T)
     runs = jax.tree.map(lambda x: jnp.concatenate([x] * S), batch)  # run i: episode i % N, sequence i // N
-    per_run = np.asarray(jax.jit(jax.vmap(features, (None, 0, 0)))(sur, runs, jnp.asarray(acts.reshape(S * N, T))))
+    per_run = run_features(sur, runs, acts.reshape(S * N, T))
     lab = labels(fell, fall_time, T, phys.n_segment, phys.timestep)
     return dict(features=per_run.astype(np.float32), **lab, fell=fell, fall_time=fall_time,
                 angle_error=np.stack([np.asarray(r.angle_error) for r in res]).reshape(-1),

@@ -12,8 +12,8 @@ controller could win by predicting, not how well it predicts a world unlike its 
     phys.simulate_batch(policy, episodes, backend="c")         # C MuJoCo only; never worse than "measured"
     results, chosen = phys.simulate_predictive([(policy, None)], episodes)   # and which candidate each kept
 
-Cost: the lift once and the hold len(CANDIDATES) times (the hold is `TimelineConfig.hold` of the episode's
-n_steps * DT + hold seconds).
+Cost: C MuJoCo runs each episode up to the hold once, then the hold (its last `TimelineConfig.hold` seconds) once
+per candidate, len(CANDIDATES) times.
 """
 from __future__ import annotations
 

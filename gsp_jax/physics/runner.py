@@ -263,7 +263,7 @@ class Physics:
             from gsp_jax.physics import c_backend
 
             if self.config.controller.predictive:
-                return self.simulate_predictive(policies, episodes, cores, progress, workers)[0]
+                return self._predictive(policies, episodes, cores, progress, workers)[0]
             return c_backend.simulate(self.spec, list(policies), episodes, cores=cores, progress=progress,
                                       workers=workers)
         out = []
@@ -273,18 +273,24 @@ class Physics:
             out.append(run(policy, episodes))
         return out
 
-
     def simulate_predictive(self, policies, episodes: Episode, cores: int | None = None, progress: bool = False,
                             workers: int | None = None) -> tuple[list[Result], list[np.ndarray]]:
         """`simulate_many(..., backend="c")` with the predictive hold whatever the config says, and which candidate
         each episode kept: (results, chosen), one `Result` and one (R,) int32 array per policy
         (`gsp_jax.physics.predictive`; the candidates' physics are kept, built once)."""
-        from gsp_jax.physics import predictive
-
         self._check_batch(policies, episodes)
         check_episodes(episodes)
-        specs = self.kept("predictive", lambda: [Physics(self.surrogate, c).spec
-                                                 for c in predictive.candidate_configs(self.config, self.hand)])
+        return self._predictive(policies, episodes, cores, progress, workers)
+
+    def _predictive(self, policies, episodes: Episode, cores, progress, workers):
+        """`simulate_predictive` of a batch already checked."""
+        from gsp_jax.physics import predictive
+
+        def build():  # the first candidate is the run's own settings: its spec (the predictive flag aside) is ours
+            others = predictive.candidate_configs(self.config, self.hand)[1:]
+            return [self.spec] + [Physics(self.surrogate, c).spec for c in others]
+
+        specs = self.kept("predictive", build)
         return predictive.simulate(self.spec, specs, list(policies), episodes, cores, progress, workers)
 
     def _check_batch(self, policies, episodes: Episode) -> None:

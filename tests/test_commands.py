@@ -61,8 +61,8 @@ QUICKEST = {
                  ["results/physics-learned/nominal_agreement.json"]),
                 (["--processes", "2", "physics", "--set", "nominal", "--policy", "scripted", "--backend", "c",
                   "--chunk", "2", "--paper"], ["results/physics/nominal_scripted_c.json"])],
-    "bench-physics": [(["bench-physics", "--set", "nominal", "--waypoints", "2", "--backends", "c", "--cores", "1"],
-                       [])],
+    "bench-physics": [(["bench-physics", "--set", "nominal", "--waypoints", "2", "--backends", "c", "--cores", "1",
+                        "--variant", "paper"], [])],
     "envelope": [(["envelope", "--set", "eval", "--episodes", "1", "--random", "0", "--physics-lookahead", "1",
                    "--bases", "four-tips", "--paper"], ["results/envelope/eval.json"])],
     "rescore": [(["rescore", "--episodes", "2", "--reward", "grip=0,fall_unmet=0.2"],
@@ -75,6 +75,8 @@ QUICKEST = {
                 ["results/corpus/manifest.json", "results/corpus/shard-000000.npz"]),
                (["calibrate", "--learn", "--shards", "1", "--episodes", "3", "--epochs", "2", "--out", "w.npz"],
                 ["w.npz", "results/learn/report.json"]),  # its corpus run nested (`cli.run_command`): shard 0 held
+               (["corpus", "--learned", "--shards", "1", "--episodes", "2", "--random", "1", "--perturbed", "0",
+                 "--steps", "2"], ["results/corpus-learned/shard-000000.npz"]),  # the learned planners' sequences
                (["envelope", "--set", "eval", "--episodes", "1", "--random", "0", "--physics-lookahead", "0",
                  "--learned"],
                 ["results/envelope-learned/eval.json"])],

@@ -9,7 +9,9 @@ side by side in one run, on one policy's batch of episodes (default the 27 evalu
 
 The runner's share of the engine's limit is its steps / s over (engine steps / s x cores). `--backends mjx c`
 adds the MJX runner (one XLA batch); `--variant NAME:key=value,...` adds `PhysicsConfig` variants (their falls
-show whether a cheaper setting changes the outcome); `--waypoints 4` shortens the episodes for a quick run.
+show whether a cheaper setting changes the outcome), `--variant paper` or `--variant predictive` a named contact
+controller beside the run's (the predictive hold's ratio counts its extra rollouts as cost: its steps are the plain
+run's); `--waypoints 4` shortens the episodes for a quick run.
 Writes JSON (`engine_steps_per_s_one_core`, and per row `runner_steps_per_s`, `cores`); prints a table last.
 """
 from __future__ import annotations
@@ -26,14 +28,16 @@ from gsp_jax.core import files
 from gsp_jax import physics
 from gsp_jax.model import scenario
 from gsp_jax.surrogate import step as surrogate
-from gsp_jax.physics import c_backend
+from gsp_jax.physics import c_backend, tuning
+from gsp_jax.model import load as model_lib
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--set", default="eval")
     p.add_argument("--waypoints", type=int, default=scenario.N_WAYPOINTS, help="episode length (shorter: quicker)")
     p.add_argument("--variant", action="append", default=[],
-                   help="NAME:key=value,... a PhysicsConfig variant (keys: field names of any group)")
+                   help="NAME:key=value,... a PhysicsConfig variant (keys: field names of any group), or a named "
+                        "contact controller alone (paper, predictive)")
     p.add_argument("--backends", nargs="+", default=["c"], choices=physics.BACKENDS)
     p.add_argument("--cores", nargs="+", type=int, default=None,
                    help="core counts for the C runner (default: 1, 2 and all)")
@@ -43,10 +47,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default=None)
 
 
-def _variants(specs, base: physics.PhysicsConfig) -> list[tuple[str, physics.PhysicsConfig]]:
+def _variants(specs, base: physics.PhysicsConfig, named) -> list[tuple[str, physics.PhysicsConfig]]:
+    """("default", base) then one (name, config) per `--variant`: a named contact controller alone (`paper`,
+    `predictive`: `named(name)`, the run's tuning kept) or NAME:key=value,... over `base`."""
     out = [("default", base)]
     for spec in specs:
         name, _, body = spec.partition(":")
+        if not body and name in physics.config.CONTROLLERS:
+            out.append((name, named(name)))
+            continue
         kw = {}
         for item in filter(None, body.split(",")):
             key, _, value = item.partition("=")
@@ -78,7 +87,8 @@ def main(args: argparse.Namespace, run: Run) -> None:
     print(f"device: {device.platform} ({device.device_kind}); {all_cores} CPU cores; {len(eps)} episodes of "
           f"'{args.set}', four tips", flush=True)
     rows, engine = [], {}
-    for name, config in _variants(args.variant, run.physics_config()):
+    named = lambda name: tuning.config(run.model or model_lib.load_model(None), name)  # noqa: E731
+    for name, config in _variants(args.variant, run.physics_config(), named):
         # the engine alone on the states of a one-core run (recorded once per variant)
         log = []
         phys = physics.Physics(env, config)

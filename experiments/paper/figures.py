@@ -78,8 +78,8 @@ FIGURES = (
     Figure("envelope-eval", ("envelope", "--set", "eval", "--random", "8", "--physics-lookahead", "2", "--bases",
                              "four-tips", "dp-opt", "--paper"), ("envelope_eval",), "gpu",
            (*_LIBRARY, "experiments/physics/envelope.py"), 3.0),
-    Figure("physics-cpu", ("bench-physics", "--backends", "c", "--paper"), ("bench_physics",), "cpu",
-           (*_LIBRARY, "experiments/bench/physics.py"), 6.0),
+    Figure("physics-cpu", ("bench-physics", "--backends", "c", "--paper", "--variant", "paper", "--variant",
+                           "predictive"), ("bench_physics",), "cpu", (*_LIBRARY, "experiments/bench/physics.py"), 18.0),
     # the same with the learned physics term (`--learned`: the model's weights, `calibrate --learn`)
     Figure("envelope-stress-learned", ("envelope", "--set", "stress", "--random", "8", "--physics-lookahead", "2",
                                        "--bases", "four-tips", "dp-opt", "--learned"), ("envelope_stress_learned",),

@@ -100,8 +100,9 @@ _PHYS = types.SimpleNamespace(config=PhysicsConfig())  # what `extend` reads of 
 
 
 def test_a_corpus_is_extended_only_with_the_physics_settings_its_runs_had(tmp_path, monkeypatch):
-    """A corpus records the controller its runs had: another controller (the paper's, a changed gain) is refused by
-    name, and so is a corpus made before corpora recorded it; the same settings extend it."""
+    """A corpus records the controller its runs had and the physics' revision: another controller (the paper's, a
+    changed gain) or revision is refused by name, and so is a corpus made before corpora recorded it; the same
+    settings extend it."""
     wrench = model_lib.load_model("wrench")
     monkeypatch.setattr(corpus, "shard", lambda phys, seed, *a, **k: _arrays(seed))
     corpus.extend(corpus.Store.open(tmp_path, wrench), _PHYS, [0], episodes=2, progress=False)
@@ -116,6 +117,11 @@ def test_a_corpus_is_extended_only_with_the_physics_settings_its_runs_had(tmp_pa
         corpus.extend(store, stiffer, [1], episodes=2, progress=False)
     assert corpus.extend(store, _PHYS, [0, 1], episodes=2, progress=False) == [1]
     manifest = json.loads((tmp_path / "manifest.json").read_text())
+    assert manifest["physics_revision"] == 2
+    del manifest["physics_revision"]  # made before the CoM offsets reached C MuJoCo
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(corpus.CorpusError, match=r"the physics' revision 1, this library simulates revision 2"):
+        corpus.extend(corpus.Store.open(tmp_path, wrench), _PHYS, [2], episodes=2, progress=False)
     del manifest["physics"]
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(corpus.CorpusError, match=r"its 2 shards do not record the physics settings"):

@@ -44,7 +44,7 @@ def phys_paper():
 def episodes():
     """Three evaluation episodes (their first T waypoints) and a fourth with the CoM off-centre under a torque."""
     eps = [e.head(T) for e in list(scenario.eval_set_a().values())[:3]]
-    eps.append(scenario.make_episode(mass_factor=2.0, com_y_cm=1.0).head(T))
+    eps.append(scenario.make_episode(mass_factor=1.5, com_y_cm=1.0).head(T))
     return scenario.stack(eps)
 
 

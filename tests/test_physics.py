@@ -42,13 +42,14 @@ def phys():
 
 @pytest.fixture(scope="module")
 def batch(phys):
-    """The rows of `ROWS`: four fingertips (ring added at t = 0, then kept) on a 2 m0 and a 0.5 m0 tool under +1 N m;
-    the index tip alone; index and middle tips on the same side (no opposing contact); four tips with a change at
-    every waypoint (the middle tip slides M2 <-> M1), no torque. (Under -1 N m at these low heights the grasp
-    throws the tool when the torque comes on: see the README's physics section.)"""
+    """The rows of `ROWS`: four fingertips (ring added at t = 0, then kept) on a 2 m0 (its CoM 1 cm off) and a 0.5 m0
+    tool under +1 N m; the index tip alone; index and middle tips on the same side (no opposing contact); four tips
+    with a change at every waypoint (the middle tip slides M2 <-> M1), no torque. (Under -1 N m at these low heights
+    the grasp throws the tool when the torque comes on: see the README's physics section.)"""
     sp = phys.space
     nominal = scenario.make_episode()
-    heavy, light = scenario.make_episode(mass_factor=2.0), scenario.make_episode(mass_factor=0.5)
+    heavy = scenario.make_episode(mass_factor=2.0, com_y_cm=1.0)  # its CoM 1 cm off: both backends must move it
+    light = scenario.make_episode(mass_factor=0.5)
     eps = [_short(heavy), _short(light),
            _short(nominal.replace(start_grasp=sp.encode([0, 1, 0, 0, 0, 0]))),
            _short(nominal.replace(start_grasp=sp.encode([0, 1, 0, 1, 0, 0]))),
@@ -282,6 +283,33 @@ def test_c_engine_steps_each_episode_as_its_own_model(phys):
         eng.step(constants, np.arange(2), out[j], -0.001 * j, buf)
         np.testing.assert_array_equal(eng.obs, trace[j])
     assert native.addresses(eng.models, eng.datas, phys.scene.tool_body).shape == (2, 8)
+
+
+def test_the_episodes_centre_of_mass_moves_the_tool_in_c_mujoco(phys):
+    """An episode's CoM offset (`EpisodeFields.com`, set on a copy of the compiled model) is the tool's in C MuJoCo:
+    its inertial frame sits at the offset (MuJoCo's kinematics: xipos = xpos + R com) and, spinning in free flight
+    clear of everything, its centre of mass gains g t of velocity as a rigid body's must (Newton, the reference).
+    A tool compiled with its CoM at its origin is 'simple' to MuJoCo, which skips both (they held before 2026-12-07:
+    the offsets were ignored, 1.9 cm off here)."""
+    scene, b = phys.scene, phys.scene.tool_body
+    fields = jax.device_get(scene.episode_fields(scenario.make_episode()))
+    com = np.array([0.02, -0.01, 0.005], np.float32)
+    m = scene.c_model(fields.replace(com=com))
+    d = mujoco.MjData(m)
+    d.qpos[scene.tool_qpos + 2] += 1.0  # a metre above the hand
+    d.qvel[scene.tool_dof + 3:scene.tool_dof + 6] = [3.0, -2.0, 5.0]  # [rad/s], the tool's frame
+    mujoco.mj_forward(m, d)
+    mujoco.mj_subtreeVel(m, d)
+    v0 = d.subtree_linvel[b].copy()
+    n = 100
+    for _ in range(n):
+        mujoco.mj_step(m, d)
+    mujoco.mj_forward(m, d)
+    mujoco.mj_subtreeVel(m, d)
+    assert not any(b in (m.geom_bodyid[c.geom1], m.geom_bodyid[c.geom2]) for c in d.contact[:d.ncon])
+    np.testing.assert_allclose(d.xipos[b] - d.xpos[b], d.xmat[b].reshape(3, 3) @ com, atol=1e-9)
+    gained = d.subtree_linvel[b] - v0
+    np.testing.assert_allclose(gained, m.opt.gravity * n * m.opt.timestep, atol=2e-3)  # explicit Euler's error: ~4e-4
 
 
 def test_c_lockstep_of_several_policies_is_each_policy_alone(phys, batch, runs):

@@ -31,6 +31,7 @@ from gsp_jax.core import distributed, files
 from gsp_jax.planning import dp, evaluation, policies
 from gsp_jax.surrogate import learned
 from gsp_jax.model import scenario
+from gsp_jax.physics import scene as scene_lib
 from gsp_jax.surrogate import step as surrogate_lib
 
 VERSION = 1
@@ -319,9 +320,10 @@ def shard(phys, seed: int, n_episodes: int, dist: Distribution, n_random: int, n
 
 def check_physics(store: Store, config) -> None:
     """The corpus's runs are of the physics settings `config` (a `PhysicsConfig`: the controller, its tuning, the
-    timeline): a new corpus records them (in its manifest, `physics`); `CorpusError` naming the settings that differ
-    where its shards were run with others, or where they were made before corpora recorded them (their runs may be
-    another controller's). A corpus is extended and learned from only with the settings it was run with."""
+    timeline) and of this library's physics (`scene.REVISION`): a new corpus records both (in its manifest,
+    `physics`, `physics_revision`); `CorpusError` naming what differs where its shards were run with other settings
+    or another revision, or where they were made before corpora recorded them (their runs may be another
+    controller's). A corpus is extended and learned from only with the physics it was run with."""
     want = json.loads(json.dumps(dataclasses.asdict(config)))
     have = store.manifest.get("physics")
     if have is None:
@@ -330,7 +332,13 @@ def check_physics(store: Store, config) -> None:
                               "settings they were run with (made before corpora did: their runs may be another "
                               "controller's); start a new folder (--folder) or remove this one")
         store.manifest["physics"] = want  # written with the first shard's listing
+        store.manifest["physics_revision"] = scene_lib.REVISION
         return
+    revision = store.manifest.get("physics_revision", 1)
+    if revision != scene_lib.REVISION:
+        raise CorpusError(f"{store.folder}: its runs are of the physics' revision {revision}, this library simulates "
+                          f"revision {scene_lib.REVISION} (`gsp_jax.physics.scene.REVISION`: 2, the episodes' centres "
+                          "of mass reach C MuJoCo); start a new folder (--folder) or remove this one")
     differ = [f"{group}.{name} {have.get(group, {}).get(name)!r} there, {value!r} here"
               for group, fields in want.items() for name, value in fields.items()
               if have.get(group, {}).get(name) != value]

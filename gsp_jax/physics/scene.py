@@ -34,6 +34,9 @@ from gsp_jax.model.scenario import Episode
 AWAY = -1.0  # [m] the start supports are moved this far down when they drop away
 SUPPORT = "gsp_support"  # the start supports' geom names: gsp_support1, gsp_support2, ...
 SPHERES_PER_CAPSULE = 4  # contact spheres along each hand capsule (MJX misses tilted capsule-box contacts)
+REVISION = 2  # the simulated physics of unchanged settings: raised when it changes (2, 2026-12-07: the episodes'
+# centres of mass reach C MuJoCo; before, C MuJoCo kept every tool's at its origin). Corpora record it
+COM_PROBE = 1e-6  # [m] the tool's centre of mass is compiled this far off its place (`physics_model`: why)
 
 
 def _named_spec(path) -> mujoco.MjSpec:
@@ -108,6 +111,14 @@ def physics_model(hand: hand_lib.HandModel, config: PhysicsConfig = PhysicsConfi
     for s in to_table:
         spec.add_pair(name=f"{s}-{table}", geomname1=s, geomname2=table, condim=3,
                       friction=fric(table_mu), solref=solref, solimp=solimp)
+    # each episode sets the tool's centre of mass (`Scene.c_model`); a body compiled with its centre of mass at its
+    # origin is "simple" to MuJoCo, which then skips body_ipos in its kinematics and leaves the coupling of the
+    # tool's translation and rotation out of the sparse mass matrix: a centre of mass set later would be ignored.
+    # Compiled COM_PROBE off its compiled place, the tool keeps MuJoCo's general path (the episode's value replaces it)
+    body = spec.body(name(mujoco.mjtObj.mjOBJ_BODY, tool))
+    body.explicitinertial, body.mass = True, float(base.body_mass[tool])
+    body.inertia, body.iquat = base.body_inertia[tool].copy(), base.body_iquat[tool].copy()
+    body.ipos = base.body_ipos[tool] + np.array([0.0, 0.0, COM_PROBE])
     model = spec.compile()
     sim = config.sim
     model.opt.iterations, model.opt.ls_iterations = sim.solver_iterations, sim.ls_iterations

@@ -72,8 +72,8 @@ FIGURES = (
            "gpu", (*_LIBRARY, *_PAPER), 7.0),
     Figure("latency", _LATENCY, ("bench_latency",), "gpu", (*_LIBRARY, "experiments/paper/table1"), 2.5),
     # Fig. 4b alone on a CPU (the GPU host's `paper` figure also makes it): the paper's surrogate, C MuJoCo
-    Figure("fig4b-cpu", ("fig4b", "--backend", "c", "--paper", "--fresh"), ("fig4b",), "cpu",
-           (*_LIBRARY, "experiments/paper/fig4b.py"), 12.0),
+    Figure("fig4b-cpu", ("fig4b", "--backend", "c", "--paper", "--fresh", "--policies", "dp-base", "rl", "L1", "L2",
+                         "dp-opt", "L1-physics"), ("fig4b",), "cpu", (*_LIBRARY, "experiments/paper/fig4b.py"), 12.0),
     Figure("latency-cpu", _LATENCY, ("bench_latency",), "cpu", (*_LIBRARY, "experiments/paper/table1"), 12.0),
     Figure("envelope-stress", ("envelope", "--set", "stress", "--random", "8", "--physics-lookahead", "2", "--bases",
                                "four-tips", "dp-opt", "--paper"), ("envelope_stress",), "gpu",

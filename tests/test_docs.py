@@ -173,7 +173,7 @@ def test_readme_sentences_are_docs_data():
         == round(1000 * latency, 1)
     fig4b = _file(fig4b_name)["figures"]["L1-physics"]
     falls, n, angle = _claim(r"evaluation set: (\d+) of (\d+) falls, ([\d.]+)° mean angle error "
-                             rf"\(H\d+ host, `{fig4b_name}`\)")
+                             rf"\((?:H\d+ host|2-core CPU), `{fig4b_name}`\)")
     assert (int(falls), int(n), float(angle)) == (fig4b["falls"], fig4b["episodes"], round(fig4b["mean_deg"], 1))
     stress_name, eval_name = _named("envelope_stress_"), _named("envelope_eval_")
     stress = _file(stress_name)["figures"]

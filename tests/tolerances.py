@@ -32,6 +32,10 @@ Q_ATOL = 1e-3  # joint angles [rad] of converged IK: rounding moves a joint alon
 TIE_FRACTION = 0.03  # at most this fraction of compared entries may be bifurcations (measured 0.6 .. 1.3 % > 1e-3)
 FLIP_FRACTION = 1e-3  # at most this fraction of fail/survive outcomes may flip (measured <= 2 in 9,216: 2.2e-4)
 UNMET_MARGIN = 5e-3  # a fall flag is compared only where unmet is this far from its threshold (>> its p99 3.6e-6)
+# the physics status's tool angle, 2 arccos(q_ref . q) in float32, near 0: the dot resolves steps of 2^-24 below 1,
+# so two computations a few ulps apart differ by 2 arccos(1 - k 2^-24): 0.040 deg at k = 1, 0.056 at 2 (seen under
+# SSE4.2, tests/test_native.py), 0.069 at 3
+STATUS_ANGLE_ATOL_DEG = float(np.degrees(2 * np.arccos(np.float64(1) - 3 * 2.0 ** -24)))
 
 
 TIE_RATE = 0.013  # the largest measured rate of bifurcations (entries > 1e-3 apart), for small comparisons below

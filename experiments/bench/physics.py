@@ -17,6 +17,7 @@ Writes JSON (`engine_steps_per_s_one_core`, and per row `runner_steps_per_s`, `c
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -28,8 +29,7 @@ from gsp_jax.core import files
 from gsp_jax import physics
 from gsp_jax.model import scenario
 from gsp_jax.surrogate import step as surrogate
-from gsp_jax.physics import c_backend, tuning
-from gsp_jax.model import load as model_lib
+from gsp_jax.physics import c_backend
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -87,7 +87,7 @@ def main(args: argparse.Namespace, run: Run) -> None:
     print(f"device: {device.platform} ({device.device_kind}); {all_cores} CPU cores; {len(eps)} episodes of "
           f"'{args.set}', four tips", flush=True)
     rows, engine = [], {}
-    named = lambda name: tuning.config(run.model or model_lib.load_model(None), name)  # noqa: E731
+    named = lambda name: dataclasses.replace(run, controller=name).physics_config()  # noqa: E731  (tuning kept)
     for name, config in _variants(args.variant, run.physics_config(), named):
         # the engine alone on the states of a one-core run (recorded once per variant)
         log = []

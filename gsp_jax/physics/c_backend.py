@@ -45,6 +45,7 @@ from jax.flatten_util import ravel_pytree
 from gsp_jax.model import grasps, scenario
 from gsp_jax.model.scenario import Episode
 from gsp_jax.physics import native
+from gsp_jax.physics import world as world_lib
 from gsp_jax.physics.spec import HasSpec, PhysicsSpec, of
 
 CONTROLLERS = ("native", "jax")  # the controller's tick: compiled to native code, or the JAX program
@@ -268,7 +269,8 @@ class _Lockstep:
     controller states (flat rows, float32), all numpy."""
 
     def __init__(self, phys: PhysicsSpec | HasSpec, groups, episodes: Episode, workers: int,
-                 engine_log: list | None, start: Snapshot | None = None, controller: str = "native", device=None):
+                 engine_log: list | None, start: Snapshot | None = None, controller: str = "native", device=None,
+                 world=None):
         if controller not in CONTROLLERS:
             raise ValueError(f"controller must be one of {CONTROLLERS}, got {controller!r}")
         G = len(groups)
@@ -308,8 +310,10 @@ class _Lockstep:
             self.cs = np.ascontiguousarray(cs, np.float32)
         else:  # the start's IK is not run again (its rows were checked above)
             self.qpos0 = np.array(start.qpos0, np.float64)
+        worlds = list(world) if isinstance(world, (list, tuple)) else [world] * G  # the episodes' own, per group
         with jax.default_device(self.device):
-            fields = cat(lambda e: jax.device_get(pr.fields(e)))
+            fields = jax.tree.map(lambda *x: np.concatenate([np.asarray(a) for a in x]),
+                                  *[jax.device_get(pr.fields(e, w)) for e, w in zip(per_group, worlds)])
             # the episodes as the JAX tick reads them (flat rows); the native tick reads `ep_native`
             self.ep_flat = cat(lambda e: np.asarray(pr.ravel_episodes(e))) if controller == "jax" else None
         self.chunks = np.array_split(np.arange(M), workers)  # contiguous rows
@@ -543,10 +547,12 @@ def warm_up(phys: PhysicsSpec | HasSpec):
 def simulate(phys: PhysicsSpec | HasSpec, groups, episodes: Episode | list[Episode], cores: int | None = None,
              progress: bool = False, workers: int | None = None, engine_log: list | None = None,
              start: Snapshot | None = None, until: int | None = None, controller: str = "native",
-             stats: dict | None = None, device=None, outcomes: bool = False):
+             stats: dict | None = None, device=None, outcomes: bool = False, world=None):
     """`Physics.simulate_many(..., backend="c")`: every (policy, policy_axis) of `groups` on every episode of
     `episodes` (leading axis) in one lockstep; a list of `runner.Result`s of numpy arrays, one per group.
     `episodes` may instead be a list of batches, one per group (of one length, any sizes): group g runs on its own.
+    `world`: the episodes' worlds (`gsp_jax.physics.world.World`, the episodes' leading axis; a list, one per group,
+    where `episodes` is; None: the nominal world), applied to the physics model only.
 
     Between two decisions the lockstep's episodes run as `workers` chunks of rows side by side (threads), each
     chunk's whole segment one call of native code (`native.segment`: the controller's ticks and `mj_step`,
@@ -570,7 +576,8 @@ def simulate(phys: PhysicsSpec | HasSpec, groups, episodes: Episode | list[Episo
     cores = available_cores() if cores is None else cores
     workers = max(1, min(cores, M)) if workers is None else max(1, min(workers, M))
     spec = of(phys)
-    run = _Lockstep(spec, groups, episodes, workers, engine_log, start, controller, device)
+    world_lib.check_simulated(world)
+    run = _Lockstep(spec, groups, episodes, workers, engine_log, start, controller, device, world)
     end = one.n_steps + spec.n_hold
     if until is not None and not run.segment <= until <= end:
         raise ValueError(f"until must be a segment in {run.segment}..{end}, got {until!r}")

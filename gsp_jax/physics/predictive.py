@@ -59,21 +59,30 @@ def choose(fell: np.ndarray, angle_error: np.ndarray) -> np.ndarray:
 
 
 def simulate(spec, specs, policies, episodes, cores: int | None = None, progress: bool = False,
-             workers: int | None = None) -> tuple[list, list[np.ndarray]]:
+             workers: int | None = None, world=None) -> tuple[list, list[np.ndarray]]:
     """`Physics.simulate_many(..., backend="c")` with the predictive hold: every (policy, policy_axis) of
     `policies` runs the lift in one C MuJoCo lockstep under `spec` (the run's `PhysicsSpec`); from that snapshot
     the hold runs once under each of `specs` (the candidates', `candidate_configs`, the run's own first). Returns
     (results, chosen): per group a `runner.Result` of numpy arrays holding each row's chosen rollout (the whole
-    episode), and the (R,) int32 candidate each row chose."""
+    episode), and the (R,) int32 candidate each row chose. With a `world` (`gsp_jax.physics.world`) the episodes run
+    in it and the candidates are chosen by rollouts in the nominal model (the controller's), then the chosen ones
+    run in the world."""
     groups = list(policies)
     snap = c_backend.simulate(spec, groups, episodes, cores=cores, progress=progress, workers=workers,
-                              until=episodes.n_steps)  # the hold's first segment, before its decision
+                              until=episodes.n_steps, world=world)  # the hold's first segment, before its decision
+    # the rollouts are the controller's predictions: in its model (the nominal world), from the state it has
     runs = [c_backend.simulate(s, groups, episodes, cores=cores, workers=workers, start=snap) for s in specs]
-    results, chosen = [], []
-    for g in range(len(groups)):
+    chosen = [choose(np.stack([np.asarray(run[g].fell) for run in runs]),
+                     np.stack([np.asarray(run[g].angle_error) for run in runs])).astype(np.int32)
+              for g in range(len(groups))]
+    if world is not None:  # what happens is the world's: each candidate some row chose, run in it
+        used = sorted({int(c) for best in chosen for c in best})
+        in_world = {c: c_backend.simulate(specs[c], groups, episodes, cores=cores, workers=workers, start=snap,
+                                          world=world) for c in used}
+        runs = [in_world.get(c) or runs[c] for c in range(len(specs))]  # the others are never picked
+    results = []
+    for g, best in enumerate(chosen):
         per = [run[g] for run in runs]
-        best = choose(np.stack([np.asarray(r.fell) for r in per]), np.stack([np.asarray(r.angle_error) for r in per]))
         rows = np.arange(len(best))
         results.append(jax.tree.map(lambda *xs: np.stack([np.asarray(x) for x in xs])[best, rows], *per))
-        chosen.append(best.astype(np.int32))
     return results, chosen

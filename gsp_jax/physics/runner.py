@@ -23,6 +23,7 @@ from flax import struct
 from mujoco import mjx
 
 from gsp_jax.model import scenario
+from gsp_jax.physics import world as world_lib
 from gsp_jax.physics.config import PhysicsConfig
 from gsp_jax.physics.controller import Controller, ControllerState, reference_motion
 from gsp_jax.physics.scene import Observation, Scene
@@ -202,14 +203,14 @@ class Physics:
         carry = carry.replace(data=data, cs=cs, fell=carry.fell | fell_now, fall_tick=fall_tick)
         return carry, (angle, perr, data.qpos)
 
-    def _run(self, policy, episodes: Episode, policy_axis, batched: bool) -> Result:
+    def _run(self, policy, episodes: Episode, policy_axis, batched: bool, world=None) -> Result:
         """The MJX episode loop: a scan over segments, each a decision and a scan over its control ticks. With
         `batched`, every per-episode function is vmapped *inside* the scans (the carry is batched from the start:
         tracing a vmapped scan instead re-batches its body until the carry's batching settles, a slow trace:
         docs/performance.md)."""
         T, n = episodes.n_steps, self.n_segment
         vm = (lambda f, axes: jax.vmap(f, in_axes=axes)) if batched else (lambda f, axes: f)  # noqa: E731
-        fields = vm(self.scene.episode_fields, 0)(episodes)
+        fields = vm(self.scene.episode_fields, 0)(episodes, world)  # the world: the physics model's only
         carry = vm(self._init, 0)(episodes)
 
         def segment(carry: _Carry, k):
@@ -226,26 +227,29 @@ class Physics:
         angle, perr, qpos = trace
         return self.result(actions, grasps, angle, perr, qpos, carry.fell, carry.fall_tick, T)
 
-    def simulate(self, policy, episode: Episode) -> Result:
+    def simulate(self, policy, episode: Episode, world=None) -> Result:
         """One episode of `policy` (anything with `act(State) -> action`) on `episode`, stepped by MJX; see the
         module docstring. Open loop is `policies.SequencePolicy`; closed loop any policy that reads the state.
+        `world`: the episode's world (`gsp_jax.physics.world`; None: nominal), the physics model's only.
         Pure JAX: jit it, or vmap it over episodes (`simulate_batch` runs a batch faster to trace)."""
-        return self._run(policy, episode, None, batched=False)
+        return self._run(policy, episode, None, batched=False, world=world)
 
     def simulate_batch(self, policy, episodes: Episode, policy_axis: int | None = None, backend: str = "mjx",
-                       progress: bool = False, cores: int | None = None) -> Result:
+                       progress: bool = False, cores: int | None = None, world=None) -> Result:
         """Every episode of a batch (leading axis) with `policy`; with policy_axis=0 the policy pytree carries the
         same batch axis (e.g. one `SequencePolicy` per episode). backend "mjx": one XLA kernel, `simulate`'s loop
         with its per-tick step vmapped inside the scans (jitted once per structure); "c": C MuJoCo on `cores` CPU
         cores (default all; `c_backend.simulate`), the same controller."""
-        return self.simulate_many([(policy, policy_axis)], episodes, backend, progress, cores)[0]
+        return self.simulate_many([(policy, policy_axis)], episodes, backend, progress, cores, world=world)[0]
 
     def simulate_many(self, policies, episodes: Episode, backend: str = "mjx", progress: bool = False,
-                      cores: int | None = None, workers: int | None = None) -> list[Result]:
+                      cores: int | None = None, workers: int | None = None, world=None) -> list[Result]:
         """Several policies on the same episodes: `policies` is a list of (policy, policy_axis) pairs (axis as in
         `simulate_batch`); one `Result` per pair. In C MuJoCo every policy's episodes run in one lockstep on
         `cores` cores, as `workers` chunks side by side (`c_backend.simulate`; defaults: all cores, a chunk a
-        core); in MJX one batch per policy."""
+        core); in MJX one batch per policy. `world`: the episodes' worlds (`gsp_jax.physics.world.World` with the
+        episodes' leading axis; None: the nominal world), applied to the physics model only: every policy of the
+        batch meets the same world on the same episode."""
         self._check_batch(policies, episodes)
         check_episodes(episodes)
         if backend not in BACKENDS:
@@ -259,30 +263,32 @@ class Physics:
         if self.config.controller.predictive and backend != "c":
             raise ValueError(f"PhysicsConfig.controller.predictive: the predictive hold rolls the hold out in C "
                              f"MuJoCo and needs backend='c', got backend={backend!r}")
+        world_lib.check(world, episodes, self.scene)
         if backend == "c":
             from gsp_jax.physics import c_backend
 
             if self.config.controller.predictive:
-                return self._predictive(policies, episodes, cores, progress, workers)[0]
+                return self._predictive(policies, episodes, cores, progress, workers, world)[0]
             return c_backend.simulate(self.spec, list(policies), episodes, cores=cores, progress=progress,
-                                      workers=workers)
+                                      workers=workers, world=world)
         out = []
         for policy, policy_axis in policies:
             run = self.kept(("mjx", policy_axis), lambda a=policy_axis: jax.jit(
-                lambda policy, episodes: self._run(policy, episodes, a, True)))
-            out.append(run(policy, episodes))
+                lambda policy, episodes, world: self._run(policy, episodes, a, True, world)))
+            out.append(run(policy, episodes, world))
         return out
 
     def simulate_predictive(self, policies, episodes: Episode, cores: int | None = None, progress: bool = False,
-                            workers: int | None = None) -> tuple[list[Result], list[np.ndarray]]:
+                            workers: int | None = None, world=None) -> tuple[list[Result], list[np.ndarray]]:
         """`simulate_many(..., backend="c")` with the predictive hold whatever the config says, and which candidate
         each episode kept: (results, chosen), one `Result` and one (R,) int32 array per policy
         (`gsp_jax.physics.predictive`; the candidates' physics are kept, built once)."""
         self._check_batch(policies, episodes)
         check_episodes(episodes)
-        return self._predictive(policies, episodes, cores, progress, workers)
+        world_lib.check(world, episodes, self.scene)
+        return self._predictive(policies, episodes, cores, progress, workers, world)
 
-    def _predictive(self, policies, episodes: Episode, cores, progress, workers):
+    def _predictive(self, policies, episodes: Episode, cores, progress, workers, world=None):
         """`simulate_predictive` of a batch already checked."""
         from gsp_jax.physics import predictive
 
@@ -291,7 +297,7 @@ class Physics:
             return [self.spec] + [Physics(self.surrogate, c).spec for c in others]
 
         specs = self.kept("predictive", build)
-        return predictive.simulate(self.spec, specs, list(policies), episodes, cores, progress, workers)
+        return predictive.simulate(self.spec, specs, list(policies), episodes, cores, progress, workers, world)
 
     def _check_batch(self, policies, episodes: Episode) -> None:
         """Named errors for a batch the runner cannot take: episodes without a batch axis, an invalid episode of the

@@ -28,6 +28,7 @@ from mujoco import mjx
 
 from gsp_jax.model import hand as hand_lib
 from gsp_jax.model import kinematics, scenario
+from gsp_jax.physics import world as world_lib
 from gsp_jax.physics.config import PhysicsConfig
 from gsp_jax.model.scenario import Episode
 
@@ -155,13 +156,20 @@ class Observation:
 
 @struct.dataclass
 class EpisodeFields:
-    """The model fields an episode sets (one episode): tool mass, inertia, CoM, finger-tool friction, pedestals."""
+    """The model fields an episode sets (one episode): tool mass, inertia, CoM, finger-tool friction, pedestals, and
+    the world's factors on the model's own values (`world.World`; exactly 1 in the nominal world, so the model's
+    values are kept bit for bit). K finger-tool contact pairs, J hand joints."""
 
     mass: jax.Array  # ()
     inertia: jax.Array  # (3,)
     com: jax.Array  # (3,)
     friction: jax.Array  # ()
     pedestal_pos: jax.Array  # (P, 3) pedestal centres holding the tool at waypoint 0
+    pair_friction: jax.Array  # (K,) factor on `friction`, per finger-tool pair
+    pair_softness: jax.Array  # (K,) factor on the pair's contact time constant (solref[0])
+    damping: jax.Array  # (J,) factor on each hand joint's damping
+    armature: jax.Array  # (J,) factor on each hand joint's armature
+    strength: jax.Array  # (J,) factor on each hand motor's gear (torque per command)
 
 
 class Scene:
@@ -190,6 +198,11 @@ class Scene:
             [p for p in range(m.npair)
              if self.tool_body in (m.geom_bodyid[m.pair_geom1[p]], m.geom_bodyid[m.pair_geom2[p]])
              and not others & {int(m.pair_geom1[p]), int(m.pair_geom2[p])}])
+        touch = {mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, b): i for i, b in enumerate(hand.touch_tool)}
+        hand_geom = lambda p: m.pair_geom2[p] if m.geom_bodyid[m.pair_geom1[p]] == self.tool_body \
+            else m.pair_geom1[p]  # noqa: E731
+        self.pair_link = np.array([touch[int(m.geom_bodyid[hand_geom(p)])] for p in self.finger_tool_pairs], np.int32)
+        self.n_touch = len(hand.touch_tool)  # L: the hand's bodies that touch the tool (a world's friction per body)
         self.support_top = hand.support_top.astype(np.float32)  # (P, 3) tool frame
         self.support_drop = (hand.support_half[:, 2]).astype(np.float32)  # (P,) centre below the top
         self.tool_corners = hand.tool_hull().astype(np.float32)  # (8 G, 3) the geoms' box corners, tool frame
@@ -209,15 +222,22 @@ class Scene:
         return self._mx
 
     # ------------------------------------------------------------------------------------------ episodes
-    def episode_fields(self, episode: Episode) -> EpisodeFields:
-        """The model fields of one episode (pure JAX; vmap over episodes)."""
+    def episode_fields(self, episode: Episode, world: "world_lib.World | None" = None) -> EpisodeFields:
+        """The model fields of one episode in `world` (`gsp_jax.physics.world`; None: the nominal world) (pure JAX;
+        vmap over episodes)."""
+        if world is None:
+            world = world_lib.nominal(self.n_touch, len(self.hand_dof))
         mat0 = kinematics.quat_to_mat(episode.quats[0])
         ped = []
         for top, drop in zip(self.support_top, self.support_drop):
             p = mat0 @ top + episode.waypoints[0]
             ped.append(jnp.stack([p[0], p[1], p[2] - drop]))
-        return EpisodeFields(mass=episode.mass, inertia=episode.inertia, com=episode.com,
-                             friction=jnp.asarray(episode.friction, jnp.float32), pedestal_pos=jnp.stack(ped))
+        link = jnp.asarray(self.pair_link)
+        return EpisodeFields(mass=episode.mass * world.mass, inertia=episode.inertia * world.inertia,
+                             com=episode.com + world.com, friction=jnp.asarray(episode.friction, jnp.float32),
+                             pedestal_pos=jnp.stack(ped), pair_friction=world.friction[link],
+                             pair_softness=world.softness[link], damping=world.damping, armature=world.armature,
+                             strength=world.strength)
 
     def pedestal_drop(self, time, xp=jnp) -> jax.Array:
         """How far [m] (<= 0) the pedestals have sunk at `time`: in place for the first segment, then sinking at
@@ -240,7 +260,12 @@ class Scene:
             body_mass=mx.body_mass.at[b].set(fields.mass),
             body_inertia=mx.body_inertia.at[b].set(fields.inertia),
             body_ipos=mx.body_ipos.at[b].set(fields.com),
-            pair_friction=mx.pair_friction.at[self.finger_tool_pairs, :2].set(fields.friction),
+            pair_friction=mx.pair_friction.at[self.finger_tool_pairs, :2].set(
+                (fields.friction * fields.pair_friction)[:, None]),
+            pair_solref=mx.pair_solref.at[self.finger_tool_pairs, 0].multiply(fields.pair_softness),
+            dof_damping=mx.dof_damping.at[self.hand_dof].multiply(fields.damping),
+            dof_armature=mx.dof_armature.at[self.hand_dof].multiply(fields.armature),
+            actuator_gear=mx.actuator_gear.at[self.hand_act, 0].multiply(fields.strength),
         )
 
     def c_model(self, fields: EpisodeFields) -> mujoco.MjModel:
@@ -248,7 +273,12 @@ class Scene:
         m, b = copy.copy(self.model), self.tool_body
         self.c_pedestals(m, fields, 0.0)
         m.body_mass[b], m.body_inertia[b], m.body_ipos[b] = fields.mass, fields.inertia, fields.com
-        m.pair_friction[self.finger_tool_pairs, :2] = fields.friction
+        f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731  (as the MJX model computes them)
+        m.pair_friction[self.finger_tool_pairs, :2] = (f32(fields.friction) * f32(fields.pair_friction))[:, None]
+        m.pair_solref[self.finger_tool_pairs, 0] *= fields.pair_softness
+        m.dof_damping[self.hand_dof] *= fields.damping
+        m.dof_armature[self.hand_dof] *= fields.armature
+        m.actuator_gear[self.hand_act, 0] *= fields.strength
         return m
 
     def c_pedestals(self, mj_model: mujoco.MjModel, fields: EpisodeFields, drop: float) -> None:

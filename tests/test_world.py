@@ -1,0 +1,118 @@
+"""The world gap (gsp_jax.physics.world): named levels, draws within their ranges, refusals by name, the nominal
+world bit for bit, and a drawn world applied to both backends' models alike (issue 85)."""
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from gsp_jax import physics  # noqa: E402
+from gsp_jax.model import scenario  # noqa: E402
+from gsp_jax.physics import world  # noqa: E402
+from gsp_jax.planning import evaluation, policies  # noqa: E402
+from gsp_jax.surrogate.step import Surrogate  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def phys():
+    return physics.Physics(Surrogate(learned=False), physics.PhysicsConfig().replace(hold=0.3))
+
+
+@pytest.mark.parametrize("field, value", [("mass", 0.95), ("friction", -0.1), ("com", 0.05), ("com", float("nan")),
+                                          ("delay", 2.5), ("delay", -1), ("joint_noise", 0.5), ("mass", True)])
+def test_a_gap_outside_its_physical_range_is_refused_by_name(field, value):
+    with pytest.raises(ValueError, match=f"Gap.{field}"):
+        world.Gap().replace(**{field: value})
+    with pytest.raises(ValueError, match="unknown level 'tiny'"):
+        world.Gap.named("tiny")
+
+
+@pytest.mark.parametrize("level", sorted(world.LEVELS))
+def test_draws_are_finite_and_within_their_documented_ranges(level):
+    gap = world.Gap.named(level)
+    n, L, J = 512, 6, 16
+    w = jax.device_get(world.draw(gap, jax.random.PRNGKey(3), n, L, J))
+    for name in world.RELATIVE:
+        x = np.asarray(getattr(w, name))
+        half = getattr(gap, name)
+        assert np.all(np.isfinite(x)) and np.all(x >= 1 - half - 1e-6) and np.all(x <= 1 + half + 1e-6), name
+        if half:  # the range is used, not a corner of it
+            assert np.ptp(x) > half, name
+    assert np.asarray(w.inertia).shape == (n, 3) and np.all(np.abs(w.com) <= gap.com + 1e-9)
+    assert set(np.unique(w.delay)) == set(range(gap.delay + 1))
+    np.testing.assert_array_equal(w.noise, np.broadcast_to([gap.pose_noise, gap.angle_noise, gap.joint_noise],
+                                                           (n, 3)).astype(np.float32))
+    if level == "nominal":  # exactly the nominal world
+        one = jax.device_get(world.nominal(L, J))
+        jax.tree.map(lambda a, b: np.testing.assert_array_equal(a, np.broadcast_to(b, a.shape)), w, one)
+    again = jax.device_get(world.draw(gap, jax.random.PRNGKey(3), n, L, J))  # one key, one world
+    jax.tree.map(np.testing.assert_array_equal, w, again)
+
+
+def _episodes(n_steps=3):
+    eps = list(scenario.episode_set("eval").values())[:2]
+    return scenario.stack([e.head(n_steps) for e in eps])
+
+
+def test_the_nominal_world_is_todays_check_bit_for_bit(phys):
+    """C MuJoCo, four tips on two short episodes: world=None and the nominal level's draw give identical runs."""
+    eps = _episodes()
+    policy = policies.SequencePolicy(jnp.asarray(evaluation.four_tips(phys.space, eps.n_steps)))
+    w = world.draw(world.Gap.named("nominal"), jax.random.PRNGKey(0), 2, phys.scene.n_touch,
+                   len(phys.scene.hand_dof))
+    a = phys.simulate_batch(policy, eps, backend="c", cores=1)
+    b = phys.simulate_batch(policy, eps, backend="c", cores=1, world=w)
+    jax.tree.map(lambda x, y: np.testing.assert_array_equal(np.asarray(x), np.asarray(y)), a, b)
+    gap = world.Gap.named("wide").replace(delay=0, pose_noise=0.0, angle_noise=0.0, joint_noise=0.0)
+    wide = world.draw(gap, jax.random.PRNGKey(0), 2, phys.scene.n_touch, len(phys.scene.hand_dof))
+    c = phys.simulate_batch(policy, eps, backend="c", cores=1, world=wide)
+    assert not np.array_equal(np.asarray(a.qpos), np.asarray(c.qpos))  # another world, another run
+
+
+def test_a_drawn_world_sets_both_backends_models_as_drawn(phys):
+    """The world's factors land on the right fields: the C model (float64) and the MJX model (float32) of one
+    episode agree with each other and with the nominal model's values times the draw."""
+    scene = phys.scene
+    eps = _episodes()
+    gap = world.Gap.named("wide").replace(delay=0, pose_noise=0.0, angle_noise=0.0, joint_noise=0.0)
+    w = world.draw(gap, jax.random.PRNGKey(1), 2, scene.n_touch, len(scene.hand_dof))
+    fields = jax.device_get(jax.vmap(scene.episode_fields)(eps, w))
+    one = jax.tree.map(lambda x: np.asarray(x)[1], fields)
+    w1 = jax.tree.map(lambda x: np.asarray(x)[1], jax.device_get(w))
+    m, base, mx = scene.c_model(one), scene.model, scene.mjx_model(one, jnp.float32(0.0))
+    b, pairs, dof, act = scene.tool_body, scene.finger_tool_pairs, scene.hand_dof, scene.hand_act
+    np.testing.assert_allclose(m.body_mass[b], float(eps.mass[1]) * float(w1.mass), rtol=1e-6)
+    np.testing.assert_allclose(m.body_inertia[b], np.asarray(eps.inertia[1]) * w1.inertia, rtol=1e-6)
+    np.testing.assert_allclose(m.body_ipos[b], np.asarray(eps.com[1]) + w1.com, atol=1e-7)
+    np.testing.assert_allclose(m.pair_friction[pairs, 0], float(eps.friction[1]) * w1.friction[scene.pair_link],
+                               rtol=1e-6)
+    np.testing.assert_allclose(m.pair_solref[pairs, 0], base.pair_solref[pairs, 0] * w1.softness[scene.pair_link],
+                               rtol=1e-6)
+    np.testing.assert_allclose(m.dof_damping[dof], base.dof_damping[dof] * w1.damping, rtol=1e-6)
+    np.testing.assert_allclose(m.dof_armature[dof], base.dof_armature[dof] * w1.armature, rtol=1e-6)
+    np.testing.assert_allclose(m.actuator_gear[act, 0], base.actuator_gear[act, 0] * w1.strength, rtol=1e-6)
+    assert len(set(scene.pair_link.tolist())) > 1  # the links' frictions differ, not one factor for all
+    for name in ("body_mass", "body_inertia", "body_ipos", "pair_friction", "pair_solref", "dof_damping",
+                 "dof_armature", "actuator_gear"):
+        np.testing.assert_allclose(np.asarray(getattr(mx, name)), getattr(m, name), rtol=1e-6, atol=1e-7,
+                                   err_msg=name)
+    assert not np.allclose(m.dof_damping[dof], base.dof_damping[dof])  # the draw moved them
+
+
+def test_a_world_that_does_not_fit_or_is_not_simulated_is_refused_by_name(phys):
+    scene, eps = phys.scene, _episodes()
+    policy = policies.SequencePolicy(jnp.asarray(evaluation.four_tips(phys.space, eps.n_steps)))
+    w = world.draw(world.Gap.named("gap"), jax.random.PRNGKey(0), 2, scene.n_touch, len(scene.hand_dof))
+    with pytest.raises(ValueError, match="world.friction: shape"):
+        phys.simulate_batch(policy, eps, backend="c", world=w.replace(friction=w.friction[:, :1]))
+    with pytest.raises(ValueError, match="world.damping: factors"):
+        phys.simulate_batch(policy, eps, backend="c", world=w.replace(damping=-w.damping))
+    with pytest.raises(ValueError, match="world.delay"):
+        phys.simulate_batch(policy, eps, backend="c", world=w.replace(delay=jnp.array([0, 2], jnp.int32)))
+    with pytest.raises(ValueError, match="world.noise"):
+        phys.simulate_batch(policy, eps, backend="c", world=w.replace(delay=jnp.zeros(2, jnp.int32)))

@@ -112,7 +112,49 @@ def test_a_world_that_does_not_fit_or_is_not_simulated_is_refused_by_name(phys):
         phys.simulate_batch(policy, eps, backend="c", world=w.replace(friction=w.friction[:, :1]))
     with pytest.raises(ValueError, match="world.damping: factors"):
         phys.simulate_batch(policy, eps, backend="c", world=w.replace(damping=-w.damping))
-    with pytest.raises(ValueError, match="world.delay"):
-        phys.simulate_batch(policy, eps, backend="c", world=w.replace(delay=jnp.array([0, 2], jnp.int32)))
+    with pytest.raises(ValueError, match="world.delay: the MJX runner"):
+        phys.simulate_batch(policy, eps, backend="mjx", world=w.replace(delay=jnp.array([0, 2], jnp.int32)))
     with pytest.raises(ValueError, match="world.noise"):
         phys.simulate_batch(policy, eps, backend="c", world=w.replace(delay=jnp.zeros(2, jnp.int32)))
+
+
+def test_a_delayed_motor_acts_with_the_command_of_d_ticks_before(phys):
+    """`c_backend.Engine` with delays (0, 3): the delayed episode steps bit for bit as `mujoco.mj_step` from Python
+    does with each tick's motor command applied three ticks later (zero torque before the first arrives), the other
+    as without a delay; a snapshot's commands on their way are restored with it."""
+    import mujoco
+
+    from gsp_jax.physics import c_backend
+
+    scene = phys.scene
+    eps = _episodes()
+    fields = jax.device_get(jax.vmap(scene.episode_fields)(eps))
+    qpos0 = np.asarray(jax.vmap(phys.start)(eps)[0], np.float64)
+    rng = np.random.default_rng(0)
+    lo, hi = scene.model.actuator_ctrlrange.T
+    nu, n = phys.model.nu, 30
+    out = np.zeros((n, 2, nu + 9), np.float32)
+    out[:, :, :nu] = rng.uniform(0.3 * lo, 0.3 * hi, (n, 2, nu))
+    constants = c_backend.native_tick(phys).constants
+    eng = c_backend.Engine(scene, fields, qpos0, delay=np.array([0, 3]))
+    buf = np.zeros(max(phys.model.nq, phys.model.nv, nu, 6))
+    trace, states = [], []
+    for j in range(n):
+        states.append((eng.state(), eng.obs.copy(), eng.native.pending.copy()))
+        eng.step(constants, np.arange(2), out[j], 0.0, buf, j)
+        trace.append(eng.obs.copy())
+    for e, delay in ((0, 0), (1, 3)):
+        one = jax.tree.map(lambda x: x[e], fields)
+        m = scene.c_model(one)
+        d = mujoco.MjData(m)
+        d.qpos[:] = qpos0[e]
+        mujoco.mj_forward(m, d)
+        for j in range(n):
+            scene.c_pedestals(m, one, 0.0)
+            d.ctrl[:] = out[j - delay, e, :nu] if j >= delay else 0.0
+            mujoco.mj_step(m, d)
+            np.testing.assert_array_equal(trace[j][e], np.concatenate([d.qpos, d.qvel, d.qfrc_bias]).astype(np.float32))
+    eng.restore(*states[10])  # back to tick 10 with the commands then on their way: the same steps again
+    for j in range(10, n):
+        eng.step(constants, np.arange(2), out[j], 0.0, buf, j)
+        np.testing.assert_array_equal(eng.obs, trace[j])

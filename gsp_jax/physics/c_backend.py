@@ -153,6 +153,7 @@ class Snapshot:
     qpos: np.ndarray  # (M, K, nq) float32
     actions: np.ndarray  # (M, T) int32: the decisions so far
     grasps: np.ndarray  # (M, T) int32
+    pending: np.ndarray  # (M, D, nu) float64: motor commands still on their way (a world's delay; zeros without)
 
     def take(self, rows) -> "Snapshot":
         """The snapshot of `rows` (an index array: rows may repeat, e.g. one copy per branch)."""
@@ -208,7 +209,8 @@ class Engine:
     stepped by `mj_step` from native code (`native.step_rows`, `native.segment`: no Python per step). `obs`
     (n, nq + 2 nv) float32 is every episode's observation: qpos, qvel and qfrc_bias after its last step."""
 
-    def __init__(self, scene, fields, qpos0: np.ndarray, log: list | None = None, pool: "Pool | None" = None):
+    def __init__(self, scene, fields, qpos0: np.ndarray, log: list | None = None, pool: "Pool | None" = None,
+                 delay: np.ndarray | None = None):
         n = qpos0.shape[0]
         self.scene, self.n, self.log, self.pool = scene, n, log, pool
         one = lambda e: jax.tree.map(lambda x: np.asarray(x)[e], fields)  # noqa: E731
@@ -225,9 +227,11 @@ class Engine:
             self.keys = [Pool.key(one(e)) for e in range(n)]
             self.models, self.datas = map(list, zip(*[pool.take(scene, k, lambda e=e: one(e))
                                                       for e, k in enumerate(self.keys)]))
+        delay = np.zeros(n, np.int64) if delay is None else np.ascontiguousarray(delay, np.int64)
         self.native = native.Models(addresses=native.addresses(self.models, self.datas, scene.tool_body),
                                     pedestals=np.ascontiguousarray(fields.pedestal_pos, np.float64),  # at drop 0
-                                    geoms=np.asarray(scene.pedestal_geoms, np.int64))
+                                    geoms=np.asarray(scene.pedestal_geoms, np.int64), delay=delay,
+                                    pending=np.zeros((n, int(delay.max(initial=0)) + 1, scene.model.nu)))
         self._spec = mujoco.mjtState.mjSTATE_INTEGRATION
         self.nstate = mujoco.mj_stateSize(scene.model, self._spec)
 
@@ -247,20 +251,23 @@ class Engine:
             mujoco.mj_getState(self.models[e], self.datas[e], row, self._spec)
         return out
 
-    def restore(self, state: np.ndarray, obs: np.ndarray) -> None:
+    def restore(self, state: np.ndarray, obs: np.ndarray, pending: np.ndarray | None = None) -> None:
         """Every episode's MuJoCo state rows (n, nstate) and the observation that went with them (its qfrc_bias
-        came from the step before: MuJoCo's derived fields are one step behind the state)."""
+        came from the step before: MuJoCo's derived fields are one step behind the state), and the motor commands
+        still on their way (`native.Models.pending`; None: none)."""
         for e, (m, d) in enumerate(zip(self.models, self.datas)):
             mujoco.mj_setState(m, d, np.asarray(state[e], np.float64), self._spec)
         self.obs[:] = obs
+        same = pending is not None and np.shape(pending) == self.native.pending.shape
+        self.native.pending[:] = pending if same else 0.0  # a model without the world's delay has none on the way
 
-    def step(self, constants, ids: np.ndarray, out: np.ndarray, drop: float, buf: np.ndarray) -> None:
+    def step(self, constants, ids: np.ndarray, out: np.ndarray, drop: float, buf: np.ndarray, j: int = 0) -> None:
         """Episodes `ids` advance one physics step under their rows of `out` (n, nu + 6 ...): motor commands
         and the tool's external wrench, with the pedestals `drop` (<= 0) metres below their start; the others
         stay as they are. `buf`: float64 scratch of at least max(nq, nv, nu, 6) (one a thread)."""
         if self.log is not None:  # (episodes, their mjSTATE_INTEGRATION rows, pedestal positions) before the step
             self.log.append((ids.copy(), self.state(ids), self.native.pedestals[ids] + np.array([0.0, 0.0, drop])))
-        native.step_rows(constants, self.native, np.asarray(ids, np.int64), out, float(drop), self.obs, buf)
+        native.step_rows(constants, self.native, np.asarray(ids, np.int64), out, float(drop), self.obs, buf, int(j))
 
 
 class _Lockstep:
@@ -320,7 +327,9 @@ class _Lockstep:
         if engine_log is not None and workers != 1:
             raise ValueError(f"engine_log needs workers=1, got workers={workers}")
         pool = spec.kept("c-pool", Pool) if start is not None and engine_log is None else None
-        self.engine = Engine(scene, fields, self.qpos0, engine_log, pool)
+        delays = [np.zeros(int(np.shape(e.mass)[0]), np.int64) if w is None else np.asarray(w.delay, np.int64)
+                  for e, w in zip(per_group, worlds)]
+        self.engine = Engine(scene, fields, self.qpos0, engine_log, pool, np.concatenate(delays))
         self.grasp = cat(lambda e: np.asarray(e.start_grasp, np.int32))
         self.fell, self.fall_tick = np.zeros(M, bool), np.full(M, -1, np.int32)
         self.angle, self.perr = np.zeros((M, K), np.float32), np.zeros((M, K), np.float32)
@@ -345,7 +354,7 @@ class _Lockstep:
 
     def _restore(self, start: Snapshot) -> None:
         """Continue from `start` (its rows are this lockstep's rows)."""
-        self.engine.restore(start.state, start.obs)
+        self.engine.restore(start.state, start.obs, start.pending)
         self.cs = np.array(start.cs, np.float32)
         self.grasp, self.fell, self.fall_tick = (np.array(x) for x in (start.grasp, start.fell, start.fall_tick))
         self.angle, self.perr, self.qpos_trace = (np.array(x) for x in (start.angle, start.perr, start.qpos))
@@ -358,7 +367,7 @@ class _Lockstep:
                         obs=self.engine.obs.copy(), cs=self.cs.copy(), grasp=self.grasp.copy(),
                         fell=self.fell.copy(), fall_tick=self.fall_tick.copy(), angle=self.angle.copy(),
                         perr=self.perr.copy(), qpos=self.qpos_trace.copy(), actions=self.actions.copy(),
-                        grasps=self.grasps.copy())
+                        grasps=self.grasps.copy(), pending=self.engine.native.pending.copy())
 
     def advance(self, until: int, progress: bool = False) -> None:
         """Segments self.segment .. until - 1: each a decision, then the chunks' ticks side by side."""
@@ -444,7 +453,7 @@ class _Lockstep:
                 self.record(ids, j - 1, self.out[ids, nu + 6:], eng.obs[ids, :self.nq])
                 alive = ids[~self.fell[ids]]
             if alive.size:
-                eng.step(self.native.constants, alive, self.out, drops[i], self._scratch[w].buf)
+                eng.step(self.native.constants, alive, self.out, drops[i], self._scratch[w].buf, j)
                 self.steps[w] += alive.size
 
     def results(self, outcomes: bool = False):

@@ -1184,6 +1184,8 @@ class Models(NamedTuple):
     addresses: np.ndarray  # (E, 8) uint64: `addresses`
     pedestals: np.ndarray  # (E, P, 3) float64: the pedestals' positions at drop 0
     geoms: np.ndarray  # (P,) int64: the pedestals' geoms
+    delay: np.ndarray  # (E,) int64: control ticks a motor command waits before it acts (the world's; 0: none)
+    pending: np.ndarray  # (E, D, nu) float64: the commands issued, a ring of D > max(delay) ticks (zeros at first)
 
 
 class Trace(NamedTuple):
@@ -1197,17 +1199,26 @@ class Trace(NamedTuple):
 
 
 @_jit
-def _step_row(K, models, r, out, drop, obs, buf):
-    """Episode r's pedestals `drop` metres down, motor commands out[:nu] and external wrench out[nu:nu + 6] in,
-    one `mj_step`, its observation row obs[r] (qpos, qvel, qfrc_bias; float32) read back. buf: float64 scratch."""
+def _step_row(K, models, r, out, drop, obs, buf, j):
+    """Episode r's pedestals `drop` metres down, motor commands out[:nu] (issued at tick j; they act `delay[r]`
+    ticks later, zero torque before the first arrives) and external wrench out[nu:nu + 6] in, one `mj_step`, its
+    observation row obs[r] (qpos, qvel, qfrc_bias; float32) read back. buf: float64 scratch."""
     nq, nv, nu = K.scene.nq, K.scene.nv, K.scene.nu
     addr, pedestals, geoms = models.addresses, models.pedestals, models.geoms
     place = buf.ctypes.data
     for g in range(geoms.shape[0]):
         buf[0], buf[1], buf[2] = pedestals[r, g, 0], pedestals[r, g, 1], pedestals[r, g, 2] + drop
         _mju_copy(addr[r, GEOM_POS] + np.uint64(24 * geoms[g]), place, np.intc(3))
-    for i in range(nu):
-        buf[i] = out[i]
+    d = models.delay[r]
+    if d > 0:  # the command of tick j - d acts now (a slot not yet written holds zeros)
+        ring = models.pending.shape[1]
+        for i in range(nu):
+            models.pending[r, j % ring, i] = out[i]
+        for i in range(nu):
+            buf[i] = models.pending[r, (j - d) % ring, i]
+    else:
+        for i in range(nu):
+            buf[i] = out[i]
     _mju_copy(addr[r, CTRL], place, np.intc(nu))
     for i in range(6):
         buf[i] = out[nu + i]
@@ -1225,10 +1236,11 @@ def _step_row(K, models, r, out, drop, obs, buf):
 
 
 @_jit
-def step_rows(K, models, rows, out, drop, obs, buf):
-    """Episodes `rows` one physics step each under their rows of out (E, nu + 6 + ...) (`_step_row`)."""
+def step_rows(K, models, rows, out, drop, obs, buf, j):
+    """Episodes `rows` one physics step each under their rows of out (E, nu + 6 + ...) issued at tick j
+    (`_step_row`)."""
     for r in rows:
-        _step_row(K, models, r, out[r], drop, obs, buf)
+        _step_row(K, models, r, out[r], drop, obs, buf, j)
 
 
 @_jit
@@ -1256,7 +1268,7 @@ def segment(K, j0, drops, rows, cs, obs, episodes, models, trace, out, S):
             if fell[r]:
                 continue
             _control(K, j, cs[r], obs[r], ep, out[r], S)
-            _step_row(K, models, r, out[r], drops[i], obs, S.buf)
+            _step_row(K, models, r, out[r], drops[i], obs, S.buf, j)
             steps += 1
     return steps
 

@@ -263,7 +263,7 @@ class Physics:
         if self.config.controller.predictive and backend != "c":
             raise ValueError(f"PhysicsConfig.controller.predictive: the predictive hold rolls the hold out in C "
                              f"MuJoCo and needs backend='c', got backend={backend!r}")
-        world_lib.check(world, episodes, self.scene)
+        world_lib.check(world, episodes, self.scene, backend)
         if backend == "c":
             from gsp_jax.physics import c_backend
 

@@ -144,22 +144,22 @@ def draw(gap: Gap, key: jax.Array, n: int, n_links: int, n_joints: int) -> World
     return jax.vmap(lambda k: draw_one(gap, k, n_links, n_joints))(jax.random.split(key, n))
 
 
-def check_simulated(world) -> None:
-    """A ValueError where `world` (a `World` batch, a list of them, or None) asks for what the physics runners do not
-    simulate yet: an actuation delay or observation noise (issue 85: the model's fields are simulated, these two
-    come next)."""
+def check_simulated(world, backend: str = "c") -> None:
+    """A ValueError where `world` (a `World` batch, a list of them, or None) asks for what the physics runner of
+    `backend` does not simulate yet: an actuation delay in MJX, observation noise in either (issue 85: the model's
+    fields and, in C MuJoCo, the delay are simulated; these come next)."""
     for w in (world if isinstance(world, (list, tuple)) else [world]):
         if w is None:
             continue
-        if np.any(np.asarray(w.delay) != 0):
-            raise ValueError(f"world.delay: the physics runners do not simulate an actuation delay yet; got delays "
-                             f"up to {int(np.max(np.asarray(w.delay)))} ticks (draw from a Gap with delay=0)")
+        if backend != "c" and np.any(np.asarray(w.delay) != 0):
+            raise ValueError(f"world.delay: the MJX runner does not simulate an actuation delay yet; got delays "
+                             f"up to {int(np.max(np.asarray(w.delay)))} ticks (backend='c' does)")
         if np.any(np.asarray(w.noise) != 0):
             raise ValueError("world.noise: the physics runners do not simulate observation noise yet; got stds "
                              f"{np.asarray(w.noise).reshape(-1, 3)[0].tolist()} (draw from a Gap without noise)")
 
 
-def check(world, episodes, scene) -> None:
+def check(world, episodes, scene, backend: str = "c") -> None:
     """A ValueError naming the field where `world` (a `World` batch or None) does not fit `episodes` (their leading
     axis) and `scene` (its L touching bodies, J hand joints), holds a non-finite or non-positive factor, or asks
     for what is not simulated yet (`check_simulated`). Nothing to check inside a trace."""
@@ -177,4 +177,4 @@ def check(world, episodes, scene) -> None:
             raise ValueError(f"world.{name}: factors must be finite and > 0, got {value[~(value > 0)][:3].tolist()}")
         if name == "com" and not np.all(np.isfinite(value)):
             raise ValueError(f"world.com: offsets must be finite, got {value.tolist()}")
-    check_simulated(world)
+    check_simulated(world, backend)

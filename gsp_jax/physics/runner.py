@@ -58,6 +58,8 @@ class _Carry:
     grasp: jax.Array
     fell: jax.Array
     fall_tick: jax.Array
+    pending: jax.Array | None = None  # (D, nu) the motor commands on their way (a world's delay; None: no world)
+    delay: jax.Array | None = None  # () int32 ticks a command waits (the world's)
 
 
 class Physics:
@@ -194,13 +196,18 @@ class Physics:
         mx = scene.mjx_model(fields, scene.pedestal_drop(j * self.timestep))
         ctrl, ext, cs = self.tick(carry.cs, self._observe(carry.data), episode, j)
         xfrc = jnp.zeros((self.model.nbody, 6), jnp.float32).at[scene.tool_body].set(ext)
+        pending = carry.pending
+        if pending is not None:  # a world's delay: the command of tick j - delay acts (zeros before the first)
+            ring = pending.shape[0]
+            pending = pending.at[j % ring].set(ctrl)
+            ctrl = pending[(j - carry.delay) % ring]
         data = carry.data.replace(ctrl=ctrl, xfrc_applied=xfrc)
         data = mjx.step(mx, data)
         angle, perr, fell_now = self.check(self._observe(data), episode, j)
         keep = carry.fell | fell_now  # freeze: a fallen tool stays put, a non-finite step is never stored
         data = jax.tree.map(lambda old, new: jnp.where(keep, old, new), carry.data, data)
         fall_tick = jnp.where(fell_now & ~carry.fell, j, carry.fall_tick)
-        carry = carry.replace(data=data, cs=cs, fell=carry.fell | fell_now, fall_tick=fall_tick)
+        carry = carry.replace(data=data, cs=cs, fell=carry.fell | fell_now, fall_tick=fall_tick, pending=pending)
         return carry, (angle, perr, data.qpos)
 
     def _run(self, policy, episodes: Episode, policy_axis, batched: bool, world=None) -> Result:
@@ -212,6 +219,10 @@ class Physics:
         vm = (lambda f, axes: jax.vmap(f, in_axes=axes)) if batched else (lambda f, axes: f)  # noqa: E731
         fields = vm(self.scene.episode_fields, 0)(episodes, world)  # the world: the physics model's only
         carry = vm(self._init, 0)(episodes)
+        if world is not None:  # a ring longer than any delay a world may draw (`world.MOST_DELAY`)
+            ring = jnp.zeros((world_lib.MOST_DELAY + 1, self.model.nu), jnp.float32)
+            carry = carry.replace(pending=jnp.broadcast_to(ring, (*jnp.shape(world.delay), *ring.shape)),
+                                  delay=jnp.asarray(world.delay, jnp.int32))
 
         def segment(carry: _Carry, k):
             carry, decision = vm(self._decide, (policy_axis, 0, 0, None))(policy, carry, episodes, k)

@@ -145,15 +145,12 @@ def draw(gap: Gap, key: jax.Array, n: int, n_links: int, n_joints: int) -> World
 
 
 def check_simulated(world, backend: str = "c") -> None:
-    """A ValueError where `world` (a `World` batch, a list of them, or None) asks for what the physics runner of
-    `backend` does not simulate yet: an actuation delay in MJX, observation noise in either (issue 85: the model's
-    fields and, in C MuJoCo, the delay are simulated; these come next)."""
+    """A ValueError where `world` (a `World` batch, a list of them, or None) asks for what the physics runners do
+    not simulate yet: observation noise (issue 85: the model's fields and the delay are simulated in both backends;
+    the noise comes next). `backend`: the runner asked."""
     for w in (world if isinstance(world, (list, tuple)) else [world]):
         if w is None:
             continue
-        if backend != "c" and np.any(np.asarray(w.delay) != 0):
-            raise ValueError(f"world.delay: the MJX runner does not simulate an actuation delay yet; got delays "
-                             f"up to {int(np.max(np.asarray(w.delay)))} ticks (backend='c' does)")
         if np.any(np.asarray(w.noise) != 0):
             raise ValueError("world.noise: the physics runners do not simulate observation noise yet; got stds "
                              f"{np.asarray(w.noise).reshape(-1, 3)[0].tolist()} (draw from a Gap without noise)")
@@ -177,4 +174,6 @@ def check(world, episodes, scene, backend: str = "c") -> None:
             raise ValueError(f"world.{name}: factors must be finite and > 0, got {value[~(value > 0)][:3].tolist()}")
         if name == "com" and not np.all(np.isfinite(value)):
             raise ValueError(f"world.com: offsets must be finite, got {value.tolist()}")
+        if name == "delay" and not np.all((value >= 0) & (value <= MOST_DELAY)):
+            raise ValueError(f"world.delay: control ticks in [0, {MOST_DELAY}] expected, got {value.tolist()}")
     check_simulated(world, backend)

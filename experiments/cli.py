@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib
 import os
 import sys
@@ -36,6 +37,8 @@ COMMANDS = {  # command -> (module, one-line help)
                     "for 1, 2, 4 ... processes (one GPU and C cores each)"),
     "envelope": ("experiments.physics.envelope", "the stress envelope in physics: "
                  "falls classified by the oracle, regret"),
+    "world-parts": ("experiments.physics.world_parts", "which part of the world gap drops the tool: falls in the "
+                    "whole gap and in each of its fields alone"),
     "hands": ("experiments.physics.hands", "a hands x tools table: DP optimal, L1 and L1-physics on each model's "
               "variations in C MuJoCo, falls classified by the oracle"),
     "rescore": ("experiments.physics.rescore", "surrogate against physics: "
@@ -170,6 +173,20 @@ def main(argv: list[str] | None = None, outer: common.Run | None = None) -> comm
                             help="the contact controller in physics (default: measured, the contact frames the "
                                  "links have; paper: the paper's, its options' face normals, docs/physics.md); "
                                  "results and records are named -paper with it")
+        if name in WORLD_COMMANDS:
+            from gsp_jax.physics import world as world_lib
+
+            sp.add_argument("--world", choices=list(world_lib.LEVELS), default=None,
+                            help="the world the plans run in (default nominal: the planners' own model; gap: what "
+                                 "a careful lab does not know of its hand and tool, wide: twice that; drawn per "
+                                 "episode, hidden from every planner: docs/world.md); results and records are named "
+                                 "-<level> with it")
+            sp.add_argument("--world-seed", type=int, default=None, metavar="N",
+                            help="the seed of the episodes' worlds (default 0)")
+            sp.add_argument("--world-only", nargs="+", default=None, metavar="FIELD",
+                            choices=[f.name for f in dataclasses.fields(world_lib.Gap)],
+                            help="only these fields of the level's gap (the others as the model: which part of the "
+                                 "gap drops the tool); results and records are named -<level>-<fields>")
     args = parser.parse_args(argv)
     for plugin in args.plugin:
         load_plugin(plugin)
@@ -212,14 +229,24 @@ def make_run(args: argparse.Namespace, words: list[str], outer: common.Run | Non
             "" if getattr(args, "learned", False) else " (the model's default; --paper: the paper's surrogate)"),
             flush=True)
     controller = getattr(args, "controller", None) or outer.controller
-    for name in ("model", "learned", "paper", "controller"):
+    world = getattr(args, "world", None) or outer.world
+    world_seed = outer.world_seed if getattr(args, "world_seed", None) is None else args.world_seed
+    world_only = tuple(getattr(args, "world_only", None) or outer.world_only)
+    if world_only and world == "nominal":
+        raise SystemExit(f"--world-only {' '.join(world_only)}: a part of a gap needs --world gap or wide")
+    for name in ("model", "learned", "paper", "controller", "world", "world_seed", "world_only"):
         vars(args).pop(name, None)
     return common.Run(model=model, learned=use_learned, record=outer.record or args.record,
-                      command=outer.command or tuple(words), controller=controller)
+                      command=outer.command or tuple(words), controller=controller, world=world,
+                      world_seed=world_seed, world_only=world_only)
 
 
 PHYSICS_COMMANDS = ("demo", "physics", "bench-physics", "bench-scale", "envelope", "hands", "corpus", "calibrate",
-                    "fig4b", "table1", "reproduce")  # they simulate: `--controller` chooses the contact controller
+                    "fig4b", "table1", "reproduce", "world-parts")  # they simulate: `--controller` chooses the contact
+# controller
+
+
+WORLD_COMMANDS = ("physics", "envelope", "fig4b")  # they take `--world`: plans run in a world unlike the model
 
 
 PAPER_BY_DEFAULT = ("corpus", "reproduce")  # the learned term's own data (its corpus plans with the analytic

@@ -26,13 +26,15 @@ if TYPE_CHECKING:
 RESULTS = pathlib.Path("results")
 
 
-def results_dir(*parts: str, model=None, learned: bool = False, controller: str = DEFAULT_CONTROLLER) -> pathlib.Path:
+def results_dir(*parts: str, model=None, learned: bool = False, controller: str = DEFAULT_CONTROLLER,
+                world: str = "nominal") -> pathlib.Path:
     """results/<parts> (created, and locked for this process); a command run for another model than the wrench
     (`model`, a `Model` or a name; None: the default) writes to results/<first part>-<model>/... (results/<model>
     for no parts) instead, one with the learned physics term (`learned`) to results/<first part>-learned/..., and
-    one with another contact controller than the default (`controller`) to results/<first part>-<controller>/...:
-    no model's, surrogate's or controller's results overwrite another's. A command calls its run's
-    (`Run.results_dir`)."""
+    one with another contact controller than the default (`controller`) to results/<first part>-<controller>/...,
+    one in a world other than the nominal (`world`, a level of `gsp_jax.physics.world`) to
+    results/<first part>-<world>/...: no model's, surrogate's, controller's or world's results overwrite another's. A
+    command calls its run's (`Run.results_dir`)."""
     from gsp_jax.model import load as model_lib
 
     name = model_lib.load_model(model).name
@@ -42,6 +44,8 @@ def results_dir(*parts: str, model=None, learned: bool = False, controller: str 
         parts = (f"{parts[0]}-learned", *parts[1:]) if parts else ("learned",)
     if controller != DEFAULT_CONTROLLER:
         parts = (f"{parts[0]}-{controller}", *parts[1:]) if parts else (controller,)
+    if world != "nominal":
+        parts = (f"{parts[0]}-{world}", *parts[1:]) if parts else (world,)
     path = RESULTS.joinpath(*parts)
     path.mkdir(parents=True, exist_ok=True)
     if distributed.is_main():  # the processes of one run (`--processes`) share process 0's lock
@@ -121,11 +125,33 @@ class Run:
     record: bool = False  # `--record`: `record_figures` writes to DATA (off: runs leave docs alone)
     command: tuple[str, ...] = ()  # the words of the command its records name (the outermost one's; (): sys.argv)
     controller: str = DEFAULT_CONTROLLER  # the contact controller in physics (`--controller`: `PhysicsConfig.named`)
+    world: str = "nominal"  # the level of the world the plans run in (`--world`: `gsp_jax.physics.world.LEVELS`)
+    world_seed: int = 0  # the seed of the episodes' worlds (`--world-seed`)
+    world_only: tuple[str, ...] = ()  # only these fields of the level's gap (`--world-only`; (): all)
+
+    @property
+    def world_name(self) -> str:
+        """The world's name in results and records: its level, and the gap's fields where `world_only` picks."""
+        return "-".join((self.world, *self.world_only))
 
     def results_dir(self, *parts: str) -> pathlib.Path:
-        """`results_dir` for this run's model, learned term and controller:
-        results/<parts>[-<model>][-learned][-<controller>]."""
-        return results_dir(*parts, model=self.model, learned=self.learned, controller=self.controller)
+        """`results_dir` for this run's model, learned term, controller and world:
+        results/<parts>[-<model>][-learned][-<controller>][-<world>]."""
+        return results_dir(*parts, model=self.model, learned=self.learned, controller=self.controller,
+                           world=self.world_name)
+
+    def worlds(self, episodes, hand):
+        """The worlds of `episodes` (a batch: leading axis (N,)) in this run's `world` level, drawn from
+        `world_seed` (only `world_only`'s fields of its gap, where it names any) for `hand` (a `HandModel`;
+        `gsp_jax.physics.world.draw_for`: episode i's depends on the seed,
+        i and N only, so a chunk of the set selects its rows); None in the nominal world (today's check, bit for
+        bit)."""
+        if self.world == "nominal":
+            return None
+        from gsp_jax.physics import world as world_lib
+
+        return world_lib.draw_for(world_lib.Gap.named(self.world).only(*self.world_only), self.world_seed, episodes,
+                                  hand)
 
     def physics_config(self, **changes):
         """The `PhysicsConfig` of this run's contact controller (`PhysicsConfig.named`) with the model's own tuning
@@ -144,6 +170,7 @@ class Run:
             return None
         data = DATA if data is None else pathlib.Path(data)
         other = f"_{self.controller}" if self.controller != DEFAULT_CONTROLLER else ""
+        other += f"_{self.world_name}".replace("-", "_") if self.world != "nominal" else ""
         name = f"{name}{'_learned' * self.learned}{other}_{device_slug()}"  # beside the default's figures
         try:
             commit = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=ROOT, capture_output=True,

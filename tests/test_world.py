@@ -104,7 +104,7 @@ def test_a_drawn_world_sets_both_backends_models_as_drawn(phys):
     assert not np.allclose(m.dof_damping[dof], base.dof_damping[dof])  # the draw moved them
 
 
-def test_a_world_that_does_not_fit_or_is_not_simulated_is_refused_by_name(phys):
+def test_a_world_that_does_not_fit_its_episodes_or_its_ranges_is_refused_by_name(phys):
     scene, eps = phys.scene, _episodes()
     policy = policies.SequencePolicy(jnp.asarray(evaluation.four_tips(phys.space, eps.n_steps)))
     w = world.draw(world.Gap.named("gap"), jax.random.PRNGKey(0), 2, scene.n_touch, len(scene.hand_dof))
@@ -112,8 +112,8 @@ def test_a_world_that_does_not_fit_or_is_not_simulated_is_refused_by_name(phys):
         phys.simulate_batch(policy, eps, backend="c", world=w.replace(friction=w.friction[:, :1]))
     with pytest.raises(ValueError, match="world.damping: factors"):
         phys.simulate_batch(policy, eps, backend="c", world=w.replace(damping=-w.damping))
-    with pytest.raises(ValueError, match="world.noise"):
-        phys.simulate_batch(policy, eps, backend="c", world=w.replace(delay=jnp.zeros(2, jnp.int32)))
+    with pytest.raises(ValueError, match=r"world.noise: stds in \[0, "):
+        phys.simulate_batch(policy, eps, backend="c", world=w.replace(noise=w.noise * 100))
 
 
 def test_a_delayed_motor_acts_with_the_command_of_d_ticks_before(phys):
@@ -134,7 +134,8 @@ def test_a_delayed_motor_acts_with_the_command_of_d_ticks_before(phys):
     out = np.zeros((n, 2, nu + 9), np.float32)
     out[:, :, :nu] = rng.uniform(0.3 * lo, 0.3 * hi, (n, 2, nu))
     constants = c_backend.native_tick(phys).constants
-    eng = c_backend.Engine(scene, fields, qpos0, delay=np.array([0, 3]))
+    late = world.nominal_batch(2, scene.n_touch, len(scene.hand_dof)).replace(delay=np.array([0, 3]))
+    eng = c_backend.Engine(scene, fields, qpos0, world=late)
     buf = np.zeros(max(phys.model.nq, phys.model.nv, nu, 6))
     trace, states = [], []
     for j in range(n):
@@ -158,14 +159,16 @@ def test_a_delayed_motor_acts_with_the_command_of_d_ticks_before(phys):
         np.testing.assert_array_equal(eng.obs, trace[j])
 
 
-def test_mjx_and_c_mujoco_agree_in_a_delayed_world(phys):
-    """Four tips on two short episodes, the second with its motor commands 4 ticks late: MJX and C MuJoCo give the
+def test_mjx_and_c_mujoco_agree_in_a_delayed_and_noisy_world(phys):
+    """Four tips on two short episodes, the second with its motor commands 4 ticks late and its observations
+    noised (the wide level's stds): MJX and C MuJoCo give the
     same outcomes, held angles within 2 degrees (as without a world, tests/test_physics.py); MJX with the nominal
-    world is MJX without one, bit for bit; the delay changes the run."""
+    world is MJX without one, bit for bit; the world changes the run."""
     scene, eps = phys.scene, _episodes()
     policy = policies.SequencePolicy(jnp.asarray(evaluation.four_tips(phys.space, eps.n_steps)))
     w = world.draw(world.Gap(), jax.random.PRNGKey(0), 2, scene.n_touch, len(scene.hand_dof))
-    late = w.replace(delay=jnp.array([0, 4], jnp.int32))
+    noise = jnp.array([[0.0, 0.0, 0.0], [0.002, 0.02, 0.01]], jnp.float32)  # the wide level's, second episode
+    late = w.replace(delay=jnp.array([0, 4], jnp.int32), noise=noise, key=jnp.array([[0, 0], [7, 9]], jnp.uint32))
     runs = {b: jax.device_get(phys.simulate_batch(policy, eps, backend=b, world=late)) for b in ("mjx", "c")}
     np.testing.assert_array_equal(runs["mjx"].fell, runs["c"].fell)
     held = ~np.asarray(runs["c"].fell)
@@ -176,3 +179,99 @@ def test_mjx_and_c_mujoco_agree_in_a_delayed_world(phys):
     assert np.array_equal(plain.qpos[0], runs["mjx"].qpos[0]) and not np.array_equal(plain.qpos[1], runs["mjx"].qpos[1])
     with pytest.raises(ValueError, match=r"world.delay: control ticks in \[0, 20\]"):
         phys.simulate_batch(policy, eps, backend="c", world=w.replace(delay=jnp.array([0, 21], jnp.int32)))
+
+
+def test_observation_noise_is_one_function_of_key_tick_and_component_in_jax_and_native_code():
+    """`world.unit_noise` (JAX) and `native._unit_noise` (the native controller's) give the same float32 bits;
+    over 64 components x 2000 ticks the noise has zero mean and unit variance (within 4 standard errors), stays
+    within its bound (2 sqrt 3), and a tick's noise is uncorrelated with the next's."""
+    from gsp_jax.physics import native
+
+    key = np.array([12345, 678910], np.uint32)
+    ticks, comps = np.arange(2000), np.arange(world.COMPONENTS)
+    jx = np.asarray(jax.jit(jax.vmap(lambda j: world.unit_noise(key, j, jnp.arange(world.COMPONENTS,
+                                                                                       dtype=jnp.uint32))))(ticks))
+    k0, k1 = np.uint64(key[0]), np.uint64(key[1])
+    for j in (0, 1, 1999):
+        nb = np.array([native._unit_noise(k0, k1, np.int64(j), np.int64(c)) for c in comps], np.float32)
+        np.testing.assert_array_equal(nb, jx[j])
+    n = jx.size
+    assert abs(jx.mean()) < 4 / np.sqrt(n) and abs(jx.var() - 1.0) < 4 * np.sqrt(2.0 / n)
+    assert np.abs(jx).max() <= 2 * np.sqrt(3) + 1e-6
+    assert abs(np.corrcoef(jx[:-1].ravel(), jx[1:].ravel())[0, 1]) < 4 / np.sqrt(n)
+    other = np.asarray(world.unit_noise(key + 1, 5, jnp.arange(world.COMPONENTS, dtype=jnp.uint32)))
+    assert not np.array_equal(other, jx[5])  # another key, another noise
+
+
+def test_what_the_native_controller_observes_is_world_seen(phys):
+    """The C engine's noised observation (`Engine.seen`) after a step is `world.seen` of its observation at the
+    next tick: joints and tool position to the float32 bit, the orientation within 2 float32 steps; velocities as
+    simulated. A row without noise observes its state; no noise anywhere: the observation itself."""
+    from gsp_jax.physics import c_backend
+
+    scene, eps = phys.scene, _episodes()
+    fields = jax.device_get(jax.vmap(scene.episode_fields)(eps))
+    qpos0 = np.asarray(jax.vmap(phys.start)(eps)[0], np.float64)
+    w = world.nominal_batch(2, scene.n_touch, len(scene.hand_dof)).replace(
+        noise=np.array([[0.0, 0.0, 0.0], [0.002, 0.02, 0.01]], np.float32), key=np.array([[0, 0], [3, 4]], np.uint32))
+    constants = c_backend.native_tick(phys).constants
+    eng = c_backend.Engine(scene, fields, qpos0, world=w)
+    out = np.zeros((2, phys.model.nu + 9), np.float32)
+    buf = np.zeros(max(phys.model.nq, phys.model.nv, phys.model.nu, 6))
+    for j in range(5):
+        eng.step(constants, np.arange(2), out, 0.0, buf, j)
+    nq, nv = phys.model.nq, phys.model.nv
+    o = lambda row: scene.observe(row[:nq], row[nq:nq + nv], row[nq + nv:])  # noqa: E731
+    np.testing.assert_array_equal(eng.seen[0], eng.obs[0])
+    want = jax.device_get(world.seen(o(jnp.asarray(eng.obs[1])), jax.tree.map(lambda x: jnp.asarray(x[1]), w), 5))
+    got = o(eng.seen[1])
+    np.testing.assert_array_equal(np.asarray(got.q), want.q)
+    np.testing.assert_array_equal(np.asarray(got.tool_pos), want.tool_pos)
+    np.testing.assert_allclose(np.asarray(got.tool_quat), want.tool_quat, rtol=0, atol=2.5e-7)
+    np.testing.assert_array_equal(eng.seen[1, nq:], eng.obs[1, nq:])
+    assert np.abs(np.asarray(got.q) - np.asarray(o(eng.obs[1]).q)).max() > 1e-3  # it is noised
+    plain = c_backend.Engine(scene, fields, qpos0)
+    assert plain.seen is plain.obs
+
+
+def test_a_noisy_delayed_c_run_continues_from_its_snapshot_bit_for_bit(phys):
+    """The noise is a function of the episode's key and the tick, the commands on their way are in the snapshot:
+    a C MuJoCo run stopped at segment 2 and continued is the whole run, bit for bit."""
+    from gsp_jax.physics import c_backend
+
+    scene, eps = phys.scene, _episodes()
+    policy = policies.SequencePolicy(jnp.asarray(evaluation.four_tips(phys.space, eps.n_steps)))
+    w = world.draw(world.Gap.named("wide"), jax.random.PRNGKey(5), 2, scene.n_touch, len(scene.hand_dof))
+    w = w.replace(delay=jnp.array([2, 3], jnp.int32))
+    whole = c_backend.simulate(phys, [(policy, None)], eps, world=w)[0]
+    snap = c_backend.simulate(phys, [(policy, None)], eps, world=w, until=2)
+    rest = c_backend.simulate(phys, [(policy, None)], eps, world=w, start=snap)[0]
+    jax.tree.map(lambda x, y: np.testing.assert_array_equal(np.asarray(x), np.asarray(y)), whole, rest)
+    calm = c_backend.simulate(phys, [(policy, None)], eps, world=w.replace(noise=jnp.zeros_like(w.noise)))[0]
+    assert not np.array_equal(np.asarray(calm.qpos), np.asarray(whole.qpos))  # the noise moves the run
+
+
+def test_a_commands_world_is_drawn_per_episode_from_its_level_and_seed():
+    """`--world LEVEL [--world-only FIELD...] [--world-seed N]` (`experiments.common.Run.worlds`): none in the
+    nominal world (today's path); the level's gap, or only the named fields of it, drawn per episode from the seed;
+    a chunk's rows are the whole set's rows; results and records named for the world; a part of a gap without a
+    level refused."""
+    from experiments import cli
+    from experiments.common import Run
+
+    hand = Surrogate(learned=False).hand
+    eps = scenario.stack(list(scenario.episode_set("eval").values())[:6])
+    assert Run().worlds(eps, hand) is None and Run().world_name == "nominal"
+    run = Run(world="gap", world_only=("strength", "delay"), world_seed=4)
+    w = run.worlds(eps, hand)
+    assert run.world_name == "gap-strength-delay" and np.asarray(w.strength).shape == (6, hand.n_joints)
+    np.testing.assert_array_equal(w.mass, np.ones(6, np.float32))  # the fields not named: the model's
+    assert np.ptp(np.asarray(w.strength)) > 0 and np.all(np.abs(np.asarray(w.strength) - 1) <= 0.15 + 1e-6)
+    whole = Run(world="gap", world_seed=4).worlds(eps, hand)
+    np.testing.assert_array_equal(world.rows(whole, [2, 3]).friction, np.asarray(whole.friction)[2:4])
+    assert world.digest(whole) != world.digest(Run(world="gap", world_seed=5).worlds(eps, hand))
+    assert world.as_rows(whole)[1]["delay"] == int(np.asarray(whole.delay)[1])
+    with pytest.raises(SystemExit, match="needs --world gap or wide"):
+        cli.main(["envelope", "--world-only", "mass"])
+    with pytest.raises(ValueError, match="Gap.only: unknown fields"):
+        world.Gap.named("gap").only("weight")

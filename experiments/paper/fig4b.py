@@ -24,6 +24,7 @@ import numpy as np
 
 from experiments import common
 from experiments.common import Run, table
+from gsp_jax.physics import world as world_lib
 from gsp_jax.physics.report import result_rows
 from gsp_jax.core import distributed, files, stats
 from gsp_jax.planning import evaluation
@@ -54,17 +55,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def evaluate(ctx: evaluation.Context, names, out, fresh: bool = False, backend: str = "c", cached: bool = True,
         jobs: int | None = None, warm: bool = False, k: int = evaluation.L1_PHYSICS["k"],
-        bases=evaluation.L1_PHYSICS["bases"], chunk: int | None = None, config=None) -> dict:
+        bases=evaluation.L1_PHYSICS["bases"], chunk: int | None = None, config=None, worlds=None,
+        world_name: str = "nominal") -> dict:
     """Fig. 4b's result per policy (saved results reused); `jobs` policies at a time (default as `--jobs`); in C
     MuJoCo the episodes in chunks of `chunk` (`lockstep`; default: one chunk per process). With several processes
     only process 0 saves and returns the results (the others return {}). `config`: the `PhysicsConfig` (default:
-    `PhysicsConfig()`, the default controller)."""
+    `PhysicsConfig()`, the default controller). `worlds`: the episodes' worlds (`gsp_jax.physics.world.World`,
+    ctx's episodes' leading axis; None: the nominal world), drawn at the level `world_name`."""
     phys = physics.Physics(ctx.surrogate, config or physics.PhysicsConfig())
     n_episodes = len(ctx.names)
     chunk = distributed.chunk_size(n_episodes, chunk)
     stamp = f"{common.fingerprint(ctx)}-{backend}" + ("" if cached else "-continuous") + (
         f"-k{k}-" + "+".join(bases) if any("bases" in planners.get(n).options for n in names) else "") + (
-        f"-chunk{chunk}" if backend == "c" and chunk < n_episodes else "")
+        f"-chunk{chunk}" if backend == "c" and chunk < n_episodes else "") + (
+        "" if worlds is None else f"-world-{world_lib.digest(worlds)}")
     jobs = 1 if jobs is None else jobs
     if jobs < 1:
         raise ValueError(f"jobs (--jobs) must be >= 1, got {jobs}")
@@ -85,8 +89,9 @@ def evaluate(ctx: evaluation.Context, names, out, fresh: bool = False, backend: 
         result = dict(policy=name, episodes=ctx.names, rl_policy=ctx.rl_source, mean_deg=mean, ci95_deg=ci,
                       falls=int(np.sum(res.fell)), held=[r for r in rows if not r["fell"]], per_episode=rows,
                       wall_s_incl_compile=wall, jobs=jobs, platform=jax.default_backend(), backend=backend,
-                      fingerprint=stamp,
-                      **(dict(k=k, bases=list(bases)) if "bases" in planners.get(name).options else {}))
+                      fingerprint=stamp, world=world_name,
+                      **(dict(k=k, bases=list(bases)) if "bases" in planners.get(name).options else {}),
+                      **({} if worlds is None else dict(worlds=world_lib.as_rows(worlds))))
         files.write_json(out / f"{name}.json", result)
         print(f"  {name:8s} mean angle error {mean:.1f} deg (+-{ci:.1f}), {result['falls']}/{len(ctx.names)} "
               f"fell ({wall:.1f} s incl. compile)", flush=True)
@@ -95,20 +100,20 @@ def evaluate(ctx: evaluation.Context, names, out, fresh: bool = False, backend: 
     def simulate(name):
         policy, axis = planners.make(ctx, name, dict(cached=cached, k=k, bases=bases))
         t0 = time.perf_counter()
-        res = jax.block_until_ready(phys.simulate_batch(policy, ctx.batch, axis, backend=backend))
+        res = jax.block_until_ready(phys.simulate_batch(policy, ctx.batch, axis, backend=backend, world=worlds))
         return save(name, res, time.perf_counter() - t0)
 
     t0 = time.perf_counter()
     if backend == "c" and todo:  # every policy's episodes of a chunk in one lockstep on every core
         options = dict(cached=cached, k=k, bases=bases)
-        res = lockstep(ctx, phys, todo, options, chunk)
+        res = lockstep(ctx, phys, todo, options, chunk, worlds=worlds)
         if not distributed.is_main():
             return {}  # process 0 saves, draws and records
         wall = time.perf_counter() - t0
         done = {name: save(name, r, wall) for name, r in zip(todo, res)}
         if warm:  # the same lockstep again in this process: compiled, the policies' tables built
             t1 = time.perf_counter()
-            again = lockstep(ctx, phys, todo, options, chunk, shared=False)
+            again = lockstep(ctx, phys, todo, options, chunk, shared=False, worlds=worlds)
             warm_s = time.perf_counter() - t1
             same = all(np.array_equal(a.fell, b.fell) for a, b in zip(res, again))
             print(f"  warm: the {len(todo)} policies x {len(ctx.names)} episodes again in {warm_s:.2f} s "
@@ -129,15 +134,16 @@ def evaluate(ctx: evaluation.Context, names, out, fresh: bool = False, backend: 
 
 
 def lockstep(ctx: evaluation.Context, phys: physics.Physics, names, options: dict, chunk: int,
-             shared: bool = True) -> list:
+             shared: bool = True, worlds=None) -> list:
     """Each policy's `Result` (numpy, stacked over all of ctx's episodes) in C MuJoCo: the episodes in fixed chunks
     of `chunk`, each chunk every policy in one lockstep (`Physics.simulate_many`). With several processes
     (`shared`) each runs its share of the chunks and every process gets every result (`distributed.gather`): the
-    chunks fix the programs and their inputs, so the results are one process's, bit for bit."""
+    chunks fix the programs and their inputs, so the results are one process's, bit for bit. `worlds`: as
+    `evaluate`'s."""
     def one(idx):
         sub = ctx.select(idx)
         return phys.simulate_many([planners.make(sub, name, options) for name in names], sub.batch, backend="c",
-                                  progress=True)
+                                  progress=True, world=world_lib.rows(worlds, idx))
 
     return distributed.map_chunks(one, len(ctx.names), chunk, shared, what="episodes")
 
@@ -174,7 +180,8 @@ def main(args: argparse.Namespace, run: Run) -> None:
     out = run.results_dir("fig4b")
     results = evaluate(ctx, args.policies, out, args.fresh, args.backend, cached=args.lookahead == "cached",
                        jobs=args.jobs, warm=args.warm, k=args.k, bases=args.bases, chunk=args.chunk,
-                       config=run.physics_config())
+                       config=run.physics_config(), worlds=run.worlds(ctx.batch, ctx.surrogate.hand),
+                       world_name=run.world_name)
     if not distributed.is_main():
         return
     print(f"wrote {out}/<policy>.json, {out / 'fig4b.png'}")

@@ -113,6 +113,19 @@ FIGURES = (
     Figure("controller-eval-predictive-cpu", ("envelope", "--set", "eval", "--random", "0", "--policies", "four-tips",
                                               "dp-opt", "L1", "L2", "--learned", "--controller", "predictive"),
            ("envelope_eval_learned_predictive",), "cpu", (*_LIBRARY, "experiments/physics/envelope.py"), 4.0),
+    # the same planners in the gap level's worlds (issue 85, docs/world.md): plans made in the model, run where it
+    # is not the world; and which part of the gap drops the tool
+    Figure("fig4b-gap-cpu", ("fig4b", "--backend", "c", "--paper", "--fresh", "--policies", "dp-base", "rl", "L1",
+                             "L2", "dp-opt", "L1-physics", "--world", "gap"), ("fig4b_gap",), "cpu",
+           (*_LIBRARY, "experiments/paper/fig4b.py"), 12.0),
+    Figure("controller-stress-gap-cpu", ("envelope", "--set", "stress", "--random", "0", "--policies", "four-tips",
+                                         "dp-opt", "L1", "L2", "--learned", "--world", "gap"),
+           ("envelope_stress_learned_gap",), "cpu", (*_LIBRARY, "experiments/physics/envelope.py"), 9.0),
+    Figure("controller-eval-gap-cpu", ("envelope", "--set", "eval", "--random", "0", "--policies", "four-tips",
+                                       "dp-opt", "L1", "L2", "--learned", "--world", "gap"),
+           ("envelope_eval_learned_gap",), "cpu", (*_LIBRARY, "experiments/physics/envelope.py"), 2.5),
+    Figure("world-parts-cpu", ("world-parts", "--learned"), ("world_parts_eval_gap_learned",), "cpu",
+           (*_LIBRARY, "experiments/physics/world_parts.py"), 1.5),
     # the hands x tools table: every shipped model's files are what it measures (the default's learned term on);
     # its Menagerie rows need the hands imported once before (`hands --menagerie DIR`: examples/published/)
     Figure("hands", ("hands", "--learned"), ("hands_learned",), "cpu", ("gsp_jax", "models", "experiments/common.py",

@@ -38,6 +38,7 @@ from gsp_jax.planners import registry as planners
 from gsp_jax.model import scenario
 from gsp_jax.surrogate import step as surrogate
 from gsp_jax.physics import report
+from gsp_jax.physics import world as world_lib
 
 
 
@@ -132,6 +133,8 @@ def main(args: argparse.Namespace, run: Run) -> None:
         raise SystemExit(f"physics: --backend {args.backend} runs as one process (one XLA batch); only C MuJoCo's "
                          f"chunks are shared by --processes")
     phys = physics.Physics(env, run.physics_config())
+    # each episode's world (None: nominal), one per episode name: every sequence on it meets the same world
+    worlds = run.worlds(scenario.stack([episodes[n] for n in names]), env.hand)
     if args.policy == "scripted":  # every sequence on every episode, one batch
         seqs = evaluation.scripted_sequences(env.space)
         labels = [f"{k}/{n}" for k in seqs for n in names]
@@ -157,7 +160,9 @@ def main(args: argparse.Namespace, run: Run) -> None:
 
     def simulate(idx):
         policy, axis, batch = made(idx)
-        return jax.device_get(phys.simulate_batch(policy, batch, axis, backend=args.backend, progress=True))
+        world = world_lib.rows(worlds, np.asarray(idx) % len(names))
+        return jax.device_get(phys.simulate_batch(policy, batch, axis, backend=args.backend, progress=True,
+                                                  world=world))
 
     res = distributed.map_chunks(simulate, len(labels), chunk, what="episodes")
     wall = time.perf_counter() - t0
@@ -168,7 +173,9 @@ def main(args: argparse.Namespace, run: Run) -> None:
     stem = out / (f"{args.set}_{args.policy}" + ("" if args.backend == "mjx" else f"_{args.backend}"))
     summary = dict(set=args.set, policy=args.policy, backend=args.backend, device=jax.local_devices()[0].device_kind,
                    **report.summary(labels, res), wall_s_incl_compile=wall, chunk=chunk, processes=distributed.count(),
-                   config=dataclasses.asdict(phys.config), timestep_s=phys.timestep)
+                   config=dataclasses.asdict(phys.config), timestep_s=phys.timestep, world=run.world_name,
+                   **({} if worlds is None else dict(world_seed=run.world_seed, worlds=dict(
+                       zip(names, world_lib.as_rows(worlds))))))
     if args.policy == "scripted":
         summary["sequences"] = {}
         for i, k in enumerate(seqs):

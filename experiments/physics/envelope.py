@@ -40,6 +40,7 @@ from gsp_jax.planning import dp, evaluation, policies
 from gsp_jax import physics
 from gsp_jax.model import scenario
 from gsp_jax.physics import c_backend
+from gsp_jax.physics import world as world_lib
 from gsp_jax.physics.envelope import PREDICTED_HOLD, classify, summarise
 from gsp_jax.planners import registry as gsp_planners
 
@@ -67,13 +68,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 # ---------------------------------------------------------------------------------------------------- chunks
-def parts_key(ctx, args: argparse.Namespace, kinds: list[str], config=None) -> str:
+def parts_key(ctx, args: argparse.Namespace, kinds: list[str], config=None, worlds=None) -> str:
     """A hash (16 hex digits) of everything a chunk's outcomes depend on: the context (`common.fingerprint`: the
     library and model sources, the model's digest, the episodes' names, the RL policy), this file, the physics'
-    `PhysicsConfig` (`config`: the contact controller), the sequences' kinds, --random, --seed,
-    --physics-lookahead, --bases and --chunk."""
+    `PhysicsConfig` (`config`: the contact controller), the episodes' worlds (None: nominal), the sequences' kinds,
+    --random, --seed, --physics-lookahead, --bases and --chunk."""
     h = hashlib.sha256(common.fingerprint(ctx).encode())
     h.update(repr(config).encode())
+    if worlds is not None:
+        h.update(world_lib.digest(worlds).encode())
     h.update(pathlib.Path(__file__).read_bytes())
     h.update(repr((kinds, args.random, args.seed, args.physics_lookahead, tuple(args.bases), args.chunk)).encode())
     return h.hexdigest()[:16]
@@ -159,7 +162,8 @@ def main(args: argparse.Namespace, run: Run) -> None:
     n_seg, tick = phys.n_segment, phys.timestep
     pieces = distributed.chunks(N, args.chunk)
     folder = run.results_dir("envelope") / f"{args.set}.parts"
-    key = parts_key(ctx, args, kinds, phys.config)
+    worlds = run.worlds(ctx.batch, sur.hand)  # None: the nominal world
+    key = parts_key(ctx, args, kinds, phys.config, worlds)
     mine = distributed.share(len(pieces))  # this process's chunks (all of them for one)
     done = {c: part for c in mine
             if (part := load_part(part_path(folder, key, pieces[c]), (len(kinds), len(pieces[c])))) is not None}
@@ -180,7 +184,7 @@ def main(args: argparse.Namespace, run: Run) -> None:
                       for name in planners]
             groups += [(policies.SequencePolicy(rand[idx, r]), 0) for r in range(args.random)]
             t0 = time.perf_counter()
-            res = phys.simulate_many(groups, sub.batch, backend="c", progress=True)
+            res = phys.simulate_many(groups, sub.batch, backend="c", progress=True, world=world_lib.rows(worlds, idx))
             part = dict(outcomes(res, n_seg, T), seconds=np.float64(time.perf_counter() - t0))
             files.savez(part_path(folder, key, idx), **part)
         except BaseException as e:
@@ -227,8 +231,9 @@ def main(args: argparse.Namespace, run: Run) -> None:
         return r
 
     out = dict(set=args.set, episodes=ctx.names, kinds=kinds, physics_s=t_phys, oracle_s=time.perf_counter() - t1,
-               platform=jax.default_backend(), rl_policy=ctx.rl_source, summary=summary,
-               sequences=[row(g, e) for g in range(len(kinds)) for e in range(N)])
+               platform=jax.default_backend(), rl_policy=ctx.rl_source, summary=summary, world=run.world_name,
+               sequences=[row(g, e) for g in range(len(kinds)) for e in range(N)],
+               **({} if worlds is None else dict(world_seed=run.world_seed, worlds=world_lib.as_rows(worlds))))
     path = folder.parent / f"{args.set}.json"
     files.write_json(path, out)
     print(f"wrote {path}\n")

@@ -96,11 +96,13 @@ class _Programs:
             qpos, cs = jax.vmap(spec.start)(episodes)
             return qpos, self.cs.ravel(cs)
 
-        def tick(cs_flat, obs_flat, ep_flat, j):
-            """(next controller states, [ctrl (nu) | external wrench (6) | angle, position error, fell of tick j-1])"""
+        def tick(cs_flat, obs_flat, seen_flat, ep_flat, j):
+            """(next controller states, [ctrl (nu) | external wrench (6) | angle, position error, fell of tick j-1]);
+            the status from the observation, the controller from what it observes (`Engine.seen`)."""
             episodes, obs = self.ep.unravel(ep_flat), observe(obs_flat)
             angle, perr, fell = jax.vmap(spec.check, in_axes=(0, 0, None))(obs, episodes, j - 1)
-            ctrl, ext, cs = jax.vmap(spec.tick, in_axes=(0, 0, 0, None))(self.cs.unravel(cs_flat), obs, episodes, j)
+            ctrl, ext, cs = jax.vmap(spec.tick, in_axes=(0, 0, 0, None))(self.cs.unravel(cs_flat),
+                                                                         observe(seen_flat), episodes, j)
             status = jnp.stack([angle, perr, fell.astype(jnp.float32)], -1)
             return self.cs.ravel(cs), jnp.concatenate([ctrl, ext, status], -1)
 
@@ -210,7 +212,7 @@ class Engine:
     (n, nq + 2 nv) float32 is every episode's observation: qpos, qvel and qfrc_bias after its last step."""
 
     def __init__(self, scene, fields, qpos0: np.ndarray, log: list | None = None, pool: "Pool | None" = None,
-                 delay: np.ndarray | None = None):
+                 world=None):
         n = qpos0.shape[0]
         self.scene, self.n, self.log, self.pool = scene, n, log, pool
         one = lambda e: jax.tree.map(lambda x: np.asarray(x)[e], fields)  # noqa: E731
@@ -227,11 +229,18 @@ class Engine:
             self.keys = [Pool.key(one(e)) for e in range(n)]
             self.models, self.datas = map(list, zip(*[pool.take(scene, k, lambda e=e: one(e))
                                                       for e, k in enumerate(self.keys)]))
-        delay = np.zeros(n, np.int64) if delay is None else np.ascontiguousarray(delay, np.int64)
+        if world is None:
+            world = world_lib.nominal_batch(n, scene.n_touch, len(scene.hand_dof))
+        delay = np.ascontiguousarray(world.delay, np.int64)
+        noise = np.ascontiguousarray(world.noise, np.float32)
+        # what the controller observes: the observation itself, or its noised copy where any row has noise
+        self.seen = self.obs if not noise.any() else self.obs.copy()
         self.native = native.Models(addresses=native.addresses(self.models, self.datas, scene.tool_body),
                                     pedestals=np.ascontiguousarray(fields.pedestal_pos, np.float64),  # at drop 0
                                     geoms=np.asarray(scene.pedestal_geoms, np.int64), delay=delay,
-                                    pending=np.zeros((n, int(delay.max(initial=0)) + 1, scene.model.nu)))
+                                    pending=np.zeros((n, int(delay.max(initial=0)) + 1, scene.model.nu)),
+                                    noise=noise, key=np.ascontiguousarray(world.key, np.uint32), seen=self.seen,
+                                    noisy=np.full(n, self.seen is not self.obs))
         self._spec = mujoco.mjtState.mjSTATE_INTEGRATION
         self.nstate = mujoco.mj_stateSize(scene.model, self._spec)
 
@@ -260,6 +269,12 @@ class Engine:
         self.obs[:] = obs
         same = pending is not None and np.shape(pending) == self.native.pending.shape
         self.native.pending[:] = pending if same else 0.0  # a model without the world's delay has none on the way
+
+    def see(self, constants, j: int) -> None:
+        """What the controller observes at control tick j from the observation now (`world.seen`): a run's first
+        tick, or a restored state's (the noise is a function of the episode's key and j: the same again)."""
+        if self.seen is not self.obs:
+            native.seen_rows(constants, self.native, np.arange(self.n, dtype=np.int64), self.obs, int(j))
 
     def step(self, constants, ids: np.ndarray, out: np.ndarray, drop: float, buf: np.ndarray, j: int = 0) -> None:
         """Episodes `ids` advance one physics step under their rows of `out` (n, nu + 6 ...): motor commands
@@ -327,9 +342,11 @@ class _Lockstep:
         if engine_log is not None and workers != 1:
             raise ValueError(f"engine_log needs workers=1, got workers={workers}")
         pool = spec.kept("c-pool", Pool) if start is not None and engine_log is None else None
-        delays = [np.zeros(int(np.shape(e.mass)[0]), np.int64) if w is None else np.asarray(w.delay, np.int64)
-                  for e, w in zip(per_group, worlds)]
-        self.engine = Engine(scene, fields, self.qpos0, engine_log, pool, np.concatenate(delays))
+        world = None if all(w is None for w in worlds) else jax.tree.map(
+            lambda *x: np.concatenate([np.asarray(a) for a in x]),
+            *[world_lib.nominal_batch(int(np.shape(e.mass)[0]), scene.n_touch, len(scene.hand_dof)) if w is None
+              else jax.device_get(w) for e, w in zip(per_group, worlds)])
+        self.engine = Engine(scene, fields, self.qpos0, engine_log, pool, world)
         self.grasp = cat(lambda e: np.asarray(e.start_grasp, np.int32))
         self.fell, self.fall_tick = np.zeros(M, bool), np.full(M, -1, np.int32)
         self.angle, self.perr = np.zeros((M, K), np.float32), np.zeros((M, K), np.float32)
@@ -351,10 +368,13 @@ class _Lockstep:
         self.segment = 0
         if start is not None:
             self._restore(start)
+        else:
+            self.engine.see(self.native.constants, 0)
 
     def _restore(self, start: Snapshot) -> None:
         """Continue from `start` (its rows are this lockstep's rows)."""
         self.engine.restore(start.state, start.obs, start.pending)
+        self.engine.see(self.native.constants, start.segment * self.n)
         self.cs = np.array(start.cs, np.float32)
         self.grasp, self.fell, self.fall_tick = (np.array(x) for x in (start.grasp, start.fell, start.fall_tick))
         self.angle, self.perr, self.qpos_trace = (np.array(x) for x in (start.angle, start.perr, start.qpos))
@@ -392,7 +412,7 @@ class _Lockstep:
 
     def decide(self, k: int):
         """Each policy decides for its episodes at segment k (the hold: set-up only); the controller states."""
-        obs, snapshot = self.engine.obs, None
+        obs, snapshot = self.engine.seen, None  # what the policies observe
         for g, (policy, _) in enumerate(self.groups):
             rows, decide, table = self.group_rows[g], self.decides[g], self.tables[g]
             if hasattr(policy, "in_physics"):  # a policy that decides in physics (`physics.verified`): its hook
@@ -445,9 +465,9 @@ class _Lockstep:
         for i in range(n):  # tick by tick: the JAX controller, or an engine log
             j = j0 + i
             if self.controller == "native":
-                self.native(j, ids, self.cs, eng.obs, self.ep_native, self.out, self._scratch[w])
+                self.native(j, ids, self.cs, eng.obs, self.ep_native, self.out, self._scratch[w], eng.seen)
             else:
-                cs, out = self.pr.tick(self.cs[rows], eng.obs[rows], self.ep_flat[rows], j)
+                cs, out = self.pr.tick(self.cs[rows], eng.obs[rows], eng.seen[rows], self.ep_flat[rows], j)
                 self.cs[rows], self.out[rows] = np.asarray(cs), np.asarray(out)
             if j > 0:
                 self.record(ids, j - 1, self.out[ids, nu + 6:], eng.obs[ids, :self.nq])
@@ -585,7 +605,6 @@ def simulate(phys: PhysicsSpec | HasSpec, groups, episodes: Episode | list[Episo
     cores = available_cores() if cores is None else cores
     workers = max(1, min(cores, M)) if workers is None else max(1, min(workers, M))
     spec = of(phys)
-    world_lib.check_simulated(world)
     run = _Lockstep(spec, groups, episodes, workers, engine_log, start, controller, device, world)
     end = one.n_steps + spec.n_hold
     if until is not None and not run.segment <= until <= end:

@@ -35,6 +35,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from llvmlite import binding as llvm
 
+from gsp_jax.physics import world as world_lib
 from gsp_jax.physics.controller import MIN_GRADIENT, PATH_TIMES, ControllerState
 from gsp_jax.physics.spec import HasSpec, PhysicsSpec, of
 
@@ -343,12 +344,12 @@ class Tick:
                         com=f32(episodes.com), friction=f32(episodes.friction), hold_time=hold)
 
     def __call__(self, j: int, rows: np.ndarray, cs: np.ndarray, obs: np.ndarray, episodes: Episodes,
-                 out: np.ndarray, work: Scratch | None = None) -> None:
+                 out: np.ndarray, work: Scratch | None = None, seen: np.ndarray | None = None) -> None:
         """Control tick j of the episodes `rows` (int64 indices into every array's leading axis): their states
         cs (E, C) float32 updated in place, out (E, nu + 9) float32 written, from observations obs (E, nq + 2 nv)
-        float32. Rows not in `rows` are left as they are. `work`: the calling thread's `Scratch` (default: a new
-        one)."""
-        tick_rows(np.int64(j), rows, cs, obs, episodes, self.constants, out,
+        float32 (the status) and what the controller observes, `seen` (the same layout; default obs). Rows not in
+        `rows` are left as they are. `work`: the calling thread's `Scratch` (default: a new one)."""
+        tick_rows(np.int64(j), rows, cs, obs, obs if seen is None else seen, episodes, self.constants, out,
                   scratch(self.constants) if work is None else work)
 
 
@@ -1161,13 +1162,14 @@ def _solve3(m, v, x, c0, c1, c2):
 
 
 @_jit
-def tick_rows(j, rows, cs, obs, episodes, K, out, S):
-    """`Tick.__call__`: the JAX tick's work for the episodes `rows` (the status of tick j - 1, then tick j)."""
+def tick_rows(j, rows, cs, obs, seen, episodes, K, out, S):
+    """`Tick.__call__`: the JAX tick's work for the episodes `rows` (the status of tick j - 1 from obs, then tick j
+    from what the controller observes, seen)."""
     nu = K.scene.nu
     for r in rows:
         ep = _row(episodes, r)
         _status(K, j - 1, obs[r], ep, out[r, nu + 6:], S)
-        _control(K, j, cs[r], obs[r], ep, out[r], S)
+        _control(K, j, cs[r], seen[r], ep, out[r], S)
 
 
 @_jit
@@ -1186,6 +1188,11 @@ class Models(NamedTuple):
     geoms: np.ndarray  # (P,) int64: the pedestals' geoms
     delay: np.ndarray  # (E,) int64: control ticks a motor command waits before it acts (the world's; 0: none)
     pending: np.ndarray  # (E, D, nu) float64: the commands issued, a ring of D > max(delay) ticks (zeros at first)
+    noise: np.ndarray  # (E, 3) float32: the world's observation noise stds (`world.World.noise`; zeros: none)
+    key: np.ndarray  # (E, 2) uint32: each episode's noise key
+    seen: np.ndarray  # (E, nq + 2 nv) float32: what the controller observes after the last step (the observation
+    # with `world.seen`'s noise; without noise in any row, the observation array itself)
+    noisy: np.ndarray  # (E,) bool: seen[r] is written after each step (every row, where `seen` is a copy)
 
 
 class Trace(NamedTuple):
@@ -1233,6 +1240,75 @@ def _step_row(K, models, r, out, drop, obs, buf, j):
     _mju_copy(place, addr[r, QFRC_BIAS], np.intc(nv))
     for i in range(nv):
         obs[r, nq + nv + i] = buf[i]
+    if models.noisy[r]:
+        _seen_row(K.scene, models, r, obs, j + 1)
+
+
+_MASK = np.uint64(0xFFFFFFFF)
+_MUL = (np.uint64(world_lib.HASH_MUL[0]), np.uint64(world_lib.HASH_MUL[1]))
+_S8, _S15, _S16 = np.uint64(8), np.uint64(15), np.uint64(16)
+
+
+@_jit
+def _mix(x):
+    """`world._mix` in uint64 arithmetic kept to 32 bits."""
+    x = x ^ (x >> _S16)
+    x = (x * _MUL[0]) & _MASK
+    x = x ^ (x >> _S15)
+    x = (x * _MUL[1]) & _MASK
+    return x ^ (x >> _S16)
+
+
+@_jit
+def _unit_noise(k0, k1, j, component):
+    """`world.unit_noise` of one component at tick j (k0, k1: the episode's key as uint64)."""
+    base = (((np.uint64(j) * np.uint64(world_lib.COMPONENTS) + np.uint64(component)) & _MASK) * np.uint64(4)) & _MASK
+    total = F32(0.0)
+    for m in range(4):
+        h = _mix(_mix(_mix((base + np.uint64(m)) & _MASK) ^ k0) ^ k1)
+        total = F32(total + F32(h >> _S8) * F32(world_lib.UNIT))
+    return F32(F32(total - F32(2.0)) * F32(world_lib.SQRT3))
+
+
+@_jit
+def _seen_row(sc, models, r, obs, j):
+    """`world.seen` of episode r's observation obs[r] at control tick j into models.seen[r] (sc: `Scene`)."""
+    seen, s = models.seen, models.noise[r]
+    k0, k1 = np.uint64(models.key[r, 0]), np.uint64(models.key[r, 1])
+    for i in range(obs.shape[1]):
+        seen[r, i] = obs[r, i]
+    a0 = sc.tool_qpos
+    for i in range(3):
+        seen[r, a0 + i] = F32(obs[r, a0 + i] + F32(s[0] * _unit_noise(k0, k1, j, i)))
+    for i in range(sc.hand_qpos.shape[0]):
+        c = sc.hand_qpos[i]
+        seen[r, c] = F32(obs[r, c] + F32(s[2] * _unit_noise(k0, k1, j, 6 + i)))
+    if s[1] != 0:  # the rotation vector r to first order: q + q (0, r) / 2, normalised
+        qn = F32(0.0)
+        for i in range(4):
+            qn = F32(qn + F32(obs[r, a0 + 3 + i] * obs[r, a0 + 3 + i]))
+        qn = F32(math.sqrt(qn))
+        w, x = F32(obs[r, a0 + 3] / qn), F32(obs[r, a0 + 4] / qn)
+        y, z = F32(obs[r, a0 + 5] / qn), F32(obs[r, a0 + 6] / qn)
+        r0 = F32(s[1] * _unit_noise(k0, k1, j, 3))
+        r1 = F32(s[1] * _unit_noise(k0, k1, j, 4))
+        r2 = F32(s[1] * _unit_noise(k0, k1, j, 5))
+        half = F32(0.5)
+        q0 = F32(w + F32(half * F32(F32(F32(-x * r0) - F32(y * r1)) - F32(z * r2))))
+        q1 = F32(x + F32(half * F32(F32(F32(w * r0) + F32(y * r2)) - F32(z * r1))))
+        q2 = F32(y + F32(half * F32(F32(F32(w * r1) + F32(z * r0)) - F32(x * r2))))
+        q3 = F32(z + F32(half * F32(F32(F32(w * r2) + F32(x * r1)) - F32(y * r0))))
+        n = F32(math.sqrt(F32(F32(F32(q0 * q0) + F32(q1 * q1)) + F32(F32(q2 * q2) + F32(q3 * q3)))))
+        seen[r, a0 + 3], seen[r, a0 + 4] = F32(q0 / n), F32(q1 / n)
+        seen[r, a0 + 5], seen[r, a0 + 6] = F32(q2 / n), F32(q3 / n)
+
+
+@_jit
+def seen_rows(K, models, rows, obs, j):
+    """`_seen_row` of the episodes `rows` at control tick j (a run's first observation, or a restored one)."""
+    for r in rows:
+        if models.noisy[r]:
+            _seen_row(K.scene, models, r, obs, j)
 
 
 @_jit
@@ -1267,7 +1343,7 @@ def segment(K, j0, drops, rows, cs, obs, episodes, models, trace, out, S):
                     trace.qpos[r, j - 1, c] = obs[r, c]
             if fell[r]:
                 continue
-            _control(K, j, cs[r], obs[r], ep, out[r], S)
+            _control(K, j, cs[r], models.seen[r], ep, out[r], S)
             _step_row(K, models, r, out[r], drops[i], obs, S.buf, j)
             steps += 1
     return steps

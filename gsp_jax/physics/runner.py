@@ -185,16 +185,18 @@ class Physics:
         return _Carry(data=data, cs=cs, grasp=jnp.asarray(episode.start_grasp, jnp.int32), fell=jnp.array(False),
                       fall_tick=jnp.asarray(-1, jnp.int32))
 
-    def _decide(self, policy, carry: _Carry, episode: Episode, k):
-        """Segment k's decision for one episode: (carry, (action, grasp))."""
-        action, grasp, cs = self.decide(policy, carry.cs, self._observe(carry.data), carry.grasp, episode, k)
+    def _decide(self, policy, carry: _Carry, episode: Episode, world, k):
+        """Segment k's decision for one episode in `world` (None: nominal): (carry, (action, grasp))."""
+        obs = world_lib.seen(self._observe(carry.data), world, k * self.n_segment)
+        action, grasp, cs = self.decide(policy, carry.cs, obs, carry.grasp, episode, k)
         return carry.replace(cs=cs, grasp=grasp), (action, grasp)
 
-    def _step(self, carry: _Carry, episode: Episode, fields, j):
-        """Control tick j of one episode in MJX: (carry, (angle, position error, qpos))."""
+    def _step(self, carry: _Carry, episode: Episode, fields, world, j):
+        """Control tick j of one episode in MJX in `world` (None: nominal; its fields are in `fields`): (carry,
+        (angle, position error, qpos))."""
         scene = self.scene
         mx = scene.mjx_model(fields, scene.pedestal_drop(j * self.timestep))
-        ctrl, ext, cs = self.tick(carry.cs, self._observe(carry.data), episode, j)
+        ctrl, ext, cs = self.tick(carry.cs, world_lib.seen(self._observe(carry.data), world, j), episode, j)
         xfrc = jnp.zeros((self.model.nbody, 6), jnp.float32).at[scene.tool_body].set(ext)
         pending = carry.pending
         if pending is not None:  # a world's delay: the command of tick j - delay acts (zeros before the first)
@@ -225,8 +227,9 @@ class Physics:
                                   delay=jnp.asarray(world.delay, jnp.int32))
 
         def segment(carry: _Carry, k):
-            carry, decision = vm(self._decide, (policy_axis, 0, 0, None))(policy, carry, episodes, k)
-            tick = lambda carry, i: vm(self._step, (0, 0, 0, None))(carry, episodes, fields, k * n + i)  # noqa: E731
+            carry, decision = vm(self._decide, (policy_axis, 0, 0, 0, None))(policy, carry, episodes, world, k)
+            tick = lambda carry, i: vm(self._step, (0, 0, 0, 0, None))(  # noqa: E731
+                carry, episodes, fields, world, k * n + i)
             carry, trace = jax.lax.scan(tick, carry, jnp.arange(n))
             return carry, (decision, trace)
 
@@ -274,7 +277,7 @@ class Physics:
         if self.config.controller.predictive and backend != "c":
             raise ValueError(f"PhysicsConfig.controller.predictive: the predictive hold rolls the hold out in C "
                              f"MuJoCo and needs backend='c', got backend={backend!r}")
-        world_lib.check(world, episodes, self.scene, backend)
+        world_lib.check(world, episodes, self.scene)
         if backend == "c":
             from gsp_jax.physics import c_backend
 

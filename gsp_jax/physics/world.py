@@ -75,6 +75,14 @@ class Gap:
     def replace(self, **changes) -> "Gap":
         return dataclasses.replace(self, **changes)
 
+    def only(self, *names: str) -> "Gap":
+        """This gap with only the fields `names` (the others zero: the model's); no names: this gap."""
+        fields = [f.name for f in dataclasses.fields(self)]
+        unknown = [n for n in names if n not in fields]
+        if unknown:
+            raise ValueError(f"Gap.only: unknown fields {unknown}; the fields are {fields}")
+        return self if not names else Gap(**{n: getattr(self, n) for n in names})
+
 
 def _check_range(name: str, value, most: float, what: str) -> None:
     if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)) or \
@@ -119,6 +127,12 @@ def nominal(n_links: int, n_joints: int) -> World:
                  delay=jnp.zeros((), jnp.int32), noise=jnp.zeros(3, jnp.float32), key=jnp.zeros(2, jnp.uint32))
 
 
+def nominal_batch(n: int, n_links: int, n_joints: int) -> World:
+    """`n` nominal worlds as numpy arrays (leading axis (n,)): a batch run without a world."""
+    return jax.tree.map(lambda x: np.broadcast_to(np.asarray(x), (n, *np.shape(x))).copy(),
+                        nominal(n_links, n_joints))
+
+
 def draw_one(gap: Gap, key: jax.Array, n_links: int, n_joints: int) -> World:
     """One episode's world from `gap` (traceable; every draw from `key`)."""
     k = jax.random.split(key, 11)
@@ -144,22 +158,40 @@ def draw(gap: Gap, key: jax.Array, n: int, n_links: int, n_joints: int) -> World
     return jax.vmap(lambda k: draw_one(gap, k, n_links, n_joints))(jax.random.split(key, n))
 
 
-def check_simulated(world, backend: str = "c") -> None:
-    """A ValueError where `world` (a `World` batch, a list of them, or None) asks for what the physics runners do
-    not simulate yet: observation noise (issue 85: the model's fields and the delay are simulated in both backends;
-    the noise comes next). `backend`: the runner asked."""
-    for w in (world if isinstance(world, (list, tuple)) else [world]):
-        if w is None:
-            continue
-        if np.any(np.asarray(w.noise) != 0):
-            raise ValueError("world.noise: the physics runners do not simulate observation noise yet; got stds "
-                             f"{np.asarray(w.noise).reshape(-1, 3)[0].tolist()} (draw from a Gap without noise)")
+def draw_for(gap: Gap, seed: int, episodes, hand) -> World:
+    """The worlds (numpy, leading axis (N,)) of `episodes` (a batch of N) for `hand` (a `HandModel`: its bodies
+    that touch the tool, its joints), drawn from `gap` with `seed`: a command's (`--world`, `--world-seed`)."""
+    n = int(np.shape(episodes.mass)[0])
+    return jax.device_get(draw(gap, jax.random.PRNGKey(seed), n, len(hand.touch_tool), hand.n_joints))
 
 
-def check(world, episodes, scene, backend: str = "c") -> None:
+def rows(world: World | None, idx) -> World | None:
+    """The worlds of the episodes `idx` (an index array) of a batch's (None: None)."""
+    return None if world is None else jax.tree.map(lambda x: np.asarray(x)[np.asarray(idx)], world)
+
+
+def as_rows(world: World) -> list[dict]:
+    """One JSON-able dict per episode of a batch's worlds (a result's record of the world each episode met):
+    factors, offsets [m], delay [ticks], noise stds and key."""
+    w = jax.device_get(world)
+    n = int(np.shape(w.mass)[0])
+    return [{f.name: np.asarray(getattr(w, f.name))[e].tolist() for f in dataclasses.fields(World)} for e in range(n)]
+
+
+def digest(world: World) -> str:
+    """16 hex digits of a batch's worlds (a saved result's key: another world, another result)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for leaf in jax.tree.leaves(jax.device_get(world)):
+        h.update(np.ascontiguousarray(leaf).tobytes())
+    return h.hexdigest()[:16]
+
+
+def check(world, episodes, scene) -> None:
     """A ValueError naming the field where `world` (a `World` batch or None) does not fit `episodes` (their leading
-    axis) and `scene` (its L touching bodies, J hand joints), holds a non-finite or non-positive factor, or asks
-    for what is not simulated yet (`check_simulated`). Nothing to check inside a trace."""
+    axis) and `scene` (its L touching bodies, J hand joints), or holds a non-finite or non-positive factor, an
+    offset or a noise outside its range. Nothing to check inside a trace."""
     if world is None or isinstance(world.mass, jax.core.Tracer):
         return
     n, L, J = int(np.shape(episodes.mass)[0]), scene.n_touch, len(scene.hand_dof)
@@ -176,4 +208,59 @@ def check(world, episodes, scene, backend: str = "c") -> None:
             raise ValueError(f"world.com: offsets must be finite, got {value.tolist()}")
         if name == "delay" and not np.all((value >= 0) & (value <= MOST_DELAY)):
             raise ValueError(f"world.delay: control ticks in [0, {MOST_DELAY}] expected, got {value.tolist()}")
-    check_simulated(world, backend)
+        if name == "noise":
+            most = np.array(list(MOST_NOISE.values()), np.float32)
+            if not np.all(np.isfinite(value) & (value >= 0) & (value <= most)):
+                raise ValueError(f"world.noise: stds in [0, {most.tolist()}] (tool position [m], orientation [rad], "
+                                 f"joint angles [rad]) expected, got {value[~np.all(value <= most, -1)][:2].tolist()}")
+
+
+# ------------------------------------------------------------------------------------------ observation noise
+# What the controller and the policy observe at control tick j is the state plus noise that is a function of the
+# episode's key, j and the component only (a counter-based hash, the same in JAX and in the native controller:
+# `native._seen_row`), so every backend and every continuation of a snapshot sees the same noise. Each component's
+# noise is (u0 + u1 + u2 + u3 - 2) sqrt(3), four uniforms of 24 bits: zero mean, unit variance, within +-3.46.
+# Components: 0..2 the tool's position, 3..5 its rotation vector (applied to first order, then normalised), 6 + i
+# hand joint i.
+HASH_MUL = (0x7FEB352D, 0x846CA68B)  # a 32-bit integer mixer's multipliers (xor-shift 16, 15, 16)
+COMPONENTS = 64  # counter stride per tick: at most 58 hand joints
+UNIT = 2.0 ** -24
+SQRT3 = math.sqrt(3.0)
+
+
+def _mix(x: jax.Array) -> jax.Array:
+    """uint32 -> uint32, a bijective avalanche mixer."""
+    x = x ^ (x >> 16)
+    x = x * jnp.uint32(HASH_MUL[0])
+    x = x ^ (x >> 15)
+    x = x * jnp.uint32(HASH_MUL[1])
+    return x ^ (x >> 16)
+
+
+def unit_noise(key: jax.Array, j, component: jax.Array) -> jax.Array:
+    """Zero-mean, unit-variance float32 noise (the shape of `component`, uint32 indices) at tick j (see above)."""
+    key = jnp.asarray(key, jnp.uint32)
+    base = (jnp.asarray(j, jnp.uint32) * jnp.uint32(COMPONENTS) + jnp.asarray(component, jnp.uint32)) * jnp.uint32(4)
+    total = jnp.zeros(jnp.shape(component), jnp.float32)
+    for m in range(4):
+        h = _mix(_mix(_mix(base + jnp.uint32(m)) ^ key[0]) ^ key[1])
+        total = total + (h >> 8).astype(jnp.float32) * jnp.float32(UNIT)
+    return (total - jnp.float32(2.0)) * jnp.float32(SQRT3)
+
+
+def seen(obs, world: World | None, j):
+    """What the controller and the policy observe at control tick j of one episode in `world` (None: `obs`):
+    `scene.Observation` with its tool pose and joint angles noised (velocities and bias as simulated)."""
+    if world is None:
+        return obs
+    J = obs.q.shape[0]
+    n = unit_noise(world.key, j, jnp.arange(6 + J, dtype=jnp.uint32))
+    s = jnp.asarray(world.noise, jnp.float32)
+    pos = obs.tool_pos + s[0] * n[0:3]
+    r = s[1] * n[3:6]
+    w, x, y, z = (obs.tool_quat[i] for i in range(4))
+    turn = jnp.stack([-x * r[0] - y * r[1] - z * r[2], w * r[0] + y * r[2] - z * r[1],
+                      w * r[1] + z * r[0] - x * r[2], w * r[2] + x * r[1] - y * r[0]])
+    quat = obs.tool_quat + jnp.float32(0.5) * turn
+    quat = jnp.where(s[1] > 0, quat / jnp.sqrt(jnp.sum(quat * quat)), obs.tool_quat)  # no noise: the same bits
+    return obs.replace(q=obs.q + s[2] * n[6:], tool_pos=pos, tool_quat=quat)

@@ -91,7 +91,7 @@ def test_native_tick_is_the_jax_tick_on_recorded_states(controller, request, epi
             j = k * phys.n_segment + i
             cs_native, out_native = run.cs.copy(), np.zeros_like(run.out)
             tick(j, rows, cs_native, eng.obs, run.ep_native, out_native)
-            cs, out = run.pr.tick(run.cs, eng.obs, run.ep_flat, j)
+            cs, out = run.pr.tick(run.cs, eng.obs, eng.seen, run.ep_flat, j)
             run.cs, out = np.array(cs), np.asarray(out)
             changed = tick.constants.state.changed
             changing += int(np.sum(run.cs[:, changed:changed + phys.hand.n_links]))

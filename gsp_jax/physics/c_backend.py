@@ -581,7 +581,7 @@ def simulate(phys: PhysicsSpec | HasSpec, groups, episodes: Episode | list[Episo
     `episodes` (leading axis) in one lockstep; a list of `runner.Result`s of numpy arrays, one per group.
     `episodes` may instead be a list of batches, one per group (of one length, any sizes): group g runs on its own.
     `world`: the episodes' worlds (`gsp_jax.physics.world.World`, the episodes' leading axis; a list, one per group,
-    where `episodes` is; None: the nominal world), applied to the physics model only.
+    where `episodes` is; None: the nominal world), hidden from the controller and the policies.
 
     Between two decisions the lockstep's episodes run as `workers` chunks of rows side by side (threads), each
     chunk's whole segment one call of native code (`native.segment`: the controller's ticks and `mj_step`,

@@ -337,8 +337,8 @@ def check_physics(store: Store, config) -> None:
     revision = store.manifest.get("physics_revision", 1)
     if revision != scene_lib.REVISION:
         raise CorpusError(f"{store.folder}: its runs are of the physics' revision {revision}, this library simulates "
-                          f"revision {scene_lib.REVISION} (`gsp_jax.physics.scene.REVISION`: 2, the episodes' centres "
-                          "of mass reach C MuJoCo); start a new folder (--folder) or remove this one")
+                          f"revision {scene_lib.REVISION} (`gsp_jax.physics.scene.REVISION`; CHANGELOG.md says what "
+                          "changed); start a new folder (--folder) or remove this one")
     differ = [f"{group}.{name} {have.get(group, {}).get(name)!r} there, {value!r} here"
               for group, fields in want.items() for name, value in fields.items()
               if have.get(group, {}).get(name) != value]

@@ -219,7 +219,7 @@ class Physics:
         docs/performance.md)."""
         T, n = episodes.n_steps, self.n_segment
         vm = (lambda f, axes: jax.vmap(f, in_axes=axes)) if batched else (lambda f, axes: f)  # noqa: E731
-        fields = vm(self.scene.episode_fields, 0)(episodes, world)  # the world: the physics model's only
+        fields = vm(self.scene.episode_fields, 0)(episodes, world)  # the world's model fields
         carry = vm(self._init, 0)(episodes)
         if world is not None:  # a ring longer than any delay a world may draw (`world.MOST_DELAY`)
             ring = jnp.zeros((world_lib.MOST_DELAY + 1, self.model.nu), jnp.float32)
@@ -244,7 +244,7 @@ class Physics:
     def simulate(self, policy, episode: Episode, world=None) -> Result:
         """One episode of `policy` (anything with `act(State) -> action`) on `episode`, stepped by MJX; see the
         module docstring. Open loop is `policies.SequencePolicy`; closed loop any policy that reads the state.
-        `world`: the episode's world (`gsp_jax.physics.world`; None: nominal), the physics model's only.
+        `world`: the episode's world (`gsp_jax.physics.world`; None: nominal), hidden from the controller and policy.
         Pure JAX: jit it, or vmap it over episodes (`simulate_batch` runs a batch faster to trace)."""
         return self._run(policy, episode, None, batched=False, world=world)
 
@@ -262,8 +262,8 @@ class Physics:
         `simulate_batch`); one `Result` per pair. In C MuJoCo every policy's episodes run in one lockstep on
         `cores` cores, as `workers` chunks side by side (`c_backend.simulate`; defaults: all cores, a chunk a
         core); in MJX one batch per policy. `world`: the episodes' worlds (`gsp_jax.physics.world.World` with the
-        episodes' leading axis; None: the nominal world), applied to the physics model only: every policy of the
-        batch meets the same world on the same episode."""
+        episodes' leading axis; None: the nominal world), hidden from the controller and the policies: every
+        policy of the batch meets the same world on the same episode."""
         self._check_batch(policies, episodes)
         check_episodes(episodes)
         if backend not in BACKENDS:

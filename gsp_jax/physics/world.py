@@ -1,14 +1,16 @@
 """The world gap: what the planner does not know about the world its plan runs in (issue 85).
 
 Every planner and the learned term plan with the episode's nominal tool, the model's frictions, contact softness,
-joint dynamics and motors. A *world* is one episode's departure from them, drawn from a `Gap` and applied to the
-physics model only (`Scene.episode_fields(episode, world)`): the tool's mass and inertia, its centre of mass, the
-friction and contact softness of each finger link against the tool, each hand joint's damping and armature, each
-motor's strength, an actuation delay and noise on what the controller observes. The controller still believes the
-nominal episode (its feed-forward, its gains); nothing a planner reads changes.
+joint dynamics and motors. A *world* is one episode's departure from them, drawn from a `Gap`: the tool's mass and
+inertia, its centre of mass, the friction and contact softness of each finger link against the tool, each hand
+joint's damping and armature, each motor's strength (the physics model's fields: `Scene.episode_fields(episode,
+world)`), an actuation delay (both backends' steps) and noise on the tool pose and joint angles the controller and
+the policy observe (`seen`; the falls and errors are measured on the simulated state). The controller still
+believes the nominal episode (its feed-forward, its gains); nothing a planner is given changes.
 
     gap = world.Gap.named("gap")                      # or nominal (no gap: today's check, bit for bit), wide
-    worlds = world.draw(gap, jax.random.PRNGKey(0), scene, n)   # World, each leaf with a leading axis (n,)
+    worlds = world.draw(gap, jax.random.PRNGKey(0), n, n_links, n_joints)  # World, leaves with a leading axis (n,)
+    results = phys.simulate_batch(policy, episodes, backend="c", world=worlds)
 
 Relative fields are half-widths of a uniform factor: `mass` 0.1 draws the mass x U(0.9, 1.1). `com` is a half-width
 in metres per axis; `delay` the most control ticks a command waits (drawn 0..delay per episode); the noises are

@@ -8,12 +8,14 @@ import os
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
+import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 from gsp_jax import physics  # noqa: E402
 from gsp_jax.model import scenario  # noqa: E402
+from gsp_jax.physics.controller import STRENGTH_RANGE  # noqa: E402
 from gsp_jax.physics.oracle import Oracle  # noqa: E402
 from gsp_jax.planning import evaluation, policies  # noqa: E402
 from gsp_jax.surrogate.step import Surrogate  # noqa: E402
@@ -81,7 +83,7 @@ def test_measured_frames_hold_edge_contacts_the_paper_controller_drops():
     assert np.all(np.asarray(res["measured"].angle_error) < 3.0)
 
 
-@pytest.mark.parametrize("name", ["measured", "paper"])
+@pytest.mark.parametrize("name", ["measured", "paper", "robust"])
 def test_controller_is_finite_on_fuzzed_states(name):
     """Fuzz: the control law (`Controller.control`, both named controllers) on 48 random states of random valid
     episodes (the stress distribution with another seed: mass 0.25-3 m0, friction 0.3-2, torques to 2 N m, CoM
@@ -89,8 +91,6 @@ def test_controller_is_finite_on_fuzzed_states(name):
     +-0.3 m/s and +-5 rad/s), at a random time from the lift to the hold, in a random grasp change of one link
     (any phase: unloading, moving, loading) or none, under a random part of the external wrench: every joint torque
     finite and within the motors' limits, every number of the next state finite."""
-    import jax
-
     from gsp_jax.physics.controller import reference_motion
 
     sur = Surrogate(learned=False)
@@ -135,6 +135,8 @@ def test_controller_is_finite_on_fuzzed_states(name):
     assert np.all((tau >= low - 1e-6) & (tau <= high + 1e-6))
     for field, value in vars(nxt).items():
         assert np.all(np.isfinite(np.asarray(value))), field
+    low_s, high_s = STRENGTH_RANGE
+    assert np.all((np.asarray(nxt.strength) >= low_s) & (np.asarray(nxt.strength) <= high_s))
 
 
 def test_a_models_tuning_is_its_own(tmp_path):
@@ -225,3 +227,111 @@ def test_the_predictive_holds_candidates_scale_the_runs_own_settings():
     assert radii == [pytest.approx(1.5 * rotation_radius(hand, config))]
     with pytest.raises(ValueError, match=r"PhysicsConfig\.controller\.predictive must be a bool, got 1"):
         physics.PhysicsConfig().replace(predictive=1)
+
+
+def test_the_robust_controllers_settings_and_their_errors():
+    """`robust` is the default with the pose filter and the strength estimates on; a filter gain outside (0, 1] and
+    negative rates are refused by name."""
+    robust = physics.PhysicsConfig.named("robust")
+    assert robust.controller_name == "robust"
+    assert robust.value("pose_filter") < 1 and robust.value("strength_rate") > 0
+    assert physics.PhysicsConfig().value("pose_filter") == 1 and physics.PhysicsConfig().value("strength_rate") == 0
+    for name, bad in (("pose_filter", 0.0), ("pose_filter", 1.5), ("strength_rate", -0.1),
+                      ("strength_rate", float("nan"))):
+        with pytest.raises(ValueError, match=rf"PhysicsConfig\.controller\.{name} must be"):
+            physics.PhysicsConfig().replace(**{name: bad})
+
+
+def _moving_tool(ticks, dt, rng, noise):
+    """Observations of a tool turning at a constant body rate and moving at a constant velocity, joints at
+    constant rates, (ticks,) each; the pose and joint angles with Gaussian noise of stds `noise` [m, rad, rad]."""
+    from gsp_jax.physics.controller import quat_mul
+
+    v, w, dq = np.array([0.02, -0.01, 0.03]), np.array([0.5, -0.3, 0.8]), rng.uniform(-1, 1, 16)
+    t = np.arange(1, ticks + 1) * dt
+    half = 0.5 * np.linalg.norm(w) * t
+    turn = np.c_[np.cos(half), np.sin(half)[:, None] * w / np.linalg.norm(w)]
+    quat0 = np.array([0.9, 0.1, -0.3, 0.2]) / np.linalg.norm([0.9, 0.1, -0.3, 0.2])
+    quat = np.asarray(jax.vmap(lambda b: quat_mul(jnp.asarray(quat0, jnp.float32), b))(jnp.asarray(turn, jnp.float32)))
+    pos, q = np.array([0.0, 0.01, 0.05]) + t[:, None] * v, 0.3 + t[:, None] * dq
+    small = rng.normal(size=(ticks, 3)) * noise[1] / 2
+    kick = np.c_[np.ones(ticks), small] / np.linalg.norm(np.c_[np.ones(ticks), small], axis=1, keepdims=True)
+    noisy = np.asarray(jax.vmap(quat_mul)(jnp.asarray(quat, jnp.float32), jnp.asarray(kick, jnp.float32)))
+    seen = dict(tool_pos=pos + rng.normal(size=pos.shape) * noise[0], tool_quat=noisy,
+                q=q + rng.normal(size=q.shape) * noise[2], dq=np.broadcast_to(dq, q.shape),
+                tool_vel=np.broadcast_to(np.r_[v, w], (ticks, 6)), bias=np.zeros_like(q))
+    start = (pos[0] - v * dt, quat0, q[0] - dq * dt)  # the estimate a tick before the first observation
+    return {k: jnp.asarray(x, jnp.float32) for k, x in seen.items()}, pos, quat, q, start
+
+
+@pytest.mark.parametrize("noisy", [False, True])
+def test_the_pose_filter_follows_a_moving_tool_and_cuts_its_noise_as_an_exponential_filter_does(noisy):
+    """`Controller._filtered` (gain a = the robust controller's 0.1) over 4,000 ticks of a tool moving and turning at
+    constant rates: without noise the estimate is the pose within float32 rounding (the measured velocities carry
+    it); with white noise of std s on the position, orientation and joint angles, the estimate's error has the std
+    of an exponential filter's, s sqrt(a / (2 - a)) (0.23 s), within 15%."""
+    from gsp_jax.physics.controller import rotation_error
+    from gsp_jax.physics.scene import Observation
+
+    phys = physics.Physics(Surrogate(learned=False), physics.PhysicsConfig.named("robust"))
+    ctl, a, ticks = phys.controller, phys.config.controller.pose_filter, 4000
+    noise = (0.001, 0.01, 0.005) if noisy else (0.0, 0.0, 0.0)
+    seen, pos, quat, q, start = _moving_tool(ticks, ctl.timestep, np.random.default_rng(3), noise)
+    _, cs = phys.start(list(scenario.eval_set_a().values())[0])
+    cs = cs.replace(estimate=jnp.asarray(np.concatenate(start), jnp.float32))
+
+    def step(cs, obs):
+        obs, est = ctl._filtered(cs, Observation(**obs))
+        return cs.replace(estimate=est), (obs.tool_pos, obs.tool_quat, obs.q)
+
+    _, (p_est, q_est, j_est) = jax.lax.scan(step, cs, seen)
+    err_p = np.asarray(p_est) - pos
+    err_r = np.asarray(jax.vmap(rotation_error)(jnp.asarray(quat, jnp.float32), q_est))
+    err_j = np.asarray(j_est) - q
+    if not noisy:
+        assert np.abs(err_p).max() < 2e-6 and np.abs(err_r).max() < 2e-5 and np.abs(err_j).max() < 2e-5
+        return
+    expect = np.sqrt(a / (2 - a))
+    for err, s in ((err_p, noise[0]), (err_r, noise[1]), (err_j, noise[2])):
+        ratio = np.std(err[500:]) / s
+        assert abs(ratio - expect) < 0.15 * expect, (ratio, expect)
+
+
+def test_strength_estimates_move_along_the_least_squares_force_of_each_joint():
+    """`Controller._strengths` against numpy: each joint's estimate moves by rate dt / weight^2 times the part of
+    the feedback beyond the deadband dotted with the force its torque gives through each active link (the least
+    squares solution of J_l^T f = tau_j e_j, `np.linalg.lstsq`), then leaks towards 1; nothing but the leak below
+    the deadband or while a link changes; a motor whose command is at its limit is never asked for more."""
+    phys = physics.Physics(Surrogate(learned=False), physics.PhysicsConfig.named("robust"))
+    from gsp_jax.physics.controller import STRENGTH_DEADBAND, STRENGTH_LEAK
+
+    ctl, c, rng = phys.controller, phys.config.controller, np.random.default_rng(5)
+    ep = list(scenario.eval_set_a().values())[0]
+    _, cs = phys.start(ep)
+    L, J = phys.hand.n_links, len(cs.q_rest)
+    jac = rng.normal(size=(L, 3, J)) * 0.3
+    active = rng.uniform(size=L) < 0.5
+    tau, old = rng.uniform(-1, 1, J), rng.uniform(0.8, 1.2, J)
+    cs = cs.replace(strength=jnp.asarray(old, jnp.float32))
+    weight = float(ep.mass) * np.linalg.norm(np.asarray(ctl.gravity))
+    dt = ctl.timestep
+    leak = lambda s: s + STRENGTH_LEAK * dt * (1 - s)  # noqa: E731
+
+    def run(feedback, cs=cs, tau=tau):
+        return np.asarray(ctl._strengths(cs, jnp.asarray(tau, jnp.float32), jnp.asarray(jac, jnp.float32),
+                                         jnp.asarray(active), jnp.asarray(feedback, jnp.float32), ep))
+
+    feedback = np.array([0.5, -1.0, 3.0]) * weight
+    grad = np.array([sum(np.linalg.lstsq(jac[lk].T, tau[j] * np.eye(J)[j], rcond=None)[0] @ feedback
+                         for lk in np.flatnonzero(active)) for j in range(J)])
+    beyond = 1 - STRENGTH_DEADBAND * weight / np.linalg.norm(feedback)
+    expect = leak(old - beyond * c.strength_rate * dt * grad / weight**2)
+    np.testing.assert_allclose(run(feedback), expect, rtol=1e-5, atol=1e-6)
+    assert np.abs(expect - leak(old)).max() > 1e-4  # the feedback moved them (30x the tolerance above)
+    np.testing.assert_allclose(run(0.5 * STRENGTH_DEADBAND * feedback / np.linalg.norm(feedback) * weight),
+                               leak(old), rtol=1e-6)
+    changing = cs.replace(changed=cs.changed.at[0].set(True))
+    np.testing.assert_allclose(run(feedback, cs=changing), leak(old), rtol=1e-6)
+    at_limit = tau.copy()
+    at_limit[:] = phys.scene.ctrl_range[1][0] * old * 1.01  # every command beyond the motors' range
+    assert np.all(run(feedback, tau=at_limit) >= old - 1e-7)

@@ -42,6 +42,20 @@ def phys_paper():
 
 
 @pytest.fixture(scope="module")
+def phys_robust():
+    """The robust controller (`PhysicsConfig.named("robust")`: the pose filter, the motors' strengths estimated),
+    its estimates moved at every tick (no deadband: `controller.STRENGTH_DEADBAND` 0 while the module's tests run)."""
+    from gsp_jax.physics import controller
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(controller, "STRENGTH_DEADBAND", 0.0)
+        yield physics.Physics(Surrogate(learned=False), physics.PhysicsConfig.named("robust", hold=0.25))
+
+
+PHYS = {"measured": "phys", "paper": "phys_paper", "robust": "phys_robust"}
+
+
+@pytest.fixture(scope="module")
 def episodes():
     """Three evaluation episodes (their first T waypoints) and a fourth with the CoM off-centre under a torque."""
     eps = [e.head(T) for e in list(scenario.eval_set_a().values())[:3]]
@@ -69,15 +83,15 @@ def test_native_state_layout_is_the_flat_controller_state(phys, episodes):
         np.testing.assert_array_equal(flat[start:start + value.size], value, err_msg=name)
 
 
-@pytest.mark.parametrize("controller", ["paper", "measured"])
+@pytest.mark.parametrize("controller", ["paper", "measured", "robust"])
 def test_native_tick_is_the_jax_tick_on_recorded_states(controller, request, episodes):
     """At every tick of four short episodes (JAX controller, C MuJoCo), the native tick from the same state and
     observation gives the JAX tick's motor commands (within 1e-4 N m), external wrench (1e-5 N), next controller state
     (within 1e-3 in force units: the warm-started force solves carry float32 rounding) and status: the angle
     within three float32 steps of its arccos near 0 (`tolerances.STATUS_ANGLE_ATOL_DEG`, 0.069 deg), the same
-    falls. For both named controllers (the default's measured frames: the tool's surface normals at the touching
-    links; the paper's face normals)."""
-    phys = request.getfixturevalue("phys" if controller == "measured" else "phys_paper")
+    falls. For the named controllers (the default's measured frames: the tool's surface normals at the touching
+    links; the paper's face normals; the robust one's filtered pose and strength estimates)."""
+    phys = request.getfixturevalue(PHYS[controller])
     policy = _four_tips_then_changes(phys)
     run = c_backend._Lockstep(phys, [(policy, None)], episodes, 1, None, controller="jax")
     tick = c_backend.native_tick(phys)
@@ -107,16 +121,19 @@ def test_native_tick_is_the_jax_tick_on_recorded_states(controller, request, epi
                 eng.step(tick.constants, alive, out, float(phys.scene.pedestal_drop(j * phys.timestep, xp=np)),
                          np.zeros(64))
     assert changing > 0  # grasp changes were under way
+    if controller == "robust":  # the estimates moved (the strengths) and filtered (the pose)
+        off, J = tick.constants.state, len(phys.scene.hand_dof)
+        assert np.abs(run.cs[:, off.strength:off.strength + J] - 1).max() > 1e-3
     assert worst["ctrl"] < 1e-4 and worst["ext"] < 1e-5 and worst["cs"] < 1e-3, worst
     assert worst["angle"] < tol.STATUS_ANGLE_ATOL_DEG, worst
     assert not np.any(run.fell)
 
 
-@pytest.mark.parametrize("controller", ["paper", "measured"])
+@pytest.mark.parametrize("controller", ["paper", "measured", "robust"])
 def test_native_and_jax_controllers_give_the_same_outcomes(controller, request, episodes):
     """The whole lockstep with either tick: the same falls, hold errors within 0.02 deg (the physics
     carries the last-bit differences forward: measured 6e-4 deg on the 27 evaluation episodes, full length)."""
-    phys = request.getfixturevalue("phys" if controller == "measured" else "phys_paper")
+    phys = request.getfixturevalue(PHYS[controller])
     policy = _four_tips_then_changes(phys)
     res = {c: c_backend.simulate(phys, [(policy, None)], episodes, controller=c)[0] for c in c_backend.CONTROLLERS}
     np.testing.assert_array_equal(res["native"].fell, res["jax"].fell)

@@ -126,6 +126,22 @@ FIGURES = (
            ("envelope_eval_learned_gap",), "cpu", (*_LIBRARY, "experiments/physics/envelope.py"), 2.5),
     Figure("world-parts-cpu", ("world-parts", "--learned"), ("world_parts_eval_gap_learned",), "cpu",
            (*_LIBRARY, "experiments/physics/world_parts.py"), 1.5),
+    # the robust controller (a filtered pose, the motors' strengths estimated): the same sets, model and gap
+    Figure("controller-eval-robust-cpu", ("envelope", "--set", "eval", "--random", "0", "--policies", "four-tips",
+                                          "dp-opt", "L1", "L2", "--learned", "--controller", "robust"),
+           ("envelope_eval_learned_robust",), "cpu", (*_LIBRARY, "experiments/physics/envelope.py"), 2.5),
+    Figure("controller-eval-robust-gap-cpu", ("envelope", "--set", "eval", "--random", "0", "--policies",
+                                              "four-tips", "dp-opt", "L1", "L2", "--learned", "--controller",
+                                              "robust", "--world", "gap"),
+           ("envelope_eval_learned_robust_gap",), "cpu", (*_LIBRARY, "experiments/physics/envelope.py"), 2.5),
+    Figure("controller-stress-robust-cpu", ("envelope", "--set", "stress", "--random", "0", "--policies",
+                                            "four-tips", "dp-opt", "L1", "L2", "--learned", "--controller",
+                                            "robust"),
+           ("envelope_stress_learned_robust",), "cpu", (*_LIBRARY, "experiments/physics/envelope.py"), 9.0),
+    Figure("controller-stress-robust-gap-cpu", ("envelope", "--set", "stress", "--random", "0", "--policies",
+                                                "four-tips", "dp-opt", "L1", "L2", "--learned", "--controller",
+                                                "robust", "--world", "gap"),
+           ("envelope_stress_learned_robust_gap",), "cpu", (*_LIBRARY, "experiments/physics/envelope.py"), 9.0),
     # the hands x tools table: every shipped model's files are what it measures (the default's learned term on);
     # its Menagerie rows need the hands imported once before (`hands --menagerie DIR`: examples/published/)
     Figure("hands", ("hands", "--learned"), ("hands_learned",), "cpu", ("gsp_jax", "models", "experiments/common.py",

@@ -101,6 +101,12 @@ class ControllerConfig:
     frames: str = "measured"  # the force solve's contact normals: "nominal" (each option's face normal, the paper's
     # controller) or "measured" (where a link touches, the tool surface's normal at the link's centre line as
     # observed: MuJoCo's sphere-box normal, tilted where a fingertip rests on an edge)
+    pose_filter: float = 1.0  # in (0, 1]: the gain of a complementary filter on the observed tool pose and joint
+    # angles: each tick the last estimate is carried forward by the measured velocities and moved this fraction of
+    # the way to the observation (1: the observation as it is; a noisy pose estimate wants ~0.1)
+    strength_rate: float = 0.0  # [1/s] >= 0: how fast each motor's strength (torque per command) is estimated from
+    # the tool's pose feedback while it is held, the commands divided by the estimates (0: the model's motors; the
+    # estimates' leak and deadband: `controller.STRENGTH_LEAK`, `STRENGTH_DEADBAND`)
     predictive: bool = False  # C MuJoCo only: before the hold, roll it out under a few settings of these gains and
     # keep, per episode, the one that holds best (`gsp_jax.physics.predictive`)
 
@@ -112,9 +118,12 @@ class ControllerConfig:
         return w * w, 2 * self.tool_damping * w
 
     def __post_init__(self):
-        _check(self, positive=("tool_freq", "feedback_limit", "feedback_floor", "rotation_step", "friction_margin")
-               + (("tool_radius",) if self.tool_radius is not None else ()),
-               nonnegative=("tool_damping", "grip_force"), counts=("force_iterations",))
+        _check(self, positive=("tool_freq", "feedback_limit", "feedback_floor", "rotation_step", "friction_margin",
+                               "pose_filter") + (("tool_radius",) if self.tool_radius is not None else ()),
+               nonnegative=("tool_damping", "grip_force", "strength_rate"),
+               counts=("force_iterations",))
+        if self.pose_filter > 1:
+            raise ValueError(f"PhysicsConfig.controller.pose_filter must be in (0, 1], got {self.pose_filter}")
         if self.frames not in FRAMES:
             raise ValueError(f"PhysicsConfig.controller.frames must be one of {FRAMES}, got {self.frames!r}")
         if not isinstance(self.predictive, bool):
@@ -162,6 +171,9 @@ CONTROLLERS = {  # named contact controllers: `PhysicsConfig.named(name)`; the f
     "paper": dict(frames="nominal", friction_margin=0.7, tool_radius=0.05, rotation_step=1.0),  # the paper-era
     # controller: option normals, 70% of mu, rotational gains as of the tool's mass at 5 cm, damped to the bound
     "predictive": dict(predictive=True),  # the default with the predictive hold (C MuJoCo only)
+    "robust": dict(pose_filter=0.1, strength_rate=0.3),  # the default with a filtered pose estimate and the motors'
+    # strengths estimated while holding: for a hand whose motors and pose estimate are not the model's
+    # (docs/world.md, "A controller for the gap")
 }
 DEFAULT_CONTROLLER = "measured"
 

@@ -60,6 +60,10 @@ from gsp_jax.model.scenario import Episode
 N_PATH = 5  # points of a moving link's path
 MIN_GRADIENT = 0.5  # below this norm the tool's SDF gradient gives no normal (a point on its surface: it is 0 there,
 # 1 outside, >= 1 inside a box); the measured frames then keep the option's normal
+STRENGTH_RANGE = (0.5, 1.5)  # the motors' strength estimates stay within these factors of the model's
+STRENGTH_LEAK = 2.0  # [1/s] the estimates' pull back to the model's strength (1)
+STRENGTH_DEADBAND = 0.6  # pose feedback below this many tool weights does not move the estimates (a held tool's
+# feedback in the model stays below it: estimates that chase it drop heavy tools)
 PATH_TIMES = np.array([0.0, 0.15, 0.4, 0.65, 1.0], np.float32)  # when (fraction of `move`) the path reaches each
 # point: the last leg, onto the tool, gets the most time (a slow arrival does not kick the tool)
 
@@ -90,6 +94,9 @@ class ControllerState:
     f_with: jax.Array  # (L, 3) last tick's forces with the changed link (warm start) [N]
     f_without: jax.Array  # (L, 3) ... and without it
     q_rest: jax.Array  # (J,) posture the spare degrees of freedom are pulled to [rad]
+    strength: jax.Array  # (J,) each motor's estimated torque per command, relative to the model's (`strength_rate`)
+    estimate: jax.Array  # (7 + J,) the filtered tool pose (position [m], quaternion) and joint angles [rad]
+    # (`pose_filter`)
 
 
 def reference_motion(episode: Episode, time: jax.Array) -> Motion:
@@ -220,7 +227,10 @@ class Controller:
         return ControllerState(options=opts, previous=opts, changed=jnp.zeros(L, bool), start=jnp.float32(0.0),
                                path=jnp.zeros((N_PATH, 3), jnp.float32), park=here,
                                anchor=self._on_surface(here, opts), anchored=touching,
-                               load=touching.astype(jnp.float32), f_with=zeros, f_without=zeros, q_rest=q0)
+                               load=touching.astype(jnp.float32), f_with=zeros, f_without=zeros, q_rest=q0,
+                               strength=jnp.ones_like(q0),
+                               estimate=jnp.concatenate([obs.tool_pos, obs.tool_quat / jnp.linalg.norm(obs.tool_quat),
+                                                         obs.q]))
 
     def begin_segment(self, cs: ControllerState, obs: Observation, grasp: jax.Array,
                       time: jax.Array) -> ControllerState:
@@ -251,8 +261,10 @@ class Controller:
                           path=jnp.where(any_change, path, cs.path), park=park)
 
     # -------------------------------------------------------------------------------------------- a tick
-    def tool_wrench(self, obs: Observation, episode: Episode, ref: Motion, external: jax.Array) -> jax.Array:
-        """(6,) force and torque about the CoM the contacts must supply (impedance on the observed pose)."""
+    def tool_wrench(self, obs: Observation, episode: Episode, ref: Motion, external: jax.Array,
+                    uncapped: bool = False):
+        """(6,) force and torque about the CoM the contacts must supply (impedance on the observed pose); with
+        `uncapped`, also the pose feedback's force before its cap (3,) [N]."""
         c = self.config.controller
         kp, kd = c.tool_gains
         p, mat, omega = self._frame(obs)
@@ -267,10 +279,12 @@ class Controller:
         # would turn the spike into grip forces the motors cannot give, throwing the tool out of the hand
         clip = lambda v, top: v * jnp.minimum(1.0, top / (jnp.linalg.norm(v) + 1e-9))  # noqa: E731
         cap = jnp.maximum(c.feedback_limit * weight, c.feedback_floor)
+        raw = feedback
         feedback, turn = clip(feedback, cap), clip(turn, cap * self.tool_radius)
         force = episode.mass * (ref.acc - self.gravity) + feedback
         torque = turn + jnp.cross(omega, inertia @ omega)
-        return jnp.concatenate([force, torque]) - external
+        wrench = jnp.concatenate([force, torque]) - external
+        return (wrench, raw) if uncapped else wrench
 
     def _tool_inertia(self, mat: jax.Array, episode: Episode) -> tuple[jax.Array, jax.Array, jax.Array]:
         """(3, 3) x 3, world frame: the tool's inertia about its CoM, and the inertias its rotational stiffness and
@@ -349,6 +363,50 @@ class Controller:
         f_track = f_track + c.finger_kd * jnp.where(held, derr_n + ratio * (derr - derr_n), derr)
         return jnp.where(tracked[:, None], f_track, 0.0)
 
+    def _filtered(self, cs: ControllerState, obs: Observation) -> tuple[Observation, jax.Array]:
+        """The observation with its tool pose and joint angles filtered (`pose_filter` a): the last estimate carried
+        one tick by the measured velocities (the tool's angular velocity in its frame), then moved a of the way to
+        the observed values; (the filtered observation, the new estimate (7 + J,)). The reference of
+        `native._filter`."""
+        a, ts = jnp.float32(self.config.controller.pose_filter), jnp.float32(self.timestep)
+        est = cs.estimate
+        pos = est[:3] + obs.tool_vel[:3] * ts
+        pos = pos + a * (obs.tool_pos - pos)
+        h = jnp.float32(0.5) * ts * obs.tool_vel[3:]
+        quat = quat_mul(est[3:7], jnp.concatenate([jnp.ones(1, jnp.float32), h]))
+        seen = obs.tool_quat / jnp.linalg.norm(obs.tool_quat)
+        seen = jnp.where(jnp.dot(quat, seen) < 0, -seen, seen)
+        quat = quat + a * (seen - quat)
+        quat = quat / jnp.linalg.norm(quat)
+        q = est[7:] + obs.dq * ts
+        q = q + a * (obs.q - q)
+        return obs.replace(tool_pos=pos, tool_quat=quat, q=q), jnp.concatenate([pos, quat, q])
+
+    def _strengths(self, cs: ControllerState, tau: jax.Array, jac: jax.Array, active: jax.Array,
+                   feedback: jax.Array, episode: Episode) -> jax.Array:
+        """(J,) the motors' strength estimates after this tick: each moves against the gradient of the pose
+        feedback's shortfall, (the force on the tool that joint j's torque tau_j gives through each active link l,
+        (J_l J_l^T)^-1 J_l e_j tau_j) . `feedback` (3,) [N] (uncapped), scaled by `strength_rate` / weight^2 and by
+        how far the feedback exceeds `STRENGTH_DEADBAND` tool weights; leaking back to 1 at `STRENGTH_LEAK`; frozen
+        while a link changes; a motor whose command is at its limit is not asked for more. The reference of
+        `native._strengths`."""
+        c, ts = self.config.controller, jnp.float32(self.timestep)
+        leak, deadband = STRENGTH_LEAK, STRENGTH_DEADBAND
+        weight = episode.mass * jnp.linalg.norm(self.gravity)
+        jjt = jnp.einsum("lij,lkj->lik", jac, jac) + jnp.float32(1e-4) * jnp.eye(3)  # (L, 3, 3) [m^2]
+        per_joint = _solve3(jjt[:, None], jnp.swapaxes(jac, 1, 2))  # (L, J, 3): (J J^T)^-1 J e_j [1/m]
+        grad = jnp.einsum("l,lji,i->j", active.astype(jnp.float32), per_joint, feedback) * tau  # (J,) [N^2]
+        size = jnp.linalg.norm(feedback)
+        keep = jnp.maximum(0.0, 1.0 - deadband * weight / (size + 1e-9))
+        keep = jnp.where(jnp.any(cs.changed), 0.0, keep)
+        old = cs.strength
+        new = old - keep * c.strength_rate * ts * grad / (weight * weight)
+        new = new + leak * ts * (1.0 - new)
+        out = tau / old
+        limited = (out >= self.ctrl_range[1]) | (out <= self.ctrl_range[0])
+        new = jnp.where(limited, jnp.maximum(new, old), new)
+        return jnp.clip(new, *STRENGTH_RANGE)
+
     def control(self, cs: ControllerState, obs: Observation, episode: Episode, ref: Motion, time: jax.Array,
                 external: jax.Array) -> tuple[jax.Array, ControllerState]:
         """Joint torques (J,) for one tick at `time`, and the next state. `external` (6,): the external wrench
@@ -356,6 +414,9 @@ class Controller:
         checked by `tests/test_native.py::test_native_tick_is_the_jax_tick_on_recorded_states`."""
         timeline, tick = self.config.timeline, self.timestep
         with jax.default_matmul_precision("highest"):
+            estimate = cs.estimate
+            if self.config.controller.pose_filter < 1:
+                obs, estimate = self._filtered(cs, obs)
             p, mat, omega = self._frame(obs)
             unloading, travelling, moving, current, on_path = self._phase(cs, time)
             anchored = cs.anchored & ~moving
@@ -383,7 +444,7 @@ class Controller:
             pts = p + surface @ mat.T
             if self.config.controller.frames == "measured":
                 nrm = self.measured_normals(x, p, mat, nrm, held[:, 0])
-            required = self.tool_wrench(obs, episode, ref, external)
+            required, feedback = self.tool_wrench(obs, episode, ref, external, uncapped=True)
             mu = self.config.controller.friction_margin * episode.friction
             com = p + mat @ episode.com
             active = (current > 0) & (load > 0)
@@ -393,5 +454,10 @@ class Controller:
             share = jnp.sum(load * cs.changed)
             forces = share * f_a + (1 - share) * f_b
             tau = jnp.einsum("lij,li->j", jac, forces + f_track) + posture + obs.bias  # bias: gravity compensation
+            strength = cs.strength
+            if self.config.controller.strength_rate > 0:
+                strength = self._strengths(cs, tau, jac, active, feedback, episode)
+                tau = tau / strength
             tau = jnp.clip(tau, *self.ctrl_range)
-        return tau, cs.replace(load=load, f_with=f_a, f_without=f_b, anchor=anchor, anchored=anchored)
+        return tau, cs.replace(load=load, f_with=f_a, f_without=f_b, anchor=anchor, anchored=anchored,
+                               strength=strength, estimate=estimate)

@@ -36,7 +36,8 @@ from jax.flatten_util import ravel_pytree
 from llvmlite import binding as llvm
 
 from gsp_jax.physics import world as world_lib
-from gsp_jax.physics.controller import MIN_GRADIENT, PATH_TIMES, ControllerState
+from gsp_jax.physics import controller as controller_lib
+from gsp_jax.physics.controller import MIN_GRADIENT, PATH_TIMES, STRENGTH_RANGE, ControllerState
 from gsp_jax.physics.spec import HasSpec, PhysicsSpec, of
 
 F32 = np.float32
@@ -148,6 +149,10 @@ class Gains(NamedTuple):
     iterations: int
     rho: float
     torque_length: float
+    pose_filter: float  # 1: off
+    strength_rate: float  # 0: off
+    strength_leak: float
+    strength_deadband: float
 
 
 class Fingers(NamedTuple):
@@ -184,6 +189,8 @@ class Offsets(NamedTuple):
     f_with: int
     f_without: int
     q_rest: int
+    strength: int
+    estimate: int
 
 
 class Constants(NamedTuple):
@@ -242,7 +249,7 @@ class Scratch(NamedTuple):
 
     v3: np.ndarray  # (N_VEC3, 3): 3-vectors
     m3: np.ndarray  # (3, 3, 3): 3x3 matrices
-    f: np.ndarray  # (4 J + 12,): J- and 6-vectors
+    f: np.ndarray  # (4 J + 15,): J-, 6- and 3-vectors
     q4: np.ndarray  # (2, 4): the tool's quaternion and the reference's
     links: Links
     jac: np.ndarray  # (L, 3, J)
@@ -264,7 +271,7 @@ def scratch(K: Constants) -> Scratch:
     J, L, B = sc.hand_qpos.shape[0], H.link_body.shape[0], H.body_parent.shape[0]
     links = Links(blocks=np.zeros((N_BLOCKS, L, 3)), flags=np.zeros((N_FLAGS, L), np.bool_),
                   options=np.zeros((3, L), np.int64), load=np.zeros(L, F32), busy=np.zeros(H.n_fingers, np.bool_))
-    return Scratch(v3=np.zeros((N_VEC3, 3)), m3=np.zeros((3, 3, 3)), f=np.zeros(4 * J + 12), q4=np.zeros((2, 4)),
+    return Scratch(v3=np.zeros((N_VEC3, 3)), m3=np.zeros((3, 3, 3)), f=np.zeros(4 * J + 15), q4=np.zeros((2, 4)),
                    links=links, jac=np.zeros((L, 3, J)), joints=np.zeros((2, J, 3)), body_pos=np.zeros((B, 3)),
                    body_mat=np.zeros((B, 3, 3)), kin_v=np.zeros((4, 3)), kin_m=np.zeros((2, 3, 3)),
                    adj=np.zeros((3, 3)), gg=np.zeros((6, 6)), lever=np.zeros((2, L, 3)), apg=np.zeros((3, 3 * L)),
@@ -325,7 +332,10 @@ class Tick:
                 rotation_step=float(c.rotation_step), grip_force=float(c.grip_force),
                 friction_margin=float(c.friction_margin), measured=c.frames == "measured",
                 iterations=int(c.force_iterations),
-                rho=float(ctl.wrench_config.force_penalty), torque_length=float(ctl.wrench_config.torque_length)),
+                rho=float(ctl.wrench_config.force_penalty), torque_length=float(ctl.wrench_config.torque_length),
+                pose_filter=float(c.pose_filter), strength_rate=float(c.strength_rate),
+                strength_leak=float(controller_lib.STRENGTH_LEAK),
+                strength_deadband=float(controller_lib.STRENGTH_DEADBAND)),
             fingers=Fingers(
                 finger_kp=float(fi.finger_kp), finger_kd=float(fi.finger_kd),
                 held_ratio=float(fi.held_stiffness_ratio), free_stiffness=float(fi.free_stiffness),
@@ -729,6 +739,8 @@ def _control(K, j, cs, obs, ep, out, S):
         q[i], dq[i], bias[i] = obs[sc.hand_qpos[i]], obs[nq + sc.hand_dof[i]], obs[nq + nv + sc.hand_dof[i]]
     p, quat, vel, w_body, mat = v3[0], S.q4[0], v3[1], v3[2], S.m3[0]
     _tool(sc, obs, p, quat, vel, w_body, mat)
+    if C.pose_filter < 1.0:
+        _filter(K.state, C.pose_filter, tl.timestep, cs, p, quat, vel, w_body, mat, q, dq)
     omega = v3[3]
     for i in range(3):
         omega[i] = mat[i, 0] * w_body[0] + mat[i, 1] * w_body[1] + mat[i, 2] * w_body[2]
@@ -760,7 +772,7 @@ def _control(K, j, cs, obs, ep, out, S):
     _loads(K.hand, tl, p, mat, W, v3[10])
     _tracking(K.fingers, jac, W, v3, S.m3[2], S.adj)
     required = f[4 * J + 6:4 * J + 12]
-    _tool_wrench(C, sc.gravity, ts, ep, ext, v3, S.m3, S.q4, required)
+    _tool_wrench(C, sc.gravity, ts, ep, ext, v3, S.m3, S.q4, f[4 * J + 6:4 * J + 15])
 
     # ---- the force solves on the observed tool, blended over the changed link's load
     mu, share = _contacts(K.hand, C, ep.friction, p, mat, v3, W)
@@ -777,6 +789,10 @@ def _control(K, j, cs, obs, ep, out, S):
     else:
         _solve(C, pts, nrm, flags[ACTIVE_B], mu, required, com_w, f_without, f_b, S, lip if same else -1.0)
     _torques(K.fingers, K.state, sc, cs, f, share, jac, W)
+    if C.strength_rate > 0:
+        _strengths(C, K.state, sc, cs, f, jac, W, float(ep.mass) * _norm3(sc.gravity), float(ts), S.m3[2], v3[9])
+    for jj in range(J):
+        f[3 * J + jj] = min(max(f[3 * J + jj] / cs[K.state.strength + jj], sc.ctrl_low[jj]), sc.ctrl_high[jj])
     _write(K.state, sc, cs, f, W, out)
 
 
@@ -938,8 +954,8 @@ def _tracking(Fi, jac, W, v3, jjt, adj):
 def _tool_wrench(C, g, ts, ep, ext, v3, m3, q4, required):
     """The wrench the contacts are to put on the tool (`Controller.tool_wrench`; C: `Gains`, g: gravity, ts: the
     timestep): the reference's motion and pose feedback (capped) less the external wrench ext (6,), written to
-    required (6,); the CoM's offset (world frame) to v3[13]. The tool's pose and the reference as in `_control`;
-    v3's rows 9, 13..22, m3[1]: scratch."""
+    required[:6], the feedback's force before its cap to required[6:9]; the CoM's offset (world frame) to v3[13].
+    The tool's pose and the reference as in `_control`; v3's rows 9, 13..22, m3[1]: scratch."""
     p, quat, vel, omega, mat = v3[0], q4[0], v3[1], v3[3], m3[0]
     ref_pos, ref_vel, ref_acc, ref_quat = v3[4], v3[5], v3[6], q4[1]
     com_t, inertia_d, c = ep.com, ep.inertia, v3[9]
@@ -975,6 +991,8 @@ def _tool_wrench(C, g, ts, ep, ext, v3, m3, q4, required):
             turn[i] += mat[i, k] * (stiff[k] * lo_s[k] - damp[k] * lo_d[k])
             inertia_w[i] += mat[i, k] * (float(inertia_d[k]) * lo_i[k])
     cap = max(C.feedback_limit * weight, C.feedback_floor)
+    for i in range(3):
+        required[6 + i] = feedback[i]  # before its cap: `_strengths` reads it
     _clip_norm(feedback, cap)
     _clip_norm(turn, cap * C.tool_radius)
     _cross(omega, inertia_w, c)
@@ -1100,9 +1118,9 @@ def _outward(H, h, g, rel, gr):
 
 @_jit
 def _torques(Fi, off, sc, cs, f, share, jac, W):
-    """The motor torques (f's (J,) tau): the two solves' forces blended over the changed link's load `share`, and
-    the tracking forces, through the Jacobians; the posture term (rest: cs at off.q_rest), the joints' bias; clipped
-    to the motors' range."""
+    """The motor torques (f's (J,) tau) before the motors' strengths and range: the two solves' forces blended over
+    the changed link's load `share`, and the tracking forces, through the Jacobians; the posture term (rest: cs at
+    off.q_rest), the joints' bias."""
     J = jac.shape[2]
     q, bias, tau = f[0:J], f[2 * J:3 * J], f[3 * J:4 * J]
     f_a, f_b, f_track = W.blocks[F_A], W.blocks[F_B], W.blocks[F_TRACK]
@@ -1112,8 +1130,89 @@ def _torques(Fi, off, sc, cs, f, share, jac, W):
         for lk in range(jac.shape[0]):
             for i in range(3):
                 acc += jac[lk, i, jj] * (sh * f_a[lk, i] + (1 - sh) * f_b[lk, i] + f_track[lk, i])
-        tau[jj] = min(max(acc + Fi.posture_kp * (cs[off.q_rest + jj] - q[jj]) + bias[jj], sc.ctrl_low[jj]),
-                      sc.ctrl_high[jj])
+        tau[jj] = acc + Fi.posture_kp * (cs[off.q_rest + jj] - q[jj]) + bias[jj]
+
+
+@_jit
+def _filter(off, a, ts, cs, p, quat, vel, w_body, mat, q, dq):
+    """`Controller._filtered` (gain a, timestep ts): the estimate in cs (at off.estimate) carried one tick by the
+    measured velocities and moved a of the way to the observed p, quat (normalised), q; written to cs and over p,
+    quat, mat and q."""
+    e = off.estimate
+    for i in range(3):
+        pred = F32(cs[e + i] + F32(vel[i] * ts))
+        p[i] = F32(pred + F32(a * F32(p[i] - pred)))
+        cs[e + i] = p[i]
+    w, x, y, z = cs[e + 3], cs[e + 4], cs[e + 5], cs[e + 6]
+    hx, hy, hz = F32(0.5 * ts * w_body[0]), F32(0.5 * ts * w_body[1]), F32(0.5 * ts * w_body[2])
+    pw = w - x * hx - y * hy - z * hz
+    px = w * hx + x + y * hz - z * hy
+    py = w * hy - x * hz + y + z * hx
+    pz = w * hz + x * hy - y * hx + z
+    sg = 1.0 if pw * quat[0] + px * quat[1] + py * quat[2] + pz * quat[3] >= 0 else -1.0
+    qw, qx = pw + a * (sg * quat[0] - pw), px + a * (sg * quat[1] - px)
+    qy, qz = py + a * (sg * quat[2] - py), pz + a * (sg * quat[3] - pz)
+    n = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    quat[0], quat[1], quat[2], quat[3] = qw / n, qx / n, qy / n, qz / n
+    for i in range(4):
+        cs[e + 3 + i] = quat[i]
+    _quat_to_mat(quat, mat)
+    for i in range(q.shape[0]):
+        pred = F32(cs[e + 7 + i] + F32(dq[i] * ts))
+        q[i] = F32(pred + F32(a * F32(q[i] - pred)))
+        cs[e + 7 + i] = q[i]
+
+
+@_jit
+def _strengths(C, off, sc, cs, f, jac, W, weight, ts, jjt, col):
+    """`Controller._strengths`: the motors' strength estimates in cs (at off.strength) moved by this tick's pose
+    feedback (f's uncapped feedback force), from f's tau (before the strengths). jjt (3, 3), col (3,): scratch."""
+    J = jac.shape[2]
+    tau, fb = f[3 * J:4 * J], f[4 * J + 12:4 * J + 15]
+    size = math.sqrt(fb[0] * fb[0] + fb[1] * fb[1] + fb[2] * fb[2])
+    keep = max(0.0, 1.0 - C.strength_deadband * weight / (size + 1e-9))
+    for lk in range(jac.shape[0]):
+        if W.flags[CHANGED, lk]:
+            keep = 0.0
+    step = keep * C.strength_rate * ts / (weight * weight)
+    for jj in range(J):
+        grad = 0.0
+        if step > 0.0:
+            for lk in range(jac.shape[0]):
+                if not W.flags[ACTIVE, lk]:
+                    continue
+                for a in range(3):
+                    col[a] = jac[lk, a, jj]
+                    for b in range(3):
+                        acc = 1e-4 if a == b else 0.0
+                        for k in range(J):
+                            acc += jac[lk, a, k] * jac[lk, b, k]
+                        jjt[a, b] = acc
+                grad += _dot_solve3(jjt, col, fb)
+            grad *= tau[jj]
+        old = cs[off.strength + jj]
+        new = old - step * grad
+        new += C.strength_leak * ts * (1.0 - new)
+        out = tau[jj] / old
+        if out >= sc.ctrl_high[jj] or out <= sc.ctrl_low[jj]:
+            new = max(new, old)
+        cs[off.strength + jj] = min(max(new, STRENGTH_RANGE[0]), STRENGTH_RANGE[1])
+
+
+@_jit
+def _dot_solve3(m, v, u):
+    """u . x with m x = v for a 3x3 matrix m (by the adjugate, as `controller._solve3`)."""
+    c0 = (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1], m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2],
+          m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0])
+    c1 = (m[2, 1] * m[0, 2] - m[2, 2] * m[0, 1], m[2, 2] * m[0, 0] - m[2, 0] * m[0, 2],
+          m[2, 0] * m[0, 1] - m[2, 1] * m[0, 0])
+    c2 = (m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1], m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2],
+          m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0])
+    det = m[0, 0] * c0[0] + m[0, 1] * c0[1] + m[0, 2] * c0[2]
+    total = 0.0
+    for i in range(3):
+        total += u[i] * (c0[i] * v[0] + c1[i] * v[1] + c2[i] * v[2])
+    return total / det
 
 
 @_jit

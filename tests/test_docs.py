@@ -436,7 +436,8 @@ def test_readme_controller_sentence_is_docs_data():
 
 def test_readme_world_gap_figures_are_docs_data():
     """The world gap's figures in the README equal the records they cite, beside the nominal ones: DP optimal, L1
-    and L2's falls on the evaluation and stress sets without and with `--world gap`, and Fig. 4b's row."""
+    and L2's falls on the evaluation and stress sets without and with `--world gap`, with the default controller and
+    with `--controller robust`, and Fig. 4b's row."""
     kinds = lambda name: _file(name)["figures"]["summary"]["kinds"]  # noqa: E731
     got = _claim(r"falls of DP optimal / L1 / L2, evaluation set (\d+) / (\d+) / (\d+) → (\d+) / (\d+) / (\d+), stress "
                  r"set (\d+) / (\d+) / (\d+) → (\d+) / (\d+) / (\d+) \(2-core CPU, `envelope_eval_learned_gap_cpu`, "
@@ -446,3 +447,10 @@ def test_readme_world_gap_figures_are_docs_data():
     assert list(map(int, got)) == want
     cited, row = _row("Fig. 4b in a [world unlike the model](docs/world.md), `--world gap`: falls / 27")
     assert cited == "fig4b_gap_cpu" and list(map(int, row)) == [_file(cited)["figures"][k]["falls"] for k in ORDER]
+    got = _claim(r"`envelope_stress_learned_gap_cpu`\)\. `--controller robust`: (\d+) / (\d+) / (\d+) → (\d+) / "
+                 r"(\d+) / (\d+) and (\d+) / (\d+) / (\d+) → (\d+) / (\d+) / (\d+) "
+                 r"\(`envelope_eval_learned_robust_cpu`, `envelope_eval_learned_robust_gap_cpu`, "
+                 r"`envelope_stress_learned_robust_cpu`, `envelope_stress_learned_robust_gap_cpu`\)")
+    want = [kinds(f"envelope_{s}_learned_robust{w}_cpu")[k]["falls"] for s in ("eval", "stress")
+            for w in ("", "_gap") for k in ("dp-opt", "L1", "L2")]
+    assert list(map(int, got)) == want

@@ -386,7 +386,8 @@ class Controller:
                    feedback: jax.Array, episode: Episode) -> jax.Array:
         """(J,) the motors' strength estimates after this tick: each moves against the gradient of the pose
         feedback's shortfall, (the force on the tool that joint j's torque tau_j gives through each active link l,
-        (J_l J_l^T)^-1 J_l e_j tau_j) . `feedback` (3,) [N] (uncapped), scaled by `strength_rate` / weight^2 and by
+        (J_l J_l^T)^-1 J_l e_j tau_j) . `feedback` (3,) [N] (uncapped), = tau_j e_j^T J_l^T (J_l J_l^T)^-1 feedback
+        (J_l J_l^T symmetric: one solve a link), scaled by `strength_rate` / weight^2 and by
         how far the feedback exceeds `STRENGTH_DEADBAND` tool weights; leaking back to 1 at `STRENGTH_LEAK`; frozen
         while a link changes; a motor whose command is at its limit is not asked for more. The reference of
         `native._strengths`."""
@@ -394,8 +395,8 @@ class Controller:
         leak, deadband = STRENGTH_LEAK, STRENGTH_DEADBAND
         weight = episode.mass * jnp.linalg.norm(self.gravity)
         jjt = jnp.einsum("lij,lkj->lik", jac, jac) + jnp.float32(1e-4) * jnp.eye(3)  # (L, 3, 3) [m^2]
-        per_joint = _solve3(jjt[:, None], jnp.swapaxes(jac, 1, 2))  # (L, J, 3): (J J^T)^-1 J e_j [1/m]
-        grad = jnp.einsum("l,lji,i->j", active.astype(jnp.float32), per_joint, feedback) * tau  # (J,) [N^2]
+        pull = _solve3(jjt, jnp.broadcast_to(feedback, (jac.shape[0], 3)))  # (L, 3): (J J^T)^-1 feedback [N/m^2]
+        grad = jnp.einsum("l,lij,li->j", active.astype(jnp.float32), jac, pull) * tau  # (J,) [N^2]
         size = jnp.linalg.norm(feedback)
         keep = jnp.maximum(0.0, 1.0 - deadband * weight / (size + 1e-9))
         keep = jnp.where(jnp.any(cs.changed), 0.0, keep)

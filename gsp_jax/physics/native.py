@@ -249,7 +249,7 @@ class Scratch(NamedTuple):
 
     v3: np.ndarray  # (N_VEC3, 3): 3-vectors
     m3: np.ndarray  # (3, 3, 3): 3x3 matrices
-    f: np.ndarray  # (4 J + 15,): J-, 6- and 3-vectors
+    f: np.ndarray  # (5 J + 15,): J-, 6- and 3-vectors
     q4: np.ndarray  # (2, 4): the tool's quaternion and the reference's
     links: Links
     jac: np.ndarray  # (L, 3, J)
@@ -271,7 +271,7 @@ def scratch(K: Constants) -> Scratch:
     J, L, B = sc.hand_qpos.shape[0], H.link_body.shape[0], H.body_parent.shape[0]
     links = Links(blocks=np.zeros((N_BLOCKS, L, 3)), flags=np.zeros((N_FLAGS, L), np.bool_),
                   options=np.zeros((3, L), np.int64), load=np.zeros(L, F32), busy=np.zeros(H.n_fingers, np.bool_))
-    return Scratch(v3=np.zeros((N_VEC3, 3)), m3=np.zeros((3, 3, 3)), f=np.zeros(4 * J + 15), q4=np.zeros((2, 4)),
+    return Scratch(v3=np.zeros((N_VEC3, 3)), m3=np.zeros((3, 3, 3)), f=np.zeros(5 * J + 15), q4=np.zeros((2, 4)),
                    links=links, jac=np.zeros((L, 3, J)), joints=np.zeros((2, J, 3)), body_pos=np.zeros((B, 3)),
                    body_mat=np.zeros((B, 3, 3)), kin_v=np.zeros((4, 3)), kin_m=np.zeros((2, 3, 3)),
                    adj=np.zeros((3, 3)), gg=np.zeros((6, 6)), lever=np.zeros((2, L, 3)), apg=np.zeros((3, 3 * L)),
@@ -790,7 +790,8 @@ def _control(K, j, cs, obs, ep, out, S):
         _solve(C, pts, nrm, flags[ACTIVE_B], mu, required, com_w, f_without, f_b, S, lip if same else -1.0)
     _torques(K.fingers, K.state, sc, cs, f, share, jac, W)
     if C.strength_rate > 0:
-        _strengths(C, K.state, sc, cs, f, jac, W, float(ep.mass) * _norm3(sc.gravity), float(ts), S.m3[2], v3[9])
+        _strengths(C, K.state, sc, cs, f, jac, W, float(ep.mass) * _norm3(sc.gravity), float(ts), S.m3[2], v3[9],
+                   S.adj)
     for jj in range(J):
         f[3 * J + jj] = min(max(f[3 * J + jj] / cs[K.state.strength + jj], sc.ctrl_low[jj]), sc.ctrl_high[jj])
     _write(K.state, sc, cs, f, W, out)
@@ -1164,55 +1165,40 @@ def _filter(off, a, ts, cs, p, quat, vel, w_body, mat, q, dq):
 
 
 @_jit
-def _strengths(C, off, sc, cs, f, jac, W, weight, ts, jjt, col):
+def _strengths(C, off, sc, cs, f, jac, W, weight, ts, jjt, pull, adj):
     """`Controller._strengths`: the motors' strength estimates in cs (at off.strength) moved by this tick's pose
-    feedback (f's uncapped feedback force), from f's tau (before the strengths). jjt (3, 3), col (3,): scratch."""
+    feedback (f's uncapped feedback force), from f's tau (before the strengths). jjt (3, 3), pull (3,), adj (3, 3)
+    and f's last J numbers (the gradient): scratch."""
     J = jac.shape[2]
-    tau, fb = f[3 * J:4 * J], f[4 * J + 12:4 * J + 15]
+    tau, fb, grad = f[3 * J:4 * J], f[4 * J + 12:4 * J + 15], f[4 * J + 15:5 * J + 15]
     size = math.sqrt(fb[0] * fb[0] + fb[1] * fb[1] + fb[2] * fb[2])
     keep = max(0.0, 1.0 - C.strength_deadband * weight / (size + 1e-9))
     for lk in range(jac.shape[0]):
         if W.flags[CHANGED, lk]:
             keep = 0.0
     step = keep * C.strength_rate * ts / (weight * weight)
+    grad[:] = 0.0
+    if step > 0.0:  # grad_j = tau_j sum_l J_l[:, j] . (J_l J_l^T)^-1 fb (one solve a link: J_l J_l^T is symmetric)
+        for lk in range(jac.shape[0]):
+            if not W.flags[ACTIVE, lk]:
+                continue
+            for a in range(3):
+                for b in range(3):
+                    acc = 1e-4 if a == b else 0.0
+                    for k in range(J):
+                        acc += jac[lk, a, k] * jac[lk, b, k]
+                    jjt[a, b] = acc
+            _solve3(jjt, fb, pull, adj[0], adj[1], adj[2])
+            for jj in range(J):
+                grad[jj] += jac[lk, 0, jj] * pull[0] + jac[lk, 1, jj] * pull[1] + jac[lk, 2, jj] * pull[2]
     for jj in range(J):
-        grad = 0.0
-        if step > 0.0:
-            for lk in range(jac.shape[0]):
-                if not W.flags[ACTIVE, lk]:
-                    continue
-                for a in range(3):
-                    col[a] = jac[lk, a, jj]
-                    for b in range(3):
-                        acc = 1e-4 if a == b else 0.0
-                        for k in range(J):
-                            acc += jac[lk, a, k] * jac[lk, b, k]
-                        jjt[a, b] = acc
-                grad += _dot_solve3(jjt, col, fb)
-            grad *= tau[jj]
         old = cs[off.strength + jj]
-        new = old - step * grad
+        new = old - step * grad[jj] * tau[jj]
         new += C.strength_leak * ts * (1.0 - new)
         out = tau[jj] / old
         if out >= sc.ctrl_high[jj] or out <= sc.ctrl_low[jj]:
             new = max(new, old)
         cs[off.strength + jj] = min(max(new, STRENGTH_RANGE[0]), STRENGTH_RANGE[1])
-
-
-@_jit
-def _dot_solve3(m, v, u):
-    """u . x with m x = v for a 3x3 matrix m (by the adjugate, as `controller._solve3`)."""
-    c0 = (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1], m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2],
-          m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0])
-    c1 = (m[2, 1] * m[0, 2] - m[2, 2] * m[0, 1], m[2, 2] * m[0, 0] - m[2, 0] * m[0, 2],
-          m[2, 0] * m[0, 1] - m[2, 1] * m[0, 0])
-    c2 = (m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1], m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2],
-          m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0])
-    det = m[0, 0] * c0[0] + m[0, 1] * c0[1] + m[0, 2] * c0[2]
-    total = 0.0
-    for i in range(3):
-        total += u[i] * (c0[i] * v[0] + c1[i] * v[1] + c2[i] * v[2])
-    return total / det
 
 
 @_jit

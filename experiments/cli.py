@@ -244,9 +244,8 @@ def make_run(args: argparse.Namespace, words: list[str], outer: common.Run | Non
 PHYSICS_COMMANDS = ("demo", "physics", "bench-physics", "bench-scale", "envelope", "hands", "corpus", "calibrate",
                     "fig4b", "table1", "reproduce", "world-parts")  # they simulate: `--controller` chooses the contact
 # controller
-
-
-WORLD_COMMANDS = ("physics", "envelope", "fig4b")  # they take `--world`: plans run in a world unlike the model
+# they take `--world`: plans run in a world unlike the model (corpus, calibrate --learn: a term's runs do)
+WORLD_COMMANDS = ("physics", "envelope", "fig4b", "corpus", "calibrate")
 
 
 PAPER_BY_DEFAULT = ("corpus", "reproduce")  # the learned term's own data (its corpus plans with the analytic

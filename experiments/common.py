@@ -140,18 +140,27 @@ class Run:
         return results_dir(*parts, model=self.model, learned=self.learned, controller=self.controller,
                            world=self.world_name)
 
+    @property
+    def gap(self):
+        """This run's world gap (`gsp_jax.physics.world.Gap`: its level, only `world_only`'s fields where it names
+        any); None in the nominal world."""
+        if self.world == "nominal":
+            return None
+        from gsp_jax.physics import world as world_lib
+
+        return world_lib.Gap.named(self.world).only(*self.world_only)
+
     def worlds(self, episodes, hand):
         """The worlds of `episodes` (a batch: leading axis (N,)) in this run's `world` level, drawn from
         `world_seed` (only `world_only`'s fields of its gap, where it names any) for `hand` (a `HandModel`;
         `gsp_jax.physics.world.draw_for`: episode i's depends on the seed,
         i and N only, so a chunk of the set selects its rows); None in the nominal world (today's check, bit for
         bit)."""
-        if self.world == "nominal":
+        if self.gap is None:
             return None
         from gsp_jax.physics import world as world_lib
 
-        return world_lib.draw_for(world_lib.Gap.named(self.world).only(*self.world_only), self.world_seed, episodes,
-                                  hand)
+        return world_lib.draw_for(self.gap, self.world_seed, episodes, hand)
 
     def physics_config(self, **changes):
         """The `PhysicsConfig` of this run's contact controller (`PhysicsConfig.named`) with the model's own tuning

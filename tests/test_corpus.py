@@ -128,6 +128,41 @@ def test_a_corpus_is_extended_only_with_the_physics_settings_its_runs_had(tmp_pa
         corpus.extend(corpus.Store.open(tmp_path, wrench), _PHYS, [2], episodes=2, progress=False)
 
 
+def test_a_corpus_in_a_world_gap_records_it_draws_per_episode_and_is_not_mixed(tmp_path, monkeypatch):
+    """`corpus --world gap`: every shard runs in worlds drawn from the gap (one per episode, from the shard's seed,
+    apart from its episodes' draw); the manifest records the gap, and a corpus is extended only in its own world
+    (a nominal corpus, one made before worlds included, refuses a gap and the other way round)."""
+    from gsp_jax.physics import world
+
+    wrench = model_lib.load_model("wrench")
+    gap = world.Gap.named("gap")
+    batch = scenario.stack(list(corpus.draw(corpus.Distribution(), 3, 4, wrench).values()))
+    hand = wrench.hand
+    assert corpus.worlds(None, 3, batch, hand) is None and corpus.worlds(world.Gap(), 3, batch, hand) is None
+    w = corpus.worlds(gap, 3, batch, hand)
+    assert np.asarray(w.friction).shape == (4, len(hand.touch_tool)) and len(set(np.asarray(w.mass).tolist())) == 4
+    np.testing.assert_array_equal(w.strength, corpus.worlds(gap, 3, batch, hand).strength)  # one seed, one draw
+    assert not np.array_equal(w.strength, corpus.worlds(gap, 4, batch, hand).strength)
+    seen = []
+    monkeypatch.setattr(corpus, "shard", lambda phys, seed, *a, **k: seen.append(a[-1]) or _arrays(seed))
+    corpus.extend(corpus.Store.open(tmp_path / "gap", wrench), _PHYS, [0], episodes=2, progress=False, gap=gap)
+    assert seen == [gap]
+    store = corpus.Store.open(tmp_path / "gap", wrench)
+    assert store.manifest["world"]["strength"] == gap.strength and store.manifest["world"]["delay"] == gap.delay
+    with pytest.raises(corpus.CorpusError, match=r"its runs are in the gap \{.*\}, not in the nominal model"):
+        corpus.extend(store, _PHYS, [1], episodes=2, progress=False)
+    corpus.extend(corpus.Store.open(tmp_path / "nominal", wrench), _PHYS, [0], episodes=2, progress=False)
+    nominal = corpus.Store.open(tmp_path / "nominal", wrench)
+    assert nominal.manifest["world"] == {}
+    with pytest.raises(corpus.CorpusError, match=r"its runs are in the nominal model \(no gap\), not in the gap"):
+        corpus.extend(nominal, _PHYS, [1], episodes=2, progress=False, gap=gap)
+    manifest = json.loads((tmp_path / "nominal" / "manifest.json").read_text())
+    del manifest["world"]  # made before worlds: the model's runs
+    (tmp_path / "nominal" / "manifest.json").write_text(json.dumps(manifest))
+    assert corpus.extend(corpus.Store.open(tmp_path / "nominal", wrench), _PHYS, [1], episodes=2,
+                         progress=False) == [1]
+
+
 def test_extend_resumes_after_a_kill_with_nothing_lost_or_duplicated(tmp_path, monkeypatch):
     """A run killed after writing shard 1 but before listing it, then the same call again: every seed's shard once,
     the load their runs in seed order (episodes renumbered over the corpus)."""

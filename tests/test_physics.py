@@ -522,6 +522,58 @@ def test_physics_lookahead_takes_the_branch_that_does_best_in_physics(phys):
         verified.PhysicsLookahead(root, None, keep)
 
 
+def test_physics_lookahead_over_worlds_scores_each_candidate_by_the_share_of_worlds_it_holds_in(phys):
+    """L1-physics branching over worlds (`gap`, `worlds`): each episode's planned worlds are drawn from the gap
+    (apart from one another, the same in any batch); every candidate is branched once per world, and the action taken
+    is the one held in the largest share of them, then the least mean angle error, then the surrogate's Q. At the
+    first decision a branch is its whole sequence, so each of its outcomes equals that sequence run alone from the
+    start in that world (`c_backend.simulate(..., world=)`, bit for bit; the first episode's). Bad options are
+    refused by name."""
+    from gsp_jax.physics import c_backend, verified, world
+
+    sp = phys.space
+    eps = scenario.stack([_short(scenario.make_episode()).head(2),
+                          _short(scenario.make_episode(mass_factor=0.5)).head(2)])
+    keep = policies.SequencePolicy(jnp.full((2,), sp.action("index_distal", 1), jnp.int32))
+    change = policies.SequencePolicy(jnp.tile(jnp.full((2,), sp.action("middle_distal", 2), jnp.int32), (2, 1)))
+    root = policies.Lookahead(keep, phys.surrogate, depth=1, horizon=1)
+    gap = world.Gap.named("wide")
+    hedge = verified.PhysicsLookahead(root, None, ((keep, None), (change, 0)), k=2, cores=2, gap=gap, worlds=2)
+    res = phys.simulate_batch(hedge, eps, backend="c")
+    planned = verified.planned_worlds(hedge, phys, eps)
+    assert np.asarray(planned.mass).shape == (4,) and len(set(np.asarray(planned.mass).tolist())) == 4
+    again = verified.planned_worlds(verified.PhysicsLookahead(root, None, ((keep, None),), gap=gap, worlds=2), phys,
+                                    jax.tree.map(lambda x: x[::-1], eps))  # the episodes the other way round
+    np.testing.assert_array_equal(np.asarray(again.friction)[:2], np.asarray(planned.friction)[2:])
+    assert [d.chosen for d in hedge.decisions if d.episode == 0] == list(res.actions[0])
+    for d in hedge.decisions:
+        if d.fell is None:
+            continue
+        assert d.fell.shape == d.angle_error.shape == (2, 3, 2)
+        c = d.candidates.ravel()
+        pick = np.lexsort((-d.q[c], d.angle_error.mean(-1).ravel(), d.fell.mean(-1).ravel()))[0]
+        assert (d.chosen, d.base) == (c[pick], pick // 3)
+        if d.segment or d.episode:  # the first decision of the first episode against runs from the start
+            continue
+        for b, base in enumerate((keep, change)):
+            for a in {int(x) for x in d.candidates[b]}:
+                seq = np.array(base.actions if b == 0 else base.actions[d.episode])
+                seq[0] = a
+                one = jax.tree.map(lambda x: x[d.episode:d.episode + 1], eps)
+                for w in range(2):
+                    (fell, err, _), = c_backend.simulate(
+                        phys, [(policies.SequencePolicy(jnp.asarray(seq[None])), 0)], one, outcomes=True,
+                        world=world.rows(planned, [2 * d.episode + w]))
+                    slot = list(d.candidates[b]).index(a)
+                    assert (d.fell[b, slot, w], d.angle_error[b, slot, w]) == (fell[0], err[0]), (b, a, w)
+    with pytest.raises(ValueError, match="worlds: 2 worlds need a gap"):
+        verified.PhysicsLookahead(root, None, ((keep, None),), worlds=2)
+    with pytest.raises(ValueError, match="worlds must be an int >= 1"):
+        verified.PhysicsLookahead(root, None, ((keep, None),), gap=gap, worlds=0)
+    with pytest.raises(ValueError, match="gap must be a world.Gap"):
+        verified.PhysicsLookahead(root, None, ((keep, None),), gap="gap")
+
+
 def test_c_backend_rejects_bad_cores_by_name(phys, batch):
     episodes, policy, _ = batch
     for bad in (0, -2, 1.5):

@@ -251,6 +251,27 @@ def test_a_noisy_delayed_c_run_continues_from_its_snapshot_bit_for_bit(phys):
     assert not np.array_equal(np.asarray(calm.qpos), np.asarray(whole.qpos))  # the noise moves the run
 
 
+def test_a_snapshot_continues_bit_for_bit_in_a_lockstep_of_another_delay(phys):
+    """The commands a snapshot holds are the last ones issued, by tick: continued in a lockstep whose ring of
+    commands is longer (another row waits longer) or shorter (the row alone), a delayed row's run is the whole run,
+    bit for bit (how L1-physics branches a snapshot in its own worlds: `verified.planned_worlds`)."""
+    from gsp_jax.physics import c_backend
+
+    scene, eps = phys.scene, _episodes()
+    policy = policies.SequencePolicy(jnp.asarray(evaluation.four_tips(phys.space, eps.n_steps)))
+    w = world.draw(world.Gap.named("gap"), jax.random.PRNGKey(7), 2, scene.n_touch, len(scene.hand_dof))
+    w = w.replace(delay=jnp.array([2, 3], jnp.int32))  # a ring of 4
+    whole = c_backend.simulate(phys, [(policy, None)], eps, world=w)[0]
+    snap = c_backend.simulate(phys, [(policy, None)], eps, world=w, until=2)
+    row0 = lambda r: jax.tree.map(lambda x: np.asarray(x)[:1], r)  # noqa: E731
+    for rows, delays in (([0], [2]), ([0, 0], [2, 6])):  # a ring of 3, of 7
+        wr = world.rows(w, rows)
+        wr = wr.replace(delay=np.array(delays, np.int32))
+        sub = jax.tree.map(lambda x: np.asarray(x)[rows], eps)
+        rest = c_backend.simulate(phys, [(policy, None)], sub, world=wr, start=snap.take(rows))[0]
+        jax.tree.map(lambda x, y: np.testing.assert_array_equal(x, y), row0(rest), row0(whole))
+
+
 def test_a_commands_world_is_drawn_per_episode_from_its_level_and_seed():
     """`--world LEVEL [--world-only FIELD...] [--world-seed N]` (`experiments.common.Run.worlds`): none in the
     nominal world (today's path); the level's gap, or only the named fields of it, drawn per episode from the seed;
@@ -273,5 +294,13 @@ def test_a_commands_world_is_drawn_per_episode_from_its_level_and_seed():
     assert world.as_rows(whole)[1]["delay"] == int(np.asarray(whole.delay)[1])
     with pytest.raises(SystemExit, match="needs --world gap or wide"):
         cli.main(["envelope", "--world-only", "mass"])
+    for words, refusal in ((["envelope", "--physics-worlds", "2"], "give --physics-lookahead K too"),
+                           (["envelope", "--physics-worlds", "2", "--physics-lookahead", "2"], "needs a gap"),
+                           (["envelope", "--physics-gap", "gap"], "--physics-gap is for --physics-worlds"),
+                           (["envelope", "--physics-worlds", "-1"], "--physics-worlds must be >= 0"),
+                           (["corpus", "--world", "gap", "--world-seed", "3"], "--world-seed 3: a corpus's worlds"),
+                           (["calibrate", "--world", "gap"], "--world gap is for --learn")):
+        with pytest.raises(SystemExit, match=refusal):
+            cli.main(words)
     with pytest.raises(ValueError, match="Gap.only: unknown fields"):
         world.Gap.named("gap").only("weight")

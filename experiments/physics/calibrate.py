@@ -19,7 +19,8 @@ calibrated against the physics check, on the training and validation episodes on
 Prints the sweep as a table; writes results/calibrate/sweep.json, and with --write the winner into
 models/reward_calibration.json (`reward.write_calibration`), where `RewardConfig` reads its defaults.
 
-`calibrate --learn [--shards 40]`: instead, the model's learned physics term, from corpus to weights (`learn`).
+`calibrate --learn [--shards 40] [--world gap]`: instead, the model's learned physics term, from corpus to weights
+(`learn`); with `--world` its corpus runs in worlds drawn from that gap (results/corpus-gap/: docs/world.md).
 
 `calibrate --tune [--model M] [--set stress-cal] [--write]`: instead, the contact controller's settings that stay
 tuned (`tuning.TUNABLE`: the preferred grip, the rotational damping's bound, the pose loop's frequency) for the model,
@@ -116,6 +117,9 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 
 
 def main(args: argparse.Namespace, run: Run) -> None:
+    if run.gap is not None and not getattr(args, "learn", False):
+        raise SystemExit(f"calibrate: --world {run.world_name} is for --learn (a learned term from a corpus run in "
+                         "that world); the controller and the wrench are calibrated in the model itself")
     if getattr(args, "tune", False):
         if args.learn:
             raise SystemExit("calibrate: --tune and --learn are two runs; give one")
@@ -259,7 +263,7 @@ def learn(args: argparse.Namespace, run: Run) -> None:
     if args.corpus is None:  # the learned planners' sequences, where `corpus --learned` made them
         on_policy = folders[0].with_name(folders[0].name + "-learned")
         folders += [on_policy] if (on_policy / "manifest.json").exists() else []
-    stores = [_store(f, model, run.physics_config()) for f in folders]
+    stores = [_store(f, model, run.physics_config(), run.gap) for f in folders]
     data = _joined([s.load() for s in stores])
     t_corpus = time.perf_counter() - t0
     space = grasps.space_of(model.hand)
@@ -414,15 +418,15 @@ def _joined(parts: list[dict]) -> dict:
     return {k: np.concatenate([p[k] for p in out]) for k in out[0]}
 
 
-def _store(folder: pathlib.Path, model, config) -> corpus.Store:
-    """The corpus in `folder`, of `model` and run with the physics settings `config` (the term learns what that
-    controller drops), else SystemExit saying why."""
+def _store(folder: pathlib.Path, model, config, gap=None) -> corpus.Store:
+    """The corpus in `folder`, of `model` and run with the physics settings `config` in worlds of `gap` (None: the
+    nominal model; the term learns what that controller drops there), else SystemExit saying why."""
     if not (folder / "manifest.json").exists():
         raise SystemExit(f"calibrate --learn: {folder} holds no corpus (`python -m experiments corpus` makes one; "
                          "--shards N > 0 here too)")
     try:
         store = corpus.Store.open(folder, model)
-        corpus.check_physics(store, config)
+        corpus.check_physics(store, config, gap)
     except corpus.CorpusError as e:
         raise SystemExit(f"calibrate --learn: {e}") from None
     return store

@@ -6,7 +6,9 @@ random surrogate-feasible sequences and `--perturbed` perturbations of those, ke
 features with what physics did (`gsp_jax.physics.corpus`). Shards go to results/corpus[-<model>]/ (`--folder`), each
 written whole and then listed in its manifest: a killed run loses at most the shard it was making, and the same
 command adds only the shards missing. With `--learned` the tables, and so the planners' sequences, are the learned
-term's (features stay analytic). Prints the corpus's counts as a table last.
+term's (features stay analytic). With `--world gap` each episode runs in a world drawn from the gap (from the shard's
+seed; hidden from the planners and the features): a term fitted on it prices what the planner does not know
+(results/corpus-gap/; docs/world.md). Prints the corpus's counts as a table last.
 """
 from __future__ import annotations
 
@@ -51,14 +53,18 @@ def check(args: argparse.Namespace) -> None:
         raise SystemExit(f"corpus: --steps must be >= 2, got {args.steps}")
 
 
+
 def build(args: argparse.Namespace, run: Run) -> corpus.Store:
     """The corpus of `args` (of `run`'s model) extended to its shards; returns its store."""
     check(args)
+    if run.world_seed:
+        raise SystemExit(f"corpus: --world-seed {run.world_seed}: a corpus's worlds are drawn from each shard's seed "
+                         "(--first picks the seeds)")
     phys = physics.Physics(surrogate.Surrogate(run.model, learned=run.learned), run.physics_config())
     folder = folder_of(args, run)
     try:
         store = corpus.Store.open(folder, phys.surrogate.model)
-        corpus.check_physics(store, phys.config)  # the runs it holds were this controller's
+        corpus.check_physics(store, phys.config, run.gap)  # the runs it holds were this controller's, in this world
     except corpus.CorpusError as e:
         raise SystemExit(f"corpus: {e}") from None
     seeds = range(args.first, args.first + args.shards)
@@ -67,7 +73,7 @@ def build(args: argparse.Namespace, run: Run) -> corpus.Store:
           f"{2 + args.random + args.perturbed} sequences an episode)", flush=True)
     t0 = time.perf_counter()
     corpus.extend(store, phys, todo, args.episodes, args.random, args.perturbed, args.cores, progress=True,
-                  n_steps=args.steps)
+                  n_steps=args.steps, gap=run.gap)
     if todo:
         print(f"corpus: {len(todo)} shards in {time.perf_counter() - t0:.0f} s", flush=True)
     return store

@@ -61,6 +61,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--jobs", type=int, default=None, help="processes classifying falls (default: the CPU cores)")
     p.add_argument("--physics-lookahead", type=int, default=0, metavar="K",
                    help="also L1-physics, branching L1's K best actions in physics at each decision (0: not run)")
+    p.add_argument("--physics-worlds", type=int, default=0, metavar="W",
+                   help="L1-physics branches in W worlds drawn per episode from --physics-gap (the planner's guesses, "
+                        "not the episode's world), an action scored by the share it holds in (0: in the model)")
+    p.add_argument("--physics-gap", default=None, choices=list(world_lib.LEVELS), metavar="LEVEL",
+                   help="with --physics-worlds: the gap they are drawn from (default: --world's level)")
     p.add_argument("--chunk", type=int, default=CHUNK, metavar="N",
                    help=f"episodes per lockstep (default {CHUNK}); each finished chunk is kept in "
                         "results/envelope/<set>.parts/, and the same command run again continues from them")
@@ -72,14 +77,34 @@ def parts_key(ctx, args: argparse.Namespace, kinds: list[str], config=None, worl
     """A hash (16 hex digits) of everything a chunk's outcomes depend on: the context (`common.fingerprint`: the
     library and model sources, the model's digest, the episodes' names, the RL policy), this file, the physics'
     `PhysicsConfig` (`config`: the contact controller), the episodes' worlds (None: nominal), the sequences' kinds,
-    --random, --seed, --physics-lookahead, --bases and --chunk."""
+    --random, --seed, --physics-lookahead, --bases, --chunk and L1-physics's worlds (`branch_worlds`)."""
     h = hashlib.sha256(common.fingerprint(ctx).encode())
     h.update(repr(config).encode())
     if worlds is not None:
         h.update(world_lib.digest(worlds).encode())
     h.update(pathlib.Path(__file__).read_bytes())
     h.update(repr((kinds, args.random, args.seed, args.physics_lookahead, tuple(args.bases), args.chunk)).encode())
+    if getattr(args, "physics_worlds", 0):
+        h.update(repr(("worlds", args.physics_worlds, args.physics_gap)).encode())
     return h.hexdigest()[:16]
+
+
+def branch_worlds(args: argparse.Namespace, run: Run) -> dict:
+    """L1-physics's world options (`gsp_jax.planners` `L1-physics`: worlds, gap) of --physics-worlds and
+    --physics-gap (default: the run's --world level); {} to branch in the model. SystemExit naming a bad one."""
+    if args.physics_worlds < 0:
+        raise SystemExit(f"envelope: --physics-worlds must be >= 0, got {args.physics_worlds}")
+    if not args.physics_worlds:
+        if args.physics_gap is not None:
+            raise SystemExit("envelope: --physics-gap is for --physics-worlds W (W >= 1)")
+        return {}
+    if not args.physics_lookahead:
+        raise SystemExit("envelope: --physics-worlds is L1-physics's: give --physics-lookahead K too")
+    args.physics_gap = args.physics_gap or run.world
+    if args.physics_gap == "nominal":
+        raise SystemExit("envelope: --physics-worlds needs a gap to draw them from: --physics-gap gap|wide (or "
+                         "--world gap|wide)")
+    return dict(worlds=args.physics_worlds, gap=args.physics_gap)
 
 
 def part_path(folder: pathlib.Path, key: str, idx: np.ndarray) -> pathlib.Path:
@@ -144,6 +169,7 @@ def main(args: argparse.Namespace, run: Run) -> None:
         raise SystemExit(f"envelope: --physics-lookahead must be >= 0, got {args.physics_lookahead}")
     if args.chunk < 1:
         raise SystemExit(f"envelope: --chunk must be >= 1, got {args.chunk}")
+    hedge = branch_worlds(args, run)
     reads = gsp_planners.context_flags([*args.policies,
                                         *(["L1-physics", *args.bases] if args.physics_lookahead else [])])
     ctx = evaluation.context(args.set, args.episodes, args.policy_dir, model=run.model, results=common.RESULTS,
@@ -180,7 +206,8 @@ def main(args: argparse.Namespace, run: Run) -> None:
             continue
         try:
             sub = ctx.select(idx)
-            groups = [gsp_planners.make(sub, name, dict(k=args.physics_lookahead or 1, bases=tuple(args.bases)))
+            groups = [gsp_planners.make(sub, name, dict(k=args.physics_lookahead or 1, bases=tuple(args.bases),
+                                                         **hedge))
                       for name in planners]
             groups += [(policies.SequencePolicy(rand[idx, r]), 0) for r in range(args.random)]
             t0 = time.perf_counter()
@@ -233,11 +260,15 @@ def main(args: argparse.Namespace, run: Run) -> None:
     out = dict(set=args.set, episodes=ctx.names, kinds=kinds, physics_s=t_phys, oracle_s=time.perf_counter() - t1,
                platform=jax.default_backend(), rl_policy=ctx.rl_source, summary=summary, world=run.world_name,
                sequences=[row(g, e) for g in range(len(kinds)) for e in range(N)],
-               **({} if worlds is None else dict(world_seed=run.world_seed, worlds=world_lib.as_rows(worlds))))
-    path = folder.parent / f"{args.set}.json"
+               **({} if worlds is None else dict(world_seed=run.world_seed, worlds=world_lib.as_rows(worlds))),
+               **({} if not hedge else dict(physics_worlds=args.physics_worlds, physics_gap=args.physics_gap)))
+    path = folder.parent / f"{args.set}{f'-worlds{args.physics_worlds}' if hedge else ''}.json"
     files.write_json(path, out)
     print(f"wrote {path}\n")
-    run.record_figures(f"envelope_{args.set}", dict(episodes=N, random=args.random, summary=summary))
+    run.record_figures(f"envelope_{args.set}{f'_worlds{args.physics_worlds}' if hedge else ''}",
+                       dict(episodes=N, random=args.random, summary=summary,
+                            **({} if not hedge else dict(physics_worlds=args.physics_worlds,
+                                                         physics_gap=args.physics_gap))))
     p = summary["pool"]
     print(f"pool: {p['sequences']} sequences, {p['surrogate_feasible']} surrogate-feasible, of those "
           f"{100 * p['feasible_hold_share']:.1f}% hold; AUC(return: hold vs fall) pooled {p['auc_pooled']:.2f}, "

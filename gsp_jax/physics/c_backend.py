@@ -260,15 +260,25 @@ class Engine:
             mujoco.mj_getState(self.models[e], self.datas[e], row, self._spec)
         return out
 
-    def restore(self, state: np.ndarray, obs: np.ndarray, pending: np.ndarray | None = None) -> None:
+    def restore(self, state: np.ndarray, obs: np.ndarray, pending: np.ndarray | None = None, tick: int = 0) -> None:
         """Every episode's MuJoCo state rows (n, nstate) and the observation that went with them (its qfrc_bias
         came from the step before: MuJoCo's derived fields are one step behind the state), and the motor commands
-        still on their way (`native.Models.pending`; None: none)."""
+        issued before control tick `tick` (`native.Models.pending`, a ring of the last D ticks; None: none). Into a
+        ring of another length (a branch in a world of another delay) each tick's command goes to its slot, the
+        oldest one given standing in for ticks before it."""
         for e, (m, d) in enumerate(zip(self.models, self.datas)):
             mujoco.mj_setState(m, d, np.asarray(state[e], np.float64), self._spec)
         self.obs[:] = obs
-        same = pending is not None and np.shape(pending) == self.native.pending.shape
-        self.native.pending[:] = pending if same else 0.0  # a model without the world's delay has none on the way
+        ring = self.native.pending
+        if pending is not None and np.shape(pending) == ring.shape:
+            ring[:] = pending
+        elif pending is None:
+            ring[:] = 0.0
+        else:  # slot of tick - t, t = 1 .. D - 1 (a step writes tick's own slot before it reads)
+            have, want = np.shape(pending)[1], ring.shape[1]
+            ring[:] = 0.0
+            for t in range(1, want):
+                ring[:, (tick - t) % want] = pending[:, (tick - min(t, have)) % have]
 
     def see(self, constants, j: int) -> None:
         """What the controller observes at control tick j from the observation now (`world.seen`): a run's first
@@ -373,7 +383,7 @@ class _Lockstep:
 
     def _restore(self, start: Snapshot) -> None:
         """Continue from `start` (its rows are this lockstep's rows)."""
-        self.engine.restore(start.state, start.obs, start.pending)
+        self.engine.restore(start.state, start.obs, start.pending, start.segment * self.n)
         self.engine.see(self.native.constants, start.segment * self.n)
         self.cs = np.array(start.cs, np.float32)
         self.grasp, self.fell, self.fall_tick = (np.array(x) for x in (start.grasp, start.fell, start.fall_tick))

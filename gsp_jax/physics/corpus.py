@@ -14,6 +14,12 @@ A `Store` is a folder of shards (`shard-<seed>.npz`, each written whole) and `ma
 digest, the distribution, the physics settings its runs had, the features' names, per shard its seed, counts and
 hash); a shard is listed only once
 written, so a killed run loses at most the shard it was making and a rerun neither repeats nor loses one.
+
+A corpus of a world gap (`gap`, a `gsp_jax.physics.world.Gap`: `corpus --world gap`) runs each episode in a world
+drawn from it (one per episode, every sequence of it in that world; from the shard's seed, a stream apart from the
+episodes' draw), hidden from the planners and from the features: a term fitted on it learns how often a transition
+fails in worlds the planner does not know, not only in its own model. The manifest records the gap (`world`); a
+corpus is extended and learned from only in the gap its runs had.
 """
 from __future__ import annotations
 
@@ -31,7 +37,7 @@ from gsp_jax.core import distributed, files
 from gsp_jax.planning import dp, evaluation, policies
 from gsp_jax.surrogate import learned
 from gsp_jax.model import scenario
-from gsp_jax.physics import scene as scene_lib
+from gsp_jax.physics import scene as scene_lib, world as world_lib
 from gsp_jax.surrogate import step as surrogate_lib
 
 VERSION = 1
@@ -286,12 +292,27 @@ SHARD_FIELDS = ("features", "fell_here", "alive", "fell", "angle_error", "fall_t
                 "kind", "kinds", "episode_names")
 
 
+WORLD_STREAM = 85  # the shard's worlds are drawn from fold_in(PRNGKey(seed), WORLD_STREAM): apart from its episodes
+
+
+def worlds(gap, seed: int, batch: scenario.Episode, hand):
+    """The worlds (numpy, leading axis (N,)) of a shard's episodes `batch` in `gap` (None or the nominal gap: None),
+    drawn from the shard's `seed`."""
+    if gap is None or gap.nominal:
+        return None
+    n = int(np.shape(batch.mass)[0])
+    key = jax.random.fold_in(jax.random.PRNGKey(seed), WORLD_STREAM)
+    return jax.device_get(world_lib.draw(gap, key, n, len(hand.touch_tool), hand.n_joints))
+
+
 def shard(phys, seed: int, n_episodes: int, dist: Distribution, n_random: int, n_perturbed: int,
-          cores: int | None = None, progress: bool = False, n_steps: int | None = None) -> dict[str, np.ndarray]:
+          cores: int | None = None, progress: bool = False, n_steps: int | None = None,
+          gap=None) -> dict[str, np.ndarray]:
     """One shard: `n_episodes` drawn with `seed`, their DP tables, the sequences (`sequences`) run closed loop in C
-    MuJoCo, each transition's features and labels. Arrays: features (M, T, F) float32, fell_here and alive (M, T)
-    bool, fell (M,), angle_error (M,) [deg], fall_time (M,) [s], actions and grasps (M, T) int32, episode and kind
-    (M,) int32 (indices into episode_names (N,) and kinds (S,)), M = N S runs. `n_steps`: the episodes' first
+    MuJoCo (each episode in its world of `gap` where one is given: `worlds`), each transition's features and labels.
+    Arrays: features (M, T, F) float32, fell_here and alive (M, T) bool, fell (M,), angle_error (M,) [deg],
+    fall_time (M,) [s], actions and grasps (M, T) int32, episode and kind (M,) int32 (indices into episode_names (N,)
+    and kinds (S,)), M = N S runs. `n_steps`: the episodes' first
     waypoints only (a quick corpus; None: all)."""
     sur = phys.surrogate
     eps = draw(dist, seed, n_episodes, sur.model)
@@ -302,7 +323,8 @@ def shard(phys, seed: int, n_episodes: int, dist: Distribution, n_random: int, n
     kinds, acts = sequences(tables, solutions, batch, sur.space, sur.reward_config.r_min, seed, n_random,
                             n_perturbed)  # (S, N, T)
     groups = [(policies.SequencePolicy(jnp.asarray(a)), 0) for a in acts]
-    res = phys.simulate_many(groups, batch, backend="c", cores=cores, progress=progress)
+    res = phys.simulate_many(groups, batch, backend="c", cores=cores, progress=progress,
+                             world=worlds(gap, seed, batch, sur.hand))
     S, N, T = acts.shape
     fell = np.stack([np.asarray(r.fell) for r in res]).reshape(-1)
     fall_time = np.stack([np.asarray(r.fall_time) for r in res]).reshape(-1)
@@ -318,12 +340,18 @@ def shard(phys, seed: int, n_episodes: int, dist: Distribution, n_random: int, n
                 kinds=np.array(kinds), episode_names=np.array(list(eps)))
 
 
-def check_physics(store: Store, config) -> None:
+def _gap_dict(gap) -> dict:
+    """A gap as the manifest records it ({} for none or the nominal gap: every corpus made before worlds)."""
+    return {} if gap is None or gap.nominal else json.loads(json.dumps(dataclasses.asdict(gap)))
+
+
+def check_physics(store: Store, config, gap=None) -> None:
     """The corpus's runs are of the physics settings `config` (a `PhysicsConfig`: the controller, its tuning, the
-    timeline) and of this library's physics (`scene.REVISION`): a new corpus records both (in its manifest,
-    `physics`, `physics_revision`); `CorpusError` naming what differs where its shards were run with other settings
-    or another revision, or where they were made before corpora recorded them (their runs may be another
-    controller's). A corpus is extended and learned from only with the physics it was run with."""
+    timeline), of this library's physics (`scene.REVISION`) and of the world gap `gap` (None: the nominal model):
+    a new corpus records all three (in its manifest, `physics`, `physics_revision`, `world`); `CorpusError` naming
+    what differs where its shards were run with other settings, another revision or another gap, or where they were
+    made before corpora recorded them (their runs may be another controller's). A corpus is extended and learned
+    from only with the physics it was run with."""
     want = json.loads(json.dumps(dataclasses.asdict(config)))
     have = store.manifest.get("physics")
     if have is None:
@@ -333,7 +361,13 @@ def check_physics(store: Store, config) -> None:
                               "controller's); start a new folder (--folder) or remove this one")
         store.manifest["physics"] = want  # written with the first shard's listing
         store.manifest["physics_revision"] = scene_lib.REVISION
+        store.manifest["world"] = _gap_dict(gap)
         return
+    world = store.manifest.get("world", {})  # a corpus made before worlds: the nominal model's runs
+    if world != _gap_dict(gap):
+        name = lambda w: "the nominal model (no gap)" if not w else f"the gap {w}"  # noqa: E731
+        raise CorpusError(f"{store.folder}: its runs are in {name(world)}, not in {name(_gap_dict(gap))} "
+                          "(--world); start a new folder (--folder) or run in its world")
     revision = store.manifest.get("physics_revision", 1)
     if revision != scene_lib.REVISION:
         raise CorpusError(f"{store.folder}: its runs are of the physics' revision {revision}, this library simulates "
@@ -348,18 +382,20 @@ def check_physics(store: Store, config) -> None:
 
 
 def extend(store: Store, phys, seeds, episodes: int, n_random: int = 4, n_perturbed: int = 2,
-           cores: int | None = None, progress: bool = True, n_steps: int | None = None) -> list[int]:
-    """Add the shard of each seed in `seeds` that the corpus does not hold (`shard`, then `Store.add`): a run
-    killed part-way loses only the shards it was making, and the same call again adds the rest. The seeds added.
+           cores: int | None = None, progress: bool = True, n_steps: int | None = None, gap=None) -> list[int]:
+    """Add the shard of each seed in `seeds` that the corpus does not hold (`shard`, then `Store.add`; in worlds of
+    `gap` where given): a run killed part-way loses only the shards it was making, and the same call again adds
+    the rest. The seeds added.
     With several processes (`distributed`) the seeds go in rounds of one shard per process; each process writes
     its shard, process 0 lists the round's shards in seed order. A shard is the same in one process or several."""
     dist = Distribution(**{k: tuple(v) for k, v in store.manifest["distribution"].items()})
-    check_physics(store, phys.config)
+    check_physics(store, phys.config, gap)
     todo = [seed for seed in seeds if seed not in store.seeds]
     P = distributed.count()
     for r in range(0, len(todo), P):
         mine = todo[r:r + P][distributed.rank():distributed.rank() + 1]
-        made = [store.put(seed, shard(phys, seed, episodes, dist, n_random, n_perturbed, cores, progress, n_steps))
+        made = [store.put(seed, shard(phys, seed, episodes, dist, n_random, n_perturbed, cores, progress, n_steps,
+                                         gap))
                 for seed in mine]
         made = distributed.gather_joined(made)
         if distributed.is_main():

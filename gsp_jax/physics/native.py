@@ -1272,7 +1272,8 @@ class Models(NamedTuple):
     pedestals: np.ndarray  # (E, P, 3) float64: the pedestals' positions at drop 0
     geoms: np.ndarray  # (P,) int64: the pedestals' geoms
     delay: np.ndarray  # (E,) int64: control ticks a motor command waits before it acts (the world's; 0: none)
-    pending: np.ndarray  # (E, D, nu) float64: the commands issued, a ring of D > max(delay) ticks (zeros at first)
+    pending: np.ndarray  # (E, D, nu) float64: the commands issued, a ring of D > max(delay) ticks (zeros at first;
+    # written for every row, a delay or not)
     noise: np.ndarray  # (E, 3) float32: the world's observation noise stds (`world.World.noise`; zeros: none)
     key: np.ndarray  # (E, 2) uint32: each episode's noise key
     seen: np.ndarray  # (E, nq + 2 nv) float32: what the controller observes after the last step (the observation
@@ -1302,10 +1303,10 @@ def _step_row(K, models, r, out, drop, obs, buf, j):
         buf[0], buf[1], buf[2] = pedestals[r, g, 0], pedestals[r, g, 1], pedestals[r, g, 2] + drop
         _mju_copy(addr[r, GEOM_POS] + np.uint64(24 * geoms[g]), place, np.intc(3))
     d = models.delay[r]
+    ring = models.pending.shape[1]
+    for i in range(nu):  # every row keeps its last commands issued (a snapshot's, for a branch in another world)
+        models.pending[r, j % ring, i] = out[i]
     if d > 0:  # the command of tick j - d acts now (a slot not yet written holds zeros)
-        ring = models.pending.shape[1]
-        for i in range(nu):
-            models.pending[r, j % ring, i] = out[i]
         for i in range(nu):
             buf[i] = models.pending[r, (j - d) % ring, i]
     else:

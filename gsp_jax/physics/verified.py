@@ -23,11 +23,19 @@ The branches of all the lockstep's episodes at one decision run as one lockstep 
 is one branch, and the branch taken at one decision has already shown, under every base, what each base's own
 action at the next decision leads to (the branches of a decision share the episode's past and continue it bit for
 bit), so those outcomes are reused (`reuse`; `Decision.branches` counts the branches run).
+
+Branching over worlds (`gap`, `worlds`): the simulator is the planner's model, and a hand and tool are never known
+that well (docs/world.md). With a `world.Gap`, every branch runs once in each of `worlds` worlds drawn from it for
+its episode (the planner's own guesses, fixed for the episode and drawn apart from the world the episode meets),
+and a candidate is scored by the share of them it holds in, then its mean angle error: an action is good if it
+holds in most of the worlds the planner cannot tell apart. The never-worse argument then holds in those worlds, not
+in the one the episode meets.
 """
 from __future__ import annotations
 
 import dataclasses
 import time
+import zlib
 from typing import Any
 
 import jax
@@ -60,8 +68,9 @@ class Decision:
     # `base_actions`) the base's own action
     q: np.ndarray  # (A,) the surrogate's Q-values of every root action
     fell: np.ndarray | None  # (B, slots) bool: the branch's tool fell (None: not branched, as with one candidate
-    # or a tool that had already fallen: the surrogate's best is taken)
-    angle_error: np.ndarray | None  # (B, slots) [deg] the branch's mean hold angle error (180 if it fell)
+    # or a tool that had already fallen: the surrogate's best is taken); (B, slots, W) over W worlds (`worlds`)
+    angle_error: np.ndarray | None  # (B, slots) [deg] the branch's mean hold angle error (180 if it fell); (B,
+    # slots, W) over worlds
     chosen: int  # the action taken
     base: int  # the base policy of the branch taken (-1: not branched)
     seconds: float  # wall time of the decision call that made it (every episode of the lockstep at once)
@@ -89,11 +98,16 @@ class PhysicsLookahead:
     branch_device: str | None = "cpu"  # where the branches' decisions (the bases' actions) run: a CPU answers a
     # cheap base (a sequence, a DP table) faster than a GPU answers a call; None: JAX's default device
     workers: int | None = None  # its chunks (default as `c_backend.simulate`)
+    gap: Any = None  # a `gsp_jax.physics.world.Gap`: every branch runs in `worlds` worlds drawn from it per episode
+    # (module docstring); None: in the planner's own model
+    worlds: int = 1  # worlds drawn per episode (with `gap`)
+    world_seed: int = 0  # the seed of those worlds (a stream apart from `--world-seed`'s: `planned_worlds`)
     decisions: list = dataclasses.field(default_factory=list)
     _gathered: dict = dataclasses.field(default_factory=dict, repr=False)  # bases per set of branched rows
     _tables: dict = dataclasses.field(default_factory=dict, repr=False)  # waypoints -> `_tables`
-    _known: dict = dataclasses.field(default_factory=dict, repr=False)  # (row, base, actions from the start) ->
-    # (fell, angle error): the outcomes of the branches run so far in this episode
+    _known: dict = dataclasses.field(default_factory=dict, repr=False)  # (row, base, world, actions from the
+    # start) -> (fell, angle error): the outcomes of the branches run so far in this episode
+    _worlds: dict = dataclasses.field(default_factory=dict, repr=False)  # the episodes' ids -> `planned_worlds`
 
     def __post_init__(self):
         if not (isinstance(self.k, int) and self.k >= 1):
@@ -103,6 +117,22 @@ class PhysicsLookahead:
             raise ValueError(f"PhysicsLookahead.bases must be a non-empty sequence of (policy, policy_axis) pairs, "
                              f"got {self.bases!r}")
         self.bases = tuple(tuple(b) for b in self.bases)
+        from gsp_jax.physics import world as world_lib
+
+        if not (isinstance(self.worlds, int) and self.worlds >= 1):
+            raise ValueError(f"PhysicsLookahead.worlds must be an int >= 1, got {self.worlds!r}")
+        if self.gap is not None and not isinstance(self.gap, world_lib.Gap):
+            raise ValueError(f"PhysicsLookahead.gap must be a world.Gap or None, got {self.gap!r}")
+        if self.gap is not None and self.gap.nominal:
+            self.gap = None  # the nominal gap's worlds are all the model: branch in it once
+        if self.gap is None and self.worlds != 1:
+            raise ValueError(f"PhysicsLookahead.worlds: {self.worlds} worlds need a gap to draw them from (gap=None "
+                             "branches in the planner's own model)")
+
+    @property
+    def n_worlds(self) -> int:
+        """The worlds each branch runs in (1 without a gap)."""
+        return 1 if self.gap is None else self.worlds
 
     def in_physics(self, spec: PhysicsSpec, snapshot, rows: np.ndarray, obs: np.ndarray, episodes, k: int,
                    n_steps: int):
@@ -138,6 +168,38 @@ def base_action(spec: PhysicsSpec, axis, observe):
         in_axes=(axis, 0, 0, 0))(base, observe(obs_flat), grasp, episodes))
 
 
+PLANNED_STREAM = 86  # the planner's worlds come from fold_in(PRNGKey(world_seed), PLANNED_STREAM)
+
+
+def planned_worlds(policy: PhysicsLookahead, spec: PhysicsSpec | HasSpec, episodes):
+    """The worlds the branches of `episodes` (a batch of E) run in: a `world.World` of E W rows (numpy), episode
+    i's w-th at row i W + w, drawn from the policy's gap with a key of `world_seed` and the episode's own values (so
+    an episode gets the same worlds in any batch or chunk; kept); None without a gap."""
+    from gsp_jax.physics import world as world_lib
+
+    if policy.gap is None:
+        return None
+    leaves = [np.asarray(x) for x in jax.tree.leaves(jax.device_get(episodes))]
+    E, W = int(np.shape(episodes.mass)[0]), policy.worlds
+    ids = [zlib.crc32(b"".join(np.ascontiguousarray(x[e]).tobytes() for x in leaves)) for e in range(E)]
+    if tuple(ids) not in policy._worlds:
+        scene = of(spec).scene
+        base = jax.random.fold_in(jax.random.PRNGKey(policy.world_seed), PLANNED_STREAM)
+        keys = jnp.stack([jax.random.fold_in(base, i & 0x7FFFFFFF) for i in ids])
+        drawn = jax.vmap(lambda k: world_lib.draw(policy.gap, k, W, scene.n_touch, len(scene.hand_dof)))(keys)
+        policy._worlds[tuple(ids)] = jax.tree.map(lambda x: np.asarray(x).reshape(E * W, *x.shape[2:]),
+                                                  jax.device_get(drawn))
+    return policy._worlds[tuple(ids)]
+
+
+def _world_rows(policy: PhysicsLookahead, spec, episodes, i_, w_):
+    """The planned worlds of branches (episode i_, world w_) (index arrays), or None without a gap."""
+    from gsp_jax.physics import world as world_lib
+
+    planned = planned_worlds(policy, spec, episodes)
+    return None if planned is None else world_lib.rows(planned, np.asarray(i_) * policy.worlds + np.asarray(w_))
+
+
 def _gather(policy: PhysicsLookahead, b: int, episodes: np.ndarray, slots: int):
     """Base b for the branches of `episodes` (indices into the policy's episode batch), `slots` each
     (episode-major): its per-episode leaves gathered; kept while the branched rows stay the same."""
@@ -164,7 +226,7 @@ def choose(policy: PhysicsLookahead, spec: PhysicsSpec, snapshot, rows: np.ndarr
     from gsp_jax.physics import c_backend
 
     t0 = time.perf_counter()
-    n, n_base, top = len(rows), len(policy.bases), min(policy.k, spec.space.n_actions)
+    n, n_base, top, W = len(rows), len(policy.bases), min(policy.k, spec.space.n_actions), policy.n_worlds
     grasp = snapshot.grasp[rows]
     observe = c_backend.programs(spec, episodes).observe
     args = (jnp.asarray(obs), jnp.asarray(grasp), episodes, k)
@@ -176,7 +238,7 @@ def choose(policy: PhysicsLookahead, spec: PhysicsSpec, snapshot, rows: np.ndarr
         cand = np.concatenate([cand, own[:, :, None]], 2)  # (B, N, slots)
     slots = cand.shape[2]
     chosen, chosen_base = best[:, 0].copy(), np.full(n, -1)
-    fell, err = np.full((n_base, n, slots), np.nan), np.full((n_base, n, slots), np.nan)
+    fell, err = np.full((n_base, n, slots, W), np.nan), np.full((n_base, n, slots, W), np.nan)
     live = np.flatnonzero(~snapshot.fell[rows]) if n_base * slots > 1 else np.zeros(0, int)
     known, runs, stats = policy._known, 0, {"steps": 0}
     if k == 0:
@@ -185,38 +247,43 @@ def choose(policy: PhysicsLookahead, spec: PhysicsSpec, snapshot, rows: np.ndarr
         # a branch whose outcome an earlier branch already gave is not run again: that earlier branch took this
         # episode's actions so far and then this candidate, under the same base (the physics is deterministic)
         past = snapshot.actions[rows, :k]
-        todo = [[] for _ in range(n_base)]  # per base: (episode, first action) pairs to run
+        todo = [[] for _ in range(n_base)]  # per base: (episode, first action, world) to run
         for b in range(n_base):
             for i in live:
                 for s_ in range(slots):
                     a = int(cand[b, i, s_])
-                    got = known.get((int(rows[i]), b, tuple(past[i]) + (a,))) if policy.reuse else None
-                    if got is not None:
-                        fell[b, i, s_], err[b, i, s_] = got
-                    elif (i, a) not in todo[b]:
-                        todo[b].append((i, a))
+                    for w in range(W):
+                        got = known.get((int(rows[i]), b, w, tuple(past[i]) + (a,))) if policy.reuse else None
+                        if got is not None:
+                            fell[b, i, s_, w], err[b, i, s_, w] = got
+                        elif (i, a, w) not in todo[b]:
+                            todo[b].append((i, a, w))
         runs = sum(len(t) for t in todo)
         tables = _tables(policy, spec, episodes)
         if runs and tables is not None:  # every base reads only its grasp and waypoint: decided in numpy
-            outcome = _run_tabled(policy, spec, snapshot, rows, episodes, k, todo, tables, n_base * n * slots, stats)
+            outcome = _run_tabled(policy, spec, snapshot, rows, episodes, k, todo, tables, n_base * n * slots * W,
+                                  stats)
         elif runs:
             # each base's branches padded to a multiple of a quarter of the episodes' candidates (the branches'
             # programs are compiled per row count: padding repeats a branch; one episode: none)
-            quarter = -(-n * slots // 4)
+            quarter = -(-n * slots * W // 4)
             padded = [(t * quarter)[:-(-len(t) // quarter) * quarter] for t in todo]  # a base with none: none
-            _warm(policy, spec, snapshot, rows, episodes, k, padded, range(quarter, n * slots + 1, quarter))
+            _warm(policy, spec, snapshot, rows, episodes, k, padded, range(quarter, n * slots * W + 1, quarter))
             outcome = _run_branches(policy, spec, snapshot, rows, episodes, k, padded, stats)
         for b, t in enumerate(todo):
-            for r, (i, a) in enumerate(t):
+            for r, (i, a, w) in enumerate(t):
                 f, e, acts = outcome[b][0][r], outcome[b][1][r], outcome[b][2][r]
                 for m in range(k, len(acts)):  # this branch's outcome is every later candidate's on its path
-                    known[(int(rows[i]), b, tuple(int(x) for x in acts[:m + 1]))] = (f, e)
-                fell[b, i, cand[b, i] == a], err[b, i, cand[b, i] == a] = f, e
-        for i in live:  # held first, then the least angle error, then the surrogate's Q (then base, slot order)
-            c = cand[:, i].ravel()
-            pick = np.lexsort((-q[i, c], err[:, i].ravel(), fell[:, i].ravel()))[0]
+                    known[(int(rows[i]), b, w, tuple(int(x) for x in acts[:m + 1]))] = (f, e)
+                fell[b, i, cand[b, i] == a, w], err[b, i, cand[b, i] == a, w] = f, e
+        share, mean_err = fell.mean(-1), err.mean(-1)  # over the worlds (one without a gap)
+        for i in live:  # held (in most worlds) first, then the least angle error, then the surrogate's Q (then base,
+            c = cand[:, i].ravel()  # slot order)
+            pick = np.lexsort((-q[i, c], mean_err[:, i].ravel(), share[:, i].ravel()))[0]
             chosen[i], chosen_base[i] = c[pick], pick // slots
     seconds, branched = time.perf_counter() - t0, set(live.tolist())
+    if W == 1:
+        fell, err = fell[..., 0], err[..., 0]
     for i in range(n):
         b = i in branched
         policy.decisions.append(Decision(int(i), k, np.array(cand[:, i]), q[i], fell[:, i].astype(bool) if b else None,
@@ -248,7 +315,7 @@ def _run_tabled(policy: PhysicsLookahead, spec: PhysicsSpec, snapshot, rows: np.
     many rows whose grasps all change, to compile them; returns nothing)."""
     from gsp_jax.physics import c_backend
 
-    flat = [(b, i, a) for b, t in enumerate(todo) for i, a in t]
+    flat = [(b, i, a, w) for b, t in enumerate(todo) for i, a, w in t]
     step = max(1, most // 8)
     if warm_width is None:
         key = ("tabled-widths", len(rows), most, policy.branch_device)
@@ -261,7 +328,7 @@ def _run_tabled(policy: PhysicsLookahead, spec: PhysicsSpec, snapshot, rows: np.
     else:
         width = warm_width
     flat = (flat * width)[:width]  # padding repeats branches
-    b_, i_, a_ = (np.array(x) for x in zip(*flat))
+    b_, i_, a_, w_ = (np.array(x) for x in zip(*flat))
     table = np.stack([tables[b][i if len(tables[b]) > 1 else 0] for b, i in zip(b_, i_)])  # (R, G, T) a copy
     if warm_width is not None:  # a first action that changes the grasp: the JAX decision runs (and compiles)
         g = snapshot.grasp[rows[i_]]
@@ -270,7 +337,8 @@ def _run_tabled(policy: PhysicsLookahead, spec: PhysicsSpec, snapshot, rows: np.
     sub = jax.tree.map(lambda x: np.asarray(x)[i_], episodes)
     result = c_backend.simulate(spec, [(c_backend.ActionTable(table), 0)], [sub], cores=policy.cores,
                                 workers=policy.workers, start=snapshot.take(rows[i_]), stats=stats,
-                                device=policy.branch_device, until=k + 1 if warm_width else None, outcomes=True)
+                                device=policy.branch_device, until=k + 1 if warm_width else None, outcomes=True,
+                                world=_world_rows(policy, spec, episodes, i_, w_))
     if warm_width is not None:
         return None
     fell, err, acts = result[0]
@@ -298,22 +366,23 @@ def _warm(policy: PhysicsLookahead, spec: PhysicsSpec, snapshot, rows, episodes,
 
 def _run_branches(policy: PhysicsLookahead, spec: PhysicsSpec, snapshot, rows: np.ndarray, episodes, k: int, todo,
                   stats, until: int | None = None):
-    """Per base b, the branches todo[b] = [(episode, first action), ...] (any number, none included) run from the
-    snapshot to the episode's end in one C MuJoCo lockstep: per base (fell (R,), angle error (R,), actions (R, T)),
-    None for a base with none; stats["steps"] grows by the physics steps taken. `until`: stop there instead and
-    return the lockstep's `Snapshot`."""
+    """Per base b, the branches todo[b] = [(episode, first action, world), ...] (any number, none included) run from
+    the snapshot to the episode's end in one C MuJoCo lockstep (each in its planned world: `planned_worlds`): per
+    base (fell (R,), angle error (R,), actions (R, T)), None for a base with none; stats["steps"] grows by the
+    physics steps taken. `until`: stop there instead and return the lockstep's `Snapshot`."""
     from gsp_jax.physics import c_backend
 
     bases = [b for b, t in enumerate(todo) if t]  # a base with no branch to run is left out
-    idx = [np.array([i for i, _ in todo[b]]) for b in bases]  # per base (R_b,) episodes (indices into rows)
-    first = [np.array([a for _, a in todo[b]], np.int32) for b in bases]
+    idx = [np.array([i for i, _, _ in todo[b]]) for b in bases]  # per base (R_b,) episodes (indices into rows)
+    first = [np.array([a for _, a, _ in todo[b]], np.int32) for b in bases]
+    worlds = [_world_rows(policy, spec, episodes, idx[g], [w for _, _, w in todo[b]]) for g, b in enumerate(bases)]
     groups = [(FirstThen(first=jnp.asarray(first[g]), at=jnp.int32(k), base=_gather(policy, b, idx[g], 1)),
                FirstThen(first=0, at=None, base=policy.bases[b][1])) for g, b in enumerate(bases)]
     per_base = [jax.tree.map(lambda x, ib=ib: np.asarray(x)[ib], episodes) for ib in idx]
     every = np.concatenate(idx)
     results = c_backend.simulate(spec, groups, per_base, cores=policy.cores, workers=policy.workers,
                                  start=snapshot.take(rows[every]), stats=stats, device=policy.branch_device,
-                                 until=until, outcomes=True)
+                                 until=until, outcomes=True, world=None if policy.gap is None else worlds)
     if until is not None:
         return results
     out = [None] * len(todo)

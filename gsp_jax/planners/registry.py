@@ -302,9 +302,13 @@ def _random(ctx: evaluation.Context, *, seed: int = 0, hold: float = 0.0):
 
 @register("L1-physics", group="verified", needs=("base",), backends=("c",))
 def _l1_physics(ctx: evaluation.Context, *, k: int = evaluation.L1_PHYSICS["k"],
-                bases: tuple = evaluation.L1_PHYSICS["bases"], cached: bool = True, step_model=None):
+                bases: tuple = evaluation.L1_PHYSICS["bases"], cached: bool = True, step_model=None,
+                worlds: int = 1, gap=None, world_seed: int = 0):
     """L1's `k` best root actions (and each base's own) at each decision, branched in C MuJoCo to the episode's end
-    under each of `bases` (registered planners, e.g. ("four-tips", "dp-opt")); never worse than either base."""
+    under each of `bases` (registered planners, e.g. ("four-tips", "dp-opt")); never worse than either base.
+    `gap` (a level of `gsp_jax.physics.world.LEVELS` or a `world.Gap`; None: the planner's own model): each branch
+    runs in `worlds` worlds drawn from it per episode (`world_seed`), an action scored by the share it holds in."""
+    from gsp_jax.physics import world as world_lib
     from gsp_jax.physics.verified import PhysicsLookahead
 
     if isinstance(bases, str) or not bases or any(b not in names() or b == "L1-physics" for b in bases):
@@ -322,4 +326,8 @@ def _l1_physics(ctx: evaluation.Context, *, k: int = evaluation.L1_PHYSICS["k"],
             made.append(make(ctx, b, dict(cached=cached, step_model=step_model)))
         except ValueError as e:
             raise ValueError(f"bases: {b!r} cannot be built here: {e}") from None
-    return PhysicsLookahead(root, axis, tuple(made), k=k), None
+    if isinstance(gap, str):
+        if gap not in world_lib.LEVELS:
+            raise ValueError(f"gap: one of {list(world_lib.LEVELS)}, got {gap!r}")
+        gap = world_lib.Gap.named(gap)
+    return PhysicsLookahead(root, axis, tuple(made), k=k, gap=gap, worlds=worlds, world_seed=world_seed), None

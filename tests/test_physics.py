@@ -539,6 +539,7 @@ def test_physics_lookahead_over_worlds_scores_each_candidate_by_the_share_of_wor
     root = policies.Lookahead(keep, phys.surrogate, depth=1, horizon=1)
     gap = world.Gap.named("wide")
     hedge = verified.PhysicsLookahead(root, None, ((keep, None), (change, 0)), k=2, cores=2, gap=gap, worlds=2)
+    assert hedge.reuse is False and verified.PhysicsLookahead(root, None, ((keep, None),)).reuse is True
     res = phys.simulate_batch(hedge, eps, backend="c")
     planned = verified.planned_worlds(hedge, phys, eps)
     assert np.asarray(planned.mass).shape == (4,) and len(set(np.asarray(planned.mass).tolist())) == 4

@@ -92,9 +92,10 @@ class PhysicsLookahead:
     base_actions: bool = True  # each base's own action is a candidate too (under that base): never worse than a
     # base (module docstring); without it and with k = 1 the root's action is taken, nothing branched
     cores: int | None = None  # cores of the branches' lockstep (default: all)
-    reuse: bool = True  # a branch whose outcome an earlier branch of the episode already gave is not run again
-    # (that branch took the episode's actions so far, then this candidate, under the same base: the physics is
-    # deterministic, so its outcome is this one's); False runs every branch (tests/test_physics.py compares)
+    reuse: bool | None = None  # a branch whose outcome an earlier branch of the episode already gave is not run
+    # again (that branch took the episode's actions so far, then this candidate, under the same base: the physics is
+    # deterministic, so its outcome is this one's); False runs every branch (tests/test_physics.py compares). None:
+    # on in the model, off with a `gap` (the episode's own state leaves the branches' worlds: docs/world.md)
     branch_device: str | None = "cpu"  # where the branches' decisions (the bases' actions) run: a CPU answers a
     # cheap base (a sequence, a DP table) faster than a GPU answers a call; None: JAX's default device
     workers: int | None = None  # its chunks (default as `c_backend.simulate`)
@@ -128,6 +129,8 @@ class PhysicsLookahead:
         if self.gap is None and self.worlds != 1:
             raise ValueError(f"PhysicsLookahead.worlds: {self.worlds} worlds need a gap to draw them from (gap=None "
                              "branches in the planner's own model)")
+        if self.reuse is None:
+            self.reuse = self.gap is None
 
     @property
     def n_worlds(self) -> int:

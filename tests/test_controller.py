@@ -59,6 +59,27 @@ def test_rotation_radius_is_the_tools_own():
     assert rotation_radius(longer, physics.PhysicsConfig()) == pytest.approx(0.19, abs=1e-6)
 
 
+def test_the_robust_controllers_rotation_radius_is_the_tools_radius_of_gyration():
+    """`radius_from="gyration"` (the robust controller's): the model's tool's largest radius of gyration, from its
+    mass and principal inertia in the file (the wrench: sqrt(1.12e-3 kg m^2 / 0.35 kg) = 5.66 cm, about a 19 cm
+    bar's L / sqrt(12)), not its extent: four times the inertia at the same mass doubles it, a longer box leaves it;
+    a config's radius still overrides it; any other rule is refused by name."""
+    from gsp_jax.physics.controller import rotation_radius
+
+    hand = Surrogate(learned=False).hand
+    robust = physics.PhysicsConfig.named("robust")
+    assert robust.value("radius_from") == "gyration"
+    assert rotation_radius(hand, robust) == pytest.approx(np.sqrt(1.12e-3 / 0.35), rel=1e-6)
+    assert rotation_radius(hand, robust) == pytest.approx(0.19 / np.sqrt(12), rel=0.05)
+    heavier = dataclasses.replace(hand, tool_inertia=hand.tool_inertia * 4)
+    assert rotation_radius(heavier, robust) == pytest.approx(2 * rotation_radius(hand, robust), rel=1e-6)
+    longer = dataclasses.replace(hand, tool_box_pos=hand.tool_box_pos * 2, tool_box_half=hand.tool_box_half * 2)
+    assert rotation_radius(longer, robust) == rotation_radius(hand, robust)
+    assert rotation_radius(hand, robust.replace(tool_radius=0.03)) == 0.03
+    with pytest.raises(ValueError, match=r"PhysicsConfig\.controller\.radius_from must be one of .*, got 'mass'"):
+        physics.PhysicsConfig().replace(radius_from="mass")
+
+
 def test_measured_frames_hold_edge_contacts_the_paper_controller_drops():
     """Four fingertips on the handle's edge, full episodes in C MuJoCo: the oracle finds holding forces in the
     friction cones at every point of the sequence; the paper's controller (nominal face normals, 70% of mu) drops

@@ -17,6 +17,7 @@ from gsp_jax.model import scenario
 
 
 FRAMES = ("nominal", "measured")  # `ControllerConfig.frames`
+RADII = ("extent", "gyration")  # `ControllerConfig.radius_from`
 
 
 def _number(value) -> bool:
@@ -92,6 +93,9 @@ class ControllerConfig:
     tool_radius: float | None = None  # [m] > 0: rotational gains act as on the tool's mass at this radius (plus its
     # inertia), the feedback torque's cap is the force's times it; None: the model's, half the tool's longest side
     # (`controller.rotation_radius`)
+    radius_from: str = "extent"  # where `tool_radius` is None, the tool's own radius: "extent", half its longest
+    # side (its contacts' lever), or "gyration", its largest radius of gyration sqrt(I_max / m) (the rotational
+    # stiffness then at most 2 I_max about any axis: a slower loop that a motor delay of a few ticks leaves stable)
     rotation_step: float = 0.3  # > 0: the most of the tool's angular velocity one control tick's rotational damping
     # takes off, about each principal axis (a discrete-time bound: above 1 the damping overshoots, above 2 it grows)
     grip_force: float = 8.0  # [N] >= 0: the force solve's preferred force along every contact normal (the grip,
@@ -124,6 +128,8 @@ class ControllerConfig:
                counts=("force_iterations",))
         if self.pose_filter > 1:
             raise ValueError(f"PhysicsConfig.controller.pose_filter must be in (0, 1], got {self.pose_filter}")
+        if self.radius_from not in RADII:
+            raise ValueError(f"PhysicsConfig.controller.radius_from must be one of {RADII}, got {self.radius_from!r}")
         if self.frames not in FRAMES:
             raise ValueError(f"PhysicsConfig.controller.frames must be one of {FRAMES}, got {self.frames!r}")
         if not isinstance(self.predictive, bool):
@@ -171,9 +177,10 @@ CONTROLLERS = {  # named contact controllers: `PhysicsConfig.named(name)`; the f
     "paper": dict(frames="nominal", friction_margin=0.7, tool_radius=0.05, rotation_step=1.0),  # the paper-era
     # controller: option normals, 70% of mu, rotational gains as of the tool's mass at 5 cm, damped to the bound
     "predictive": dict(predictive=True),  # the default with the predictive hold (C MuJoCo only)
-    "robust": dict(pose_filter=0.1, strength_rate=0.3),  # the default with a filtered pose estimate and the motors'
-    # strengths estimated while holding: for a hand whose motors and pose estimate are not the model's
-    # (docs/world.md, "A controller for the gap")
+    "robust": dict(pose_filter=0.1, strength_rate=0.3, radius_from="gyration"),  # the default with a filtered pose
+    # estimate, the motors' strengths estimated while holding and the rotational gains at the tool's radius of
+    # gyration: for a hand whose motors, delays and pose estimate are not the model's (docs/world.md, "A controller
+    # for the gap")
 }
 DEFAULT_CONTROLLER = "measured"
 

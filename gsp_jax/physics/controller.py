@@ -150,10 +150,14 @@ def _solve3(m: jax.Array, v: jax.Array) -> jax.Array:
 
 def rotation_radius(hand: HandModel, config: PhysicsConfig) -> float:
     """The radius [m] the tool's rotational gains act at (`ControllerConfig.tool_radius`): the config's, or where
-    that is None the tool's own, half the longest side of its bounding box in its frame (`HandModel.tool_bounds`):
-    the lever its contacts have about its centre."""
-    if config.controller.tool_radius is not None:
-        return float(config.controller.tool_radius)
+    that is None the tool's own (`ControllerConfig.radius_from`): "extent", half the longest side of its bounding
+    box in its frame (`HandModel.tool_bounds`), the lever its contacts have about its centre; "gyration", the
+    model's tool's largest radius of gyration sqrt(I_max / m) (a bar of length L: L / sqrt(12))."""
+    c = config.controller
+    if c.tool_radius is not None:
+        return float(c.tool_radius)
+    if c.radius_from == "gyration":
+        return float(np.sqrt(np.max(hand.tool_inertia) / hand.tool_mass))
     low, high = hand.tool_bounds()
     return float(np.max(high - low) / 2)
 

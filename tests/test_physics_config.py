@@ -27,12 +27,12 @@ def _leaves(cls) -> list[str]:
     return out
 
 
-def test_at_most_34_fields_each_name_in_one_group():
+def test_at_most_35_fields_each_name_in_one_group():
     """A small config (30 until the contact frames, `frames`, made the measured controller a setting, 31 until the
-    predictive hold, `predictive`, 32 until the robust controller's `pose_filter` and `strength_rate`); each field
-    name in one group."""
+    predictive hold, `predictive`, 32 until the robust controller's `pose_filter` and `strength_rate`, 34 until its
+    `radius_from`); each field name in one group."""
     names = _leaves(physics.PhysicsConfig)
-    assert len(names) <= 34, names
+    assert len(names) <= 35, names
     assert len(set(names)) == len(names), sorted(n for n in names if names.count(n) > 1)
     assert sorted(names) == sorted(config_lib.GROUP_OF)
 
@@ -55,6 +55,8 @@ def test_replace_by_name_changes_that_field_only():
     ("feedback_floor", 0.0, r"PhysicsConfig\.controller\.feedback_floor must be > 0, got 0\.0"),
     ("free_stiffness", 0.0, r"PhysicsConfig\.fingers\.free_stiffness must be > 0, got 0\.0"),
     ("rotation_step", 0.0, r"PhysicsConfig\.controller\.rotation_step must be > 0, got 0\.0"),
+    ("radius_from", "extents",
+     r"PhysicsConfig\.controller\.radius_from must be one of \('extent', 'gyration'\), got 'extents'"),
     ("solver_iterations", 0, r"PhysicsConfig\.sim\.solver_iterations must be an int >= 1, got 0"),
     ("noslip_iterations", 2.5, r"PhysicsConfig\.sim\.noslip_iterations must be an int >= 0, got 2\.5"),
     ("finger_kd", -3.0, r"PhysicsConfig\.fingers\.finger_kd must be >= 0, got -3\.0"),

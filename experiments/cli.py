@@ -25,6 +25,8 @@ COMMANDS = {  # command -> (module, one-line help)
                       "cache off / empty / on disk"),
     "bench-surrogate": ("experiments.bench.surrogate", "surrogate steps/s: vmapped vs one step at a time"),
     "bench-dp": ("experiments.bench.dp", "DP solve time: one episode, 27 batched, vs the step-at-a-time table"),
+    "bench-search": ("experiments.bench.search", "the beam search beside the DP table: time an episode, IK problems, "
+                     "plans equal to DP optimal's"),
     "bench-gym": ("experiments.bench.gym", "Gymnasium vector env steps/s: the native vmapped one vs SyncVectorEnv"),
     "dp": ("experiments.paper.dp", "exact DP (Bellman backups) over an episode set; grasp sequences and timeline"),
     "train": ("experiments.paper.train", "PPO on the training episodes, with or without DP pretraining, over seeds"),

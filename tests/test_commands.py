@@ -42,6 +42,8 @@ QUICKEST = {
     "surrogate": [(["surrogate", "--episode", "nominal", "--waypoints", "0"], [])],
     "bench-startup": [(["bench-startup", "--no-off", "--out", "s.json"], ["s.json"])],
     "bench-surrogate": [(["bench-surrogate", "--loop-steps", "17", "--repeats", "1", "--out", "b.json"], ["b.json"])],
+    "bench-search": [(["bench-search", "--episodes", "2", "--widths", "4", "--timed", "1", "--out", "b.json"],
+                      ["b.json"])],
     "bench-dp": [(["bench-dp", "--episodes", "2", "--loop-steps", "17", "--repeats", "1", "--out", "b.json"],
                   ["b.json"])],
     "bench-gym": [(["bench-gym", "--envs", "4", "--sync-max", "4", "--seconds", "1"], [])],

@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 
 import tolerances as tol
+from hazards import fitted as _fitted
 from gsp_jax.planning import dp, evaluation, lookahead, policies
-from gsp_jax.model import grasps, scenario
+from gsp_jax.model import scenario
 from gsp_jax.surrogate import learned, reward
 from gsp_jax.learning.env import GraspEnv
 from gsp_jax.model import load as model_lib
@@ -23,22 +24,6 @@ from gsp_jax.surrogate.reward import RewardConfig
 from gsp_jax.surrogate.step import Surrogate
 
 T = 3  # waypoints of the episodes here (the first three of drawn ones)
-
-
-def _fitted(digest: str, bias: float = 0.0, seed: int = 0, space=None) -> learned.Fitted:
-    """An untrained hazard network of the corpus's features (random weights, `bias` added to the logit; an ensemble
-    of one), scaled by rough feature magnitudes so its probabilities spread over (0, 1); its inputs those of
-    `space`'s grasps (None: the wrench's)."""
-    names = learned.input_names(space or grasps.space_of(model_lib.load_model().hand))
-    F = len(names)
-    params = learned._MLP((16,)).init(jax.random.PRNGKey(seed), jnp.zeros((1, F)))
-    params = jax.tree.map(lambda x: x, params)
-    params["params"]["Dense_1"]["bias"] = params["params"]["Dense_1"]["bias"] + bias
-    scale = np.ones(F, np.float32)
-    scale[learned.FEATURES.index("reward")] = 50.0
-    scale[learned.FEATURES.index("t")] = 2.0
-    params = jax.tree.map(lambda x: x[None], params)
-    return learned.Fitted(params, jnp.zeros(F), jnp.asarray(scale), (16,), names, digest)
 
 
 def _episodes(n: int, seed: int = 3) -> list[scenario.Episode]:

@@ -19,7 +19,8 @@ from gsp_jax.planners import registry as planners
 from gsp_jax.model import scenario
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-PROJECT = ("dp-base", "rl", "L1", "L2", "dp-opt", "four-tips", "one-tip", "random", "L1-physics")
+PROJECT = ("dp-base", "rl", "L1", "L2", "dp-opt", "four-tips", "one-tip", "random", "L1-physics", "search",
+           "search-L1")
 
 PLUGIN = '''
 import jax.numpy as jnp

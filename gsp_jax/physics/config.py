@@ -91,7 +91,7 @@ class ControllerConfig:
     # as many weights x tool_radius) ...
     feedback_floor: float = 4.0  # [N] > 0: ... but never below this force
     tool_radius: float | None = None  # [m] > 0: rotational gains act as on the tool's mass at this radius (plus its
-    # inertia), the feedback torque's cap is the force's times it; None: the model's, half the tool's longest side
+    # inertia), the feedback torque's cap is the force's times it; None: the tool's own, as `radius_from` says
     # (`controller.rotation_radius`)
     radius_from: str = "extent"  # where `tool_radius` is None, the tool's own radius: "extent", half its longest
     # side (its contacts' lever), or "gyration", its largest radius of gyration sqrt(I_max / m) (the rotational

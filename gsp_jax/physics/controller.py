@@ -10,8 +10,9 @@ of the episode's waypoints (a cubic Hermite spline through them):
 
   tool wrench   F = m (a_r - g) + m [kp (c_r - c) + kd (v_r - v_c)] - s f_ext          (c: centre of mass)
                 T = I' kp e_R - I'' kd w + w x I w - s tau_ext                       (e_R: rotation error vector)
-                kp, kd from `tool_freq` / `tool_damping`; I' = I + m r^2 with r `rotation_radius` (half the tool's
-                longest side; a thin tool's inertia about its long axis alone would leave it free to roll);
+                kp, kd from `tool_freq` / `tool_damping`; I' = I + m r^2 with r `rotation_radius` (`tool_radius`, or
+                the tool's own as `radius_from` says: half its longest side by default, or its largest radius of
+                gyration; a thin tool's inertia about its long axis alone would leave it free to roll);
                 I'' = I' but per principal axis at most `rotation_step` / (tick kd) I (damping stable at the
                 control rate); the feedback force and torque capped at `feedback_limit` tool weights, at least
                 `feedback_floor` (times r for the torque); s the external wrench's ramp (0 while lifting, 1 in the

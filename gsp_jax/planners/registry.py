@@ -26,13 +26,13 @@ from typing import Any, Callable
 import jax
 import jax.numpy as jnp
 
-from gsp_jax.planning import dp, evaluation, policies, rollout as rollout_lib
+from gsp_jax.planning import beam, dp, evaluation, policies, rollout as rollout_lib
 from gsp_jax.surrogate import reward as reward_lib
 from gsp_jax.core import platform
 from gsp_jax.model.grasps import NULL
 
 NEEDS = ("tables", "solutions", "rl", "nominal", "base")
-GROUPS = ("paper", "reference", "verified", "user")
+GROUPS = ("paper", "reference", "verified", "search", "user")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,7 +40,7 @@ class Planner:
     name: str
     build: Callable  # build(ctx, **options) -> (policy, policy_axis)
     group: str  # "paper" (the paper's five), "reference" (the physics check's),
-    #             "verified" (branched in C MuJoCo), "user"
+    #             "verified" (branched in C MuJoCo), "search" (no table: `planning.beam`), "user"
     needs: tuple[str, ...]  # what of the context it reads (`NEEDS`)
     options: dict[str, Any]  # its keyword options and their defaults
     backends: tuple[str, ...] | None  # the physics backends it runs on (None: any)
@@ -87,7 +87,7 @@ def register(name: str, *, group: str = "user", needs=(), backends=None):
 
 
 def names(group: str | None = None) -> tuple[str, ...]:
-    """Registered planner names (of one group: "paper", "reference", "verified", "user"), in registration order."""
+    """Registered planner names (of one group: `GROUPS`), in registration order."""
     return tuple(n for n, p in _REGISTRY.items() if group is None or p.group == group)
 
 
@@ -331,3 +331,19 @@ def _l1_physics(ctx: evaluation.Context, *, k: int = evaluation.L1_PHYSICS["k"],
             raise ValueError(f"gap: one of {list(world_lib.LEVELS)}, got {gap!r}")
         gap = world_lib.Gap.named(gap)
     return PhysicsLookahead(root, axis, tuple(made), k=k, gap=gap, worlds=worlds, world_seed=world_seed), None
+
+
+@register("search", group="search")
+def _search(ctx: evaluation.Context, *, width: int = beam.WIDTH):
+    """Beam search over grasp changes: each episode planned once from its start, realising only the grasps it
+    visits (`planning.beam`; no DP table, for grasp spaces a table cannot hold; `width` grasps kept per waypoint)."""
+    found = beam.plan_batch(ctx.surrogate, ctx.batch, beam.BeamConfig(width=width))
+    return policies.SequencePolicy(found.actions, ctx.surrogate.space), 0
+
+
+@register("search-L1", group="search")
+def _search_l1(ctx: evaluation.Context, *, width: int = beam.WIDTH, step_model=None):
+    """L1 over the search's plan: one step of lookahead at each decision from the state it meets, the plan's rest as
+    the rollouts' base, in the surrogate (`step_model`; no DP table)."""
+    base, _ = _search(ctx, width=width)
+    return policies.Lookahead(base, step_model or ctx.surrogate, depth=1), 0

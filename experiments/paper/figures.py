@@ -75,7 +75,7 @@ FIGURES = (
     Figure("fig4b-cpu", ("fig4b", "--backend", "c", "--paper", "--fresh", "--policies", "dp-base", "rl", "L1", "L2",
                          "dp-opt", "L1-physics"), ("fig4b",), "cpu", (*_LIBRARY, "experiments/paper/fig4b.py"), 12.0),
     # the beam search beside the DP table (issue 86): time an episode, IK problems, plans equal to DP optimal's
-    Figure("search-cpu", ("bench-search",), ("bench_search_learned",), "cpu",
+    Figure("search-cpu", ("bench-search", "--learned"), ("bench_search_learned",), "cpu",
            (*_LIBRARY, "experiments/bench/search.py"), 8.0),
     Figure("latency-cpu", _LATENCY, ("bench_latency",), "cpu", (*_LIBRARY, "experiments/paper/table1"), 12.0),
     Figure("envelope-stress", ("envelope", "--set", "stress", "--random", "8", "--physics-lookahead", "2", "--bases",

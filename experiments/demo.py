@@ -2,7 +2,8 @@
 
     an unseen episode (default: the first evaluation episode, which no planner was trained or calibrated on)
       -> its DP table (every grasp x waypoint realised by IK and priced by the wrench solve)
-      -> two plans: DP optimal (exact Bellman backup) and L1 (the paper's online lookahead over the PPO policy)
+      -> two plans: DP optimal (exact Bellman backup) and L1 (the paper's online lookahead over the PPO policy);
+         `--planners` any registered ones (e.g. `search`, the beam search)
       -> both executed closed loop by the contact controller in C MuJoCo
       -> a table (plan, surrogate return, held or fell, angle error under the final torque, planning time),
          a picture (each plan's grasp timeline above the physics angle trace) and, where an OpenGL backend is
@@ -19,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from experiments import common
 from experiments.common import RESULTS, Run, table
 from gsp_jax.planning import dp, evaluation
 from gsp_jax.core import files
@@ -36,6 +38,8 @@ LABEL = {"dp-opt": "DP optimal", "L1": "L1 lookahead"}
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--episode", default=None, help="an episode name from any set (default: the first of 'eval', "
                    "shift-6mm: the lift 6 mm lower, the torque +1 N m or the model's)")
+    p.add_argument("--planners", nargs="+", default=list(PLANNERS), metavar="NAME",
+                   help="the registered planners to plan and run (default: dp-opt L1; e.g. search, the beam search)")
     p.add_argument("--no-gif", action="store_true", help="skip the GIF even where OpenGL is available")
     p.add_argument("--gif-from", default=None, help=argparse.SUPPRESS)  # (internal) render a saved trace, then stop
 
@@ -138,7 +142,8 @@ def _picture(phys: physics.Physics, ctx, grasps: dict, res: dict, path) -> None:
         for x in np.arange(T + 1) * segment:
             ax.axvline(x, color="0.85", lw=0.5, zorder=0)
         ax.axvline(hold, color="k", ls="--", lw=0.8)
-        ax.set_title(f"{LABEL[name]}: where each link touches the tool after each decision", fontsize=9, loc="left")
+        ax.set_title(f"{LABEL.get(name, name)}: where each link touches the tool after each decision", fontsize=9,
+                     loc="left")
         ax.tick_params(labelbottom=True, labelsize=7)
     fig.legend(handles=[Patch(facecolor="w", edgecolor="0.6", label="blank: the link is not touching the tool")],
                loc="upper left", fontsize=8, frameon=False)
@@ -150,7 +155,7 @@ def _picture(phys: physics.Physics, ctx, grasps: dict, res: dict, path) -> None:
         a = np.asarray(r.angle[0]).copy()
         if bool(r.fell[0]):
             a[int(round(float(r.fall_time[0]) / tick)) :] = np.nan
-        ax.plot((np.arange(a.size) + 1) * tick, a, lw=1.2, label=LABEL[name])
+        ax.plot((np.arange(a.size) + 1) * tick, a, lw=1.2, label=LABEL.get(name, name))
     ax.axvline(hold, color="k", ls="--", lw=0.8)
     ax.text(hold, ax.get_ylim()[1] * 0.95, " hold: torque on", fontsize=8, va="top")
     for x in np.arange(T + 1) * segment:
@@ -252,10 +257,11 @@ def main(args: argparse.Namespace, run: Run) -> None:
     if args.gif_from:
         _render_gif(physics.Physics(Surrogate(run.model, learned=run.learned), run.physics_config()), args.gif_from)
         return
+    common.check_planners(args.planners, "--planners", "c")
     model = run.model
     out = run.results_dir("demo")  # results/demo-<model> for another model
-    print(f"demo on JAX {jax.default_backend()}: one unseen episode of model {model.name!r}, planned by DP optimal and "
-          "L1, executed in C MuJoCo", flush=True)
+    print(f"demo on JAX {jax.default_backend()}: one unseen episode of model {model.name!r}, planned by "
+          f"{', '.join(LABEL.get(n, n) for n in args.planners)}, executed in C MuJoCo", flush=True)
     t0 = time.perf_counter()
     sur = Surrogate(model, learned=run.learned)
     phys = physics.Physics(sur, run.physics_config())
@@ -268,25 +274,27 @@ def main(args: argparse.Namespace, run: Run) -> None:
     if why:
         print(f"  no grasp sequence holds this episode in the surrogate: {why}", flush=True)
     plans, wall = {}, {}
-    for name in PLANNERS:
+    for name in args.planners:
         t1 = time.perf_counter()
         # the plan's episode stepped in its table
         plans[name] = float(planners.returns(ctx, name, "table", cached=True)[0])
         wall[name] = time.perf_counter() - t1
-        print(f"  {LABEL[name]} planned in {wall[name]:.1f} s after the table (includes compiling)", flush=True)
-    groups = [planners.make(ctx, name) for name in PLANNERS]
+        print(f"  {LABEL.get(name, name)} planned in {wall[name]:.1f} s after the table (includes compiling)",
+              flush=True)
+    groups = [planners.make(ctx, name) for name in args.planners]
     t2 = time.perf_counter()
     native_code.result()  # compiled by now, or waited for here (counted in the physics' time)
-    res = dict(zip(PLANNERS, phys.simulate_many(groups, ctx.batch, backend="c")))
+    res = dict(zip(args.planners, phys.simulate_many(groups, ctx.batch, backend="c")))
     t_phys = time.perf_counter() - t2
-    print(f"  physics: {len(PLANNERS)} closed-loop episodes in {t_phys:.1f} s (includes compiling)", flush=True)
+    print(f"  physics: {len(args.planners)} closed-loop episodes in {t_phys:.1f} s (includes compiling)", flush=True)
     space = ctx.surrogate.space
     grasps = {n: [int(x) for x in np.asarray(r.grasps[0])] for n, r in res.items()}
-    gif = None if args.no_gif else _gif(phys, ctx, res["L1"], out / "demo_L1")  # drawn beside the picture
+    shown = args.planners[-1]  # the GIF's: the last planner's episode (L1 by default)
+    gif = None if args.no_gif else _gif(phys, ctx, res[shown], out / f"demo_{shown}")  # drawn beside the picture
     _picture(phys, ctx, grasps, res, out / "demo.png")
     written = [str(out / "demo.png")] + ([] if gif is None else gif())
     rows, record = [], {}
-    for name in PLANNERS:
+    for name in args.planners:
         r = res[name]
         acts = jnp.asarray(r.actions[0])
         ret = float(dp.sequence_return(jax.tree.map(lambda x: x[0], ctx.tables), ctx.batch.start_grasp[0], acts))
@@ -296,7 +304,7 @@ def main(args: argparse.Namespace, run: Run) -> None:
                             surrogate_return=ret, executed_grasps=grasps[name],
                             fell=fell, fall_time_s=float(r.fall_time[0]), angle_error_deg=float(r.angle_error[0]),
                             plan_s=t_table + wall[name])
-        rows.append([LABEL[name], " ".join(changes) or "keep", ret, "fell" if fell else "held",
+        rows.append([LABEL.get(name, name), " ".join(changes) or "keep", ret, "fell" if fell else "held",
                      float(r.angle_error[0]), t_table + wall[name]])
     files.write_json(out / "demo.json", dict(model=model.name, model_digest=model.digest, infeasible=why,
                                                    episode=ctx.names[0], platform=jax.default_backend(),

@@ -18,6 +18,7 @@ from hazards import fitted
 from gsp_jax.model import grasps, scenario
 from gsp_jax.planning import beam, dp
 from gsp_jax.surrogate.reward import RewardConfig
+from gsp_jax.surrogate.step import Surrogate
 
 T = 5
 NARROW = 2  # grasps a narrow beam keeps: well below the 27 grasps, so it prunes
@@ -133,3 +134,20 @@ def test_batched_equals_one_at_a_time_and_a_full_layer_counts_what_it_leaves(cas
 def test_bad_sizes_are_refused_by_name(small_sur, field, value, match):
     with pytest.raises(ValueError, match=match):
         beam.BeamConfig(**{field: value}).sizes(small_sur)
+
+
+def test_a_space_beyond_the_table_is_planned_with_the_surrogate_s_own_rewards(table_ik):
+    """The shipped five-fingered model with ten contact links (18,432 grasps: no table is built): the search plans an
+    episode's first waypoints, and its plan's rewards are the surrogate's own, stepped one decision at a time."""
+    sur = Surrogate("five", ik_config=table_ik)
+    assert sur.space.n_grasps >= 10_000 and sur.learned is None
+    ep = scenario.make_episode(model=sur.model).head(3)
+    found = beam.plan(sur, ep, beam.BeamConfig(width=2))
+    step, state, rewards = jax.jit(sur.step), sur.reset(ep), []
+    for a, alive in zip(np.asarray(found.actions), np.asarray(found.alive)):
+        if alive:
+            state, r, _ = step(state, jnp.int32(a))
+            rewards.append(float(r))
+    assert rewards and rewards[0] > sur.reward_config.r_min  # a plan that holds at least its first step
+    np.testing.assert_allclose(rewards, np.asarray(found.rewards)[:len(rewards)], atol=tol.REWARD_ATOL)
+    assert int(found.grasps[len(rewards)]) == int(state.grasp)

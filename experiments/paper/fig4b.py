@@ -33,8 +33,9 @@ from gsp_jax.planners import registry as planners
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--set", default="eval", choices=["evalA", "evalB", "eval", "val", "variations"],
-                   help="the episodes (variations: the model's nominal lift and 8 one-at-a-time variations)")
+    p.add_argument("--set", default="eval", choices=["evalA", "evalB", "eval", "val", "variations", "stress"],
+                   help="the episodes (variations: the model's nominal lift and 8 one-at-a-time variations; stress: "
+                   "120 drawn tools and tasks)")
     p.add_argument("--episodes", type=int, default=None, help="only N episodes, spread over the set")
     p.add_argument("--policies", nargs="+", default=list(planners.names("paper")), metavar="NAME",
                    help="the paper's five by default; L1-physics (C MuJoCo only) branches L1's candidates in physics")

@@ -1,7 +1,8 @@
 """A model: one hand, one tool and their grasp space, loaded once from an MJCF scene and carried everywhere.
 
 `load_model(name_or_path)` is the one door: a shipped model by name (`SHIPPED`: ``wrench``, the default, ``hammer``,
-``allegro``, ``screwdriver``; ``testhand``, a small model for the tests) or any scene file that follows the conventions
+``allegro``, ``screwdriver``, ``five`` and ``five-tips`` (a grasp space beyond the DP table, and its fingertips);
+``testhand``, a small model for the tests) or any scene file that follows the conventions
 of `docs/your-model.md`. The surrogate, the physics scene (both backends), episodes, policies, DP tables and their
 cache, the environments and every ``python -m experiments`` command (``--model NAME_OR_PATH``) are built from it, and
 nothing falls back to the shipped files: what was made for one model (an episode, a table, a policy) is refused by
@@ -26,6 +27,8 @@ SHIPPED = {"wrench": hand_lib.MODELS_DIR / "scene.xml",  # the paper's tool and 
            "hammer": hand_lib.MODELS_DIR / "hammer" / "scene.xml",  # round handle, heavy head: CoM far off the grip
            "allegro": hand_lib.MODELS_DIR / "allegro" / "scene.xml",  # the Allegro hand's kinematics, the wrench
            "screwdriver": hand_lib.MODELS_DIR / "screwdriver" / "scene.xml",  # a round grip 2 cm across
+           "five": hand_lib.MODELS_DIR / "five" / "scene.xml",  # five fingers, ten contact links: 18,432 grasps
+           "five-tips": hand_lib.MODELS_DIR / "five" / "tips.xml",  # the same hand, its five fingertips: 576 grasps
            "testhand": hand_lib.MODELS_DIR / "testhand" / "scene.xml"}  # a test model: 3 two-hinge fingers, a bar
 DEFAULT = "wrench"
 

@@ -16,7 +16,7 @@ import pytest
 import tolerances as tol
 from hazards import fitted
 from gsp_jax.model import grasps, scenario
-from gsp_jax.planning import beam, dp
+from gsp_jax.planning import beam, dp, evaluation, rollout
 from gsp_jax.surrogate.reward import RewardConfig
 from gsp_jax.surrogate.step import Surrogate
 
@@ -151,3 +151,25 @@ def test_a_space_beyond_the_table_is_planned_with_the_surrogate_s_own_rewards(ta
     assert rewards and rewards[0] > sur.reward_config.r_min  # a plan that holds at least its first step
     np.testing.assert_allclose(rewards, np.asarray(found.rewards)[:len(rewards)], atol=tol.REWARD_ATOL)
     assert int(found.grasps[len(rewards)]) == int(state.grasp)
+
+
+@pytest.mark.parametrize("name", ["analytic", "learned"])
+def test_a_sequence_is_scored_alike_with_and_without_a_table(case, name):
+    """`rollout.sequence_scores` (the surrogate's steps, what `envelope` scores with where no table is built) against
+    `dp.sequence_scores` (the table): rewards, expected return and chance to hold of the constant-tips sequence and of
+    random ones, feasible and failing."""
+    surs, eps, solved = case
+    sur, tables = surs[name], solved[name][0]
+    space, r_min = sur.space, sur.reward_config.r_min
+    score = jax.jit(jax.vmap(lambda ep, a: rollout.sequence_scores(sur, ep, a)))
+    for i in range(eps.mass.shape[0]):
+        table, ep = _one(tables, i), _one(eps, i)
+        keys = jax.random.split(jax.random.PRNGKey(i), 6)
+        seqs = [jnp.asarray(evaluation.four_tips(space, T))]
+        seqs += [dp.random_sequence(table, ep.start_grasp, k, r_min, hold) for k, hold in zip(keys, [0.0, 0.5] * 3)]
+        seqs += [jnp.asarray(evaluation.one_tip(space, T))]  # drops the tool: ends early
+        actions = jnp.stack(seqs)
+        got = score(jax.tree.map(lambda x: jnp.broadcast_to(x, (len(seqs),) + x.shape), ep), actions)
+        want = jax.vmap(dp.sequence_scores, (None, None, 0))(table, ep.start_grasp, actions)
+        for g, w in zip(got, want):
+            np.testing.assert_allclose(np.asarray(g), np.asarray(w), atol=T * tol.REWARD_ATOL)

@@ -36,7 +36,7 @@ import numpy as np
 from experiments import common
 from experiments.common import Run, table
 from gsp_jax.core import distributed, files
-from gsp_jax.planning import dp, evaluation, policies
+from gsp_jax.planning import dp, evaluation, policies, rollout
 from gsp_jax import physics
 from gsp_jax.model import scenario
 from gsp_jax.physics import c_backend
@@ -174,14 +174,18 @@ def main(args: argparse.Namespace, run: Run) -> None:
                                         *(["L1-physics", *args.bases] if args.physics_lookahead else [])])
     ctx = evaluation.context(args.set, args.episodes, args.policy_dir, model=run.model, results=common.RESULTS,
                              learned=run.learned,
-                             # the tables always: every sequence is scored
-                             **(reads | dict(tables=True, nominal=reads["nominal"] or reads["rl"])))
+                             # the tables where a planner or the random sequences read them; every sequence is
+                             # scored in them, or else by the surrogate (`rollout.sequence_scores`: a space whose
+                             # tables are too large to build, planned by `search`)
+                             **(reads | dict(tables=reads["tables"] or args.random > 0,
+                                             nominal=reads["nominal"] or reads["rl"])))
     sur, N, T = ctx.surrogate, len(ctx.names), ctx.batch.n_steps
     planners = [p for p in args.policies if p != "rl" or ctx.rl is not None]  # a model without a PPO policy: no RL row
     planners += ["L1-physics"] if args.physics_lookahead else []
     keys = jax.random.split(jax.random.PRNGKey(args.seed), N * args.random).reshape(N, args.random, 2)
     holds = jnp.where(jnp.arange(args.random) % 2 == 0, 0.0, 0.8)
-    rand = jax.vmap(jax.vmap(dp.random_sequence, (None, None, 0, None, 0)), (0, 0, 0, None, None))(
+    rand = None if not args.random else jax.vmap(jax.vmap(dp.random_sequence, (None, None, 0, None, 0)),
+                                                 (0, 0, 0, None, None))(
         ctx.tables, ctx.batch.start_grasp, keys, sur.reward_config.r_min, holds)  # (N, R, T)
     kinds = planners + [f"random{r}" for r in range(args.random)]
     phys = physics.Physics(sur, run.physics_config())
@@ -227,7 +231,11 @@ def main(args: argparse.Namespace, run: Run) -> None:
     fell, angle = sim["fell"], sim["angle_error"]
     actions = jnp.asarray(sim["actions"])  # (G, N, T)
     starts = jnp.broadcast_to(ctx.batch.start_grasp, actions.shape[:2])
-    rewards, returns, hold = jax.vmap(jax.vmap(dp.sequence_scores), (None, 0, 0))(ctx.tables, starts, actions)
+    if ctx.tables is not None:
+        rewards, returns, hold = jax.vmap(jax.vmap(dp.sequence_scores), (None, 0, 0))(ctx.tables, starts, actions)
+    else:
+        rewards, returns, hold = jax.jit(jax.vmap(jax.vmap(lambda ep, a: rollout.sequence_scores(sur, ep, a)),
+                                                  (None, 0)))(ctx.batch, actions)
     feasible = np.asarray(jnp.all(rewards > sur.reward_config.r_min, -1))  # (G, N)
     returns, hold = np.asarray(returns), np.asarray(hold)
     print(f"  physics {t_phys:.0f} s; {int(fell.sum())} falls of {fell.size} to classify ...", flush=True)

@@ -85,3 +85,21 @@ def rollout(step_model: StepModel, policy: Policy, state: State, steps: int | No
         return action, nxt, reward
 
     return walk(transition, state, steps)
+
+
+def sequence_scores(sur, episode, actions: jax.Array):
+    """`planning.dp.sequence_scores` without a DP table: (rewards (T,), expected return (), predicted chance to hold
+    ()) of an open-loop action sequence (T,) from the episode's start grasp, its T steps scored at once by the
+    surrogate `sur` (`Surrogate.transitions`: the grasps along it are known before it is scored). Rewards are 0 once
+    the sequence has ended (a fall, a collision); the return and the chance to hold count the steps before."""
+    actions = jnp.asarray(actions, jnp.int32)
+
+    def along(g, a):
+        return sur.space.apply(g, a)[0], g
+
+    _, before = jax.lax.scan(along, jnp.asarray(episode.start_grasp, jnp.int32), actions)
+    moved, rewards, done = sur.transitions(episode, before, actions)
+    alive = jnp.concatenate([jnp.ones(1, bool), ~jnp.cumsum(done)[:-1].astype(bool)])
+    risk = None if sur.learned is None else moved.terms.fall_risk
+    rewards = jnp.where(alive, rewards, 0.0)
+    return rewards, reward_lib.expected_return(rewards, risk, alive), reward_lib.held_through(risk, alive)

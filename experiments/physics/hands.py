@@ -1,4 +1,4 @@
-"""`python -m experiments hands [--models M ...] [--episodes N] [--k K]`: a hands x tools table in C MuJoCo.
+"""`python -m experiments hands [--models M ...] [--episodes N] [--k K] [--policies ...]`: a hands x tools table.
 
 Each model (a hand with a tool: the shipped `wrench`, `screwdriver` and `hammer` on the paper's four-fingered hand,
 the Allegro with the wrench and with the screwdriver, and any scene file given) runs its `variations` set (the
@@ -125,7 +125,7 @@ NAMED = {"wrench": ("four-fingered (ours)", "wrench bar"), "screwdriver": ("four
          "allegro-screwdriver": ("Allegro", "screwdriver"),
          **{f"{h}-{t}": (f"{HANDS[h].label} (Menagerie)", "wrench bar" if t == "bar" else t)
             for h, t in CELLS}}
-PLANNERS = ("dp-opt", "L1", "L1-physics")
+PLANNERS = ("dp-opt", "L1")  # the default planners, with L1-physics where --k > 0
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -136,7 +136,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="a clone of github.com/google-deepmind/mujoco_menagerie: import its Shadow, LEAP and Sharpa "
                         "Wave into their cells (examples/published/) first")
     p.add_argument("--episodes", type=int, default=None, help="only N of the 9 variations, spread over the set")
-    p.add_argument("--k", type=int, default=2, help="L1-physics: L1's K best actions branched in physics")
+    p.add_argument("--k", type=int, default=2,
+                   help="L1-physics: L1's K best actions branched in physics (0: no L1-physics column)")
+    p.add_argument("--policies", nargs="+", default=list(PLANNERS), metavar="NAME",
+                   help="the registered planners of each cell besides L1-physics (default: dp-opt L1; e.g. search "
+                        "with --k 0 on a grasp space too large for a DP table)")
 
 
 def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
@@ -144,7 +148,13 @@ def results_folders(args: argparse.Namespace) -> list[tuple[str, ...]]:
 
 
 def main(args: argparse.Namespace, run: Run) -> None:
-    from experiments import cli
+    from experiments import cli, common
+
+    common.check_planners(args.policies, "--policies", "c")
+    if args.k < 0 or "L1-physics" in args.policies:
+        raise SystemExit(f"hands: --k >= 0 gives the L1-physics column (got --k {args.k}, --policies "
+                         f"{' '.join(args.policies)})")
+    planners = [*args.policies, *(["L1-physics"] if args.k else [])]
 
     if args.menagerie:
         try:
@@ -162,14 +172,14 @@ def main(args: argparse.Namespace, run: Run) -> None:
         except model_lib.ModelError as e:
             raise SystemExit(f"--models: {e}") from None
         words = ["envelope", "--model", str(model.path), "--set", "variations", "--random", "0", "--policies",
-                 "dp-opt", "L1", "--physics-lookahead", str(args.k)]
+                 *args.policies, "--physics-lookahead", str(args.k)]
         if args.episodes:
             words += ["--episodes", str(args.episodes)]
         print(f"hands: {model.name} ...", flush=True)
         # the model's learned term where it has one (`cli._learned`), unless --paper; only the table is recorded
         nested = cli.run_command(words, dataclasses.replace(run, record=False))
         result = files.read_json(nested.results_dir("envelope") / "variations.json")
-        cells.append(_cell(model, result, term=nested.learned))
+        cells.append(_cell(model, result, term=nested.learned, planners=planners))
         # each hand's programs are its own (its arrays are constants of them): let go of them before the next, or a
         # dozen models' programs exhaust what LLVM may map
         jax.clear_caches()
@@ -178,25 +188,26 @@ def main(args: argparse.Namespace, run: Run) -> None:
     files.write_json(path, out)
     print(f"wrote {path}\n")
     run.record_figures("hands", dict(episodes=args.episodes or 9, k=args.k, cells=[
-        {key: c[key] for key in ("model", "hand", "tool", "learned", "episodes", "physics_only", *PLANNERS)}
+        {key: c[key] for key in ("model", "hand", "tool", "learned", "episodes", "physics_only", *planners)}
         for c in cells]))
     rows = [[c["hand"], c["tool"], "yes" if c["learned"] else "no",
-             *[f"{c[p]['falls']}/{c['episodes']} ({c[p]['controller']})" for p in PLANNERS], c["physics_only"]]
+             *[f"{c[p]['falls']}/{c['episodes']} ({c[p]['controller']})" for p in planners], c["physics_only"]]
             for c in cells]
-    rows += [[h, "-", "-", "-", "-", "-", why] for h, why in not_here]
-    print(table(["hand", "tool", "learned term", *[f"{p} falls (controller)" for p in PLANNERS],
+    rows += [[h, "-", "-", *["-"] * (len(planners) + 1), why] for h, why in not_here]
+    print(table(["hand", "tool", "learned term", *[f"{p} falls (controller)" for p in planners],
                  "held by L1-physics only"], rows))
 
 
-def _cell(model, result: dict, term: bool) -> dict:
+def _cell(model, result: dict, term: bool, planners=(*PLANNERS, "L1-physics")) -> dict:
     """One (hand, tool) cell of an envelope result: per planner its falls and the controller's, and the episodes
-    where L1-physics held while DP optimal or L1 fell."""
+    where L1-physics held while another of `planners` fell (none without L1-physics)."""
     hand, tool = NAMED.get(model.name, (model.name, "its own"))
     kinds = result["summary"]["kinds"]
     fell = {}
     for row in result["sequences"]:
         fell.setdefault(row["kind"], {})[row["episode"]] = row["fell"]
-    only = [e for e, f in fell.get("L1-physics", {}).items() if not f and (fell["dp-opt"][e] or fell["L1"][e])]
+    others = [p for p in planners if p != "L1-physics"]
+    only = [e for e, f in fell.get("L1-physics", {}).items() if not f and any(fell[p][e] for p in others)]
     return dict(model=model.name, hand=hand, tool=tool, learned=term, episodes=len(result["episodes"]),
                 physics_only=len(only), physics_only_episodes=only,
-                **{p: dict(falls=kinds[p]["falls"], controller=kinds[p]["controller"]) for p in PLANNERS})
+                **{p: dict(falls=kinds[p]["falls"], controller=kinds[p]["controller"]) for p in planners})

@@ -13,9 +13,10 @@ action's reward from it, floored at -`max_step_cost`: its per-step cost is persi
 grasps that hold cheaply first). Backwards, the Bellman backup (`reward.backed_up`, expectimax with the learned term)
 over the states and transitions the beam kept gives each kept state its exact value within that subgraph, and the plan
 is the best path through it: never worse than the best path the forward beam itself found, and, with the beam as
-wide as the grasp space, exactly DP's optimum (tests/test_beam.py checks both, and the search's rewards against the
-table's). A forward beam alone is not enough here: with the learned term a path's worth is its return plus its chance
-to hold times what follows, so keeping one path per grasp by the estimate can discard the better one.
+wide as the grasp space, exactly DP's optimum (tests/test_beam.py checks that, a narrow search against the same
+search run on the DP table, and the search's rewards against the table's). A forward beam alone is not enough here:
+with the learned term a path's worth is its return plus its chance to hold times what follows, so keeping one path
+per grasp by the estimate can discard the better one.
 
 Static shapes: every layer realises `expand` successors at waypoint t + 1 and `fresh` at waypoint t (the successors
 the layer before did not realise there), padded; successors beyond them (the lowest-ranked parents' last) are left out
